@@ -1,0 +1,129 @@
+//! Build script.
+//!
+//! Always: generate and compile the C++ side of the cxx bridge (`src/ffi/mod.rs`).
+//!
+//! With `--features mitsuba`: compile the Mitsuba plugin shims (`plugins/*.cpp`,
+//! `cpp/*.cpp`) against the headers shipped in the `mitsuba==3.8.0` / `drjit==1.3.1`
+//! wheels and link them, whole-archive, into `libfluo.so` (the cdylib only).
+//! The wheels are found through a Python interpreter: `$FLUO_PYTHON`, else the
+//! project's `.venv/bin/python`. Shims are compiled with `-msse4.2`, the wheel's ABI:
+//! without it `Spectrum`/`Color` layouts differ and renders come out black.
+
+use std::env;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn main() {
+    println!("cargo:rerun-if-changed=build.rs");
+    println!("cargo:rerun-if-changed=src/ffi/mod.rs");
+    println!("cargo:rerun-if-env-changed=FLUO_PYTHON");
+
+    cxx_build::bridge("src/ffi/mod.rs").std("c++17").flag_if_supported("-msse4.2").compile("fluo_bridge");
+
+    if env::var_os("CARGO_FEATURE_MITSUBA").is_some() {
+        build_plugins();
+    }
+}
+
+/// Include and library directories of the Mitsuba/Dr.Jit/nanobind wheels.
+struct Wheels {
+    mitsuba: PathBuf,
+    drjit: PathBuf,
+    nanobind: PathBuf,
+}
+
+fn find_wheels(manifest: &Path) -> Wheels {
+    let python = env::var_os("FLUO_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| manifest.join(".venv/bin/python"));
+    let script = "import importlib.util as u\n\
+                  for m in ('mitsuba', 'drjit', 'nanobind'):\n\
+                  \x20   s = u.find_spec(m)\n\
+                  \x20   print(list(s.submodule_search_locations)[0] if s else '')\n";
+    let out = Command::new(&python).arg("-c").arg(script).output().unwrap_or_else(|e| {
+        panic!(
+            "feature `mitsuba`: cannot run Python at {} ({e}); set FLUO_PYTHON to a Python with \
+             mitsuba==3.8.0, drjit==1.3.1 and nanobind installed (scripts/setup.sh does this)",
+            python.display()
+        )
+    });
+    let text = String::from_utf8_lossy(&out.stdout);
+    let dirs: Vec<PathBuf> = text.lines().map(PathBuf::from).collect();
+    if !out.status.success() || dirs.len() != 3 || dirs.iter().any(|d| d.as_os_str().is_empty()) {
+        panic!(
+            "feature `mitsuba`: {} lacks one of mitsuba, drjit, nanobind (found {:?}; stderr: {})",
+            python.display(),
+            dirs,
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    Wheels { mitsuba: dirs[0].clone(), drjit: dirs[1].clone(), nanobind: dirs[2].clone() }
+}
+
+fn cpp_sources(dir: &Path) -> Vec<PathBuf> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
+        .unwrap_or_default();
+    files.retain(|p| p.extension().is_some_and(|e| e == "cpp"));
+    files.sort();
+    files
+}
+
+fn build_plugins() {
+    let manifest = PathBuf::from(env::var("CARGO_MANIFEST_DIR").expect("CARGO_MANIFEST_DIR"));
+    let out_dir = PathBuf::from(env::var("OUT_DIR").expect("OUT_DIR"));
+    let w = find_wheels(&manifest);
+    for d in ["plugins", "cpp"] {
+        println!("cargo:rerun-if-changed={d}");
+    }
+
+    let mut sources = cpp_sources(&manifest.join("plugins"));
+    sources.extend(cpp_sources(&manifest.join("cpp")));
+    for s in &sources {
+        println!("cargo:rerun-if-changed={}", s.display());
+    }
+
+    cc::Build::new()
+        .cpp(true)
+        .std("c++17")
+        .files(&sources)
+        .include(manifest.join("cpp"))
+        .include(out_dir.join("cxxbridge/include"))
+        .include(out_dir.join("cxxbridge/crate"))
+        .include(w.mitsuba.join("include"))
+        .include(w.drjit.join("include"))
+        .include(w.nanobind.join("include"))
+        .include(w.nanobind.join("ext/robin_map/include"))
+        .flag("-msse4.2")
+        .flag("-fPIC")
+        .flag_if_supported("-fno-math-errno")
+        .warnings(false)
+        .cargo_metadata(false)
+        .compile("fluo_plugins");
+
+    // Only the cdylib gets the shims and Mitsuba; the rlib, the tests and the fluo-rs
+    // tool stay pure Rust. The bridge and cxx runtime libraries are listed again after
+    // the whole-archive shims so their symbols resolve; -z defs turns any missing
+    // symbol into a link error instead of a dlopen failure.
+    let (m, d) = (w.mitsuba.display(), w.drjit.display());
+    for arg in [
+        "-Wl,--whole-archive".to_string(),
+        out_dir.join("libfluo_plugins.a").display().to_string(),
+        "-Wl,--no-whole-archive".to_string(),
+        format!("-L{}", out_dir.display()),
+        "-lfluo_bridge".to_string(),
+        "-lcxxbridge1".to_string(),
+        format!("-L{m}"),
+        format!("-L{d}"),
+        "-lmitsuba".to_string(),
+        "-ldrjit-core".to_string(),
+        "-ldrjit-extra".to_string(),
+        "-lnanothread".to_string(),
+        format!("-Wl,-rpath,{m}"),
+        format!("-Wl,-rpath,{d}"),
+        "-lstdc++".to_string(),
+        "-Wl,-z,defs".to_string(),
+    ] {
+        println!("cargo:rustc-link-arg-cdylib={arg}");
+    }
+}

@@ -1,0 +1,102 @@
+// Shared helpers for the fluo Mitsuba plugin shims.
+//
+// The shims are thin: they parse Mitsuba Properties, hand the numbers to the Rust
+// core through the cxx bridge (fluo/src/ffi/mod.rs.h), and evaluate Mitsuba textures.
+// They serve the scalar variants only (Dr.Jit cannot trace calls into Rust).
+#pragma once
+
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/spectrum.h>
+
+#include <array>
+#include <string>
+
+#include "fluo/src/ffi/mod.rs.h"
+#include "rust/cxx.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// Call into Rust; a Rust error (cxx's rust::Error) becomes a Mitsuba exception
+/// that names the plugin and carries the Rust message.
+template <typename F> auto rust_call(const char *plugin, F &&f) -> decltype(f()) {
+    try {
+        return f();
+    } catch (const rust::Error &e) {
+        Throw("%s: %s", plugin, e.what());
+    }
+}
+
+/// Read a scalar float property with a default, rejecting non-numeric input with a
+/// message that names the parameter.
+inline double get_float(const char *plugin, const Properties &props, const char *name, double def) {
+    if (!props.has_property(name))
+        return def;
+    try {
+        return (double) props.get<float>(name);
+    } catch (const std::exception &e) {
+        Throw("%s: parameter \"%s\" must be a number (%s)", plugin, name, e.what());
+    }
+}
+
+/// Parse "a, b, c" (commas and/or spaces) into exactly N doubles.
+template <size_t N>
+std::array<double, N> parse_list(const char *plugin, const char *name, const std::string &text) {
+    std::array<double, N> out{};
+    std::string s = text;
+    for (char &c : s)
+        if (c == ',')
+            c = ' ';
+    const char *p = s.c_str();
+    size_t n = 0;
+    while (true) {
+        while (*p == ' ' || *p == '\t' || *p == '\n')
+            ++p;
+        if (*p == '\0')
+            break;
+        char *end = nullptr;
+        double v = std::strtod(p, &end);
+        if (end == p || n == N)
+            Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers", plugin, name,
+                  text, N);
+        out[n++] = v;
+        p = end;
+    }
+    if (n != N)
+        Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers (got %zu)", plugin, name,
+              text, N, n);
+    return out;
+}
+
+/// Wavelengths of a spectral-variant interaction as a float array.
+template <typename Wavelength> std::array<float, 4> wavelengths_of(const Wavelength &w) {
+    std::array<float, 4> out{};
+    for (size_t i = 0; i < 4; ++i)
+        out[i] = w[i];
+    return out;
+}
+
+inline rust::Slice<const float> slice(const std::array<float, 4> &a) {
+    return rust::Slice<const float>(a.data(), a.size());
+}
+inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
+    return rust::Slice<float>(a.data(), a.size());
+}
+
+/// Register plugin class template T for the two scalar variants.
+template <template <typename, typename> class T>
+void register_scalar_plugin(const char *name, ObjectType type) {
+    PluginManager *pm = PluginManager::instance();
+    pm->register_plugin(
+        name, "scalar_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "scalar_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Spectrum<float, 4>>(p); },
+        nullptr, nullptr);
+}
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)

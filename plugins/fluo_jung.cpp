@@ -1,0 +1,258 @@
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/warp.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/texture.h>
+
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _bsdf-fluo_jung:
+
+Diffuse fluorescent material (:monosp:`fluo_jung`)
+--------------------------------------------------
+
+.. pluginparameters::
+
+ * - reflectance
+   - |spectrum| or |texture|
+   - Reflectance r(λ) of the non-fluorescent (elastic) part. (Default: 0.5)
+     Mutually exclusive with ``coefficients``.
+ * - coefficients
+   - |string|
+   - Alternative to ``reflectance``: Jakob–Hanika sigmoid-polynomial coefficients
+     "c0, c1, c2" with r(λ) = S(c0 λ² + c1 λ + c2), λ in nm (Jung et al. 2019, eq. 2).
+ * - emission_peak
+   - |float|
+   - Emission peak wavelength λe in nm, in [200, 1200]. (Default: 520)
+ * - stokes_shift
+   - |float|
+   - Stokes shift s in nm (distance from absorption peak to emission peak), in
+     [0.001, s_max) where s_max keeps 2λe − s > 0 and the absorption band above 1 nm.
+     (Default: 60)
+ * - concentration
+   - |float|
+   - Fluorophore concentration (mixing factor) c in [0, 1]. c = 0 is exactly
+     Mitsuba's ``diffuse``. (Default: 0.5)
+ * - quantum_yield
+   - |float|
+   - Quantum yield Q in [0, 1]. (Default: 0.96, the paper's fixed value)
+
+The diffuse fluorescent BBRRDF of Jung, Hanika & Dachsbacher (2018), as used by
+Jung et al., "Wide Gamut Spectral Upsampling with Fluorescence" (CGF 2019), eq. 1:
+
+.. math::
+
+    f(λ_i, ω_i, ω_o, λ_o) = \frac{δ(λ_i − λ_o)(1 − c\,a(λ_i))\,r(λ_i) + c\,a(λ_i)\,Q\,e(λ_o)}{π}
+
+with a b-spline emission spectrum e (unit integral, eq. 5) and an absorption spectrum
+a (peak 1, eq. 6) that mirrors it over wavenumber, touching but not overlapping it.
+The physics (equations, sampling, validation) lives in the Rust core, ``src/jung.rs``.
+
+What this plugin computes in each variant:
+
+- ``scalar_spectral``: the elastic part (1 − c a(λ)) r(λ) / π at each hero
+  wavelength, like ``diffuse`` otherwise (cosine-weighted sampling). Light that the
+  fluorophore absorbs is removed here; its re-emission at longer wavelengths needs
+  the wavelength-shifting ``fluo_path`` integrator.
+- ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
+  to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
+  sRGB[r (1 − c a) + c Q e ∫a]. With a textured ``reflectance`` the elastic part is
+  approximated per channel as texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r).
+
+Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
+``reflectance`` and ``coefficients``) raise an error naming the parameter, its value
+and the valid range.
+
+.. tabs::
+    .. code-tab:: xml
+        :name: fluo-jung
+
+        <bsdf type="fluo_jung">
+            <rgb name="reflectance" value="0.6, 0.6, 0.6"/>
+            <float name="emission_peak" value="520"/>
+            <float name="stokes_shift" value="80"/>
+            <float name="concentration" value="0.8"/>
+        </bsdf>
+
+    .. code-tab:: python
+
+        'type': 'fluo_jung',
+        'coefficients': '0.0, 0.0, 2.0',
+        'emission_peak': 610.0,
+        'stokes_shift': 90.0
+*/
+template <typename Float, typename Spectrum>
+class FluoJung final : public BSDF<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(BSDF, m_flags, m_components)
+    MI_IMPORT_TYPES(Texture)
+
+    static constexpr const char *Plugin = "fluo_jung";
+
+    FluoJung(const Properties &props) : Base(props) {
+        using namespace fluo_detail;
+        m_config.emission_peak = get_float(Plugin, props, "emission_peak", 520.0);
+        m_config.stokes_shift  = get_float(Plugin, props, "stokes_shift", 60.0);
+        m_config.concentration = get_float(Plugin, props, "concentration", 0.5);
+        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", 0.96);
+        m_config.has_coefficients = props.has_property("coefficients");
+        if (m_config.has_coefficients) {
+            if (props.has_property("reflectance"))
+                Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", Plugin);
+            auto c = parse_list<3>(Plugin, "coefficients",
+                                   std::string(props.get<std::string_view>("coefficients")));
+            m_config.c0 = c[0];
+            m_config.c1 = c[1];
+            m_config.c2 = c[2];
+        } else {
+            m_reflectance = props.get_texture<Texture>("reflectance", .5f);
+        }
+        m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
+        m_components.push_back(m_flags);
+        rebuild();
+    }
+
+    void traverse(TraversalCallback *cb) override {
+        if (m_reflectance)
+            cb->put("reflectance", m_reflectance, ParamFlags::NonDifferentiable);
+        cb->put("emission_peak", m_emission_peak, ParamFlags::NonDifferentiable);
+        cb->put("stokes_shift", m_stokes_shift, ParamFlags::NonDifferentiable);
+        cb->put("concentration", m_concentration, ParamFlags::NonDifferentiable);
+        cb->put("quantum_yield", m_quantum_yield, ParamFlags::NonDifferentiable);
+    }
+
+    void parameters_changed(const std::vector<std::string> & /*keys*/) override {
+        m_config.emission_peak = m_emission_peak;
+        m_config.stokes_shift  = m_stokes_shift;
+        m_config.concentration = m_concentration;
+        m_config.quantum_yield = m_quantum_yield;
+        rebuild();
+    }
+
+    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                             Float /* sample1 */, const Point2f &sample2,
+                                             Mask active) const override {
+        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
+        active &= Frame3f::cos_theta(si.wi) > 0.f;
+        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
+            return { bs, 0.f };
+
+        bs.wo = warp::square_to_cosine_hemisphere(sample2);
+        bs.pdf = warp::square_to_cosine_hemisphere_pdf(bs.wo);
+        bs.eta = 1.f;
+        bs.sampled_type = +BSDFFlags::DiffuseReflection;
+        bs.sampled_component = 0;
+        if (!(bs.pdf > 0.f))
+            return { bs, 0.f };
+        return { bs, depolarizer<Spectrum>(albedo(si, active)) };
+    }
+
+    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                  Mask active) const override {
+        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
+        active &= cos_i > 0.f && cos_o > 0.f;
+        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
+            return 0.f;
+        return depolarizer<Spectrum>(albedo(si, active) * dr::InvPi<Float> * cos_o);
+    }
+
+    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+              Mask active) const override {
+        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
+        active &= cos_i > 0.f && cos_o > 0.f;
+        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
+            return 0.f;
+        return warp::square_to_cosine_hemisphere_pdf(wo);
+    }
+
+    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                        const Vector3f &wo, Mask active) const override {
+        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
+        active &= cos_i > 0.f && cos_o > 0.f;
+        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
+            return { 0.f, 0.f };
+        return { depolarizer<Spectrum>(albedo(si, active) * dr::InvPi<Float> * cos_o),
+                 warp::square_to_cosine_hemisphere_pdf(wo) };
+    }
+
+    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {
+        return depolarizer<Spectrum>(albedo(si, active));
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "FluoJung[" << std::endl
+            << "  model = " << std::string(fluo::jung_to_string(*m_model)) << "," << std::endl;
+        if (m_reflectance)
+            oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
+        oss << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(FluoJung)
+
+private:
+    /// Validate the configuration in Rust and precompute what each variant needs.
+    void rebuild() {
+        m_model = fluo_detail::rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
+        m_emission_peak = (ScalarFloat) m_config.emission_peak;
+        m_stokes_shift  = (ScalarFloat) m_config.stokes_shift;
+        m_concentration = (ScalarFloat) m_config.concentration;
+        m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
+        // c = 0 leaves the elastic part untouched: skip the Rust call per interaction.
+        m_modifies_reflectance = m_config.concentration > 0.0;
+        if constexpr (is_rgb_v<Spectrum>) {
+            auto to_color = [](const fluo::Rgb &c) {
+                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+            };
+            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
+            m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
+            m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
+        }
+    }
+
+    /// Directional-hemispherical albedo served to Mitsuba (see the doc comment).
+    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (!m_reflectance)
+                return m_rgb_albedo;
+            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
+            if (!m_modifies_reflectance)
+                return r;
+            return r * m_rgb_elastic_scale + m_rgb_fluorescence;
+        } else {
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+            if (!m_reflectance) {
+                fluo::jung_elastic_albedo(*m_model, fluo_detail::slice(lambda),
+                                          fluo_detail::slice_mut(out));
+                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            }
+            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
+            if (!m_modifies_reflectance)
+                return r;
+            fluo::jung_elastic_factor(*m_model, fluo_detail::slice(lambda),
+                                      fluo_detail::slice_mut(out));
+            return r * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+        }
+    }
+
+    fluo::JungConfig m_config{};
+    rust::Box<fluo::JungModel> m_model = fluo_detail::rust_call(Plugin, [] {
+        fluo::JungConfig c{};
+        c.emission_peak = 520.0; c.stokes_shift = 60.0; c.quantum_yield = 0.96;
+        return fluo::jung_new(c);
+    });
+    ref<Texture> m_reflectance;
+    ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
+                m_quantum_yield = 0.f;
+    bool m_modifies_reflectance = false;
+    Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f;
+};
+
+static const bool fluo_jung_registered =
+    (fluo_detail::register_scalar_plugin<FluoJung>("fluo_jung", ObjectType::BSDF), true);
+
+NAMESPACE_END(mitsuba)

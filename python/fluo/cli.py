@@ -1,0 +1,294 @@
+"""The ``fluo`` command line.
+
+Python subcommands:
+
+``render``
+    Render one scene file in a scalar variant, write an EXR (or whatever the ``-o``
+    extension says) plus an sRGB PNG beside it, and print the written paths.
+``demo``
+    Render every ``scenes/*.xml`` in every scalar variant it allows into ``out/``.
+
+Every other subcommand (``patch``, ``qd``, ``fit-gmm``, ``reduce``, ...) is forwarded
+verbatim to the ``fluo-rs`` physics tool, whose stdout, stderr and exit status pass
+through unchanged.
+
+A scene restricts the variants ``demo`` renders it in with an XML comment::
+
+    <!-- fluo: variants=scalar_spectral -->
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import mitsuba as mi
+
+from . import repo_root, tool_path
+
+#: Subcommands implemented here; anything else goes to fluo-rs.
+PYTHON_COMMANDS = ("render", "demo")
+#: Variants the plugins are registered for (and that ``demo`` renders).
+VARIANTS = ("scalar_spectral", "scalar_rgb")
+#: Examples of subcommands that fluo-rs implements (shown in ``--help``).
+FORWARDED_EXAMPLES = ("patch", "qd", "fit-gmm", "reduce")
+#: Seconds to wait for ``fluo-rs --help`` while printing ``fluo --help``.
+TOOL_HELP_TIMEOUT_S = 10.0
+
+_VARIANTS_COMMENT = re.compile(r"<!--\s*fluo:\s*variants\s*=\s*([^>]*?)\s*-->")
+_LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+# ---------------------------------------------------------------------------- parser
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="fluo",
+        description="Fluorescent materials for Mitsuba 3: render scenes, run the physics tool.",
+        epilog=(
+            f"Any other subcommand (e.g. {', '.join(FORWARDED_EXAMPLES)}) is forwarded "
+            f"verbatim to fluo-rs ({tool_path()}); its commands are listed below."
+        ),
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    render = sub.add_parser(
+        "render",
+        help="render one scene (EXR + PNG)",
+        description="Render SCENE with mi.render and write PATH plus a PNG beside it.",
+    )
+    render.add_argument("scene", type=Path, metavar="SCENE", help="scene XML file")
+    render.add_argument("--variant", choices=VARIANTS, required=True)
+    render.add_argument("--spp", type=_positive_int, required=True, metavar="N",
+                        help="samples per pixel")
+    render.add_argument("-o", "--output", type=Path, required=True, metavar="PATH",
+                        help="output image; EXR if it ends in .exr (a PNG is written beside it)")
+    render.add_argument("--seed", type=int, default=0, metavar="S",
+                        help="sampler seed (default: 0)")
+    render.add_argument("--param", action="append", default=[], type=_parse_param,
+                        metavar="KEY=VALUE",
+                        help="scene parameter ($KEY in the XML); repeatable")
+    render.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bar or Mitsuba info messages")
+    render.set_defaults(run=_cmd_render)
+
+    demo = sub.add_parser(
+        "demo",
+        help="render every scenes/*.xml in both scalar variants",
+        description=(
+            "Render every SCENES/*.xml (not subfolders) in scalar_spectral and scalar_rgb "
+            "into OUT/<scene>_<variant>.exr and .png, each in a fresh process. A comment "
+            "'<!-- fluo: variants=scalar_spectral -->' in a scene restricts its variants."
+        ),
+    )
+    demo.add_argument("--spp", type=_positive_int, default=64, metavar="N",
+                      help="samples per pixel (default: 64)")
+    demo.add_argument("--out", type=Path, default=repo_root() / "out", metavar="DIR",
+                      help="output directory (default: <repo>/out)")
+    demo.add_argument("--scenes", type=Path, default=repo_root() / "scenes", metavar="DIR",
+                      help="scene directory (default: <repo>/scenes)")
+    demo.set_defaults(run=_cmd_demo)
+    return parser
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
+    return value
+
+
+def _parse_param(text: str) -> tuple[str, int | float | str]:
+    """``key=value`` -> ``(key, value)`` with value an int, else a float, else a string."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key:
+        raise argparse.ArgumentTypeError(f"expected KEY=VALUE, got {text!r}")
+    for convert in (int, float):
+        try:
+            return key, convert(raw)
+        except ValueError:
+            pass
+    return key, raw
+
+
+def _print_help(parser: argparse.ArgumentParser) -> None:
+    parser.print_help()
+    print("\nfluo-rs commands (forwarded):")
+    tool = tool_path()
+    if not tool.is_file():
+        print(f"  (fluo-rs is not built at {tool}; run bash scripts/setup.sh)")
+        return
+    try:
+        proc = subprocess.run([str(tool), "--help"], capture_output=True, text=True,
+                              timeout=TOOL_HELP_TIMEOUT_S, check=False)
+    except (OSError, subprocess.TimeoutExpired) as err:
+        print(f"  (could not run {tool} --help: {err})")
+        return
+    text = (proc.stdout or proc.stderr).rstrip()
+    print("\n".join("  " + line for line in text.splitlines()) or "  (no output)")
+
+
+# ---------------------------------------------------------------------------- render
+
+
+class _StderrAppender(mi.Appender):
+    """Sends Mitsuba's log and progress bar to stderr (stdout is for output paths)."""
+
+    def append(self, level, text):
+        sys.stderr.write(text.rstrip("\n") + "\n")
+        sys.stderr.flush()
+
+    def log_progress(self, progress, name, formatted, eta, ptr=None):
+        # `formatted` is a full bar; redraw it in place on one line.
+        sys.stderr.write("\r" + formatted.strip("\r\n"))
+        if progress >= 1.0:
+            sys.stderr.write("\n")
+        sys.stderr.flush()
+
+
+_APPENDER: _StderrAppender | None = None  # kept alive for the logger
+
+
+def _log_to_stderr(level) -> None:
+    global _APPENDER
+    logger = mi.logger() if hasattr(mi, "logger") else mi.Thread.thread().logger()
+    _APPENDER = _StderrAppender()
+    logger.clear_appenders()
+    logger.add_appender(_APPENDER)
+    logger.set_log_level(level)
+
+
+def render_to_files(scene_path: Path, variant: str, spp: int, output: Path,
+                    seed: int = 0, params: dict | None = None) -> list[Path]:
+    """Render ``scene_path`` and write ``output`` plus a PNG beside it; return the paths.
+
+    Sets the Mitsuba variant, so call it once per process (as ``fluo render`` does).
+    """
+    mi.set_variant(variant)
+    import fluo  # noqa: F401  (loads libfluo.so: registers the fluo_* plugins)
+
+    scene = mi.load_file(str(scene_path), **(params or {}))
+    image = mi.render(scene, spp=spp, seed=seed)
+
+    output.parent.mkdir(parents=True, exist_ok=True)
+    written = []
+    if output.suffix.lower() in _LDR_SUFFIXES:
+        mi.util.write_bitmap(str(output), image[..., :3], write_async=False)
+    else:
+        # The film's own bitmap keeps channel names (AOVs) in the EXR.
+        scene.sensors()[0].film().bitmap().write(str(output))
+    written.append(output)
+
+    png = output.with_suffix(".png")
+    if png != output:
+        # sRGB gamma, clamped, 8 bit; the first three channels are the image.
+        mi.util.write_bitmap(str(png), image[..., :3], write_async=False)
+        written.append(png)
+    return written
+
+
+def _cmd_render(args: argparse.Namespace) -> int:
+    _log_to_stderr(mi.LogLevel.Warn if args.quiet else mi.LogLevel.Info)
+    if not args.scene.is_file():
+        print(f"fluo render: error: no scene file {args.scene}", file=sys.stderr)
+        return 1
+    try:
+        paths = render_to_files(args.scene, args.variant, args.spp, args.output,
+                                seed=args.seed, params=dict(args.param))
+    except RuntimeError as err:  # Mitsuba's errors: XML, plugin parameters, I/O
+        print(f"fluo render: error: {err}", file=sys.stderr)
+        return 1
+    for path in paths:
+        print(path)
+    return 0
+
+
+# ---------------------------------------------------------------------------- demo
+
+
+def scene_variants(scene: Path) -> tuple[str, ...]:
+    """Variants ``demo`` renders ``scene`` in: all of :data:`VARIANTS`, unless a
+    ``<!-- fluo: variants=a,b -->`` comment restricts them."""
+    match = _VARIANTS_COMMENT.search(scene.read_text(encoding="utf-8"))
+    if match is None:
+        return VARIANTS
+    wanted = {name.strip() for name in match.group(1).split(",") if name.strip()}
+    unknown = wanted - set(VARIANTS)
+    if unknown:
+        print(f"fluo demo: {scene.name}: ignoring unknown variants {sorted(unknown)}",
+              file=sys.stderr)
+    return tuple(v for v in VARIANTS if v in wanted)
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    args.out = args.out.resolve()
+    scenes = sorted(args.scenes.glob("*.xml"))
+    if not scenes:
+        print(f"fluo demo: no scenes in {args.scenes}", file=sys.stderr)
+        return 1
+    written: list[str] = []
+    failed: list[str] = []
+    for scene in scenes:
+        allowed = scene_variants(scene)
+        for variant in VARIANTS:
+            label = f"{scene.name} [{variant}]"
+            if variant not in allowed:
+                print(f"fluo demo: skipping {label} (scene allows {', '.join(allowed)})",
+                      file=sys.stderr)
+                continue
+            print(f"fluo demo: rendering {label} at {args.spp} spp", file=sys.stderr)
+            output = args.out / f"{scene.stem}_{variant}.exr"
+            cmd = [sys.executable, "-m", "fluo", "render", str(scene), "--variant", variant,
+                   "--spp", str(args.spp), "-o", str(output)]
+            # stderr (progress, errors) goes to the terminal; stdout is the paths.
+            proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
+            if proc.returncode != 0:
+                failed.append(label)
+                print(f"fluo demo: FAILED {label} (exit status {proc.returncode})",
+                      file=sys.stderr)
+                continue
+            written.extend(line for line in proc.stdout.splitlines() if line.strip())
+    print("Written:" if written else "Nothing written.")
+    for path in written:
+        print(f"  {path}")
+    if failed:
+        print(f"Failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+# ---------------------------------------------------------------------------- main
+
+
+def _forward(argv: list[str]) -> int:
+    """Run ``fluo-rs argv...`` with inherited stdio and return its exit status."""
+    tool = tool_path()
+    if not tool.is_file():
+        print(f"fluo: '{argv[0]}' is not a Python subcommand and fluo-rs is not built "
+              f"at {tool}; run bash scripts/setup.sh", file=sys.stderr)
+        return 127
+    try:
+        return subprocess.run([str(tool), *argv], check=False).returncode
+    except KeyboardInterrupt:
+        return 130
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the ``fluo`` console script and ``python -m fluo``."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and not argv[0].startswith("-") and argv[0] not in PYTHON_COMMANDS:
+        return _forward(argv)
+    parser = _parser()
+    if not argv or argv[0] in ("-h", "--help"):
+        _print_help(parser)
+        return 0 if argv else 2
+    args = parser.parse_args(argv)
+    return args.run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

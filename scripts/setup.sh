@@ -1,0 +1,49 @@
+#!/usr/bin/env bash
+# Set up everything on a fresh machine; safe to re-run (each step is skipped or
+# incremental when already done):
+#   1. .venv with Python >= 3.11,
+#   2. the pinned Python dependencies + pytest + this project (editable) into it,
+#   3. cargo build --release --features mitsuba -> target/release/libfluo.so, fluo-rs.
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+say() { printf '[setup] %s\n' "$*"; }
+
+# 1. Virtual environment.
+if [[ ! -x .venv/bin/python ]]; then
+    python=${PYTHON:-}
+    if [[ -z $python ]]; then
+        if command -v python3.11 >/dev/null 2>&1; then python=python3.11; else python=python3; fi
+    fi
+    if ! "$python" -c 'import sys; sys.exit(sys.version_info < (3, 11))'; then
+        say "error: $python is $("$python" --version 2>&1); Python >= 3.11 is required" >&2
+        exit 1
+    fi
+    say "creating .venv with $("$python" --version 2>&1)"
+    "$python" -m venv .venv
+fi
+
+# 2. Python packages; the stamp names the pyproject.toml they were installed for.
+hash=$(sha256sum pyproject.toml | cut -c1-16)
+stamp=".venv/.fluo-deps-$hash"
+if [[ -e $stamp ]]; then
+    say "python packages up to date ($stamp)"
+else
+    say "installing mitsuba==3.8.0, drjit==1.3.1, numpy, pytest and fluo (editable) into .venv"
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[test]'
+    rm -f .venv/.fluo-deps-*
+    touch "$stamp"
+fi
+
+# 3. Rust core, C++ shims, plugin library and tool (build.rs finds the wheel's headers
+#    through FLUO_PYTHON).
+say "cargo build --release --features mitsuba"
+FLUO_PYTHON="$PWD/.venv/bin/python" cargo build --release --features mitsuba
+
+for artefact in target/release/libfluo.so target/release/fluo-rs; do
+    if [[ ! -e $artefact ]]; then
+        say "error: the build did not produce $artefact" >&2
+        exit 1
+    fi
+done
+say "ready: $PWD/target/release/libfluo.so, $PWD/target/release/fluo-rs, $PWD/.venv/bin/fluo"

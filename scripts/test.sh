@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# Run all tests: set up (scripts/setup.sh), pure-Rust tests (cargo test --release),
+# then the Python/Mitsuba tests (pytest tests/python; extra args are passed to pytest).
+# Every suite runs; the exit status is non-zero if any failed, or if pytest collected
+# no tests (its status 5).
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+
+bash scripts/setup.sh
+# Same environment as the setup build, so cargo does not rerun build.rs needlessly.
+export FLUO_PYTHON="$PWD/.venv/bin/python"
+
+failed=()
+
+echo "[test] cargo test --release"
+cargo test --release || failed+=("cargo test")
+
+echo "[test] pytest tests/python"
+status=0
+.venv/bin/python -m pytest tests/python -q "$@" || status=$?
+if (( status == 5 )); then
+    echo "[test] pytest collected no tests" >&2
+fi
+(( status == 0 )) || failed+=("pytest (exit status $status)")
+
+if (( ${#failed[@]} )); then
+    echo "[test] FAILED: ${failed[*]}" >&2
+    exit 1
+fi
+echo "[test] all passed"
