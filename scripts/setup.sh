@@ -29,8 +29,8 @@ stamp=".venv/.fluo-deps-$hash"
 if [[ -e $stamp ]]; then
     say "python packages up to date ($stamp)"
 else
-    say "installing mitsuba==3.8.0, drjit==1.3.1, numpy, pytest and fluo (editable) into .venv"
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[test]'
+    say "installing mitsuba==3.8.0, drjit==1.3.1, nanobind, numpy, pytest and fluo (editable) into .venv"
+    .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[test,build]'
     rm -f .venv/.fluo-deps-*
     touch "$stamp"
 fi

@@ -12,8 +12,10 @@ export FLUO_PYTHON="$PWD/.venv/bin/python"
 
 failed=()
 
-echo "[test] cargo test --release"
-cargo test --release || failed+=("cargo test")
+# Same features as the setup build: a featureless build would replace
+# target/release/libfluo.so with a library that has no plugins in it.
+echo "[test] cargo test --release --features mitsuba"
+cargo test --release --features mitsuba || failed+=("cargo test")
 
 echo "[test] pytest tests/python"
 status=0
