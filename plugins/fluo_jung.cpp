@@ -124,11 +124,15 @@ public:
         cb->put("quantum_yield", m_quantum_yield, ParamFlags::NonDifferentiable);
     }
 
-    void parameters_changed(const std::vector<std::string> & /*keys*/) override {
-        m_config.emission_peak = m_emission_peak;
-        m_config.stokes_shift  = m_stokes_shift;
-        m_config.concentration = m_concentration;
-        m_config.quantum_yield = m_quantum_yield;
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        // Copy back only what changed, so untouched values keep their double precision.
+        auto changed = [&](const char *name) {
+            return keys.empty() || string::contains(keys, name);
+        };
+        if (changed("emission_peak")) m_config.emission_peak = m_emission_peak;
+        if (changed("stokes_shift"))  m_config.stokes_shift  = m_stokes_shift;
+        if (changed("concentration")) m_config.concentration = m_concentration;
+        if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
         rebuild();
     }
 

@@ -1,0 +1,276 @@
+"""Tests of the fluo_jung plugin (Jung et al. 2019, eq. 1) in both scalar variants.
+
+References used here are independent of the Rust core: the model's equations 2-6
+re-implemented in numpy straight from the paper, Mitsuba's own spectrum -> sRGB
+conversion, and Mitsuba's native ``diffuse`` BSDF (the c = 0 limit).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+VARIANTS = ("scalar_spectral", "scalar_rgb")
+
+
+# ---------------------------------------------------------------- reference model
+def bspline(x):
+    """Jung et al. 2019, eq. 3."""
+    x = np.abs(np.asarray(x, dtype=np.float64))
+    return np.where(x <= 1, 1 - x**2 / 3, np.where(x < 3, (3 - x) ** 2 / 6, 0.0))
+
+
+def ref_alpha(le, s):
+    return le * s / (2 * le - s)  # eq. 4
+
+
+def ref_emission(lam, le, s):
+    a = ref_alpha(le, s)
+    return bspline(3 / a * (np.asarray(lam, float) - le)) * 9 / (8 * a)  # eq. 5
+
+
+def ref_absorption(lam, le, s):
+    """Eq. 6 as printed: b(3/α ((2/(λe−α) − 1/λ)⁻¹ − λe)), zero where the mirror is undefined."""
+    a = ref_alpha(le, s)
+    lam = np.asarray(lam, float)
+    denom = 2 / (le - a) - 1 / lam
+    mirrored = np.where(denom > 0, 1 / np.where(denom > 0, denom, 1), np.inf)
+    out = bspline(3 / a * (mirrored - le))
+    # the mirror maps the emission's long half onto λ > λe − α; absorption lives below it
+    return np.where(lam < le - a, out, 0.0)
+
+
+def ref_sigmoid(lam, c):
+    x = c[0] * np.asarray(lam, float) ** 2 + c[1] * lam + c[2]
+    return 0.5 + x / (2 * np.sqrt(1 + x * x))  # eq. 2
+
+
+def surface_interaction(wavelengths=(400.0, 450.0, 500.0, 600.0), wi=(0, 0, 1)):
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.wi = mi.Vector3f(*wi)
+    si.n = mi.Vector3f(0, 0, 1)
+    si.sh_frame = mi.Frame3f(si.n)
+    if dr.size_v(mi.Spectrum) == 4:
+        si.wavelengths = mi.Spectrum(*wavelengths)
+    return si
+
+
+def jung(**kw):
+    return mi.load_dict({"type": "fluo_jung", **kw})
+
+
+# ------------------------------------------------------------------------- tests
+@pytest.mark.parametrize("variant", VARIANTS)
+def test01_create(variant):
+    mi.set_variant(variant)
+    b = jung()
+    assert b is not None
+    text = str(b)
+    for part in ("emission_peak = 520", "stokes_shift = 60", "concentration = 0.5"):
+        assert part in text, text
+    assert b.flags() & mi.BSDFFlags.DiffuseReflection
+    params = mi.traverse(b)
+    for key in ("emission_peak", "stokes_shift", "concentration", "quantum_yield"):
+        assert key in params
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test02_load_demo_scene(variant):
+    mi.set_variant(variant)
+    scene = mi.load_file(str(REPO / "scenes" / "jung_spheres.xml"), res=16, spp=1)
+    names = [s.bsdf().class_name() for s in scene.shapes()]
+    assert names.count("FluoJung") == 3, names
+
+
+@pytest.mark.parametrize("params", [
+    dict(emission_peak=520.0, stokes_shift=60.0, concentration=0.7, quantum_yield=0.9),
+    dict(emission_peak=420.0, stokes_shift=100.0, concentration=1.0, quantum_yield=1.0),
+    dict(emission_peak=650.0, stokes_shift=30.0, concentration=0.25, quantum_yield=0.5),
+])
+def test03_eval_spectral_matches_paper_equations(params):
+    mi.set_variant("scalar_spectral")
+    coeffs = (-2e-4, 0.22, -55.0)
+    b = jung(coefficients=", ".join(map(str, coeffs)), **params)
+    le, s, c = params["emission_peak"], params["stokes_shift"], params["concentration"]
+    rng = np.random.default_rng(3)
+    ctx = mi.BSDFContext()
+    for _ in range(20):
+        lam = np.sort(rng.uniform(360, 830, 4))
+        lam[0] = le - s  # include the absorption peak
+        si = surface_interaction(tuple(lam))
+        cos_o = rng.uniform(0.05, 1)
+        wo = mi.Vector3f(math.sqrt(1 - cos_o**2), 0, cos_o)
+        got = np.array(b.eval(ctx, si, wo))
+        want = (1 - c * ref_absorption(lam, le, s)) * ref_sigmoid(lam, coeffs) / math.pi * cos_o
+        np.testing.assert_allclose(got, want, rtol=2e-5, atol=1e-7)
+        pdf = b.pdf(ctx, si, wo)
+        assert abs(pdf - cos_o / math.pi) < 1e-6
+
+
+def test04_rgb_albedo_matches_mitsuba_conversion():
+    """RGB variant: albedo = Mitsuba's sRGB of R(λ) = r(1 − c a) + c Q e ∫₃₆₀⁸³⁰ a (under E)."""
+    mi.set_variant("scalar_rgb")
+    coeffs = (-2e-4, 0.22, -55.0)
+    le, s, c, q = 540.0, 70.0, 0.8, 0.9
+    b = jung(coefficients=", ".join(map(str, coeffs)), emission_peak=le, stokes_shift=s,
+             concentration=c, quantum_yield=q)
+    lam = np.linspace(360.0, 830.0, 4701)
+    excite = np.trapezoid(ref_absorption(lam, le, s), lam)
+    spectrum = (ref_sigmoid(lam, coeffs) * (1 - c * ref_absorption(lam, le, s))
+                + c * q * excite * ref_emission(lam, le, s))
+    want = np.array(mi.spectrum_list_to_srgb(list(lam), list(spectrum), bounded=False))
+    got = np.array(b.eval_diffuse_reflectance(surface_interaction()))
+    # Mitsuba integrates a 5 nm CIE table with 1000 Riemann steps, we a 1 nm one.
+    np.testing.assert_allclose(got, want, rtol=5e-3)
+    # fluorescence makes it brighter than the elastic part alone
+    elastic = ref_sigmoid(lam, coeffs) * (1 - c * ref_absorption(lam, le, s))
+    no_fl = np.array(mi.spectrum_list_to_srgb(list(lam), list(elastic), bounded=False))
+    assert got.sum() > no_fl.sum() * 1.05
+
+
+def _rel_diff(a, b):
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return float(np.abs(a - b).mean() / np.abs(b).mean())
+
+
+CROSS_SCENE = """<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world"><lookat origin="0, 1.5, 4" target="0, 0.2, 0" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="8"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="32"/></film>
+    </sensor>
+    <shape type="sphere"><float name="radius" value="0.7"/><point name="center" x="0" y="0.3" z="0"/>
+        {bsdf}
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="5"/><translate y="-0.4"/></transform>
+        {bsdf}
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="90"/><translate y="3"/></transform>
+        <emitter type="area"><rgb name="radiance" value="6"/></emitter>
+    </shape>
+    <emitter type="constant"><rgb name="radiance" value="0.2"/></emitter>
+</scene>"""
+
+SPECTRUM = '<spectrum name="reflectance" value="360:0.1, 430:0.2, 480:0.7, 550:0.8, 600:0.3, 700:0.6, 830:0.5"/>'
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("reflectance", [SPECTRUM, '<rgb name="reflectance" value="0.7, 0.3, 0.2"/>'])
+def test05_zero_concentration_matches_native_diffuse(variant, reflectance, tmp_path, render):
+    """Cross-validation: c = 0 is Mitsuba's diffuse (same seed, same spp)."""
+    ours = tmp_path / "ours.xml"
+    native = tmp_path / "native.xml"
+    ours.write_text(CROSS_SCENE.format(bsdf=f'<bsdf type="fluo_jung">{reflectance}'
+                                             '<float name="concentration" value="0"/></bsdf>'))
+    native.write_text(CROSS_SCENE.format(bsdf=f'<bsdf type="diffuse">{reflectance}</bsdf>'))
+    a = render(ours, variant, spp=8, seed=5)
+    b = render(native, variant, spp=8, seed=5)
+    assert np.isfinite(a).all() and b.mean() > 0
+    assert _rel_diff(a, b) < 5e-3
+
+
+def test06_sigmoid_reflectance_matches_tabulated_diffuse(tmp_path, render):
+    """Spectral: the sigmoid branch (coefficients) equals diffuse with that spectrum tabulated."""
+    coeffs = (-2e-4, 0.22, -55.0)
+    lam = np.arange(360.0, 831.0, 2.0)
+    values = ", ".join(f"{l:g}:{v:.6f}" for l, v in zip(lam, ref_sigmoid(lam, coeffs)))
+    ours = tmp_path / "ours.xml"
+    native = tmp_path / "native.xml"
+    ours.write_text(CROSS_SCENE.format(
+        bsdf='<bsdf type="fluo_jung"><string name="coefficients" value="%s"/>'
+             '<float name="concentration" value="0"/></bsdf>' % ", ".join(map(str, coeffs))))
+    native.write_text(CROSS_SCENE.format(
+        bsdf=f'<bsdf type="diffuse"><spectrum name="reflectance" value="{values}"/></bsdf>'))
+    a = render(ours, "scalar_spectral", spp=8, seed=2)
+    b = render(native, "scalar_spectral", spp=8, seed=2)
+    assert _rel_diff(a, b) < 5e-3
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test07_direction_sampling_chi2(variant):
+    """Pearson chi-square of sampled directions (cos²θ, φ bins) against the pdf."""
+    mi.set_variant(variant)
+    b = jung(concentration=0.4)
+    ctx = mi.BSDFContext()
+    si = surface_interaction(wi=(0.3, 0.0, math.sqrt(1 - 0.09)))
+    rng = np.random.default_rng(11)
+    n, bins_u, bins_phi = 40_000, 10, 12
+    counts = np.zeros((bins_u, bins_phi))
+    for s1, s2, s3 in rng.random((n, 3)):
+        bs, weight = b.sample(ctx, si, float(s1), mi.Point2f(float(s2), float(s3)))
+        wo = bs.wo
+        assert abs(bs.pdf - b.pdf(ctx, si, wo)) < 1e-5 * max(bs.pdf, 1)
+        u = wo.z**2  # cosine-weighted: cos²θ is uniform, so bins are equal-probability
+        phi = (math.atan2(wo.y, wo.x) + 2 * math.pi) % (2 * math.pi)
+        counts[min(int(u * bins_u), bins_u - 1), min(int(phi / (2 * math.pi) * bins_phi), bins_phi - 1)] += 1
+    # expected counts from the pdf integrated over each bin: pdf = cosθ/π ⇒ each bin 1/(bu·bφ)
+    expected = n / (bins_u * bins_phi)
+    stat = ((counts - expected) ** 2 / expected).sum()
+    dof = bins_u * bins_phi - 1
+    critical = dof * (1 - 2 / (9 * dof) + 3.719 * math.sqrt(2 / (9 * dof))) ** 3  # p = 1e-4
+    assert stat < critical, (stat, critical)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("props, needle", [
+    (dict(quantum_yield=1.5), 'quantum_yield" = 1.5'),
+    (dict(concentration=-0.1), 'concentration" = -0.1'),
+    (dict(concentration=float("nan")), "concentration"),
+    (dict(stokes_shift=1040.0), 'stokes_shift" = 1040'),
+    (dict(stokes_shift=-5.0), "stokes_shift"),
+    (dict(emission_peak=50.0), "emission_peak"),
+    (dict(coefficients="1, 2"), "coefficients"),
+    (dict(coefficients="1, x, 3"), "coefficients"),
+    (dict(coefficients="0, 0, 0", reflectance=0.5), "not both"),
+])
+def test08_bad_input_raises_clear_error(variant, props, needle):
+    mi.set_variant(variant)
+    with pytest.raises(Exception) as err:
+        jung(**props)
+    assert needle in str(err.value), str(err.value)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test09_traverse_update_revalidates(variant):
+    mi.set_variant(variant)
+    b = jung(concentration=1.0, emission_peak=520.0, stokes_shift=60.0, reflectance=0.8)
+    si = surface_interaction((460.0, 500.0, 600.0, 700.0))
+    before = np.array(b.eval_diffuse_reflectance(si))
+    params = mi.traverse(b)
+    params["concentration"] = 0.0
+    params.update()
+    after = np.array(b.eval_diffuse_reflectance(si))
+    if variant == "scalar_spectral":
+        assert before[0] < 0.8 * 0.9 and abs(after[0] - 0.8) < 1e-6  # a(460) > 0.1 removed light
+    else:
+        assert not np.allclose(before, after)
+    params["quantum_yield"] = 2.0
+    with pytest.raises(Exception, match="quantum_yield"):
+        params.update()
+
+
+def test10_hard_cases_are_finite():
+    """Sweep the parameter box and its edges at the ends of 300-830 nm."""
+    mi.set_variant("scalar_spectral")
+    ctx = mi.BSDFContext()
+    for le in (200.0, 300.0, 520.0, 830.0, 1200.0):
+        s_max = 2 * le * (le - 1) / (2 * le - 1)
+        for s in (1e-3, 1.0, 0.5 * s_max, 0.999 * s_max):
+            for c in (0.0, 1.0):
+                for q in (0.0, 1.0):
+                    b = jung(emission_peak=le, stokes_shift=s, concentration=c, quantum_yield=q)
+                    for lam in ((300.0, 301.0, 829.0, 830.0), (le - s, le, le + 1, 360.0)):
+                        for cos_o in (1.0, 1e-6):
+                            wo = mi.Vector3f(math.sqrt(1 - cos_o**2), 0, cos_o)
+                            v = np.array(b.eval(ctx, surface_interaction(lam, wi=(0.99999, 0, 0.004472)), wo))
+                            assert np.isfinite(v).all() and (v >= 0).all(), (le, s, c, q, lam, v)

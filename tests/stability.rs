@@ -1,0 +1,102 @@
+//! Stability suite: every model's whole parameter box plus its edges.
+//!
+//! For each model: construction either succeeds or returns an error naming the
+//! parameter; evaluation is finite and non-negative; sampled values lie inside the
+//! support and their pdfs agree with the pdf functions; energy is conserved per
+//! excitation wavelength. Bugs found here get pinned regression cases below.
+
+use fluo::jung::{max_stokes_shift, JungFluorescence, JungParams, EMISSION_PEAK_RANGE_NM};
+use proptest::prelude::*;
+
+/// Wavelengths worth probing: the ends of 300–830 nm plus a sweep.
+fn probe_wavelengths(m: &JungFluorescence) -> Vec<f64> {
+    let (alo, ahi) = m.absorption_support();
+    let (elo, ehi) = m.emission_support();
+    let mut v = vec![300.0, 360.0, 829.999, 830.0, alo, ahi, elo, ehi, m.absorption_peak(), m.params().emission_peak];
+    v.extend((0..=53).map(|i| 300.0 + 10.0 * i as f64));
+    v
+}
+
+fn check_jung(p: JungParams) -> Result<(), TestCaseError> {
+    let m = match JungFluorescence::new(p) {
+        Ok(m) => m,
+        Err(e) => {
+            let msg = e.to_string();
+            prop_assert!(
+                ["emission_peak", "stokes_shift", "concentration", "quantum_yield"].iter().any(|n| msg.contains(n)),
+                "error does not name a parameter: {msg}"
+            );
+            return Ok(());
+        }
+    };
+    prop_assert!(m.absorption_integral().is_finite() && m.absorption_integral() > 0.0);
+    for l in probe_wavelengths(&m) {
+        let (a, e, k) = (m.absorption(l), m.emission(l), m.elastic_factor(l));
+        prop_assert!(a.is_finite() && (0.0..=1.0 + 1e-12).contains(&a), "a({l}) = {a}");
+        prop_assert!(e.is_finite() && e >= 0.0, "e({l}) = {e}");
+        prop_assert!(k.is_finite() && (0.0..=1.0).contains(&k), "1 - c a({l}) = {k}");
+        for lo in [300.0, 500.0, 830.0] {
+            let r = m.reradiation(l, lo);
+            prop_assert!(r.is_finite() && r >= 0.0);
+        }
+        let cdf = m.absorption_cdf(l);
+        prop_assert!(cdf.is_finite() && cdf >= 0.0 && cdf <= m.absorption_integral() * (1.0 + 1e-12));
+    }
+    // Energy per excitation wavelength: elastic + reradiated = 1 − c a + c Q a ≤ 1.
+    for l in probe_wavelengths(&m) {
+        let total = m.elastic_factor(l) + p.concentration * p.quantum_yield * m.absorption(l);
+        prop_assert!(total <= 1.0 + 1e-12);
+    }
+    for xi in [0.0, 1e-9, 0.25, 0.5, 0.75, 1.0 - 1e-9, 1.0] {
+        let (lo, pdf) = m.sample_emission(xi);
+        let (elo, ehi) = m.emission_support();
+        prop_assert!(lo >= elo - 1e-9 && lo <= ehi + 1e-9 && pdf.is_finite() && pdf >= 0.0);
+        for (rlo, rhi) in [(0.0, f64::INFINITY), (300.0, 830.0), (360.0, 830.0)] {
+            if let Some((li, pdf)) = m.sample_absorption(xi, rlo, rhi) {
+                let (slo, shi) = m.absorption_support();
+                prop_assert!(li >= slo.max(rlo) && li <= shi.min(rhi), "λi {li} outside");
+                prop_assert!(pdf.is_finite() && pdf > 0.0);
+                let want = m.absorption_pdf(li, rlo, rhi);
+                prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
+            }
+        }
+    }
+    Ok(())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 2000, ..ProptestConfig::default() })]
+
+    /// The valid box: emission peak, Stokes shift as a fraction of its maximum, c, Q.
+    #[test]
+    fn jung_valid_box(le in EMISSION_PEAK_RANGE_NM.0..=EMISSION_PEAK_RANGE_NM.1,
+                      frac in 1e-6f64..0.999_999,
+                      c in 0.0f64..=1.0, q in 0.0f64..=1.0) {
+        let s = (frac * max_stokes_shift(le)).max(1e-3);
+        check_jung(JungParams { emission_peak: le, stokes_shift: s, concentration: c, quantum_yield: q })?;
+    }
+
+    /// Anything at all: must construct cleanly or fail with a named parameter.
+    #[test]
+    fn jung_any_input(le in prop::num::f64::ANY, s in prop::num::f64::ANY,
+                      c in prop::num::f64::ANY, q in prop::num::f64::ANY) {
+        check_jung(JungParams { emission_peak: le, stokes_shift: s, concentration: c, quantum_yield: q })?;
+    }
+}
+
+/// Edges of the box, enumerated.
+#[test]
+fn jung_edges() {
+    let (lo, hi) = EMISSION_PEAK_RANGE_NM;
+    for le in [lo, 300.0, 520.0, 830.0, hi] {
+        let smax = max_stokes_shift(le);
+        for s in [1e-3, 1e-2, 1.0, 0.5 * smax, smax * (1.0 - 1e-12), smax, 2.0 * le - 1e-9, 2.0 * le] {
+            for c in [0.0, 1.0] {
+                for q in [0.0, 1.0] {
+                    check_jung(JungParams { emission_peak: le, stokes_shift: s, concentration: c, quantum_yield: q })
+                        .unwrap_or_else(|e| panic!("λe={le} s={s} c={c} q={q}: {e}"));
+                }
+            }
+        }
+    }
+}
