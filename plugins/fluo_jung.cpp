@@ -3,6 +3,7 @@
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
+#include "fluo_bispectral.h"
 #include "fluo_common.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -53,10 +54,11 @@ The physics (equations, sampling, validation) lives in the Rust core, ``src/jung
 
 What this plugin computes in each variant:
 
-- ``scalar_spectral``: the elastic part (1 − c a(λ)) r(λ) / π at each hero
-  wavelength, like ``diffuse`` otherwise (cosine-weighted sampling). Light that the
-  fluorophore absorbs is removed here; its re-emission at longer wavelengths needs
-  the wavelength-shifting ``fluo_path`` integrator.
+- ``scalar_spectral``: the BSDF interface serves the elastic part
+  (1 − c a(λ)) r(λ) / π at each hero wavelength, like ``diffuse`` otherwise
+  (cosine-weighted sampling). The reradiation c a(λi) Q e(λo) / π is served through
+  fluo's bispectral interface (``cpp/fluo_bispectral.h``) to the wavelength-shifting
+  ``fluo_path`` integrator; under Mitsuba's ``path`` the absorbed light is simply lost.
 - ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
   to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
   sRGB[r (1 − c a) + c Q e ∫a]. With a textured ``reflectance`` the elastic part is
@@ -85,7 +87,7 @@ and the valid range.
         'stokes_shift': 90.0
 */
 template <typename Float, typename Spectrum>
-class FluoJung final : public BSDF<Float, Spectrum> {
+class FluoJung final : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture)
@@ -184,6 +186,14 @@ public:
 
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {
         return depolarizer<Spectrum>(albedo(si, active));
+    }
+
+    const fluo::Fluorescence *fluorescence() const override {
+        return fluo::jung_is_fluorescent(*m_model) ? &fluo::jung_fluorescence(*m_model) : nullptr;
+    }
+
+    UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
+        return albedo(si, true);
     }
 
     std::string to_string() const override {

@@ -13,8 +13,10 @@
 
 mod error;
 
+pub mod bispectral;
 pub mod colour;
 pub mod jung;
+pub mod material;
 pub mod mitsuba;
 pub mod sigmoid;
 pub mod spectrum;

@@ -8,10 +8,13 @@
 use std::collections::BTreeMap;
 use std::process::ExitCode;
 
+use fluo::bispectral::patch_xyz;
 use fluo::jung::{JungFluorescence, JungParams};
+use fluo::material::load_material;
+use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer};
 use serde_json::{json, Value};
 
-const HELP: &str = "\
+const HELP: &str = r#"
 fluo-rs: physics subcommands of the fluo command line
 
 USAGE:
@@ -21,10 +24,21 @@ SUBCOMMANDS:
     jung     Derived quantities of a fluo_jung material
              --emission-peak NM --stokes-shift NM --concentration C --quantum-yield Q
 
+    patch    XYZ of a flat patch under a light, by direct single-bounce integration
+             --material M     material JSON (inline or a .json file), e.g.
+                              '{"model":"jung","emission_peak":520,"concentration":0.8}'
+             --illuminant I   CIE name (A, D50..D75, E, FL1..FL12, HP1..HP5) or a
+                              nm,value CSV file
+             --method spectral   (default; the only method so far)
+             --cmf cie2006|cie1931   observer (default cie2006)
+             Conventions: λo over the observer's 1 nm grid, λi over the
+             illuminant's domain; light from the normal, viewed from the normal;
+             normalised so that the perfect white diffuser has Y = 1.
+
 OPTIONS:
     --json   print one JSON object on stdout
     --help   this text
-";
+"#;
 
 /// Parsed `--key value` options and flags.
 struct Args {
@@ -77,6 +91,40 @@ fn cmd_jung(args: &Args) -> Result<Value, String> {
     }))
 }
 
+fn cmd_patch(args: &Args) -> Result<Value, String> {
+    let material_arg = args.values.get("material").ok_or("patch needs --material")?;
+    let illum_arg = args.values.get("illuminant").ok_or("patch needs --illuminant")?;
+    let method = args.values.get("method").map_or("spectral", String::as_str);
+    if method != "spectral" {
+        return Err(format!("--method \"{method}\": valid methods are: spectral"));
+    }
+    let cmf_name = args.values.get("cmf").map_or("cie2006", String::as_str);
+    let observer = match cmf_name {
+        "cie2006" => Observer::Cie2006,
+        "cie1931" => Observer::Cie1931,
+        other => return Err(format!("--cmf \"{other}\": valid values are cie2006, cie1931")),
+    };
+    let material = load_material(material_arg).map_err(|e| e.to_string())?;
+    let spectrum: IrregularSpectrum = if std::path::Path::new(illum_arg).is_file() {
+        IrregularSpectrum::from_csv_file(illum_arg).map_err(|e| e.to_string())?
+    } else {
+        illuminant(illum_arg).map_err(|e| e.to_string())?.into()
+    };
+    let w = spectrum.wavelengths_nm();
+    let domain = (w[0], w[w.len() - 1]);
+    let p = patch_xyz(material.as_ref(), &spectrum, domain, cmf(observer));
+    Ok(json!({
+        "method": method,
+        "cmf": cmf_name,
+        "illuminant": illum_arg,
+        "illuminant_domain_nm": [domain.0, domain.1],
+        "xyz": p.xyz,
+        "white_xyz": p.white_xyz,
+        "elastic_xyz": p.elastic_xyz,
+        "normalisation": "white Y = 1: XYZ = Σ cmf(λo) [ρ(λo) I(λo) + Σ P(λi,λo) I(λi)] / Σ I ȳ",
+    }))
+}
+
 fn run(argv: &[String]) -> Result<(), String> {
     let Some(cmd) = argv.first() else {
         print!("{HELP}");
@@ -89,6 +137,7 @@ fn run(argv: &[String]) -> Result<(), String> {
     let args = parse_args(&argv[1..])?;
     let out = match cmd.as_str() {
         "jung" => cmd_jung(&args)?,
+        "patch" => cmd_patch(&args)?,
         other => return Err(format!("unknown subcommand \"{other}\" (see fluo-rs --help)")),
     };
     if args.json {

@@ -10,9 +10,11 @@
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
+use crate::bispectral::{Bispectral, Model};
 use crate::jung::{JungFluorescence, JungParams, Reflectance};
 use crate::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use crate::sigmoid::SigmoidPolynomial;
+use crate::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
 
 #[cxx::bridge(namespace = "fluo")]
 mod bridge {
@@ -37,7 +39,61 @@ mod bridge {
         b: f64,
     }
 
+    /// A closed wavelength interval, nm; empty when `lo >= hi`.
+    struct Range {
+        lo: f64,
+        hi: f64,
+    }
+
+    /// A sampled wavelength with its pdf (per nm); `pdf == 0` means no sample.
+    struct Sample {
+        value: f64,
+        pdf: f64,
+    }
+
+    /// A unit direction in the local shading frame (z = normal).
+    struct Vec3 {
+        x: f64,
+        y: f64,
+        z: f64,
+    }
+
     extern "Rust" {
+        /// Any fluorescent model, seen through the bispectral interface
+        /// (`src/bispectral.rs`) that the `fluo_path` integrator uses.
+        type Fluorescence;
+
+        fn fluo_name(f: &Fluorescence) -> &'static str;
+        /// Excitation wavelengths at which the model re-emits (empty if never).
+        fn fluo_excitation_range(f: &Fluorescence) -> Range;
+        /// Wavelengths at which it re-emits (empty if never).
+        fn fluo_emission_range(f: &Fluorescence) -> Range;
+        /// f_fl(λi, ωi, ωo, λo)·cos θo, sr⁻¹ nm⁻¹.
+        fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
+        /// ∫_range ∫ f_fl cos θo dωo dλi (chooses elastic vs shifted events).
+        fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64;
+        /// λi given λo within `range` (camera paths).
+        fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64;
+        /// λo given λi (light paths).
+        fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample;
+        fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
+
+        /// An emission spectrum for `fluo_illuminant`: a CIE illuminant or a CSV file.
+        type Illuminant;
+
+        /// `name` (a CIE illuminant) or `filename` (a `nm,value` CSV), exactly one
+        /// non-empty; scaled so that its luminance ∫ I ȳ / ∫ ȳ (CIE 1931) is `scale`.
+        fn illuminant_new(name: &str, filename: &str, scale: f64) -> Result<Box<Illuminant>>;
+        fn illuminant_eval(s: &Illuminant, lambdas: &[f32], out: &mut [f32]);
+        /// The wavelengths where it is defined, nm.
+        fn illuminant_range(s: &Illuminant) -> Range;
+        /// Mean value over Mitsuba's 360–830 nm.
+        fn illuminant_mean(s: &Illuminant) -> f64;
+        /// Linear sRGB (Mitsuba's convention) for the RGB variant.
+        fn illuminant_srgb(s: &Illuminant) -> Rgb;
+        fn illuminant_to_string(s: &Illuminant) -> String;
+
         /// A validated, baked `fluo_jung` material.
         type JungModel;
 
@@ -54,15 +110,133 @@ mod bridge {
         /// RGB variant: sRGB of the reradiated spectrum under E, c Q e(λ) ∫ a.
         fn jung_rgb_fluorescence(model: &JungModel) -> Rgb;
         fn jung_to_string(model: &JungModel) -> String;
+        /// The model's fluorescent part, for the integrator.
+        fn jung_fluorescence(model: &JungModel) -> &Fluorescence;
     }
 }
 
-pub use bridge::{JungConfig, Rgb};
+pub use bridge::{JungConfig, Range, Rgb, Sample, Vec3};
+
+/// Opaque fluorescent model handed to C++ (see [`crate::bispectral`]).
+pub struct Fluorescence(Model);
 
 /// Opaque `fluo_jung` model handed to C++.
 pub struct JungModel {
     fluorescence: JungFluorescence,
     reflectance: Option<Reflectance>,
+    generic: Fluorescence,
+}
+
+fn range_of(r: Option<(f64, f64)>) -> Range {
+    r.map_or(Range { lo: 0.0, hi: 0.0 }, |(lo, hi)| Range { lo, hi })
+}
+
+fn dir(v: &Vec3) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+fn sample_of(s: Option<(f64, f64)>) -> Sample {
+    match s {
+        Some((value, pdf)) if pdf > 0.0 && pdf.is_finite() && value.is_finite() => Sample { value, pdf },
+        _ => Sample { value: 0.0, pdf: 0.0 },
+    }
+}
+
+fn fluo_name(f: &Fluorescence) -> &'static str {
+    f.0.name()
+}
+fn fluo_excitation_range(f: &Fluorescence) -> Range {
+    range_of(f.0.excitation_range())
+}
+fn fluo_emission_range(f: &Fluorescence) -> Range {
+    range_of(f.0.emission_range())
+}
+fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
+    f.0.reradiation(dir(wi), dir(wo), lambda_i, lambda_o)
+}
+fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64 {
+    f.0.shift_albedo(dir(wi), lambda_o, (range.lo, range.hi))
+}
+fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample {
+    sample_of(f.0.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
+}
+fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64 {
+    f.0.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
+}
+fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample {
+    sample_of(f.0.sample_emission(dir(wi), lambda_i, xi))
+}
+fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
+    f.0.emission_pdf(dir(wi), lambda_i, lambda_o)
+}
+
+/// Opaque emission spectrum for `fluo_illuminant`.
+pub struct Illuminant {
+    label: String,
+    spectrum: IrregularSpectrum,
+}
+
+fn illuminant_new(name: &str, filename: &str, scale: f64) -> Result<Box<Illuminant>, String> {
+    guarded(|| {
+        let (label, spectrum) = match (name.is_empty(), filename.is_empty()) {
+            (false, true) => (name.to_string(), IrregularSpectrum::from(illuminant(name)?)),
+            (true, false) => (filename.to_string(), IrregularSpectrum::from_csv_file(filename)?),
+            _ => {
+                return Err(crate::Error::param(
+                    "illuminant",
+                    format!("name \"{name}\", filename \"{filename}\""),
+                    "exactly one of \"illuminant\" (a CIE name) and \"filename\" (a CSV spectrum)",
+                ))
+            }
+        };
+        if !(scale.is_finite() && scale >= 0.0) {
+            return Err(crate::Error::param("scale", scale, "[0, ∞)"));
+        }
+        if spectrum.values().iter().any(|v| *v < 0.0) {
+            return Err(crate::Error::data(format!("{label}: negative spectral values")));
+        }
+        let c = cmf(Observer::Cie1931);
+        let y = c.y();
+        let lum = spectrum.integrate_product(y, CIE_MIN_NM, CIE_MAX_NM, 1.0)?
+            / y.integrate_product(&|_: f64| 1.0, CIE_MIN_NM, CIE_MAX_NM, 1.0)?;
+        if !(lum > 0.0) {
+            return Err(crate::Error::data(format!("{label}: no visible energy (zero luminance), cannot normalise")));
+        }
+        let k = scale / lum;
+        let scaled = IrregularSpectrum::new(
+            spectrum.wavelengths_nm().to_vec(),
+            spectrum.values().iter().map(|v| v * k).collect(),
+        )?;
+        Ok(Box::new(Illuminant { label, spectrum: scaled }))
+    })
+}
+
+fn illuminant_eval(s: &Illuminant, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = s.spectrum.eval(f64::from(l)) as f32;
+    }
+}
+
+fn illuminant_range(s: &Illuminant) -> Range {
+    let w = s.spectrum.wavelengths_nm();
+    Range { lo: w.first().copied().unwrap_or(0.0), hi: w.last().copied().unwrap_or(0.0) }
+}
+
+fn illuminant_mean(s: &Illuminant) -> f64 {
+    s.spectrum.integrate_product(&|_: f64| 1.0, CIE_MIN_NM, CIE_MAX_NM, 1.0).unwrap_or(0.0) / (CIE_MAX_NM - CIE_MIN_NM)
+}
+
+fn illuminant_srgb(s: &Illuminant) -> Rgb {
+    rgb(spectrum_to_srgb(|l| s.spectrum.eval(l)))
+}
+
+fn illuminant_to_string(s: &Illuminant) -> String {
+    let r = illuminant_range(s);
+    format!("{} ({}-{} nm, luminance-normalised)", s.label, r.lo, r.hi)
+}
+
+fn jung_fluorescence(model: &JungModel) -> &Fluorescence {
+    &model.generic
 }
 
 fn guarded<T>(f: impl FnOnce() -> crate::Result<T>) -> Result<T, String> {
@@ -87,7 +261,8 @@ fn jung_new(config: &JungConfig) -> Result<Box<JungModel>, String> {
         } else {
             None
         };
-        Ok(Box::new(JungModel { fluorescence, reflectance }))
+        let generic = Fluorescence(Model::Jung(fluorescence.clone()));
+        Ok(Box::new(JungModel { fluorescence, reflectance, generic }))
     })
 }
 

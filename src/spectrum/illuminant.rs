@@ -4,7 +4,7 @@
 //! | name | source | domain |
 //! |---|---|---|
 //! | `A` | defining formula, CIE 015:2018: `S_A(λ) = 100 (560/λ)^5 · (e^{c₂/(2848·560)} − 1) / (e^{c₂/(2848 λ)} − 1)`, `c₂ = 1.435·10⁷ nm·K` | 300–830 nm, 1 nm |
-//! | `D65` | CIE 15:2004 table (as shipped by colour-science) | 300–780 nm, 5 nm |
+//! | `D65` | CIE 15:2004 table (as shipped by colour-science), continued above 780 nm by [`daylight`] at its CCT | 300–830 nm, 5 nm |
 //! | `D50`, `D55`, `D60`, `D75` | [`daylight`] at `T = N·100 · 1.4388/1.4380` K | 300–830 nm, 5 nm |
 //! | `E` | equal energy, 1.0 everywhere | 300–830 nm, 5 nm |
 //! | `FL1`–`FL12`, `HP1`–`HP5` | CIE 15:2004 tables (as shipped by colour-science) | 380–780 nm, 5 nm |
@@ -94,6 +94,7 @@ pub fn illuminant(name: &str) -> Result<RegularSpectrum> {
             let (lo, hi) = GENERATED_DOMAIN_NM;
             (|_: f64| 1.0).resample(lo, hi, E_STEP_NM)
         }
+        "D65" => d65_extended(),
         "D50" | "D55" | "D60" | "D75" => {
             let nominal: f64 = key[1..].parse::<f64>().map_err(|e| Error::data(e.to_string()))? * 100.0;
             daylight(nominal * D_SERIES_CCT_RESCALE)
@@ -102,6 +103,31 @@ pub fn illuminant(name: &str) -> Result<RegularSpectrum> {
             Error::param("illuminant", format!("\"{name}\""), format!("one of {}", ILLUMINANT_NAMES.join(", ")))
         }),
     }
+}
+
+/// Tabulated D65 (300–780 nm) continued to 830 nm with the daylight generator at the
+/// same CCT (the CIE table was produced by that generator, so the two agree to the
+/// table's rounding where they overlap), so that renders sampling up to 830 nm see it.
+fn d65_extended() -> Result<RegularSpectrum> {
+    let table = tabulated()
+        .iter()
+        .find(|(n, _)| *n == "D65")
+        .map(|(_, s)| s.clone())
+        .ok_or_else(|| Error::data("embedded D65 table missing"))?;
+    let (_, hi) = GENERATED_DOMAIN_NM;
+    if table.end_nm() >= hi {
+        return Ok(table);
+    }
+    let generated = daylight(6500.0 * D_SERIES_CCT_RESCALE)?;
+    let step = table.step_nm();
+    let n = ((hi - table.start_nm()) / step).round() as usize;
+    let values = (0..=n)
+        .map(|i| {
+            let l = table.start_nm() + i as f64 * step;
+            if l <= table.end_nm() { table.eval(l) } else { generated.eval(l) }
+        })
+        .collect();
+    RegularSpectrum::new(table.start_nm(), step, values)
 }
 
 /// CIE illuminant A from its defining formula, 300–830 nm at 1 nm.

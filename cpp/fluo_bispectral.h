@@ -1,0 +1,35 @@
+// The bispectral interface that fluo's fluorescent BSDFs implement next to Mitsuba's
+// BSDF interface, and that the fluo_path integrator discovers at scene load with
+// dynamic_cast (Mitsuba itself is unchanged).
+//
+// Everything spectral (reradiation values, wavelength sampling and pdfs, excitation
+// and emission ranges) is answered by the Rust model behind fluorescence(), through
+// the generic fluo_* functions of the bridge (src/bispectral.rs documents them).
+// The shim adds only what depends on Mitsuba objects: the elastic albedo, which may
+// come from a texture.
+#pragma once
+
+#include <mitsuba/render/interaction.h>
+
+#include "fluo/src/ffi/mod.rs.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+template <typename Float, typename Spectrum> class BispectralBSDF {
+public:
+    using SurfaceInteraction3f = SurfaceInteraction<Float, Spectrum>;
+    using UnpolarizedSpectrum = unpolarized_spectrum_t<Spectrum>;
+
+    virtual ~BispectralBSDF() = default;
+
+    /// The fluorescent model, or nullptr when this material never re-emits
+    /// (e.g. concentration or quantum yield 0).
+    virtual const fluo::Fluorescence *fluorescence() const = 0;
+
+    /// Directional-hemispherical albedo of the elastic part at si.wavelengths, for
+    /// light leaving along si.wi. Used only to choose between elastic and shifted
+    /// events, so it must be positive wherever the elastic BSDF is.
+    virtual UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const = 0;
+};
+
+NAMESPACE_END(mitsuba)

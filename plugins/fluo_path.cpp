@@ -1,0 +1,415 @@
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/emitter.h>
+#include <mitsuba/render/integrator.h>
+#include <mitsuba/render/records.h>
+#include <mitsuba/render/texture.h>
+
+#include <algorithm>
+#include <unordered_set>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _integrator-fluo_path:
+
+Wavelength-shifting path tracer (:monosp:`fluo_path`)
+-----------------------------------------------------
+
+.. pluginparameters::
+
+ * - max_depth
+   - |int|
+   - Longest path depth; -1 means infinite, 1 only direct emission. (Default: -1)
+ * - rr_depth
+   - |int|
+   - Depth at which Russian roulette starts. (Default: 5)
+ * - hide_emitters
+   - |bool|
+   - Hide directly visible emitters. (Default: false)
+ * - lambda_min
+   - |float|
+   - Shortest excitation wavelength the integrator will ever shift to, nm, in
+     [200, 360]. Spectrally defined emitters reach below the camera's 360 nm down
+     to here. (Default: 300)
+
+Unidirectional path tracing with next-event estimation and MIS, Russian roulette and
+``max_depth``/``rr_depth``/``hide_emitters`` exactly as Mitsuba's ``path``, extended
+with fluorescence (wavelength shifting) for fluo's bispectral BSDFs (``fluo_jung``
+and the other ``fluo_*`` materials) in ``scalar_spectral``.
+
+**Simulate only what the scene calls for.** At the start of each render the scene is
+scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface
+and re-emitting at all) and the spectral range of every emitter's radiance texture.
+Light exists only where emitters emit or fluorescence re-emits, so excitation is
+sampled only inside R = [max(emitters' min, lambda_min), max(emitters' max,
+emission max)]. A material whose absorption band misses R is treated as a plain
+BSDF. With nothing left, this integrator runs exactly Mitsuba's ``path`` (the same
+code, the same random numbers: identical images), and in ``scalar_rgb`` it always does
+(RGB transport of fluorescence needs reduced reradiation matrices).
+
+**Wavelength shifting.** The camera path carries four hero wavelengths, each with its
+own throughput. At a fluorescent vertex, each wavelength λo (the one travelling
+towards the camera) decides on its own between the elastic event (λ kept) and a shift
+to an excitation wavelength λi < λo sampled by the material; directions stay shared.
+Emitter sampling and later bounces then see the shifted wavelengths; the film still
+receives the camera wavelengths.
+
+*Why the estimator is unbiased.* For a fixed λo the vertex must estimate
+``f_e(λo) L(λo) + ∫_R f_fl(λi, λo) L(λi) dλi`` (elastic plus reradiation; L is the
+incident radiance, which is zero outside R). Let ``w_e`` be the elastic albedo and
+``w_f`` the reradiated albedo reaching λo from excitations in R (both from the
+material). We pick the elastic event with probability ``p_e = w_e / (w_e + w_f)``
+and weight it by ``1/p_e``, or the shift with probability ``1 − p_e``, sampling λi
+with density ``p(λi)`` over R and weighting by ``1/((1 − p_e) p(λi))``. The expectation
+of either branch's weighted integrand is its term above, and their sum is the whole.
+``p_e`` is positive exactly where ``f_e`` is and ``1 − p_e`` exactly where the shift
+integrand is, so no contribution is skipped. After the choice the vertex is an
+ordinary (wavelength-changing) BSDF: next-event estimation and BSDF sampling estimate
+the incident radiance L(λi, ω) with the usual MIS weights, which do not depend on
+wavelength. Each hero wavelength is an independent estimator of its camera
+wavelength's radiance, so the film's wavelength weights stay valid.
+
+Fluorescent materials must be used directly (not inside ``twosided`` or ``blendbsdf``),
+since the integrator finds the bispectral interface on the BSDF a ray hits.
+
+.. tabs::
+    .. code-tab:: xml
+
+        <integrator type="fluo_path">
+            <integer name="max_depth" value="8"/>
+        </integrator>
+*/
+template <typename Float, typename Spectrum>
+class FluoPath final : public MonteCarloIntegrator<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
+    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, Emitter, EmitterPtr, BSDF, BSDFPtr, Texture, Shape)
+
+    static constexpr const char *Plugin = "fluo_path";
+    /// Allowed range of `lambda_min`, nm.
+    static constexpr double LambdaMinLo = 200.0, LambdaMinHi = 360.0;
+
+    FluoPath(const Properties &props) : Base(props) {
+        m_lambda_min = fluo_detail::get_float(Plugin, props, "lambda_min", 300.0);
+        if (!(m_lambda_min >= LambdaMinLo && m_lambda_min <= LambdaMinHi))
+            Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm",
+                  Plugin, m_lambda_min, LambdaMinLo, LambdaMinHi);
+    }
+
+    using Base::render;
+    TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
+                    bool evaluate) override {
+        prepare(scene);
+        return Base::render(scene, sensor, seed, spp, develop, evaluate);
+    }
+
+    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler,
+                                     const RayDifferential3f &ray_, const Medium * /* medium */,
+                                     Float * /* aovs */, Bool active) const override {
+        if (unlikely(m_max_depth == 0))
+            return { 0.f, false };
+
+        // Scalar port of Mitsuba's path.cpp (v3.8.0); fluorescence is inserted where
+        // the BSDF is known. Without fluorescent vertices the random numbers drawn
+        // and the arithmetic are the same.
+        Ray3f ray              = Ray3f(ray_);
+        Spectrum throughput    = 1.f;
+        Spectrum result        = 0.f;
+        Float eta              = 1.f;
+        UInt32 depth           = 0;
+        Mask valid_ray         = !m_hide_emitters && (scene->environment() != nullptr);
+        Interaction3f prev_si  = dr::zeros<Interaction3f>();
+        Float prev_bsdf_pdf    = 1.f;
+        Bool prev_bsdf_delta   = true;
+        BSDFContext bsdf_ctx;
+
+        PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
+
+        if (m_hide_emitters) {
+            Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
+            if (skip) {
+                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
+                Ray3f r2 = si.spawn_ray(ray.d);
+                pi = Base::skip_area_emitters(scene, r2, true, skip);
+            }
+        }
+
+        while (active) {
+            SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::All);
+
+            // ---------------------- Direct emission ----------------------
+            if (si.emitter(scene) != nullptr) {
+                DirectionSample3f ds(scene, si, prev_si);
+                Float em_pdf = 0.f;
+                if (!prev_bsdf_delta)
+                    em_pdf = scene->pdf_emitter_direction(prev_si, ds, !prev_bsdf_delta);
+                Float mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf);
+                result = spec_fma(throughput, ds.emitter->eval(si, prev_bsdf_pdf > 0.f) * mis_bsdf,
+                                  result);
+            }
+
+            Bool active_next = (depth + 1 < m_max_depth) && si.is_valid();
+            if (!active_next) {
+                valid_ray |= (si.emitter(scene) != nullptr) && !m_hide_emitters;
+                break;
+            }
+
+            BSDFPtr bsdf = si.bsdf(ray);
+
+            // ---------------------- Fluorescence ----------------------
+            // Choose, per hero wavelength, the elastic event or a shift λo -> λi.
+            Transition tr;
+            const Entry *fl = m_active ? find(bsdf) : nullptr;
+            if (fl)
+                tr = choose_transitions(*fl, si, sampler);
+
+            // ---------------------- Emitter sampling ----------------------
+            Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+            DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+            Spectrum em_weight = dr::zeros<Spectrum>();
+            Vector3f wo = dr::zeros<Vector3f>();
+            if (active_em) {
+                std::tie(ds, em_weight) = scene->sample_emitter_direction(si, sampler->next_2d(), true, active_em);
+                active_em &= (ds.pdf != 0.f);
+                wo = si.to_local(ds.d);
+            }
+
+            // ------ Evaluate BSDF * cos(theta) and sample direction -------
+            Float sample_1 = sampler->next_1d();
+            Point2f sample_2 = sampler->next_2d();
+            auto [bsdf_val, bsdf_pdf, bsdf_sample, bsdf_weight] =
+                bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+
+            if (fl) {
+                apply_transitions(*fl, tr, si, wo, bsdf_val);
+                if (bsdf_sample.pdf > 0.f) {
+                    bsdf_weight *= bsdf_sample.pdf; // back to BSDF value (elastic slots)
+                    apply_transitions(*fl, tr, si, bsdf_sample.wo, bsdf_weight);
+                    bsdf_weight /= bsdf_sample.pdf;
+                }
+            }
+
+            // --------------- Emitter sampling contribution ----------------
+            if (active_em) {
+                bsdf_val = si.to_world_mueller(bsdf_val, -wo, si.wi);
+                Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                result = spec_fma(throughput, bsdf_val * em_weight * mis_em, result);
+            }
+
+            // ---------------------- BSDF sampling ----------------------
+            bsdf_weight = si.to_world_mueller(bsdf_weight, -bsdf_sample.wo, si.wi);
+            ray = si.spawn_ray(si.to_world(bsdf_sample.wo)); // carries the shifted wavelengths
+
+            throughput *= bsdf_weight;
+            eta *= bsdf_sample.eta;
+            valid_ray |= active && si.is_valid() && !has_flag(bsdf_sample.sampled_type, BSDFFlags::Null);
+
+            prev_si = Interaction3f(si);
+            prev_bsdf_pdf = bsdf_sample.pdf;
+            prev_bsdf_delta = has_flag(bsdf_sample.sampled_type, BSDFFlags::Delta);
+
+            // -------------------- Stopping criterion ---------------------
+            if (si.is_valid())
+                depth += 1;
+            Float throughput_max = dr::max(unpolarized_spectrum(throughput));
+            Float rr_prob = dr::minimum(throughput_max * dr::square(eta), .95f);
+            Mask rr_active = depth >= m_rr_depth, rr_continue = sampler->next_1d() < rr_prob;
+            if (rr_active)
+                throughput *= dr::rcp(rr_prob);
+            active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+
+            pi = scene->ray_intersect_preliminary(ray, false, false, 0, 0, active);
+        }
+
+        return { dr::select(valid_ray, result, 0.f), valid_ray };
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "FluoPath[" << std::endl
+            << "  max_depth = " << m_max_depth << "," << std::endl
+            << "  rr_depth = " << m_rr_depth << "," << std::endl
+            << "  lambda_min = " << m_lambda_min << "," << std::endl
+            << "  fluorescent_bsdfs = " << m_entries.size() << "," << std::endl
+            << "  excitation_range = [" << m_range.lo << ", " << m_range.hi << "]" << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(FluoPath)
+
+private:
+    static constexpr size_t N = dr::size_v<Spectrum> == 4 ? 4 : 1;
+
+    /// A fluorescent BSDF of the scene with the excitation range it can use.
+    struct Entry {
+        const BSDF *bsdf;
+        const BispectralBSDF<Float, Spectrum> *bispectral;
+        const fluo::Fluorescence *model;
+        fluo::Range range;
+    };
+
+    /// Per-wavelength choice at a fluorescent vertex.
+    struct Transition {
+        std::array<bool, 4> shifted{};
+        std::array<double, 4> lambda_o{}, lambda_i{};
+        std::array<float, 4> scale{};
+    };
+
+    /// Power heuristic, as in path.cpp (non-finite weights become 0).
+    Float mis_weight(Float pdf_a, Float pdf_b) const {
+        pdf_a *= pdf_a;
+        pdf_b *= pdf_b;
+        Float w = pdf_a / (pdf_a + pdf_b);
+        return dr::select(dr::isfinite(w), w, 0.f);
+    }
+
+    /// a * b + c as a fused multiply-add, as in path.cpp (unpolarized variants only).
+    Spectrum spec_fma(const Spectrum &a, const Spectrum &b, const Spectrum &c) const {
+        return dr::fmadd(a, b, c);
+    }
+
+    const Entry *find(const BSDF *bsdf) const {
+        for (const Entry &e : m_entries)
+            if (e.bsdf == bsdf)
+                return &e;
+        return nullptr;
+    }
+
+    static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
+
+    /// Pick elastic or shifted per wavelength (see the unbiasedness note in the doc
+    /// comment) and move si.wavelengths to the excitation wavelengths.
+    Transition choose_transitions(const Entry &e, SurfaceInteraction3f &si, Sampler *sampler) const {
+        Transition tr;
+        if constexpr (is_spectral_v<Spectrum>) {
+            auto albedo = e.bispectral->elastic_albedo(si);
+            fluo::Vec3 wi = vec(si.wi);
+            for (size_t j = 0; j < N; ++j) {
+                double lo = si.wavelengths[j];
+                tr.lambda_o[j] = tr.lambda_i[j] = lo;
+                double we = std::max(0.0, (double) albedo[j]);
+                double wf = std::max(0.0, fluo::fluo_shift_albedo(*e.model, wi, lo, e.range));
+                Point2f u = sampler->next_2d();
+                double total = we + wf;
+                if (!(total > 0.0) || !std::isfinite(total)) {
+                    tr.scale[j] = 0.f;
+                    continue;
+                }
+                double pe = we / total;
+                if (u.x() < pe) {
+                    tr.scale[j] = (float) (1.0 / pe);
+                    continue;
+                }
+                fluo::Sample s = fluo::fluo_sample_excitation(*e.model, wi, lo, u.y(), e.range);
+                if (!(s.pdf > 0.0)) {
+                    tr.scale[j] = 0.f;
+                    continue;
+                }
+                tr.shifted[j] = true;
+                tr.lambda_i[j] = s.value;
+                tr.scale[j] = (float) (1.0 / ((1.0 - pe) * s.pdf));
+                si.wavelengths[j] = (float) s.value;
+            }
+        }
+        return tr;
+    }
+
+    /// Turn the elastic BSDF value (times cos) into the chosen transitions' values.
+    void apply_transitions(const Entry &e, const Transition &tr, const SurfaceInteraction3f &si,
+                           const Vector3f &wo, Spectrum &value) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            fluo::Vec3 wi = vec(si.wi), o = vec(wo);
+            for (size_t j = 0; j < N; ++j) {
+                if (tr.shifted[j])
+                    value[j] = (float) fluo::fluo_reradiation(*e.model, wi, o, tr.lambda_i[j], tr.lambda_o[j]);
+                value[j] *= tr.scale[j];
+            }
+        }
+    }
+
+    /// Collects every object reachable from a root (each once).
+    struct Collector : TraversalCallback {
+        std::vector<Object *> objects;
+        std::unordered_set<Object *> seen;
+        void visit(Object *o) {
+            if (!o || !seen.insert(o).second)
+                return;
+            objects.push_back(o);
+            o->traverse(this);
+        }
+        void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+        void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
+    };
+
+    /// Scan the scene once per render: fluorescent BSDFs and emitter spectral ranges.
+    void prepare(Scene *scene) {
+        m_entries.clear();
+        m_active = false;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            return;
+        } else {
+            // Where can light exist? The union of the emitters' radiance spectra.
+            double lo = 1e30, hi = -1e30;
+            for (const auto &emitter : scene->emitters()) {
+                Collector c;
+                c.visit(const_cast<Emitter *>(emitter.get()));
+                bool found = false;
+                for (Object *o : c.objects)
+                    if (auto *tex = dynamic_cast<Texture *>(o)) {
+                        ScalarVector2f r = tex->wavelength_range();
+                        lo = std::min(lo, (double) r.x());
+                        hi = std::max(hi, (double) r.y());
+                        found = true;
+                    }
+                if (!found) {
+                    lo = std::min(lo, (double) MI_CIE_MIN);
+                    hi = std::max(hi, (double) MI_CIE_MAX);
+                }
+            }
+            if (scene->emitters().empty())
+                return;
+            lo = std::max(lo, m_lambda_min);
+
+            // Fluorescent BSDFs anywhere in the scene graph.
+            Collector c;
+            for (const auto &shape : scene->shapes())
+                c.visit(const_cast<Shape *>(shape.get()));
+            std::vector<Entry> candidates;
+            for (Object *o : c.objects) {
+                auto *bsdf = dynamic_cast<BSDF *>(o);
+                auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
+                if (!bsdf || !bisp || !bisp->fluorescence())
+                    continue;
+                const fluo::Fluorescence *model = bisp->fluorescence();
+                fluo::Range em = fluo::fluo_emission_range(*model);
+                hi = std::max(hi, em.hi); // re-emitted light can excite further shifts
+                candidates.push_back(Entry{ bsdf, bisp, model, fluo::Range{ 0, 0 } });
+            }
+            m_range = fluo::Range{ lo, hi };
+            for (Entry &e : candidates) {
+                fluo::Range ex = fluo::fluo_excitation_range(*e.model);
+                e.range = fluo::Range{ std::max(ex.lo, lo), std::min(ex.hi, hi) };
+                if (e.range.lo < e.range.hi)
+                    m_entries.push_back(e);
+            }
+            m_active = !m_entries.empty();
+        }
+    }
+
+    double m_lambda_min;
+    std::vector<Entry> m_entries;
+    fluo::Range m_range{ 0, 0 };
+    bool m_active = false;
+};
+
+static const bool fluo_path_registered =
+    (fluo_detail::register_scalar_plugin<FluoPath>("fluo_path", ObjectType::Integrator), true);
+
+NAMESPACE_END(mitsuba)
