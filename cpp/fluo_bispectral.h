@@ -9,6 +9,7 @@
 // come from a texture.
 #pragma once
 
+#include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/interaction.h>
 
 #include "fluo/src/ffi/mod.rs.h"
@@ -30,6 +31,23 @@ public:
     /// light leaving along si.wi. Used only to choose between elastic and shifted
     /// events, so it must be positive wherever the elastic BSDF is.
     virtual UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const = 0;
+
+    /// The elastic part of eval() alone (f·cos θo), without any reradiation. In the
+    /// RGB variant eval() serves an equal-energy approximation that includes
+    /// fluorescence; reduced transport (fluo_path in scalar_rgb) adds the reradiation
+    /// itself as a reduced matrix and needs the elastic part separately.
+    virtual UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si,
+                                             const Vector<Float, 3> &wo) const = 0;
+};
+
+/// A texture that knows its emission spectrum (fluo_illuminant), so that reduced
+/// transport can use the spectrum's own basis coefficients, including the UV band.
+class SpectralSource {
+public:
+    virtual ~SpectralSource() = default;
+    virtual const fluo::Illuminant &illuminant() const = 0;
+    /// Luminance of the RGB value the texture evaluates to in scalar_rgb (never 0).
+    virtual double rgb_luminance() const = 0;
 };
 
 NAMESPACE_END(mitsuba)

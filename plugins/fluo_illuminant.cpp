@@ -2,6 +2,7 @@
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/texture.h>
 
+#include "fluo_bispectral.h"
 #include "fluo_common.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -28,6 +29,10 @@ CIE illuminant or measured emission spectrum (:monosp:`fluo_illuminant`)
    - |float|
    - Luminance of the result: the spectrum is scaled so that ∫ I ȳ / ∫ ȳ over
      360–830 nm (CIE 1931) equals ``scale``. (Default: 1)
+ * - normalize
+   - |bool|
+   - When false, the values are used as given, times ``scale`` (needed for spectra with
+     no visible energy, such as a UV lamp). (Default: true)
 
 Mitsuba's own ``d65`` spectrum and its RGB upsampling stop at 360 nm, where the camera's
 wavelength range starts. Fluorescent materials absorb below that, so lights meant to
@@ -36,9 +41,11 @@ fluo's tabulated CIE illuminants (``data/spectra``, generated from colour-scienc
 any tabulated spectrum, linearly interpolated and zero outside its domain. It reports
 that domain through ``wavelength_range()``, which ``fluo_path`` uses to decide how far
 into the UV excitation can reach. A spectrum that is entirely UV (no luminance) cannot
-be luminance-normalised: describe it with Mitsuba's ``regular``/``irregular`` spectra.
+be luminance-normalised: give ``normalize = false``.
 
-In ``scalar_rgb`` it evaluates to the spectrum's linear sRGB (Mitsuba's conversion).
+In ``scalar_rgb`` it evaluates to the spectrum's linear sRGB (Mitsuba's conversion; a
+negligible grey of 1e-12 for a spectrum without visible energy), and ``fluo_path``'s
+reduced transport uses the spectrum's own basis coefficients, UV band included.
 
 .. tabs::
     .. code-tab:: xml
@@ -52,7 +59,7 @@ In ``scalar_rgb`` it evaluates to the spectrum's linear sRGB (Mitsuba's conversi
         </emitter>
 */
 template <typename Float, typename Spectrum>
-class FluoIlluminant final : public Texture<Float, Spectrum> {
+class FluoIlluminant final : public Texture<Float, Spectrum>, public SpectralSource {
 public:
     MI_IMPORT_TYPES(Texture)
 
@@ -67,13 +74,21 @@ public:
             file = fr->resolve(fs::path(std::string(props.get<std::string_view>("filename")))).string();
         }
         double scale = fluo_detail::get_float(Plugin, props, "scale", 1.0);
-        m_spectrum = fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale); });
+        bool normalize = props.get<bool>("normalize", true);
+        m_spectrum = fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale, normalize); });
         fluo::Range r = fluo::illuminant_range(*m_spectrum);
         m_range = ScalarVector2f((ScalarFloat) r.lo, (ScalarFloat) r.hi);
         m_mean = (ScalarFloat) fluo::illuminant_mean(*m_spectrum);
         fluo::Rgb c = fluo::illuminant_srgb(*m_spectrum);
         m_rgb = Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+        // An invisible (e.g. UV-only) spectrum still needs a non-zero RGB, so that
+        // reduced transport can recover the emitter's geometric weight from it.
+        if (!(dr::mean(m_rgb) > InvisibleRgb))
+            m_rgb = Color3f(InvisibleRgb);
     }
+
+    /// RGB reported for spectra without visible energy (negligible, see above).
+    static constexpr ScalarFloat InvisibleRgb = 1e-12f;
 
     UnpolarizedSpectrum eval(const SurfaceInteraction3f &si, Mask /* active */) const override {
         if constexpr (is_spectral_v<Spectrum>) {
@@ -92,6 +107,11 @@ public:
             return dr::mean(m_rgb);
     }
 
+    const fluo::Illuminant &illuminant() const override { return *m_spectrum; }
+    double rgb_luminance() const override {
+        return 0.212671 * m_rgb[0] + 0.715160 * m_rgb[1] + 0.072169 * m_rgb[2];
+    }
+
     Float mean() const override { return m_mean; }
     ScalarVector2f wavelength_range() const override { return m_range; }
     ScalarFloat max() const override {
@@ -106,7 +126,7 @@ public:
 
 private:
     rust::Box<fluo::Illuminant> m_spectrum = fluo_detail::rust_call(
-        Plugin, [] { return fluo::illuminant_new("E", "", 1.0); });
+        Plugin, [] { return fluo::illuminant_new("E", "", 1.0, true); });
     ScalarVector2f m_range;
     ScalarFloat m_mean;
     Color3f m_rgb;

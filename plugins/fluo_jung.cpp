@@ -193,7 +193,21 @@ public:
     }
 
     UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
-        return albedo(si, true);
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (!m_reflectance)
+                return m_rgb_elastic_albedo;
+            UnpolarizedSpectrum r = m_reflectance->eval(si, true);
+            return m_modifies_reflectance ? r * m_rgb_elastic_scale : r;
+        } else {
+            return albedo(si, true);
+        }
+    }
+
+    UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si, const Vector3f &wo) const override {
+        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
+        if (!(cos_i > 0.f && cos_o > 0.f))
+            return 0.f;
+        return elastic_albedo(si) * dr::InvPi<Float> * cos_o;
     }
 
     std::string to_string() const override {
@@ -225,6 +239,7 @@ private:
             m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
             m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
             m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
+            m_rgb_elastic_albedo = m_rgb_albedo - m_rgb_fluorescence;
         }
     }
 
@@ -263,7 +278,8 @@ private:
     ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
                 m_quantum_yield = 0.f;
     bool m_modifies_reflectance = false;
-    Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f;
+    Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f,
+            m_rgb_elastic_albedo = 0.f;
 };
 
 static const bool fluo_jung_registered =

@@ -32,6 +32,15 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
  * - hide_emitters
    - |bool|
    - Hide directly visible emitters. (Default: false)
+ * - basis
+   - |string|
+   - ``scalar_rgb`` only: transport basis for fluorescence, ``rgb`` (3 channels),
+     ``xyzu`` (CIE 1931 XYZ plus a UV band) or ``x7`` (7 bands: X split in three, Y in two,
+     Z, U). (Default: ``rgb``)
+ * - method
+   - |string|
+   - ``scalar_rgb`` only: reduction of the reradiation, ``ours`` (dual basis, Fichet et
+     al. 2024 eq. 15) or ``naive`` (eq. 7, for comparison only). (Default: ``ours``)
  * - lambda_min
    - |float|
    - Shortest excitation wavelength the integrator will ever shift to, nm, in
@@ -50,8 +59,23 @@ Light exists only where emitters emit or fluorescence re-emits, so excitation is
 sampled only inside R = [max(emitters' min, lambda_min), max(emitters' max,
 emission max)]. A material whose absorption band misses R is treated as a plain
 BSDF. With nothing left, this integrator runs exactly Mitsuba's ``path`` (the same
-code, the same random numbers: identical images), and in ``scalar_rgb`` it always does
-(RGB transport of fluorescence needs reduced reradiation matrices).
+code, the same random numbers: identical images), in both variants.
+
+**Fluorescence in RGB (reduced transport).** In ``scalar_rgb`` a scene with fluorescent
+materials is rendered with matrix throughput (Fichet et al. 2024, sec. 5.1, adjoint
+transport): the camera path carries a 3×K matrix R (from K basis coefficients to the
+pixel's linear sRGB), multiplied at each vertex by a K×K matrix: the material's
+reduced reradiation (src/reduce.rs) plus its elastic albedo as a diagonal. Native BSDFs
+act as diagonal matrices: their RGB value v becomes per-band albedos
+a_k = (F v)_k / (F 1)_k, with F the map from RGB light to basis coefficients (for
+``basis="rgb"`` simply v). Emitters contribute R·c: for emitters whose radiance is a
+``fluo_illuminant`` the coefficients of its spectrum (including the UV band, so a UV-only
+lamp still excites fluorescence), for others F times their RGB radiance. Reduced matrices
+have negative entries (the dual basis has negative lobes), so coefficients along a path
+are signed and kept so; only the final linear sRGB of each sample is clipped at zero
+(out-of-gamut colours such as a saturated 520 nm emission have negative sRGB red, which
+Mitsuba's RGB film would otherwise warn about on every sample). This clips a little
+energy from colours outside the sRGB gamut, which an sRGB image cannot show anyway.
 
 **Wavelength shifting.** The camera path carries four hero wavelengths, each with its
 own throughput. At a fluorescent vertex, each wavelength λo (the one travelling
@@ -100,6 +124,17 @@ public:
         if (!(m_lambda_min >= LambdaMinLo && m_lambda_min <= LambdaMinHi))
             Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm",
                   Plugin, m_lambda_min, LambdaMinLo, LambdaMinHi);
+        std::string basis = props.has_property("basis")
+                                ? std::string(props.get<std::string_view>("basis")) : "rgb";
+        std::string method = props.has_property("method")
+                                 ? std::string(props.get<std::string_view>("method")) : "ours";
+        m_transport = fluo_detail::rust_call(Plugin, [&] { return fluo::transport_new(basis, method); });
+        m_k = fluo::transport_size(*m_transport);
+        if (m_k > KMax)
+            Throw("%s: basis \"%s\" has %zu bands, at most %zu are supported", Plugin, basis, m_k, KMax);
+        fluo::transport_output(*m_transport, rust::Slice<double>(m_output.data(), 3 * m_k));
+        fluo::transport_from_rgb(*m_transport, rust::Slice<double>(m_from_rgb.data(), 3 * m_k));
+        fluo::transport_white(*m_transport, rust::Slice<double>(m_white.data(), m_k));
     }
 
     using Base::render;
@@ -114,6 +149,10 @@ public:
                                      Float * /* aovs */, Bool active) const override {
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (m_active)
+                return sample_reduced(scene, sampler, ray_, active);
+        }
 
         // Scalar port of Mitsuba's path.cpp (v3.8.0); fluorescence is inserted where
         // the BSDF is known. Without fluorescent vertices the random numbers drawn
@@ -236,6 +275,7 @@ public:
             << "  max_depth = " << m_max_depth << "," << std::endl
             << "  rr_depth = " << m_rr_depth << "," << std::endl
             << "  lambda_min = " << m_lambda_min << "," << std::endl
+            << "  basis = " << std::string(fluo::transport_name(*m_transport)) << " (K = " << m_k << ")," << std::endl
             << "  fluorescent_bsdfs = " << m_entries.size() << "," << std::endl
             << "  excitation_range = [" << m_range.lo << ", " << m_range.hi << "]" << std::endl
             << "]";
@@ -253,6 +293,7 @@ private:
         const BispectralBSDF<Float, Spectrum> *bispectral;
         const fluo::Fluorescence *model;
         fluo::Range range;
+        const fluo::ReducedModel *reduced = nullptr; // scalar_rgb only
     };
 
     /// Per-wavelength choice at a fluorescent vertex.
@@ -352,7 +393,8 @@ private:
     void prepare(Scene *scene) {
         m_entries.clear();
         m_active = false;
-        if constexpr (!is_spectral_v<Spectrum>) {
+        if constexpr (is_rgb_v<Spectrum>) {
+            prepare_reduced(scene);
             return;
         } else {
             // Where can light exist? The union of the emitters' radiance spectra.
@@ -403,7 +445,248 @@ private:
         }
     }
 
+    // ---------------- reduced (matrix-throughput) transport, scalar_rgb ----------------
+    static constexpr size_t KMax = 7;
+    using Row3 = std::array<double, 3 * KMax>;      // 3×K, row major
+    using Square = std::array<double, KMax * KMax>; // K×K, row major
+    using Coeffs = std::array<double, KMax>;
+
+    struct EmitterSource {
+        const Emitter *emitter;
+        Coeffs coeffs;   // basis coefficients of its spectrum (as the texture is defined)
+        double luminance; // luminance of the texture's RGB, to rescale by the emitter's
+    };
+
+    static double luminance_of(const Spectrum &v) {
+        if constexpr (is_rgb_v<Spectrum>)
+            return 0.212671 * v[0] + 0.715160 * v[1] + 0.072169 * v[2];
+        else
+            return 0.0;
+    }
+
+    Coeffs emitter_coefficients(const Emitter *e, const Spectrum &rgb) const {
+        Coeffs c{};
+        if constexpr (is_rgb_v<Spectrum>) {
+            for (const EmitterSource &src : m_sources)
+                if (src.emitter == e) {
+                    double s = src.luminance > 0.0 ? luminance_of(rgb) / src.luminance : 0.0;
+                    for (size_t k = 0; k < m_k; ++k)
+                        c[k] = src.coeffs[k] * s;
+                    return c;
+                }
+            for (size_t k = 0; k < m_k; ++k)
+                c[k] = m_from_rgb[k * 3] * rgb[0] + m_from_rgb[k * 3 + 1] * rgb[1] +
+                       m_from_rgb[k * 3 + 2] * rgb[2];
+        }
+        return c;
+    }
+
+    /// Per-band albedos of an RGB value as a diagonal matrix.
+    void diagonal_of(const Spectrum &v, Square &m) const {
+        m.fill(0.0);
+        if constexpr (is_rgb_v<Spectrum>) {
+            double mean = (v[0] + v[1] + v[2]) / 3.0;
+            for (size_t k = 0; k < m_k; ++k) {
+                double num = m_from_rgb[k * 3] * v[0] + m_from_rgb[k * 3 + 1] * v[1] +
+                             m_from_rgb[k * 3 + 2] * v[2];
+                m[k * m_k + k] = std::abs(m_white[k]) > 1e-12 ? num / m_white[k] : mean;
+            }
+        }
+    }
+
+    /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
+    void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
+                            Square &m) const {
+        diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        Square r{};
+        fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
+                                  rust::Slice<double>(r.data(), m_k * m_k));
+        for (size_t i = 0; i < m_k * m_k; ++i)
+            m[i] += r[i];
+    }
+
+    /// R ← R · M · s
+    void multiply(Row3 &r, const Square &m, double s) const {
+        Row3 out{};
+        for (size_t row = 0; row < 3; ++row)
+            for (size_t j = 0; j < m_k; ++j) {
+                double acc = 0.0;
+                for (size_t k = 0; k < m_k; ++k)
+                    acc += r[row * m_k + k] * m[k * m_k + j];
+                out[row * m_k + j] = acc * s;
+            }
+        r = out;
+    }
+
+    /// result += R · c · s
+    void accumulate(Color3f &result, const Row3 &r, const Coeffs &c, double s) const {
+        for (size_t row = 0; row < 3; ++row) {
+            double acc = 0.0;
+            for (size_t k = 0; k < m_k; ++k)
+                acc += r[row * m_k + k] * c[k];
+            result[row] += (float) (acc * s);
+        }
+    }
+
+    /// scalar_rgb with fluorescent materials: the path loop of sample() with a 3×K
+    /// throughput matrix (adjoint reduced transport, see the doc comment).
+    std::pair<Spectrum, Bool> sample_reduced(const Scene *scene, Sampler *sampler,
+                                             const RayDifferential3f &ray_, Bool active) const {
+        if constexpr (!is_rgb_v<Spectrum>) {
+            return { 0.f, false };
+        } else {
+            Ray3f ray = Ray3f(ray_);
+            Row3 R = m_output;
+            Color3f result = 0.f;
+            Float eta = 1.f;
+            UInt32 depth = 0;
+            Mask valid_ray = !m_hide_emitters && (scene->environment() != nullptr);
+            Interaction3f prev_si = dr::zeros<Interaction3f>();
+            Float prev_bsdf_pdf = 1.f;
+            Bool prev_bsdf_delta = true;
+            BSDFContext bsdf_ctx;
+            Square m{};
+
+            PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
+            if (m_hide_emitters) {
+                Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
+                if (skip) {
+                    SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
+                    Ray3f r2 = si.spawn_ray(ray.d);
+                    pi = Base::skip_area_emitters(scene, r2, true, skip);
+                }
+            }
+
+            while (active) {
+                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::All);
+
+                if (si.emitter(scene) != nullptr) {
+                    DirectionSample3f ds(scene, si, prev_si);
+                    Float em_pdf = 0.f;
+                    if (!prev_bsdf_delta)
+                        em_pdf = scene->pdf_emitter_direction(prev_si, ds, !prev_bsdf_delta);
+                    Float mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf);
+                    Spectrum le = ds.emitter->eval(si, prev_bsdf_pdf > 0.f);
+                    accumulate(result, R, emitter_coefficients(ds.emitter, le), mis_bsdf);
+                }
+
+                Bool active_next = (depth + 1 < m_max_depth) && si.is_valid();
+                if (!active_next) {
+                    valid_ray |= (si.emitter(scene) != nullptr) && !m_hide_emitters;
+                    break;
+                }
+
+                BSDFPtr bsdf = si.bsdf(ray);
+                const Entry *fl = find(bsdf);
+
+                // ---------------------- Emitter sampling ----------------------
+                Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+                if (active_em) {
+                    auto [ds, em_weight] = scene->sample_emitter_direction(si, sampler->next_2d(), true, active_em);
+                    if (ds.pdf != 0.f) {
+                        Vector3f wo = si.to_local(ds.d);
+                        Float bsdf_pdf;
+                        if (fl) {
+                            fluorescent_matrix(*fl, si, wo, m);
+                            bsdf_pdf = bsdf->pdf(bsdf_ctx, si, wo);
+                        } else {
+                            auto [val, pdf] = bsdf->eval_pdf(bsdf_ctx, si, wo);
+                            diagonal_of(val, m);
+                            bsdf_pdf = pdf;
+                        }
+                        Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                        Row3 rm = R;
+                        multiply(rm, m, 1.0);
+                        accumulate(result, rm, emitter_coefficients(ds.emitter, em_weight), mis_em);
+                    }
+                }
+
+                // ---------------------- BSDF sampling ----------------------
+                Float sample_1 = sampler->next_1d();
+                Point2f sample_2 = sampler->next_2d();
+                auto [bs, weight] = bsdf->sample(bsdf_ctx, si, sample_1, sample_2);
+                if (fl) {
+                    if (bs.pdf > 0.f) {
+                        fluorescent_matrix(*fl, si, bs.wo, m);
+                        multiply(R, m, 1.0 / bs.pdf);
+                    } else {
+                        multiply(R, Square{}, 0.0);
+                    }
+                } else {
+                    diagonal_of(weight, m);
+                    multiply(R, m, 1.0);
+                }
+                ray = si.spawn_ray(si.to_world(bs.wo));
+                eta *= bs.eta;
+                valid_ray |= active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
+                prev_si = Interaction3f(si);
+                prev_bsdf_pdf = bs.pdf;
+                prev_bsdf_delta = has_flag(bs.sampled_type, BSDFFlags::Delta);
+
+                if (si.is_valid())
+                    depth += 1;
+                double throughput_max = 0.0;
+                for (size_t i = 0; i < 3 * m_k; ++i)
+                    throughput_max = std::max(throughput_max, std::abs(R[i]));
+                Float rr_prob = dr::minimum((Float) throughput_max * dr::square(eta), .95f);
+                Mask rr_active = depth >= m_rr_depth, rr_continue = sampler->next_1d() < rr_prob;
+                if (rr_active)
+                    for (size_t i = 0; i < 3 * m_k; ++i)
+                        R[i] /= rr_prob;
+                active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.0);
+                pi = scene->ray_intersect_preliminary(ray, false, false, 0, 0, active);
+            }
+            // Out-of-gamut colours (a saturated 520 nm emission has negative linear sRGB
+            // red) are clipped here, per sample, as an sRGB film must store them; along
+            // the path the coefficients stay signed.
+            result = dr::maximum(result, 0.f);
+            return { dr::select(valid_ray, Spectrum(result), 0.f), valid_ray };
+        }
+    }
+
+    /// scalar_rgb: reduce every fluorescent BSDF for the transport basis, and find the
+    /// emitters whose radiance has a known spectrum.
+    void prepare_reduced(Scene *scene) {
+        m_reduced.clear();
+        m_sources.clear();
+        Collector c;
+        for (const auto &shape : scene->shapes())
+            c.visit(const_cast<Shape *>(shape.get()));
+        for (Object *o : c.objects) {
+            auto *bsdf = dynamic_cast<BSDF *>(o);
+            auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
+            if (!bsdf || !bisp || !bisp->fluorescence())
+                continue;
+            const fluo::Fluorescence *model = bisp->fluorescence();
+            m_reduced.push_back(fluo_detail::rust_call(
+                Plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
+            m_entries.push_back(Entry{ bsdf, bisp, model, fluo::fluo_excitation_range(*model),
+                                       &*m_reduced.back() });
+        }
+        for (const auto &emitter : scene->emitters()) {
+            Collector ce;
+            ce.visit(const_cast<Emitter *>(emitter.get()));
+            for (Object *o : ce.objects)
+                if (auto *src = dynamic_cast<SpectralSource *>(o)) {
+                    EmitterSource es{ emitter.get(), {}, 0.0 };
+                    fluo::illuminant_coefficients(src->illuminant(), *m_transport,
+                                                  rust::Slice<double>(es.coeffs.data(), m_k));
+                    es.luminance = src->rgb_luminance();
+                    m_sources.push_back(es);
+                    break;
+                }
+        }
+        m_active = !m_entries.empty();
+    }
+
     double m_lambda_min;
+    rust::Box<fluo::TransportBasis> m_transport = fluo_detail::rust_call(
+        Plugin, [] { return fluo::transport_new("rgb", "ours"); });
+    size_t m_k = 3;
+    Row3 m_output{}, m_from_rgb{};
+    Coeffs m_white{};
+    std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
+    std::vector<EmitterSource> m_sources;
     std::vector<Entry> m_entries;
     fluo::Range m_range{ 0, 0 };
     bool m_active = false;

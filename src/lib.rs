@@ -17,6 +17,7 @@ pub mod bispectral;
 pub mod colour;
 pub mod jung;
 pub mod material;
+pub mod reduce;
 pub mod mitsuba;
 pub mod sigmoid;
 pub mod spectrum;

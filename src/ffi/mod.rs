@@ -13,6 +13,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 use crate::bispectral::{Bispectral, Model};
 use crate::jung::{JungFluorescence, JungParams, Reflectance};
 use crate::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
+use crate::reduce::{Method, ReradiationOnly, Transport};
 use crate::sigmoid::SigmoidPolynomial;
 use crate::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
 
@@ -83,8 +84,9 @@ mod bridge {
         type Illuminant;
 
         /// `name` (a CIE illuminant) or `filename` (a `nm,value` CSV), exactly one
-        /// non-empty; scaled so that its luminance ∫ I ȳ / ∫ ȳ (CIE 1931) is `scale`.
-        fn illuminant_new(name: &str, filename: &str, scale: f64) -> Result<Box<Illuminant>>;
+        /// non-empty; with `normalize`, scaled so that its luminance ∫ I ȳ / ∫ ȳ
+        /// (CIE 1931) is `scale`, otherwise multiplied by `scale`.
+        fn illuminant_new(name: &str, filename: &str, scale: f64, normalize: bool) -> Result<Box<Illuminant>>;
         fn illuminant_eval(s: &Illuminant, lambdas: &[f32], out: &mut [f32]);
         /// The wavelengths where it is defined, nm.
         fn illuminant_range(s: &Illuminant) -> Range;
@@ -93,6 +95,28 @@ mod bridge {
         /// Linear sRGB (Mitsuba's convention) for the RGB variant.
         fn illuminant_srgb(s: &Illuminant) -> Rgb;
         fn illuminant_to_string(s: &Illuminant) -> String;
+
+        /// Reduced (matrix-throughput) transport for scalar_rgb (src/reduce.rs).
+        type TransportBasis;
+        /// `basis`: rgb, xyzu or x7; `method`: ours or naive.
+        fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>>;
+        /// Number of transported channels K.
+        fn transport_size(t: &TransportBasis) -> usize;
+        /// 3×K row major: linear sRGB = output · c.
+        fn transport_output(t: &TransportBasis, out: &mut [f64]);
+        /// K×3 row major: coefficients of light given in linear sRGB.
+        fn transport_from_rgb(t: &TransportBasis, out: &mut [f64]);
+        /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
+        fn transport_white(t: &TransportBasis, out: &mut [f64]);
+        fn transport_name(t: &TransportBasis) -> &'static str;
+
+        /// A fluorescent model's reradiation reduced for a transport.
+        type ReducedModel;
+        fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>>;
+        /// K×K row major: the reduced reradiation times its directional factor (f·cos θo).
+        fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]);
+        /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
+        fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
 
         /// A validated, baked `fluo_jung` material.
         type JungModel;
@@ -176,7 +200,7 @@ pub struct Illuminant {
     spectrum: IrregularSpectrum,
 }
 
-fn illuminant_new(name: &str, filename: &str, scale: f64) -> Result<Box<Illuminant>, String> {
+fn illuminant_new(name: &str, filename: &str, scale: f64, normalize: bool) -> Result<Box<Illuminant>, String> {
     guarded(|| {
         let (label, spectrum) = match (name.is_empty(), filename.is_empty()) {
             (false, true) => (name.to_string(), IrregularSpectrum::from(illuminant(name)?)),
@@ -199,10 +223,16 @@ fn illuminant_new(name: &str, filename: &str, scale: f64) -> Result<Box<Illumina
         let y = c.y();
         let lum = spectrum.integrate_product(y, CIE_MIN_NM, CIE_MAX_NM, 1.0)?
             / y.integrate_product(&|_: f64| 1.0, CIE_MIN_NM, CIE_MAX_NM, 1.0)?;
-        if !(lum > 0.0) {
-            return Err(crate::Error::data(format!("{label}: no visible energy (zero luminance), cannot normalise")));
-        }
-        let k = scale / lum;
+        let k = if normalize {
+            if !(lum > 0.0) {
+                return Err(crate::Error::data(format!(
+                    "{label}: no visible energy (zero luminance), cannot normalise; set normalize = false"
+                )));
+            }
+            scale / lum
+        } else {
+            scale
+        };
         let scaled = IrregularSpectrum::new(
             spectrum.wavelengths_nm().to_vec(),
             spectrum.values().iter().map(|v| v * k).collect(),
@@ -232,7 +262,53 @@ fn illuminant_srgb(s: &Illuminant) -> Rgb {
 
 fn illuminant_to_string(s: &Illuminant) -> String {
     let r = illuminant_range(s);
-    format!("{} ({}-{} nm, luminance-normalised)", s.label, r.lo, r.hi)
+    format!("{} ({}-{} nm)", s.label, r.lo, r.hi)
+}
+
+/// Opaque reduced transport.
+pub struct TransportBasis(Transport);
+
+fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>, String> {
+    guarded(|| Ok(Box::new(TransportBasis(Transport::new(basis, Method::from_name(method)?)?))))
+}
+fn transport_size(t: &TransportBasis) -> usize {
+    t.0.len()
+}
+fn copy_into(src: &[f64], out: &mut [f64]) {
+    for (o, v) in out.iter_mut().zip(src) {
+        *o = *v;
+    }
+}
+fn transport_output(t: &TransportBasis, out: &mut [f64]) {
+    copy_into(&t.0.output, out);
+}
+fn transport_from_rgb(t: &TransportBasis, out: &mut [f64]) {
+    copy_into(&t.0.from_rgb, out);
+}
+fn transport_white(t: &TransportBasis, out: &mut [f64]) {
+    copy_into(&t.0.white, out);
+}
+fn transport_name(t: &TransportBasis) -> &'static str {
+    t.0.name
+}
+
+/// Opaque reduced reradiation of one material (diffuse directional factor).
+pub struct ReducedModel {
+    matrix: Vec<f64>,
+}
+
+fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>, String> {
+    guarded(|| Ok(Box::new(ReducedModel { matrix: t.0.reduce(&ReradiationOnly(&f.0)) })))
+}
+fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]) {
+    // Lambertian reradiation (all current models): f_fl = P/π, times cos θo.
+    let factor = if wi.z > 0.0 && wo.z > 0.0 { wo.z * std::f64::consts::FRAC_1_PI } else { 0.0 };
+    for (o, v) in out.iter_mut().zip(&r.matrix) {
+        *o = v * factor;
+    }
+}
+fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]) {
+    copy_into(&t.0.coefficients(&|l| s.spectrum.eval(l)), out);
 }
 
 fn jung_fluorescence(model: &JungModel) -> &Fluorescence {
