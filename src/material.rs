@@ -14,12 +14,18 @@
 use serde_json::Value;
 
 use crate::bispectral::PatchMaterial;
+use crate::reduce::Reradiating;
 use crate::jung::{JungMaterial, JungParams, Reflectance};
 use crate::sigmoid::SigmoidPolynomial;
 use crate::{Error, Result};
 
+/// What the command line needs of a material: patch colorimetry and the reradiation
+/// operator (for reductions).
+pub trait Material: PatchMaterial + Reradiating {}
+impl<T: PatchMaterial + Reradiating> Material for T {}
+
 /// Read a material argument: inline JSON (starting with `{`) or a path to a JSON file.
-pub fn load_material(arg: &str) -> Result<Box<dyn PatchMaterial>> {
+pub fn load_material(arg: &str) -> Result<Box<dyn Material>> {
     let text = if arg.trim_start().starts_with('{') {
         arg.to_string()
     } else {
@@ -37,7 +43,7 @@ fn number(v: &Value, key: &str, default: f64) -> Result<f64> {
 }
 
 /// Build a material from its JSON description.
-pub fn material_from_json(v: &Value) -> Result<Box<dyn PatchMaterial>> {
+pub fn material_from_json(v: &Value) -> Result<Box<dyn Material>> {
     let obj = v.as_object().ok_or_else(|| Error::data("material must be a JSON object"))?;
     let model = obj.get("model").and_then(Value::as_str).unwrap_or("");
     match model {

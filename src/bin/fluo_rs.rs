@@ -9,9 +9,11 @@ use std::collections::BTreeMap;
 use std::process::ExitCode;
 
 use fluo::bispectral::patch_xyz;
+use fluo::colour::{ciede2000, xyz_to_lab};
+use fluo::reduce::{reduce, reduced_patch_xyz, spectral_patch_xyz, Basis, BasisKind, Method};
 use fluo::jung::{JungFluorescence, JungParams};
 use fluo::material::load_material;
-use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer};
+use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
 use serde_json::{json, Value};
 
 const HELP: &str = r#"
@@ -29,11 +31,21 @@ SUBCOMMANDS:
                               '{"model":"jung","emission_peak":520,"concentration":0.8}'
              --illuminant I   CIE name (A, D50..D75, E, FL1..FL12, HP1..HP5) or a
                               nm,value CSV file
-             --method spectral   (default; the only method so far)
+             --method spectral (default) | ours-xyz | ours-xyzu | ours-x7 |
+                      naive-xyz | naive-xyzu | naive-x7
+                      reduced methods (Fichet et al. 2024) also print delta_e2000
+                      against the spectral result on the reduction grid
+                      (300-830 nm, 1 nm; reference white: the illuminant)
              --cmf cie2006|cie1931   observer (default cie2006)
              Conventions: λo over the observer's 1 nm grid, λi over the
              illuminant's domain; light from the normal, viewed from the normal;
              normalised so that the perfect white diffuser has Y = 1.
+
+    reduce   The K x K reduced reradiation matrix of a material
+             --material M (as for patch)  --basis xyz|xyzu|x7  --method ours|naive
+             --cmf cie2006|cie1931 (default cie2006)
+             The matrix acts on basis coefficients c_k = ∫ L s_k dλ: c_o = M c_i;
+             XYZ = T c (T printed too).
 
 OPTIONS:
     --json   print one JSON object on stdout
@@ -95,9 +107,15 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
     let material_arg = args.values.get("material").ok_or("patch needs --material")?;
     let illum_arg = args.values.get("illuminant").ok_or("patch needs --illuminant")?;
     let method = args.values.get("method").map_or("spectral", String::as_str);
-    if method != "spectral" {
-        return Err(format!("--method \"{method}\": valid methods are: spectral"));
-    }
+    const METHODS: &str = "spectral, ours-xyz, ours-xyzu, ours-x7, naive-xyz, naive-xyzu, naive-x7";
+    let reduced = if method == "spectral" {
+        None
+    } else {
+        let (m, b) = method.split_once('-').ok_or(format!("--method \"{method}\": valid methods are {METHODS}"))?;
+        let m = Method::from_name(m).map_err(|_| format!("--method \"{method}\": valid methods are {METHODS}"))?;
+        let b = BasisKind::from_name(b).map_err(|_| format!("--method \"{method}\": valid methods are {METHODS}"))?;
+        Some((m, b))
+    };
     let cmf_name = args.values.get("cmf").map_or("cie2006", String::as_str);
     let observer = match cmf_name {
         "cie2006" => Observer::Cie2006,
@@ -112,6 +130,24 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
     };
     let w = spectrum.wavelengths_nm();
     let domain = (w[0], w[w.len() - 1]);
+    if let Some((m, kind)) = reduced {
+        let basis = Basis::new(kind, observer).map_err(|e| e.to_string())?;
+        let illum = |l: f64| if l >= domain.0 && l <= domain.1 { spectrum.eval(l) } else { 0.0 };
+        let r = reduce(material.as_ref(), &basis, m);
+        let (xyz, white) = reduced_patch_xyz(&r, &basis, &illum);
+        let (sxyz, swhite) = spectral_patch_xyz(material.as_ref(), &basis, &illum);
+        let de = ciede2000(xyz_to_lab(xyz, white), xyz_to_lab(sxyz, swhite));
+        return Ok(json!({
+            "method": method,
+            "cmf": cmf_name,
+            "illuminant": illum_arg,
+            "xyz": xyz,
+            "white_xyz": white,
+            "spectral_xyz": sxyz,
+            "delta_e2000": de,
+            "normalisation": "white Y = 1; reduced: XYZ = T M down[I] / (T down[I])_Y",
+        }));
+    }
     let p = patch_xyz(material.as_ref(), &spectrum, domain, cmf(observer));
     Ok(json!({
         "method": method,
@@ -122,6 +158,29 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
         "white_xyz": p.white_xyz,
         "elastic_xyz": p.elastic_xyz,
         "normalisation": "white Y = 1: XYZ = Σ cmf(λo) [ρ(λo) I(λo) + Σ P(λi,λo) I(λi)] / Σ I ȳ",
+    }))
+}
+
+fn cmd_reduce(args: &Args) -> Result<Value, String> {
+    let material_arg = args.values.get("material").or(args.values.get("matrix")).ok_or("reduce needs --material")?;
+    let kind = BasisKind::from_name(args.values.get("basis").map_or("xyzu", String::as_str)).map_err(|e| e.to_string())?;
+    let method = Method::from_name(args.values.get("method").map_or("ours", String::as_str)).map_err(|e| e.to_string())?;
+    let observer = match args.values.get("cmf").map_or("cie2006", String::as_str) {
+        "cie2006" => Observer::Cie2006,
+        "cie1931" => Observer::Cie1931,
+        other => return Err(format!("--cmf \"{other}\": valid values are cie2006, cie1931")),
+    };
+    let material = load_material(material_arg).map_err(|e| e.to_string())?;
+    let basis = Basis::new(kind, observer).map_err(|e| e.to_string())?;
+    let r = reduce(material.as_ref(), &basis, method);
+    Ok(json!({
+        "basis": r.basis,
+        "method": r.method,
+        "k": basis.len(),
+        "matrix": r.matrix,
+        "transfer": basis.transfer(),
+        "gram_condition_number": basis.condition_number(),
+        "acts_on": "basis coefficients c_k = ∫ L(λ) s_k(λ) dλ; c_out = matrix · c_in; XYZ = transferᵀ-columns · c",
     }))
 }
 
@@ -138,6 +197,7 @@ fn run(argv: &[String]) -> Result<(), String> {
     let out = match cmd.as_str() {
         "jung" => cmd_jung(&args)?,
         "patch" => cmd_patch(&args)?,
+        "reduce" => cmd_reduce(&args)?,
         other => return Err(format!("unknown subcommand \"{other}\" (see fluo-rs --help)")),
     };
     if args.json {
