@@ -61,8 +61,10 @@ What this plugin computes in each variant:
   ``fluo_path`` integrator; under Mitsuba's ``path`` the absorbed light is simply lost.
 - ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
   to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
-  sRGB[r (1 − c a) + c Q e ∫a]. With a textured ``reflectance`` the elastic part is
-  approximated per channel as texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r).
+  sRGB[r (1 − c a) + c Q e ∫a], clipped at zero where a saturated emission falls outside
+  the sRGB gamut. With a textured ``reflectance`` the elastic part is approximated per
+  channel as texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r). Under ``fluo_path``
+  the RGB variant instead transports fluorescence with reduced reradiation matrices.
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``) raise an error naming the parameter, its value
@@ -236,10 +238,14 @@ private:
             auto to_color = [](const fluo::Rgb &c) {
                 return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
             };
-            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
+            Color3f albedo = to_color(fluo::jung_rgb_albedo(*m_model));
             m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
             m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
-            m_rgb_elastic_albedo = m_rgb_albedo - m_rgb_fluorescence;
+            m_rgb_elastic_albedo = dr::maximum(albedo - m_rgb_fluorescence, 0.f);
+            // A saturated emission can lie outside the sRGB gamut (negative channels);
+            // an albedo cannot be negative, so the served values are clipped at zero.
+            m_rgb_albedo = dr::maximum(albedo, 0.f);
+            m_rgb_fluorescence = dr::maximum(m_rgb_fluorescence, 0.f);
         }
     }
 

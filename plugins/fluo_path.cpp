@@ -65,7 +65,10 @@ code, the same random numbers: identical images), in both variants.
 materials is rendered with matrix throughput (Fichet et al. 2024, sec. 5.1, adjoint
 transport): the camera path carries a 3×K matrix R (from K basis coefficients to the
 pixel's linear sRGB), multiplied at each vertex by a K×K matrix: the material's
-reduced reradiation (src/reduce.rs) plus its elastic albedo as a diagonal. Native BSDFs
+reduced operator (src/reduce.rs): the whole operator (elastic diagonal and reradiation,
+as in the paper) when its elastic reflectance is known spectrally (sigmoid
+``coefficients``, measured data), otherwise the reduced reradiation plus the elastic
+RGB albedo (e.g. a texture) as a diagonal. Native BSDFs
 act as diagonal matrices: their RGB value v becomes per-band albedos
 a_k = (F v)_k / (F 1)_k, with F the map from RGB light to basis coefficients (for
 ``basis="rgb"`` simply v). Emitters contribute R·c: for emitters whose radiance is a
@@ -497,7 +500,10 @@ private:
     /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
     void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
                             Square &m) const {
-        diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        if (fluo::reduced_includes_elastic(*e.reduced))
+            m.fill(0.0);
+        else
+            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
         Square r{};
         fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
                                   rust::Slice<double>(r.data(), m_k * m_k));

@@ -113,6 +113,9 @@ mod bridge {
         /// A fluorescent model's reradiation reduced for a transport.
         type ReducedModel;
         fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>>;
+        /// True when the matrix covers the elastic part too (its reflectance is known
+        /// spectrally); otherwise the renderer adds the elastic part as a diagonal.
+        fn reduced_includes_elastic(r: &ReducedModel) -> bool;
         /// K×K row major: the reduced reradiation times its directional factor (f·cos θo).
         fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]);
         /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
@@ -142,7 +145,27 @@ mod bridge {
 pub use bridge::{JungConfig, Range, Rgb, Sample, Vec3};
 
 /// Opaque fluorescent model handed to C++ (see [`crate::bispectral`]).
-pub struct Fluorescence(Model);
+///
+/// `elastic` is the elastic reflectance when Rust knows it spectrally (sigmoid
+/// coefficients; measured diagonals), so that reductions can cover the whole operator
+/// ρ(λ)·diag + P as in Fichet et al.; `None` when it comes from a Mitsuba texture.
+pub struct Fluorescence {
+    model: Model,
+    elastic: Option<Reflectance>,
+}
+
+/// The whole operator of a material whose elastic reflectance is known: r(λ) times
+/// the model's own diagonal factor, plus its reradiation.
+struct FullOperator<'a>(&'a Model, &'a Reflectance);
+
+impl crate::reduce::Reradiating for FullOperator<'_> {
+    fn diagonal(&self, lambda: f64) -> f64 {
+        self.1.eval(lambda) * crate::reduce::Reradiating::diagonal(self.0, lambda)
+    }
+    fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
+        crate::reduce::Reradiating::density(self.0, lambda_i, lambda_o)
+    }
+}
 
 /// Opaque `fluo_jung` model handed to C++.
 pub struct JungModel {
@@ -167,31 +190,31 @@ fn sample_of(s: Option<(f64, f64)>) -> Sample {
 }
 
 fn fluo_name(f: &Fluorescence) -> &'static str {
-    f.0.name()
+    f.model.name()
 }
 fn fluo_excitation_range(f: &Fluorescence) -> Range {
-    range_of(f.0.excitation_range())
+    range_of(f.model.excitation_range())
 }
 fn fluo_emission_range(f: &Fluorescence) -> Range {
-    range_of(f.0.emission_range())
+    range_of(f.model.emission_range())
 }
 fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
-    f.0.reradiation(dir(wi), dir(wo), lambda_i, lambda_o)
+    f.model.reradiation(dir(wi), dir(wo), lambda_i, lambda_o)
 }
 fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64 {
-    f.0.shift_albedo(dir(wi), lambda_o, (range.lo, range.hi))
+    f.model.shift_albedo(dir(wi), lambda_o, (range.lo, range.hi))
 }
 fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample {
-    sample_of(f.0.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
+    sample_of(f.model.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
 }
 fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64 {
-    f.0.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
+    f.model.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
 }
 fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample {
-    sample_of(f.0.sample_emission(dir(wi), lambda_i, xi))
+    sample_of(f.model.sample_emission(dir(wi), lambda_i, xi))
 }
 fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
-    f.0.emission_pdf(dir(wi), lambda_i, lambda_o)
+    f.model.emission_pdf(dir(wi), lambda_i, lambda_o)
 }
 
 /// Opaque emission spectrum for `fluo_illuminant`.
@@ -295,10 +318,20 @@ fn transport_name(t: &TransportBasis) -> &'static str {
 /// Opaque reduced reradiation of one material (diffuse directional factor).
 pub struct ReducedModel {
     matrix: Vec<f64>,
+    full: bool,
 }
 
 fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>, String> {
-    guarded(|| Ok(Box::new(ReducedModel { matrix: t.0.reduce(&ReradiationOnly(&f.0)) })))
+    guarded(|| {
+        Ok(Box::new(match &f.elastic {
+            Some(r) => ReducedModel { matrix: t.0.reduce(&FullOperator(&f.model, r)), full: true },
+            None => ReducedModel { matrix: t.0.reduce(&ReradiationOnly(&f.model)), full: false },
+        }))
+    })
+}
+
+fn reduced_includes_elastic(r: &ReducedModel) -> bool {
+    r.full
 }
 fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]) {
     // Lambertian reradiation (all current models): f_fl = P/π, times cos θo.
@@ -337,7 +370,7 @@ fn jung_new(config: &JungConfig) -> Result<Box<JungModel>, String> {
         } else {
             None
         };
-        let generic = Fluorescence(Model::Jung(fluorescence.clone()));
+        let generic = Fluorescence { model: Model::Jung(fluorescence.clone()), elastic: reflectance.clone() };
         Ok(Box::new(JungModel { fluorescence, reflectance, generic }))
     })
 }
