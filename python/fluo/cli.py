@@ -30,7 +30,7 @@ import mitsuba as mi
 from . import repo_root, tool_path
 
 #: Subcommands implemented here; anything else goes to fluo-rs.
-PYTHON_COMMANDS = ("render", "demo")
+PYTHON_COMMANDS = ("render", "demo", "bench")
 #: Variants the plugins are registered for (and that ``demo`` renders).
 VARIANTS = ("scalar_spectral", "scalar_rgb")
 #: Examples of subcommands that fluo-rs implements (shown in ``--help``).
@@ -92,7 +92,38 @@ def _parser() -> argparse.ArgumentParser:
     demo.add_argument("--scenes", type=Path, default=repo_root() / "scenes", metavar="DIR",
                       help="scene directory (default: <repo>/scenes)")
     demo.set_defaults(run=_cmd_demo)
+
+    bench = sub.add_parser(
+        "bench",
+        help="accuracy against time of every method on scenes/bench/*.xml",
+        description=(
+            "Render every scenes/bench/*.xml with every method (spectral, RGB reduced "
+            "naive/ours x rgb/xyzu/x7, plain RGB, native path) in one run; print a table "
+            "(time, mean/p95 CIEDE2000 against a cached converged spectral reference, "
+            "equal-error time, floats per material) and write results.json, results.md "
+            "and accuracy_vs_time.png to OUT."
+        ),
+    )
+    bench.add_argument("--quick", action="store_true",
+                       help="48x48 instead of 96x96 and a 4096-spp reference (spp ladder 4..1024 either way)")
+    bench.add_argument("--out", type=Path, default=repo_root() / "out" / "bench", metavar="DIR",
+                       help="output directory (default: <repo>/out/bench)")
+    bench.add_argument("--target", type=float, default=1.5, metavar="DE",
+                       help="equal-error target, mean CIEDE2000 (default: 1.5)")
+    bench.set_defaults(run=_cmd_bench)
     return parser
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from . import bench
+
+    _log_to_stderr(mi.LogLevel.Warn) if hasattr(mi, "LogLevel") else None
+    result = bench.run(quick=args.quick, out=args.out, target_de=args.target,
+                       log=lambda m: print(m, file=sys.stderr, flush=True))
+    print(bench.table(result))
+    print(f"wrote {args.out / 'results.json'}, {args.out / 'results.md'}, "
+          f"{args.out / 'accuracy_vs_time.png'}")
+    return 0
 
 
 def _positive_int(text: str) -> int:
