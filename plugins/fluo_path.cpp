@@ -171,29 +171,15 @@ public:
         Bool prev_bsdf_delta   = true;
         BSDFContext bsdf_ctx;
 
-        PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
-
-        if (m_hide_emitters) {
-            Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
-            if (skip) {
-                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
-                Ray3f r2 = si.spawn_ray(ray.d);
-                pi = Base::skip_area_emitters(scene, r2, true, skip);
-            }
-        }
+        PreliminaryIntersection3f pi = camera_intersection(scene, ray, active);
 
         while (active) {
             SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::All);
 
             // ---------------------- Direct emission ----------------------
             if (si.emitter(scene) != nullptr) {
-                DirectionSample3f ds(scene, si, prev_si);
-                Float em_pdf = 0.f;
-                if (!prev_bsdf_delta)
-                    em_pdf = scene->pdf_emitter_direction(prev_si, ds, !prev_bsdf_delta);
-                Float mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf);
-                result = spec_fma(throughput, ds.emitter->eval(si, prev_bsdf_pdf > 0.f) * mis_bsdf,
-                                  result);
+                auto [emitter, le, mis_bsdf] = hit_emission(scene, si, prev_si, prev_bsdf_pdf, prev_bsdf_delta);
+                result = spec_fma(throughput, le * mis_bsdf, result);
             }
 
             Bool active_next = (depth + 1 < m_max_depth) && si.is_valid();
@@ -305,6 +291,31 @@ private:
         std::array<double, 4> lambda_o{}, lambda_i{};
         std::array<float, 4> scale{};
     };
+
+    /// First intersection of a camera ray, skipping area emitters when they are hidden
+    /// (as path.cpp does at depth 0).
+    PreliminaryIntersection3f camera_intersection(const Scene *scene, const Ray3f &ray, Mask active) const {
+        PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
+        if (m_hide_emitters) {
+            Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
+            if (skip) {
+                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
+                pi = Base::skip_area_emitters(scene, si.spawn_ray(ray.d), true, skip);
+            }
+        }
+        return pi;
+    }
+
+    /// Emission found by a BSDF-sampled ray: (emitter, radiance, MIS weight), as in path.cpp.
+    std::tuple<const Emitter *, Spectrum, Float>
+    hit_emission(const Scene *scene, const SurfaceInteraction3f &si, const Interaction3f &prev_si,
+                 Float prev_bsdf_pdf, Bool prev_bsdf_delta) const {
+        DirectionSample3f ds(scene, si, prev_si);
+        Float em_pdf = 0.f;
+        if (!prev_bsdf_delta)
+            em_pdf = scene->pdf_emitter_direction(prev_si, ds, !prev_bsdf_delta);
+        return { ds.emitter, ds.emitter->eval(si, prev_bsdf_pdf > 0.f), mis_weight(prev_bsdf_pdf, em_pdf) };
+    }
 
     /// Power heuristic, as in path.cpp (non-finite weights become 0).
     Float mis_weight(Float pdf_a, Float pdf_b) const {
@@ -553,27 +564,14 @@ private:
             BSDFContext bsdf_ctx;
             Square m{};
 
-            PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
-            if (m_hide_emitters) {
-                Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
-                if (skip) {
-                    SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
-                    Ray3f r2 = si.spawn_ray(ray.d);
-                    pi = Base::skip_area_emitters(scene, r2, true, skip);
-                }
-            }
+            PreliminaryIntersection3f pi = camera_intersection(scene, ray, active);
 
             while (active) {
                 SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::All);
 
                 if (si.emitter(scene) != nullptr) {
-                    DirectionSample3f ds(scene, si, prev_si);
-                    Float em_pdf = 0.f;
-                    if (!prev_bsdf_delta)
-                        em_pdf = scene->pdf_emitter_direction(prev_si, ds, !prev_bsdf_delta);
-                    Float mis_bsdf = mis_weight(prev_bsdf_pdf, em_pdf);
-                    Spectrum le = ds.emitter->eval(si, prev_bsdf_pdf > 0.f);
-                    accumulate(result, R, emitter_coefficients(ds.emitter, le), mis_bsdf);
+                    auto [emitter, le, mis_bsdf] = hit_emission(scene, si, prev_si, prev_bsdf_pdf, prev_bsdf_delta);
+                    accumulate(result, R, emitter_coefficients(emitter, le), mis_bsdf);
                 }
 
                 Bool active_next = (depth + 1 < m_max_depth) && si.is_valid();
