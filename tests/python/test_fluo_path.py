@@ -265,3 +265,26 @@ def test09_fluo_illuminant():
                         ({}, "exactly one"), ({"filename": "/no/such.csv"}, "no/such.csv")]:
         with pytest.raises(Exception, match=needle):
             mi.load_dict({"type": "fluo_illuminant", **bad})
+
+
+def test10_blackbody_defined_from_300nm_excites_uv_absorber():
+    """Mitsuba's blackbody reaches the UV band only when its range starts below 360 nm."""
+    mi.set_variant("scalar_spectral")
+
+    def green(wavelength_min):
+        scene = mi.load_dict({
+            "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
+            "sensor": ortho_down(width=8, height=8, spp=64, pixel_format="xyz"),
+            "plane": {"type": "rectangle", "to_world": transform().scale(10),
+                      "bsdf": {"type": "fluo_jung", "reflectance": 0.0, "emission_peak": 450.0,
+                               "stokes_shift": 110.0, "concentration": 1.0}},  # absorbs ~310-390 nm
+            "light": {"type": "directional", "direction": [0, 0, -1],
+                      "irradiance": {"type": "blackbody", "temperature": 6000.0,
+                                     "wavelength_min": wavelength_min}},
+        })
+        y = render(scene)[..., 1].mean()  # the integrator scans the scene when rendering
+        assert f"excitation_range = [{wavelength_min:g}," in str(scene.integrator())
+        return y
+
+    uv, visible_only = green(300.0), green(360.0)
+    assert visible_only > 0 and uv > 1.3 * visible_only, (uv, visible_only)
