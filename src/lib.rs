@@ -18,6 +18,7 @@ pub mod colour;
 pub mod jung;
 pub mod material;
 pub mod mitsuba;
+pub mod qd;
 pub mod sigmoid;
 pub mod spectrum;
 
