@@ -140,14 +140,14 @@ public:
     FluoQd(const Properties &props) : Base(props) {
         using namespace fluo_detail;
         m_config = fluo::qd_default_config(); // the defaults live in Rust (src/qd.rs)
-        m_config.radius        = get_float(Plugin, props, "radius", m_config.radius);
-        m_config.width         = get_float(Plugin, props, "width", m_config.width);
-        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", m_config.quantum_yield);
-        m_config.density       = get_float(Plugin, props, "density", m_config.density);
-        m_config.ext_ior       = get_float(Plugin, props, "ext_ior", m_config.ext_ior);
-        m_config.lambda_min    = get_float(Plugin, props, "lambda_min", m_config.lambda_min);
-        m_config.lambda_max    = get_float(Plugin, props, "lambda_max", m_config.lambda_max);
-        m_config.alpha         = get_float(Plugin, props, "alpha", m_config.alpha);
+        m_config.radius        = get_double(props, "radius", m_config.radius);
+        m_config.width         = get_double(props, "width", m_config.width);
+        m_config.quantum_yield = get_double(props, "quantum_yield", m_config.quantum_yield);
+        m_config.density       = get_double(props, "density", m_config.density);
+        m_config.ext_ior       = get_double(props, "ext_ior", m_config.ext_ior);
+        m_config.lambda_min    = get_double(props, "lambda_min", m_config.lambda_min);
+        m_config.lambda_max    = get_double(props, "lambda_max", m_config.lambda_max);
+        m_config.alpha         = get_double(props, "alpha", m_config.alpha);
         for (auto &[name, field] : constant_fields())
             m_config.*field = get_double(props, name, m_config.*field);
 

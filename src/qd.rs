@@ -639,7 +639,7 @@ fn check_lambda_range(r: (f64, f64)) -> Result<()> {
 fn lambda_grid(range: (f64, f64), band: &QdBand) -> Vec<f64> {
     let (lo, hi) = range;
     let n = ((hi - lo) / TABLE_STEP_NM).ceil().max(1.0) as usize;
-    let mut g: Vec<f64> = (0..=n).map(|i| (lo + (hi - lo) * i as f64 / n as f64)).collect();
+    let mut g: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
     let (c, d) = (band.lambda_qd_nm, band.width_nm);
     let step = d / TABLE_REFINE;
     if step < TABLE_STEP_NM {
@@ -828,12 +828,13 @@ impl Substrate {
     }
 
     fn validate(&self) -> Result<()> {
-        let ok_eta = |v: f64| v.is_finite() && v > 0.0;
+        // η = 0 is valid Mitsuba input (roughconductor's default η = 0, k = 1).
+        let ok_eta = |v: f64| v.is_finite() && v >= 0.0;
         let ok_k = |v: f64| v.is_finite() && v >= 0.0;
         match self {
             Substrate::Constant { eta, k } => {
                 if !ok_eta(*eta) {
-                    return Err(Error::param("eta", eta, "(0, ∞)"));
+                    return Err(Error::param("eta", eta, "[0, ∞)"));
                 }
                 if !ok_k(*k) {
                     return Err(Error::param("k", k, "[0, ∞)"));
@@ -841,7 +842,7 @@ impl Substrate {
             }
             Substrate::Tabulated { eta, k } => {
                 if let Some(v) = eta.values().iter().find(|v| !ok_eta(**v)) {
-                    return Err(Error::param("eta", v, "(0, ∞) at every wavelength"));
+                    return Err(Error::param("eta", v, "[0, ∞) at every wavelength"));
                 }
                 if let Some(v) = k.values().iter().find(|v| !ok_k(**v)) {
                     return Err(Error::param("k", v, "[0, ∞) at every wavelength"));
