@@ -62,6 +62,8 @@ pub trait Bispectral {
 pub enum Model {
     /// Jung et al.'s diffuse parametric model.
     Jung(JungFluorescence),
+    /// Benamira & Pattanaik's quantum-dot coated microfacet model (boxed: it carries tables).
+    Qd(Box<crate::qd::QdModel>),
 }
 
 impl Model {
@@ -69,6 +71,7 @@ impl Model {
     pub fn name(&self) -> &'static str {
         match self {
             Model::Jung(_) => "jung",
+            Model::Qd(_) => "qd",
         }
     }
 }
@@ -127,41 +130,49 @@ impl Bispectral for Model {
     fn excitation_range(&self) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.excitation_range(),
+            Model::Qd(m) => m.excitation_range(),
         }
     }
     fn emission_range(&self) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.emission_range(),
+            Model::Qd(m) => m.emission_range(),
         }
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             Model::Jung(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
+            Model::Qd(m) => m.reradiation(wi, wo, lambda_i, lambda_o),
         }
     }
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.shift_albedo(wi, lambda_o, range),
+            Model::Qd(m) => m.shift_albedo(wi, lambda_o, range),
         }
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.sample_excitation(wi, lambda_o, xi, range),
+            Model::Qd(m) => m.sample_excitation(wi, lambda_o, xi, range),
         }
     }
     fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
+            Model::Qd(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
         }
     }
     fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
+            Model::Qd(m) => m.sample_emission(wi, lambda_i, xi),
         }
     }
     fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             Model::Jung(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
+            Model::Qd(m) => m.emission_pdf(wi, lambda_i, lambda_o),
         }
     }
 }

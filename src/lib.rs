@@ -19,6 +19,7 @@ pub mod jung;
 pub mod material;
 pub mod reduce;
 pub mod mitsuba;
+pub mod qd;
 pub mod sigmoid;
 pub mod spectrum;
 

@@ -327,15 +327,34 @@ impl Reradiating for crate::jung::JungFluorescence {
     }
 }
 
+/// The quantum-dot coating's spectral operator at one microfacet incidence cosine:
+/// diagonal R_tot(θ, λ), reradiation P(θ, λi, λo) (Benamira & Pattanaik eqs. 23, 27).
+/// Fichet et al. reduce Lambertian materials only; an angle-dependent model is reduced
+/// per incidence angle into a table (see [`crate::ffi`]'s reduced models).
+pub struct QdAtAngle<'a>(pub &'a crate::qd::QdModel, pub f64);
+
+impl Reradiating for QdAtAngle<'_> {
+    fn diagonal(&self, lambda: f64) -> f64 {
+        self.0.r_tot(self.1, lambda)
+    }
+    fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
+        self.0.reradiation_fresnel(self.1, lambda_i, lambda_o)
+    }
+}
+
+/// For patch colorimetry and single reductions, angle-dependent models are taken at
+/// normal incidence.
 impl Reradiating for crate::bispectral::Model {
     fn diagonal(&self, lambda: f64) -> f64 {
         match self {
             crate::bispectral::Model::Jung(m) => m.diagonal(lambda),
+            crate::bispectral::Model::Qd(m) => QdAtAngle(m, 1.0).diagonal(lambda),
         }
     }
     fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             crate::bispectral::Model::Jung(m) => m.density(lambda_i, lambda_o),
+            crate::bispectral::Model::Qd(m) => QdAtAngle(m, 1.0).density(lambda_i, lambda_o),
         }
     }
 }

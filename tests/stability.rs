@@ -100,3 +100,122 @@ fn jung_edges() {
         }
     }
 }
+
+// ------------------------------------------------------------------------ fluo_qd
+
+mod qd {
+    use fluo::bispectral::Bispectral;
+    use fluo::qd::{Distribution, QdIndex, QdModel, QdParams, Substrate};
+    use proptest::prelude::*;
+
+    const PARAM_NAMES: [&str; 7] = ["radius", "width", "quantum_yield", "density", "alpha", "lambda_m", "gap_energy"];
+
+    fn dir(cos: f64, phi: f64) -> [f64; 3] {
+        let s = (1.0 - cos * cos).max(0.0).sqrt();
+        [s * phi.cos(), s * phi.sin(), cos]
+    }
+
+    /// Finite, non-negative values; sampled wavelengths inside their ranges with pdfs
+    /// equal to the pdf functions; R_tot + Q A_tot ≤ 1 for every θ and λi (the
+    /// Fresnel-level energy bound that, with ∫ D G1 ≤ 1, bounds the white furnace).
+    pub fn check(p: QdParams, substrate: Substrate) -> Result<(), TestCaseError> {
+        let m = match QdModel::new(p, QdIndex::CdSe, substrate) {
+            Ok(m) => m,
+            Err(e) => {
+                let msg = e.to_string();
+                prop_assert!(
+                    PARAM_NAMES.iter().any(|n| msg.contains(n)) || msg.contains("eta") || msg.contains("ext_ior"),
+                    "error does not name a parameter: {msg}"
+                );
+                return Ok(());
+            }
+        };
+        let lq = m.band().lambda_qd_nm;
+        let mut lambdas = vec![300.0, 830.0, lq, lq - 1e-9, lq + 1e-9, m.band().emission_peak_nm];
+        lambdas.extend((0..=27).map(|i| 300.0 + 20.0 * i as f64));
+        let cosines = [0.0, 1e-9, 1e-4, 0.01, 0.3, 0.7, 0.999_999, 1.0];
+        for &c in &cosines {
+            for &l in &lambdas {
+                let (r, a) = (m.r_tot(c, l), m.a_tot(c, l));
+                prop_assert!(r.is_finite() && r >= 0.0 && a.is_finite() && a >= 0.0, "R_tot {r} A_tot {a} at cos {c} λ {l}");
+                prop_assert!(r + p.quantum_yield * a <= 1.0 + 1e-12, "energy at cos {c} λ {l}: {}", r + p.quantum_yield * a);
+            }
+        }
+        let range = (300.0, 830.0);
+        for &c in &cosines[1..] {
+            let wi = dir(c, 0.3);
+            for &co in &cosines[1..] {
+                let wo = dir(co, 2.9);
+                for &l in &lambdas {
+                    let e = m.elastic(wi, wo, l);
+                    prop_assert!(e.is_finite() && e >= 0.0, "elastic {e}");
+                    let f = m.reradiation(wi, wo, 350.0, l);
+                    prop_assert!(f.is_finite() && f >= 0.0, "reradiation {f}");
+                }
+            }
+            for xi in [0.0, 1e-9, 0.5, 1.0 - 1e-9, 1.0] {
+                for &lo in &lambdas {
+                    if let Some((li, pdf)) = m.sample_excitation(wi, lo, xi, range) {
+                        prop_assert!(li >= 300.0 && li <= lo.min(830.0) && pdf.is_finite() && pdf > 0.0, "λi {li} pdf {pdf}");
+                        let want = m.excitation_pdf(wi, lo, li, range);
+                        prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
+                    }
+                    let s = m.shift_albedo(wi, lo, range);
+                    prop_assert!(s.is_finite() && s >= 0.0);
+                }
+                for &li in &[300.0, 400.0, lq] {
+                    if let Some((lo, pdf)) = m.sample_emission(wi, li, xi) {
+                        prop_assert!(lo > li && lo <= 830.0 && pdf.is_finite() && pdf > 0.0, "λo {lo} pdf {pdf}");
+                        let want = m.emission_pdf(wi, li, lo);
+                        prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn substrate(k: f64) -> Substrate {
+        Substrate::Constant { eta: 0.2, k }
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 64, ..ProptestConfig::default() })]
+
+        /// The valid box (radius, width, Q, ρ, α, distribution, substrate).
+        #[test]
+        fn qd_valid_box(r in 1.0f64..=5.0, w in 0.01f64..=100.0, q in 0.0f64..=1.0, rho in 0.0f64..=1.0,
+                        alpha in 0.0f64..=1.0, ggx in any::<bool>(), k in 0.0f64..1e3) {
+            let p = QdParams { radius_nm: r, width_nm: w, quantum_yield: q, density: rho, alpha,
+                               distribution: if ggx { Distribution::Ggx } else { Distribution::Beckmann },
+                               ..QdParams::default() };
+            check(p, substrate(k))?;
+        }
+
+        /// Anything at all: must construct cleanly or fail with a named parameter.
+        #[test]
+        fn qd_any_input(r in prop::num::f64::ANY, w in prop::num::f64::ANY, q in prop::num::f64::ANY,
+                        rho in prop::num::f64::ANY, alpha in prop::num::f64::ANY) {
+            let p = QdParams { radius_nm: r, width_nm: w, quantum_yield: q, density: rho, alpha, ..QdParams::default() };
+            check(p, substrate(2.0))?;
+        }
+    }
+
+    /// Edges of the box: R at 1 and 5 nm, δλ tiny and large, Q = ρ = 1, α → 0 and 1,
+    /// perfect mirror and dielectric substrates.
+    #[test]
+    fn qd_edges() {
+        for r in [1.0, 5.0] {
+            for w in [0.01, 15.0, 100.0] {
+                for (q, rho) in [(0.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
+                    for alpha in [0.0, 1e-4, 1.0] {
+                        for s in [Substrate::Constant { eta: 1e-3, k: 1e3 }, Substrate::Constant { eta: 1.5, k: 0.0 }] {
+                            let p = QdParams { radius_nm: r, width_nm: w, quantum_yield: q, density: rho, alpha, ..QdParams::default() };
+                            check(p, s).unwrap_or_else(|e| panic!("R={r} δ={w} Q={q} ρ={rho} α={alpha}: {e}"));
+                        }
+                    }
+                }
+            }
+        }
+    }
+}

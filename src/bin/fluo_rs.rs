@@ -26,6 +26,14 @@ SUBCOMMANDS:
     jung     Derived quantities of a fluo_jung material
              --emission-peak NM --stokes-shift NM --concentration C --quantum-yield Q
 
+    qd       Quantum-dot band of a fluo_qd coating (Brus equation, Stokes shift)
+             --radius NM --width NM, and optionally any Table 1 constant in SI units:
+             --gap-energy --elementary-charge --planck --light-speed --boltzmann
+             --electron-mass --hole-mass --vacuum-permittivity
+             --relative-permittivity --temperature
+             Keys: lambda_qd_nm, stokes_shift_nm, emission_peak_nm, and the size and
+             build time of the material's precomputed tables.
+
     patch    XYZ of a flat patch under a light, by direct single-bounce integration
              --material M     material JSON (inline or a .json file), e.g.
                               '{"model":"jung","emission_peak":520,"concentration":0.8}'
@@ -100,6 +108,54 @@ fn cmd_jung(args: &Args) -> Result<Value, String> {
         "absorption_support_nm": [m.absorption_support().0, m.absorption_support().1],
         "emission_support_nm": [m.emission_support().0, m.emission_support().1],
         "absorption_integral_nm": m.absorption_integral(),
+    }))
+}
+
+fn cmd_qd(args: &Args) -> Result<Value, String> {
+    use fluo::qd::{QdBand, QdConstants, QdIndex, QdModel, QdParams, Substrate, COS_NODES};
+    let d = QdParams::default();
+    let mut c = QdConstants::default();
+    let fields: [(&str, &mut f64); 10] = [
+        ("gap-energy", &mut c.gap_energy),
+        ("elementary-charge", &mut c.elementary_charge),
+        ("planck", &mut c.planck),
+        ("light-speed", &mut c.light_speed),
+        ("boltzmann", &mut c.boltzmann),
+        ("electron-mass", &mut c.electron_mass),
+        ("hole-mass", &mut c.hole_mass),
+        ("vacuum-permittivity", &mut c.vacuum_permittivity),
+        ("relative-permittivity", &mut c.relative_permittivity),
+        ("temperature", &mut c.temperature),
+    ];
+    for (key, field) in fields {
+        *field = args.f64_or(key, *field)?;
+    }
+    let radius = args.f64_or("radius", d.radius_nm)?;
+    let width = args.f64_or("width", d.width_nm)?;
+    let band = QdBand::new(&c, radius, width).map_err(|e| e.to_string())?;
+    // Cost of the per-material precomputation (a constant dielectric substrate).
+    let t0 = std::time::Instant::now();
+    let model = QdModel::new(
+        QdParams { radius_nm: radius, width_nm: width, constants: c, ..d },
+        QdIndex::CdSe,
+        Substrate::Constant { eta: 1.5, k: 0.0 },
+    )
+    .map_err(|e| e.to_string())?;
+    let build_ms = t0.elapsed().as_secs_f64() * 1e3;
+    Ok(json!({
+        "radius_nm": band.radius_nm,
+        "width_nm": band.width_nm,
+        "absorption_energy_j": band.absorption_energy_j,
+        "lambda_qd_nm": band.lambda_qd_nm,
+        "stokes_shift_nm": band.stokes_shift_nm,
+        "emission_peak_nm": band.emission_peak_nm,
+        "constants": c,
+        "tables": {
+            "rows_cos_theta": COS_NODES,
+            "lambda_nodes": model.table_nodes(),
+            "bytes": model.table_bytes(),
+            "build_ms": build_ms,
+        },
     }))
 }
 
@@ -198,6 +254,7 @@ fn run(argv: &[String]) -> Result<(), String> {
         "jung" => cmd_jung(&args)?,
         "patch" => cmd_patch(&args)?,
         "reduce" => cmd_reduce(&args)?,
+        "qd" => cmd_qd(&args)?,
         other => return Err(format!("unknown subcommand \"{other}\" (see fluo-rs --help)")),
     };
     if args.json {

@@ -140,9 +140,62 @@ mod bridge {
         /// The model's fluorescent part, for the integrator.
         fn jung_fluorescence(model: &JungModel) -> &Fluorescence;
     }
+
+    // ------------------------------------------------------------------ fluo_qd
+    /// `fluo_qd` parameters as parsed from Mitsuba `Properties` by the shim.
+    struct QdConfig {
+        radius: f64,
+        width: f64,
+        quantum_yield: f64,
+        density: f64,
+        ext_ior: f64,
+        lambda_min: f64,
+        lambda_max: f64,
+        /// GGX if true, Beckmann otherwise.
+        ggx: bool,
+        alpha: f64,
+        gap_energy: f64,
+        elementary_charge: f64,
+        planck: f64,
+        light_speed: f64,
+        boltzmann: f64,
+        electron_mass: f64,
+        hole_mass: f64,
+        vacuum_permittivity: f64,
+        relative_permittivity: f64,
+        temperature: f64,
+    }
+
+    extern "Rust" {
+        /// A validated, baked `fluo_qd` material.
+        type QdModel;
+
+        /// Substrate η, k (relative to the environment) sampled at `substrate_wavelengths`
+        /// (one entry: a constant). QD index n, k at `qd_wavelengths` (empty: built-in CdSe;
+        /// one entry: a constant).
+        fn qd_new(
+            config: &QdConfig,
+            substrate_wavelengths: &[f64],
+            substrate_eta: &[f64],
+            substrate_k: &[f64],
+            qd_wavelengths: &[f64],
+            qd_eta: &[f64],
+            qd_k: &[f64],
+        ) -> Result<Box<QdModel>>;
+        /// The plugin defaults (those of `QdParams::default()` and Table 1).
+        fn qd_default_config() -> QdConfig;
+        fn qd_is_fluorescent(model: &QdModel) -> bool;
+        /// Coating coefficients at the microfacet cosine for each λ: the film's R_spe and
+        /// the two-pass transmission T_spe²(1 − A_tf)², so that
+        /// R_tot = R_spe + pass·R / (1 − R·R_spe) for substrate reflectance R (eq. 23).
+        fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_spe: &mut [f32], pass: &mut [f32]);
+        fn qd_to_string(model: &QdModel) -> String;
+        /// The coating's bispectral part, for the integrator.
+        fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
+    }
 }
 
-pub use bridge::{JungConfig, Range, Rgb, Sample, Vec3};
+pub use bridge::{JungConfig, QdConfig, Range, Rgb, Sample, Vec3};
 
 /// Opaque fluorescent model handed to C++ (see [`crate::bispectral`]).
 ///
@@ -315,17 +368,42 @@ fn transport_name(t: &TransportBasis) -> &'static str {
     t.0.name
 }
 
-/// Opaque reduced reradiation of one material (diffuse directional factor).
+/// Incidence-cosine nodes of angle-dependent reduced tables (uniform in cos θ,
+/// linearly interpolated; the coating's own tables use the same kind of grid).
+const REDUCED_COS_NODES: usize = 17;
+
+/// Opaque reduced operator of one material, with its directional factor.
 pub struct ReducedModel {
-    matrix: Vec<f64>,
+    directional: Directional,
     full: bool,
+}
+
+enum Directional {
+    /// f = M/π (Lambertian): one K×K matrix.
+    Lambertian(Vec<f64>),
+    /// f = D G M(cos θ) / (4 cos θi cos θo), M tabulated at [`REDUCED_COS_NODES`]
+    /// incidence cosines on the microfacet (cos θ = ωi·h).
+    Microfacet { micro: crate::qd::Microfacet, tables: Vec<Vec<f64>> },
 }
 
 fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>, String> {
     guarded(|| {
-        Ok(Box::new(match &f.elastic {
-            Some(r) => ReducedModel { matrix: t.0.reduce(&FullOperator(&f.model, r)), full: true },
-            None => ReducedModel { matrix: t.0.reduce(&ReradiationOnly(&f.model)), full: false },
+        Ok(Box::new(match (&f.model, &f.elastic) {
+            (Model::Qd(m), _) => {
+                let tables = (0..REDUCED_COS_NODES)
+                    .map(|j| {
+                        let c = j as f64 / (REDUCED_COS_NODES - 1) as f64;
+                        t.0.reduce(&crate::reduce::QdAtAngle(m, c.max(1e-3)))
+                    })
+                    .collect();
+                ReducedModel { directional: Directional::Microfacet { micro: *m.microfacet(), tables }, full: true }
+            }
+            (_, Some(r)) => {
+                ReducedModel { directional: Directional::Lambertian(t.0.reduce(&FullOperator(&f.model, r))), full: true }
+            }
+            (_, None) => {
+                ReducedModel { directional: Directional::Lambertian(t.0.reduce(&ReradiationOnly(&f.model))), full: false }
+            }
         }))
     })
 }
@@ -334,10 +412,29 @@ fn reduced_includes_elastic(r: &ReducedModel) -> bool {
     r.full
 }
 fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]) {
-    // Lambertian reradiation (all current models): f_fl = P/π, times cos θo.
-    let factor = if wi.z > 0.0 && wo.z > 0.0 { wo.z * std::f64::consts::FRAC_1_PI } else { 0.0 };
-    for (o, v) in out.iter_mut().zip(&r.matrix) {
-        *o = v * factor;
+    match &r.directional {
+        Directional::Lambertian(m) => {
+            // f = M/π, times cos θo
+            let factor = if wi.z > 0.0 && wo.z > 0.0 { wo.z * std::f64::consts::FRAC_1_PI } else { 0.0 };
+            for (o, v) in out.iter_mut().zip(m) {
+                *o = v * factor;
+            }
+        }
+        Directional::Microfacet { micro, tables } => {
+            // D G / (4 cos θi) M(cos θ), cos θ = ωi·h, M linear between nodes
+            let Some((lobe, c)) = micro.lobe(dir(wi), dir(wo)) else {
+                out.iter_mut().for_each(|o| *o = 0.0);
+                return;
+            };
+            let x = c.clamp(0.0, 1.0) * (REDUCED_COS_NODES - 1) as f64;
+            let j = (x.floor() as usize).min(REDUCED_COS_NODES - 2);
+            let w = x - j as f64;
+            if let (Some(a), Some(b)) = (tables.get(j), tables.get(j + 1)) {
+                for ((o, va), vb) in out.iter_mut().zip(a).zip(b) {
+                    *o = lobe * ((1.0 - w) * va + w * vb);
+                }
+            }
+        }
     }
 }
 fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]) {
@@ -433,6 +530,144 @@ fn jung_to_string(model: &JungModel) -> String {
     }
 }
 
+// ---------------------------------------------------------------------- fluo_qd
+
+/// Opaque `fluo_qd` model handed to C++.
+pub struct QdModel {
+    generic: Fluorescence,
+}
+
+impl QdModel {
+    fn model(&self) -> &crate::qd::QdModel {
+        match &self.generic.model {
+            Model::Qd(m) => m,
+            // qd_new only ever stores a Qd model; an unreachable default keeps this panic-free.
+            Model::Jung(_) => qd_fallback(),
+        }
+    }
+}
+
+fn qd_fallback() -> &'static crate::qd::QdModel {
+    use crate::qd::{QdIndex, QdModel as Qd, QdParams, Substrate};
+    static FALLBACK: std::sync::OnceLock<Option<Qd>> = std::sync::OnceLock::new();
+    FALLBACK
+        .get_or_init(|| Qd::new(QdParams { density: 0.0, ..QdParams::default() }, QdIndex::CdSe, Substrate::Constant { eta: 1.5, k: 0.0 }).ok())
+        .as_ref()
+        .unwrap_or_else(|| unreachable!("the default fluo_qd parameters are valid"))
+}
+
+/// A spectrum from shim samples: one entry is a constant, several a table.
+fn sampled(name: &str, wavelengths: &[f64], values: &[f64]) -> crate::Result<IrregularSpectrum> {
+    match values {
+        [v] => IrregularSpectrum::new(vec![0.0, 1e4], vec![*v, *v]),
+        _ => IrregularSpectrum::new(wavelengths.to_vec(), values.to_vec())
+            .map_err(|e| crate::Error::data(format!("{name}: {e}"))),
+    }
+}
+
+fn qd_new(
+    config: &QdConfig,
+    substrate_wavelengths: &[f64],
+    substrate_eta: &[f64],
+    substrate_k: &[f64],
+    qd_wavelengths: &[f64],
+    qd_eta: &[f64],
+    qd_k: &[f64],
+) -> Result<Box<QdModel>, String> {
+    use crate::qd::{Distribution, QdConstants, QdIndex, QdParams, Substrate};
+    guarded(|| {
+        let params = QdParams {
+            radius_nm: config.radius,
+            width_nm: config.width,
+            quantum_yield: config.quantum_yield,
+            density: config.density,
+            ext_ior: config.ext_ior,
+            lambda_min_nm: config.lambda_min,
+            lambda_max_nm: config.lambda_max,
+            distribution: if config.ggx { Distribution::Ggx } else { Distribution::Beckmann },
+            alpha: config.alpha,
+            constants: QdConstants {
+                gap_energy: config.gap_energy,
+                elementary_charge: config.elementary_charge,
+                planck: config.planck,
+                light_speed: config.light_speed,
+                boltzmann: config.boltzmann,
+                electron_mass: config.electron_mass,
+                hole_mass: config.hole_mass,
+                vacuum_permittivity: config.vacuum_permittivity,
+                relative_permittivity: config.relative_permittivity,
+                temperature: config.temperature,
+            },
+        };
+        let substrate = match (substrate_eta, substrate_k) {
+            ([eta], [k]) => Substrate::Constant { eta: *eta, k: *k },
+            _ => Substrate::Tabulated {
+                eta: sampled("eta", substrate_wavelengths, substrate_eta)?,
+                k: sampled("k", substrate_wavelengths, substrate_k)?,
+            },
+        };
+        let index = if qd_eta.is_empty() && qd_k.is_empty() {
+            QdIndex::CdSe
+        } else {
+            QdIndex::Tabulated { n: sampled("qd_eta", qd_wavelengths, qd_eta)?, k: sampled("qd_k", qd_wavelengths, qd_k)? }
+        };
+        let model = crate::qd::QdModel::new(params, index, substrate)?;
+        // The coating's elastic reflectance R_tot(θ, λ) lives in the Rust model (the
+        // substrate's eta/k are passed in), so reductions cover the whole operator.
+        Ok(Box::new(QdModel {
+            generic: Fluorescence { model: Model::Qd(Box::new(model)), elastic: Some(Reflectance::Constant(1.0)) },
+        }))
+    })
+}
+
+fn qd_default_config() -> QdConfig {
+    let p = crate::qd::QdParams::default();
+    let c = p.constants;
+    QdConfig {
+        radius: p.radius_nm,
+        width: p.width_nm,
+        quantum_yield: p.quantum_yield,
+        density: p.density,
+        ext_ior: p.ext_ior,
+        lambda_min: p.lambda_min_nm,
+        lambda_max: p.lambda_max_nm,
+        ggx: p.distribution == crate::qd::Distribution::Ggx,
+        alpha: p.alpha,
+        gap_energy: c.gap_energy,
+        elementary_charge: c.elementary_charge,
+        planck: c.planck,
+        light_speed: c.light_speed,
+        boltzmann: c.boltzmann,
+        electron_mass: c.electron_mass,
+        hole_mass: c.hole_mass,
+        vacuum_permittivity: c.vacuum_permittivity,
+        relative_permittivity: c.relative_permittivity,
+        temperature: c.temperature,
+    }
+}
+
+fn qd_is_fluorescent(model: &QdModel) -> bool {
+    model.model().is_fluorescent()
+}
+
+fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_spe: &mut [f32], pass: &mut [f32]) {
+    let m = model.model();
+    for ((&l, r), p) in lambdas.iter().zip(r_spe.iter_mut()).zip(pass.iter_mut()) {
+        let c = m.coating(f64::from(cos_theta), f64::from(l));
+        let t = c.t_spe * (1.0 - c.a_tf);
+        *r = c.r_spe as f32;
+        *p = (t * t) as f32;
+    }
+}
+
+fn qd_to_string(model: &QdModel) -> String {
+    model.model().to_string()
+}
+
+fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
+    &model.generic
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -479,5 +714,45 @@ mod tests {
         let mut out = [0.0f32; 2];
         jung_elastic_factor(&m, &[500.0, 510.0, 520.0], &mut out);
         jung_elastic_factor(&m, &[], &mut out);
+    }
+
+    fn qd_config() -> QdConfig {
+        let c = crate::qd::QdConstants::default();
+        QdConfig {
+            radius: 2.2,
+            width: 15.0,
+            quantum_yield: 0.8,
+            density: 0.5,
+            ext_ior: 1.0,
+            lambda_min: 300.0,
+            lambda_max: 830.0,
+            ggx: true,
+            alpha: 0.1,
+            gap_energy: c.gap_energy,
+            elementary_charge: c.elementary_charge,
+            planck: c.planck,
+            light_speed: c.light_speed,
+            boltzmann: c.boltzmann,
+            electron_mass: c.electron_mass,
+            hole_mass: c.hole_mass,
+            vacuum_permittivity: c.vacuum_permittivity,
+            relative_permittivity: c.relative_permittivity,
+            temperature: c.temperature,
+        }
+    }
+
+    #[test]
+    fn qd_errors_cross_as_messages_and_slices_are_safe() {
+        let e = qd_new(&QdConfig { density: 2.0, ..qd_config() }, &[0.0], &[1.5], &[0.0], &[], &[], &[]).err().unwrap();
+        assert!(e.contains("density") && e.contains("[0, 1]"), "{e}");
+        let e = qd_new(&qd_config(), &[400.0, 300.0], &[1.0, 1.0], &[1.0, 1.0], &[], &[], &[]).err().unwrap();
+        assert!(e.contains("eta"), "{e}");
+        let e = qd_new(&qd_config(), &[0.0], &[1.5], &[0.0], &[400.0, 500.0], &[2.0, -1.0], &[0.1, 0.1]).err().unwrap();
+        assert!(e.contains("qd_eta"), "{e}");
+        let m = qd_new(&qd_config(), &[0.0], &[1.5], &[0.0], &[], &[], &[]).unwrap();
+        let (mut r, mut p) = ([0.0f32; 2], [0.0f32; 4]);
+        qd_elastic_coefficients(&m, 0.5, &[400.0, 500.0, 600.0], &mut r, &mut p);
+        assert!(r[0] >= 0.0 && p[0] > 0.0 && p[0] <= 1.0 && p[2] == 0.0);
+        assert_eq!(fluo_name(qd_fluorescence(&m)), "qd");
     }
 }
