@@ -30,6 +30,19 @@ public:
     /// light leaving along si.wi. Used only to choose between elastic and shifted
     /// events, so it must be positive wherever the elastic BSDF is.
     virtual UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const = 0;
+
+    // Spatially varying fluorescence (e.g. fluo_jung with a colour texture). The
+    // defaults describe a uniform material; a varying one returns its model at si
+    // (nullptr where it does not re-emit) and fluorescence() becomes a representative
+    // used only to decide that the material fluoresces somewhere.
+
+    /// The fluorescent model at si, or nullptr where the material does not re-emit.
+    virtual const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f & /* si */) const {
+        return fluorescence();
+    }
+
+    /// Whether fluorescence_at() depends on si.
+    virtual bool fluorescence_varies() const { return false; }
 };
 
 NAMESPACE_END(mitsuba)

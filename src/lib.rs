@@ -20,6 +20,7 @@ pub mod material;
 pub mod mitsuba;
 pub mod sigmoid;
 pub mod spectrum;
+pub mod upsample;
 
 #[allow(unsafe_code, missing_docs)]
 pub mod ffi;
