@@ -38,6 +38,19 @@ public:
     /// itself as a reduced matrix and needs the elastic part separately.
     virtual UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si,
                                              const Vector<Float, 3> &wo) const = 0;
+
+    // Spatially varying fluorescence (e.g. fluo_jung with a colour texture). The
+    // defaults describe a uniform material; a varying one returns its model at si
+    // (nullptr where it does not re-emit) and fluorescence() becomes a representative
+    // used only to decide that the material fluoresces somewhere.
+
+    /// The fluorescent model at si, or nullptr where the material does not re-emit.
+    virtual const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f & /* si */) const {
+        return fluorescence();
+    }
+
+    /// Whether fluorescence_at() depends on si.
+    virtual bool fluorescence_varies() const { return false; }
 };
 
 /// A texture that knows its emission spectrum (fluo_illuminant), so that reduced

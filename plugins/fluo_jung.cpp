@@ -1,7 +1,11 @@
+#include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/core/warp.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
+
+#include <optional>
+#include <vector>
 
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
@@ -40,6 +44,32 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
  * - quantum_yield
    - |float|
    - Quantum yield Q in [0, 1]. (Default: 0.96, the paper's fixed value)
+ * - color
+   - |rgb| or |texture|
+   - Wide-gamut RGB upsampling (Jung et al. 2019, sec. 3-4): a colour in
+     ``color_space`` with components in [0, 1], given as ``<rgb name="color" .../>``, or a
+     ``bitmap`` texture with ``raw=true`` whose texels are linear RGB in ``color_space``
+     (an EXR; ``raw`` keeps Mitsuba from upsampling or gamma-decoding it). It is
+     converted to a smooth reflectance plus just enough fluorescence (λe, c, s; Q = 0.96)
+     through a coefficient cube: once for a constant colour, once per texel at load for
+     a texture (nearest texel at render time, ``wrap_mode`` repeat, ``to_uv`` ignored).
+     Mutually exclusive with ``reflectance``, ``coefficients``, ``emission_peak``,
+     ``stokes_shift``, ``concentration`` and ``quantum_yield`` (the cube sets them).
+ * - color_space
+   - |string|
+   - Space of ``color``: ``srgb`` (linear), ``rec2020`` or ``acescg``. (Default: acescg)
+ * - cube
+   - |string|
+   - Coefficient cube file (``fluo upsample-cube``). (Default: the shipped
+     ``data/cubes/<color_space>_d65_tinf_r33.cube``; ``$FLUO_CUBE_DIR`` overrides the directory)
+ * - lookup
+   - |string|
+   - ``nearest`` cube entry, or ``trilinear`` interpolation of coefficients (λe and s
+     only over corners with c > 0, the paper's rule). (Default: nearest, which the
+     paper finds less disruptive at the onset of fluorescence)
+ * - fluorescence
+   - |bool|
+   - ``false`` uses the cube's reflectance-only solutions (for comparisons). (Default: true)
 
 The diffuse fluorescent BBRRDF of Jung, Hanika & Dachsbacher (2018), as used by
 Jung et al., "Wide Gamut Spectral Upsampling with Fluorescence" (CGF 2019), eq. 1:
@@ -67,8 +97,13 @@ What this plugin computes in each variant:
   the RGB variant instead transports fluorescence with reduced reradiation matrices.
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
-``reflectance`` and ``coefficients``) raise an error naming the parameter, its value
+``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
+``color_space``, a malformed cube) raise an error naming the parameter, its value
 and the valid range.
+
+The cube's colours are those of the reflected light under CIE D65 (360–830 nm),
+Bradford-adapted to the space's white; see ``src/upsample.rs``. In ``scalar_rgb`` the
+upsampled material is shown as Mitsuba shows any reflectance spectrum (sRGB under E).
 
 .. tabs::
     .. code-tab:: xml
@@ -79,6 +114,14 @@ and the valid range.
             <float name="emission_peak" value="520"/>
             <float name="stokes_shift" value="80"/>
             <float name="concentration" value="0.8"/>
+        </bsdf>
+
+    .. code-tab:: xml
+        :name: fluo-jung-color
+
+        <bsdf type="fluo_jung">
+            <rgb name="color" value="0.9, 0, 0.9"/>
+            <string name="color_space" value="acescg"/>
         </bsdf>
 
     .. code-tab:: python
@@ -103,7 +146,9 @@ public:
         m_config.concentration = get_float(Plugin, props, "concentration", 0.5);
         m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", 0.96);
         m_config.has_coefficients = props.has_property("coefficients");
-        if (m_config.has_coefficients) {
+        if (props.has_property("color")) {
+            init_color(props);
+        } else if (m_config.has_coefficients) {
             if (props.has_property("reflectance"))
                 Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", Plugin);
             auto c = parse_list<3>(Plugin, "coefficients",
@@ -120,6 +165,8 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
+        if (m_color_mode)
+            return; // everything derives from the colour and the cube
         if (m_reflectance)
             cb->put("reflectance", m_reflectance, ParamFlags::NonDifferentiable);
         cb->put("emission_peak", m_emission_peak, ParamFlags::NonDifferentiable);
@@ -191,8 +238,22 @@ public:
     }
 
     const fluo::Fluorescence *fluorescence() const override {
+        if (m_texture_models) {
+            if (!fluo::jung_texture_is_fluorescent(**m_texture_models))
+                return nullptr;
+            return &fluo::jung_fluorescence(fluo::jung_texture_representative(**m_texture_models));
+        }
         return fluo::jung_is_fluorescent(*m_model) ? &fluo::jung_fluorescence(*m_model) : nullptr;
     }
+
+    const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
+        if (!m_texture_models)
+            return fluorescence();
+        const fluo::JungModel &m = texel_model(si);
+        return fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr;
+    }
+
+    bool fluorescence_varies() const override { return m_texture_models.has_value(); }
 
     UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
         if constexpr (is_rgb_v<Spectrum>) {
@@ -218,6 +279,9 @@ public:
             << "  model = " << std::string(fluo::jung_to_string(*m_model)) << "," << std::endl;
         if (m_reflectance)
             oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
+        if (m_color_mode)
+            oss << "  color = " << m_color_text << "," << std::endl
+                << "  cube = " << std::string(fluo::upsample_cube_describe(**m_cube)) << std::endl;
         oss << "]";
         return oss.str();
     }
@@ -249,8 +313,101 @@ private:
         }
     }
 
+    /// `color`: load the cube, then look up a constant colour once or every texel of
+    /// a (raw) bitmap texture once.
+    void init_color(const Properties &props) {
+        using namespace fluo_detail;
+        for (const char *other : { "reflectance", "coefficients", "emission_peak", "stokes_shift",
+                                   "concentration", "quantum_yield" })
+            if (props.has_property(other))
+                Throw("%s: \"color\" sets the reflectance and fluorescence through the cube; "
+                      "do not also specify \"%s\"", Plugin, other);
+        m_color_mode = true;
+        std::string space(props.get<std::string_view>("color_space", "acescg"));
+        std::string cube_file(props.get<std::string_view>("cube", ""));
+        if (!cube_file.empty())
+            cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
+        m_lookup = std::string(props.get<std::string_view>("lookup", "nearest"));
+        m_use_fluorescence = props.get<bool>("fluorescence", true);
+        m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
+        if (props.type("color") == Properties::Type::Color) {
+            ScalarColor3f c = props.get<ScalarColor3f>("color");
+            std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
+            m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
+            fluo::UpsampleCoefficients k = rust_call(Plugin, [&] {
+                return fluo::upsample_lookup(**m_cube, rust::Slice<const double>(rgb.data(), 3), m_lookup,
+                                             m_use_fluorescence);
+            });
+            m_config.has_coefficients = true;
+            m_config.c0 = k.c0;
+            m_config.c1 = k.c1;
+            m_config.c2 = k.c2;
+            m_config.emission_peak = k.emission_peak;
+            m_config.stokes_shift = k.stokes_shift;
+            m_config.concentration = k.concentration;
+            m_config.quantum_yield = k.quantum_yield;
+            return;
+        }
+        if (props.type("color") != Properties::Type::Object)
+            Throw("%s: \"color\" must be an <rgb> value or a bitmap texture", Plugin);
+        ref<Texture> tex = props.get_texture<Texture>("color");
+        if (!tex->is_spatially_varying())
+            Throw("%s: \"color\" is a constant texture; give it as <rgb name=\"color\" value=\"r, g, b\"/> "
+                  "(or as a raw bitmap texture)", Plugin);
+        ScalarVector2i res = tex->resolution();
+        if (!(res.x() > 0 && res.y() > 0))
+            Throw("%s: \"color\" texture has no texels", Plugin);
+        std::vector<float> texels((size_t) res.x() * (size_t) res.y() * 3);
+        SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+        try {
+            for (int y = 0; y < res.y(); ++y)
+                for (int x = 0; x < res.x(); ++x) {
+                    si.uv = Point2f((x + .5f) / res.x(), (y + .5f) / res.y());
+                    Color3f v = tex->eval_3(si, true);
+                    size_t o = 3 * ((size_t) y * res.x() + x);
+                    texels[o] = v[0]; texels[o + 1] = v[1]; texels[o + 2] = v[2];
+                }
+        } catch (const std::exception &e) {
+            Throw("%s: cannot read the \"color\" texture's RGB texels (it must be a 3-channel "
+                  "bitmap with <boolean name=\"raw\" value=\"true\"/>, holding linear %s): %s",
+                  Plugin, space, e.what());
+        }
+        m_texture_res = res;
+        m_color_text = tfm::format("texture %d x %d %s", res.x(), res.y(), space);
+        m_texture_models = rust_call(Plugin, [&] {
+            return fluo::jung_texture_new(**m_cube, (size_t) res.x(), (size_t) res.y(),
+                                          rust::Slice<const float>(texels.data(), texels.size()),
+                                          m_lookup, m_use_fluorescence);
+        });
+        m_color_text += tfm::format(", %zu distinct coefficient sets",
+                                    fluo::jung_texture_distinct(**m_texture_models));
+    }
+
+    /// Nearest texel (repeat wrap) of the colour texture at si.uv.
+    std::pair<int64_t, int64_t> texel_of(const SurfaceInteraction3f &si) const {
+        return { (int64_t) dr::floor(si.uv.x() * m_texture_res.x()),
+                 (int64_t) dr::floor(si.uv.y() * m_texture_res.y()) };
+    }
+
+    const fluo::JungModel &texel_model(const SurfaceInteraction3f &si) const {
+        auto [x, y] = texel_of(si);
+        return fluo::jung_texture_model(**m_texture_models, x, y);
+    }
+
     /// Directional-hemispherical albedo served to Mitsuba (see the doc comment).
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_texture_models) {
+            if constexpr (is_rgb_v<Spectrum>) {
+                auto [x, y] = texel_of(si);
+                fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, x, y);
+                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+            } else {
+                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+                fluo::jung_elastic_albedo(texel_model(si), fluo_detail::slice(lambda),
+                                          fluo_detail::slice_mut(out));
+                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            }
+        }
         if constexpr (is_rgb_v<Spectrum>) {
             if (!m_reflectance)
                 return m_rgb_albedo;
@@ -284,6 +441,12 @@ private:
     ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
                 m_quantum_yield = 0.f;
     bool m_modifies_reflectance = false;
+    // `color` (wide-gamut upsampling through a coefficient cube)
+    bool m_color_mode = false, m_use_fluorescence = true;
+    std::string m_lookup, m_color_text;
+    std::optional<rust::Box<fluo::UpsampleCube>> m_cube;
+    std::optional<rust::Box<fluo::JungTexture>> m_texture_models; ///< per-texel models
+    ScalarVector2i m_texture_res = ScalarVector2i(0, 0);
     Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f,
             m_rgb_elastic_albedo = 0.f;
 };

@@ -102,6 +102,10 @@ the incident radiance L(λi, ω) with the usual MIS weights, which do not depend
 wavelength. Each hero wavelength is an independent estimator of its camera
 wavelength's radiance, so the film's wavelength weights stay valid.
 
+Spatially varying fluorescence (``fluo_jung`` with a ``color`` texture) is looked up
+per vertex through the bispectral interface's ``fluorescence_at(si)``: each vertex
+uses its own texel's model and intersects its excitation band with R.
+
 Fluorescent materials must be used directly (not inside ``twosided`` or ``blendbsdf``),
 since the integrator finds the bispectral interface on the BSDF a ray hits.
 
@@ -282,6 +286,8 @@ private:
         const BispectralBSDF<Float, Spectrum> *bispectral;
         const fluo::Fluorescence *model;
         fluo::Range range;
+        /// Spatially varying: the model and its range are looked up per vertex.
+        bool varies = false;
         const fluo::ReducedModel *reduced = nullptr; // scalar_rgb only
     };
 
@@ -290,6 +296,8 @@ private:
         std::array<bool, 4> shifted{};
         std::array<double, 4> lambda_o{}, lambda_i{};
         std::array<float, 4> scale{};
+        /// The model at this vertex (per texel for spatially varying materials).
+        const fluo::Fluorescence *model = nullptr;
     };
 
     /// First intersection of a camera ray, skipping area emitters when they are hidden
@@ -344,13 +352,27 @@ private:
     Transition choose_transitions(const Entry &e, SurfaceInteraction3f &si, Sampler *sampler) const {
         Transition tr;
         if constexpr (is_spectral_v<Spectrum>) {
+            tr.model = e.model;
+            fluo::Range range = e.range;
+            if (e.varies) {
+                tr.model = e.bispectral->fluorescence_at(si);
+                if (tr.model) {
+                    fluo::Range ex = fluo::fluo_excitation_range(*tr.model);
+                    range = fluo::Range{ std::max(ex.lo, e.range.lo), std::min(ex.hi, e.range.hi) };
+                }
+                if (!tr.model || !(range.lo < range.hi)) {
+                    tr.model = nullptr;
+                    tr.scale.fill(1.f); // no fluorescence here: every wavelength elastic
+                    return tr;
+                }
+            }
             auto albedo = e.bispectral->elastic_albedo(si);
             fluo::Vec3 wi = vec(si.wi);
             for (size_t j = 0; j < N; ++j) {
                 double lo = si.wavelengths[j];
                 tr.lambda_o[j] = tr.lambda_i[j] = lo;
                 double we = std::max(0.0, (double) albedo[j]);
-                double wf = std::max(0.0, fluo::fluo_shift_albedo(*e.model, wi, lo, e.range));
+                double wf = std::max(0.0, fluo::fluo_shift_albedo(*tr.model, wi, lo, range));
                 Point2f u = sampler->next_2d();
                 double total = we + wf;
                 if (!(total > 0.0) || !std::isfinite(total)) {
@@ -362,7 +384,7 @@ private:
                     tr.scale[j] = (float) (1.0 / pe);
                     continue;
                 }
-                fluo::Sample s = fluo::fluo_sample_excitation(*e.model, wi, lo, u.y(), e.range);
+                fluo::Sample s = fluo::fluo_sample_excitation(*tr.model, wi, lo, u.y(), range);
                 if (!(s.pdf > 0.0)) {
                     tr.scale[j] = 0.f;
                     continue;
@@ -377,13 +399,15 @@ private:
     }
 
     /// Turn the elastic BSDF value (times cos) into the chosen transitions' values.
-    void apply_transitions(const Entry &e, const Transition &tr, const SurfaceInteraction3f &si,
+    void apply_transitions(const Entry & /* e */, const Transition &tr, const SurfaceInteraction3f &si,
                            const Vector3f &wo, Spectrum &value) const {
         if constexpr (is_spectral_v<Spectrum>) {
+            if (!tr.model)
+                return; // all elastic at this vertex
             fluo::Vec3 wi = vec(si.wi), o = vec(wo);
             for (size_t j = 0; j < N; ++j) {
                 if (tr.shifted[j])
-                    value[j] = (float) fluo::fluo_reradiation(*e.model, wi, o, tr.lambda_i[j], tr.lambda_o[j]);
+                    value[j] = (float) fluo::fluo_reradiation(*tr.model, wi, o, tr.lambda_i[j], tr.lambda_o[j]);
                 value[j] *= tr.scale[j];
             }
         }
@@ -446,12 +470,15 @@ private:
                 const fluo::Fluorescence *model = bisp->fluorescence();
                 fluo::Range em = fluo::fluo_emission_range(*model);
                 hi = std::max(hi, em.hi); // re-emitted light can excite further shifts
-                candidates.push_back(Entry{ bsdf, bisp, model, fluo::Range{ 0, 0 } });
+                candidates.push_back(Entry{ bsdf, bisp, model, fluo::Range{ 0, 0 }, bisp->fluorescence_varies() });
             }
             m_range = fluo::Range{ lo, hi };
             for (Entry &e : candidates) {
                 fluo::Range ex = fluo::fluo_excitation_range(*e.model);
-                e.range = fluo::Range{ std::max(ex.lo, lo), std::min(ex.hi, hi) };
+                // Varying materials: only the light's range; each vertex intersects it
+                // with its own model's excitation range.
+                e.range = e.varies ? fluo::Range{ lo, hi }
+                                   : fluo::Range{ std::max(ex.lo, lo), std::min(ex.hi, hi) };
                 if (e.range.lo < e.range.hi)
                     m_entries.push_back(e);
             }
@@ -659,12 +686,14 @@ private:
         for (Object *o : c.objects) {
             auto *bsdf = dynamic_cast<BSDF *>(o);
             auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
-            if (!bsdf || !bisp || !bisp->fluorescence())
+            // Spatially varying materials (fluo_jung with a colour texture) stay plain
+            // BSDFs here: their RGB value is the colour the upsampling cube reproduces.
+            if (!bsdf || !bisp || !bisp->fluorescence() || bisp->fluorescence_varies())
                 continue;
             const fluo::Fluorescence *model = bisp->fluorescence();
             m_reduced.push_back(fluo_detail::rust_call(
                 Plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
-            m_entries.push_back(Entry{ bsdf, bisp, model, fluo::fluo_excitation_range(*model),
+            m_entries.push_back(Entry{ bsdf, bisp, model, fluo::fluo_excitation_range(*model), false,
                                        &*m_reduced.back() });
         }
         for (const auto &emitter : scene->emitters()) {

@@ -22,6 +22,7 @@ pub mod mitsuba;
 pub mod qd;
 pub mod sigmoid;
 pub mod spectrum;
+pub mod upsample;
 
 #[allow(unsafe_code, missing_docs)]
 pub mod ffi;

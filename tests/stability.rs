@@ -219,3 +219,69 @@ mod qd {
         }
     }
 }
+
+// ------------------------------------------------------------- upsampling (issue 6)
+
+mod upsample {
+    use super::*;
+    use fluo::upsample::{Cube, Lookup};
+    use std::sync::OnceLock;
+
+    fn cube() -> &'static Cube {
+        static CUBE: OnceLock<Cube> = OnceLock::new();
+        CUBE.get_or_init(|| {
+            Cube::load(&std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes/acescg_d65_tinf_r33.cube"))
+                .expect("shipped ACEScg cube")
+        })
+    }
+
+    /// Whatever colour comes in: a valid Jung material (every lookup mode, with and
+    /// without fluorescence) inside [0, 1]³, an error naming `color` outside.
+    fn check_lookup(rgb: [f64; 3]) -> Result<(), TestCaseError> {
+        let inside = rgb.iter().all(|v| v.is_finite() && (0.0..=1.0).contains(v));
+        for mode in [Lookup::Nearest, Lookup::Trilinear] {
+            for fl in [true, false] {
+                match cube().lookup(rgb, mode, fl) {
+                    Ok(c) => {
+                        prop_assert!(inside, "{rgb:?} accepted");
+                        prop_assert!(c.reflectance.iter().all(|x| x.is_finite()));
+                        let p = JungParams {
+                            emission_peak: c.emission_peak,
+                            stokes_shift: c.stokes_shift,
+                            concentration: c.concentration,
+                            quantum_yield: fluo::upsample::QUANTUM_YIELD,
+                        };
+                        prop_assert!(JungFluorescence::new(p).is_ok(), "{rgb:?} -> {p:?}");
+                        check_jung(p)?;
+                    }
+                    Err(e) => {
+                        prop_assert!(!inside, "{rgb:?}: {e}");
+                        prop_assert!(e.to_string().contains("\"color\""), "{e}");
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 500, ..ProptestConfig::default() })]
+
+        #[test]
+        fn lookup_unit_cube(r in 0.0f64..=1.0, g in 0.0f64..=1.0, b in 0.0f64..=1.0) {
+            check_lookup([r, g, b])?;
+        }
+
+        #[test]
+        fn lookup_any_input(r in prop::num::f64::ANY, g in -0.5f64..1.5, b in prop::num::f64::ANY) {
+            check_lookup([r, g, b])?;
+        }
+    }
+
+    #[test]
+    fn lookup_edges() {
+        for v in [[0.0; 3], [1.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1e-12], [0.5, 1.0, 0.0]] {
+            check_lookup(v).unwrap();
+        }
+    }
+}

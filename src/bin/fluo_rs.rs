@@ -14,6 +14,8 @@ use fluo::reduce::{reduce, reduced_patch_xyz, spectral_patch_xyz, Basis, BasisKi
 use fluo::jung::{JungFluorescence, JungParams};
 use fluo::material::load_material;
 use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
+use fluo::colour::RgbSpace;
+use fluo::upsample::{generate_cube, space_name, Cube, CubeSettings, Lookup, Reconstruction, REMAINING_ERROR};
 use serde_json::{json, Value};
 
 const HELP: &str = r#"
@@ -54,6 +56,24 @@ SUBCOMMANDS:
              --cmf cie2006|cie1931 (default cie2006)
              The matrix acts on basis coefficients c_k = ∫ L s_k dλ: c_o = M c_i;
              XYZ = T c (T printed too).
+    upsample-cube    Generate an RGB -> (reflectance + fluorescence) coefficient cube
+             (Jung et al. 2019, sec. 3.4)
+             --space srgb|rec2020|acescg   --res N (default 33)
+             --threshold inf|T   smoothness threshold, nm^-1 (paper: inf or 0.016)
+             --illuminant NAME   (default D65)   --rounds R (default 12)
+             --threads N (default: all cores; the cube does not depend on it)
+             -o FILE             output (binary, header documented in src/upsample.rs)
+
+    upsample-lookup  Coefficients of one colour and the colour they reproduce
+             --rgb R,G,B   --cube FILE | --space S (the shipped cube)
+             --lookup nearest|trilinear (default nearest)  --fluorescence true|false
+
+    upsample-report  HSV test card (hue x saturation at value 1) through cubes
+             --cube FILE   (repeatable; default: the shipped data/cubes/*.cube)
+             --card N      card size N x N (default 64)
+             RMSE of the reconstructed RGB with and without fluorescence, for
+             nearest / trilinear-coefficient / spectral (reflectivity) interpolation,
+             and the fraction of entries with remaining error > 1e-3.
 
 OPTIONS:
     --json   print one JSON object on stdout
@@ -63,24 +83,30 @@ OPTIONS:
 /// Parsed `--key value` options and flags.
 struct Args {
     values: BTreeMap<String, String>,
+    /// Values of the repeatable `--cube` option, in order.
+    multi: Vec<String>,
     json: bool,
 }
 
 fn parse_args(args: &[String]) -> Result<Args, String> {
     let mut values = BTreeMap::new();
     let mut json = false;
+    let mut multi = Vec::new();
     let mut it = args.iter();
     while let Some(a) = it.next() {
         if a == "--json" {
             json = true;
-        } else if let Some(key) = a.strip_prefix("--") {
+        } else if let Some(key) = a.strip_prefix("--").or(if a == "-o" { Some("output") } else { None }) {
             let v = it.next().ok_or_else(|| format!("option --{key} needs a value"))?;
+            if key == "cube" {
+                multi.push(v.clone());
+            }
             values.insert(key.to_string(), v.clone());
         } else {
             return Err(format!("unexpected argument \"{a}\""));
         }
     }
-    Ok(Args { values, json })
+    Ok(Args { values, multi, json })
 }
 
 impl Args {
@@ -240,6 +266,135 @@ fn cmd_reduce(args: &Args) -> Result<Value, String> {
     }))
 }
 
+// ------------------------------------------------------------------ upsampling (issue 6)
+
+fn parse_threshold(text: &str) -> Result<f64, String> {
+    match text.trim().to_ascii_lowercase().as_str() {
+        "inf" | "infinity" | "∞" => Ok(f64::INFINITY),
+        t => t.parse::<f64>().map_err(|_| format!("--threshold \"{text}\" is not a number or \"inf\"")),
+    }
+}
+
+fn cmd_upsample_cube(args: &Args) -> Result<Value, String> {
+    let space = RgbSpace::from_name(args.values.get("space").ok_or("upsample-cube needs --space")?)
+        .map_err(|e| e.to_string())?;
+    let output = args.values.get("output").ok_or("upsample-cube needs -o FILE")?;
+    let res = args.f64_or("res", 33.0)?;
+    if !(res.fract() == 0.0 && res >= 2.0) {
+        return Err(format!("--res {res}: must be a whole number >= 2"));
+    }
+    let threads_default = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    let settings = CubeSettings {
+        space,
+        illuminant: args.values.get("illuminant").cloned().unwrap_or_else(|| "D65".into()),
+        resolution: res as usize,
+        threshold: parse_threshold(args.values.get("threshold").map_or("inf", String::as_str))?,
+        rounds: args.f64_or("rounds", 12.0)? as usize,
+        threads: args.f64_or("threads", threads_default)?.max(1.0) as usize,
+    };
+    let start = std::time::Instant::now();
+    let (cube, stats) = generate_cube(&settings, &mut |line| eprintln!("upsample-cube: {line}")).map_err(|e| e.to_string())?;
+    let seconds = start.elapsed().as_secs_f64();
+    cube.save(std::path::Path::new(output)).map_err(|e| e.to_string())?;
+    Ok(json!({
+        "output": output,
+        "header": cube.header.to_string(),
+        "entries": cube.entries().len(),
+        "seconds": seconds,
+        "threads": settings.threads,
+        "stats": stats,
+    }))
+}
+
+fn shipped_cubes() -> Vec<std::path::PathBuf> {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes");
+    let mut v: Vec<_> = std::fs::read_dir(dir)
+        .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
+        .unwrap_or_default();
+    v.retain(|p: &std::path::PathBuf| p.extension().is_some_and(|e| e == "cube"));
+    v.sort();
+    v
+}
+
+fn cmd_upsample_report(args: &Args) -> Result<Value, String> {
+    let mut files: Vec<std::path::PathBuf> = args.multi.iter().map(std::path::PathBuf::from).collect();
+    if files.is_empty() {
+        files = shipped_cubes();
+    }
+    if files.is_empty() {
+        return Err("upsample-report: no --cube given and no data/cubes/*.cube found".into());
+    }
+    let size = args.f64_or("card", 64.0)?;
+    if !(size.fract() == 0.0 && size >= 2.0 && size <= 4096.0) {
+        return Err(format!("--card {size}: must be a whole number in [2, 4096]"));
+    }
+    let size = size as usize;
+    let mut reports = Vec::new();
+    for f in &files {
+        let cube = Cube::load(f).map_err(|e| e.to_string())?;
+        let sys = cube.colour_system().map_err(|e| e.to_string())?;
+        let mut rmse = serde_json::Map::new();
+        for (name, how) in [
+            ("nearest", Reconstruction::Coefficients(Lookup::Nearest)),
+            ("trilinear", Reconstruction::Coefficients(Lookup::Trilinear)),
+            ("spectral", Reconstruction::Spectra),
+        ] {
+            let with = cube.card_rmse(&sys, size, how, true).map_err(|e| e.to_string())?;
+            let without = cube.card_rmse(&sys, size, how, false).map_err(|e| e.to_string())?;
+            rmse.insert(name.into(), json!({"fluorescence": with, "reflectance_only": without, "ratio": without / with}));
+        }
+        let n = cube.entries().len() as f64;
+        let remaining = cube.entries().iter().filter(|e| e.error > REMAINING_ERROR).count();
+        let remaining_refl = cube.entries().iter().filter(|e| e.reflectance_only_error > REMAINING_ERROR).count();
+        let fluorescent = cube.entries().iter().filter(|e| e.coefficients.concentration > 0.0).count();
+        reports.push(json!({
+            "cube": f.display().to_string(),
+            "space": space_name(cube.header.space),
+            "illuminant": cube.header.illuminant,
+            "resolution": cube.header.resolution,
+            "threshold": if cube.header.threshold.is_finite() { json!(cube.header.threshold) } else { json!("inf") },
+            "card": format!("{size}x{size} HSV (hue x saturation, value 1)"),
+            "rmse": rmse,
+            "fluorescent_entries": fluorescent,
+            "fraction_remaining_error": remaining as f64 / n,
+            "fraction_remaining_error_reflectance_only": remaining_refl as f64 / n,
+            "remaining_error_threshold": REMAINING_ERROR,
+        }));
+    }
+    Ok(json!({ "reports": reports }))
+}
+
+fn cmd_upsample_lookup(args: &Args) -> Result<Value, String> {
+    let path = match (args.values.get("cube"), args.values.get("space")) {
+        (Some(c), _) => std::path::PathBuf::from(c),
+        (None, Some(sp)) => {
+            let space = RgbSpace::from_name(sp).map_err(|e| e.to_string())?;
+            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join(format!("data/cubes/{}_d65_tinf_r33.cube", space_name(space)))
+        }
+        _ => return Err("upsample-lookup needs --cube FILE or --space S".into()),
+    };
+    let cube = Cube::load(&path).map_err(|e| e.to_string())?;
+    let text = args.values.get("rgb").ok_or("upsample-lookup needs --rgb R,G,B")?;
+    let v: Vec<f64> = text
+        .split(',')
+        .map(|t| t.trim().parse::<f64>().map_err(|_| format!("--rgb \"{text}\": not three numbers")))
+        .collect::<Result<_, _>>()?;
+    let rgb: [f64; 3] = v.try_into().map_err(|_| format!("--rgb \"{text}\": not three numbers"))?;
+    let mode = Lookup::from_name(args.values.get("lookup").map_or("nearest", String::as_str)).map_err(|e| e.to_string())?;
+    let fl = args.values.get("fluorescence").map_or("true", String::as_str) != "false";
+    let c = cube.lookup(rgb, mode, fl).map_err(|e| e.to_string())?;
+    let sys = cube.colour_system().map_err(|e| e.to_string())?;
+    let got = sys.rgb(&c);
+    Ok(json!({
+        "cube": path.display().to_string(),
+        "rgb": rgb,
+        "coefficients": c,
+        "reproduced_rgb": got,
+        "error": ((0..3).map(|k| (got[k] - rgb[k]).powi(2)).sum::<f64>()).sqrt(),
+    }))
+}
+
 fn run(argv: &[String]) -> Result<(), String> {
     let Some(cmd) = argv.first() else {
         print!("{HELP}");
@@ -255,6 +410,9 @@ fn run(argv: &[String]) -> Result<(), String> {
         "patch" => cmd_patch(&args)?,
         "reduce" => cmd_reduce(&args)?,
         "qd" => cmd_qd(&args)?,
+        "upsample-cube" => cmd_upsample_cube(&args)?,
+        "upsample-report" => cmd_upsample_report(&args)?,
+        "upsample-lookup" => cmd_upsample_lookup(&args)?,
         other => return Err(format!("unknown subcommand \"{other}\" (see fluo-rs --help)")),
     };
     if args.json {

@@ -193,9 +193,55 @@ mod bridge {
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
     }
+
+    // ---------------------------------------------------------------- upsampling (issue 6)
+    /// Coefficients of one colour from a coefficient cube (`src/upsample.rs`).
+    struct UpsampleCoefficients {
+        /// Sigmoid-polynomial coefficients for λ in nm.
+        c0: f64,
+        c1: f64,
+        c2: f64,
+        emission_peak: f64,
+        concentration: f64,
+        stokes_shift: f64,
+        quantum_yield: f64,
+    }
+
+    extern "Rust" {
+        /// An RGB -> (reflectance + fluorescence) coefficient cube.
+        type UpsampleCube;
+
+        /// Load the cube for `space` ("srgb", "rec2020", "acescg"): `filename`, or the
+        /// shipped `data/cubes/<space>_d65_tinf_r33.cube` when empty. Errors for an
+        /// unknown space, a malformed file, or a cube of another space.
+        fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>>;
+        fn upsample_cube_describe(cube: &UpsampleCube) -> String;
+        /// Coefficients of `rgb` (3 values in [0, 1]); `lookup` is "nearest" or
+        /// "trilinear"; `fluorescence = false` uses the reflectance-only solutions.
+        fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool)
+            -> Result<UpsampleCoefficients>;
+
+        /// Per-texel `fluo_jung` models of an RGB texture, built once at load.
+        type JungTexture;
+
+        /// `rgb`: width·height·3 floats, row-major from the top row (Mitsuba's texel
+        /// order). Errors name the first NaN or out-of-range texel.
+        fn jung_texture_new(cube: &UpsampleCube, width: usize, height: usize, rgb: &[f32], lookup: &str,
+            fluorescence: bool) -> Result<Box<JungTexture>>;
+        /// The model of texel (x, y) (wrapped into range).
+        fn jung_texture_model(tex: &JungTexture, x: i64, y: i64) -> &JungModel;
+        /// RGB variant: the texel's albedo, sRGB of the reflected spectrum under E.
+        fn jung_texture_rgb(tex: &JungTexture, x: i64, y: i64) -> Rgb;
+        /// A texel model that fluoresces with the longest emission (for scene scans),
+        /// or any texel's when none fluoresces.
+        fn jung_texture_representative(tex: &JungTexture) -> &JungModel;
+        fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool;
+        /// Distinct coefficient sets among the texels.
+        fn jung_texture_distinct(tex: &JungTexture) -> usize;
+    }
 }
 
-pub use bridge::{JungConfig, QdConfig, Range, Rgb, Sample, Vec3};
+pub use bridge::{JungConfig, QdConfig, Range, Rgb, Sample, UpsampleCoefficients, Vec3};
 
 /// Opaque fluorescent model handed to C++ (see [`crate::bispectral`]).
 ///
@@ -666,6 +712,176 @@ fn qd_to_string(model: &QdModel) -> String {
 
 fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
+}
+
+// ---------------------------------------------------------------- upsampling (issue 6)
+
+/// Opaque coefficient cube handed to C++.
+pub struct UpsampleCube(crate::upsample::Cube);
+
+/// Directory of the shipped cubes: `$FLUO_CUBE_DIR`, else `<repo>/data/cubes`.
+fn cube_dir() -> std::path::PathBuf {
+    std::env::var_os("FLUO_CUBE_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes"))
+}
+
+fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
+    guarded(|| {
+        let space = crate::colour::RgbSpace::from_name(space).map_err(|_| {
+            crate::Error::param("color_space", format!("\"{space}\""), "one of \"srgb\", \"rec2020\", \"acescg\"")
+        })?;
+        let path = if filename.is_empty() {
+            cube_dir().join(format!("{}_d65_tinf_r33.cube", crate::upsample::space_name(space)))
+        } else {
+            std::path::PathBuf::from(filename)
+        };
+        let cube = crate::upsample::Cube::load(&path)?;
+        if cube.header.space != space {
+            return Err(crate::Error::param(
+                "cube",
+                format!("\"{}\" (a {} cube)", path.display(), crate::upsample::space_name(cube.header.space)),
+                format!("a cube generated for color_space \"{}\"", crate::upsample::space_name(space)),
+            ));
+        }
+        Ok(Box::new(UpsampleCube(cube)))
+    })
+}
+
+fn upsample_cube_describe(cube: &UpsampleCube) -> String {
+    cube.0.header.to_string()
+}
+
+fn bridge_coefficients(c: &crate::upsample::Coefficients) -> UpsampleCoefficients {
+    UpsampleCoefficients {
+        c0: c.reflectance[0],
+        c1: c.reflectance[1],
+        c2: c.reflectance[2],
+        emission_peak: c.emission_peak,
+        concentration: c.concentration,
+        stokes_shift: c.stokes_shift,
+        quantum_yield: crate::upsample::QUANTUM_YIELD,
+    }
+}
+
+fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool) -> Result<UpsampleCoefficients, String> {
+    guarded(|| {
+        let mode = crate::upsample::Lookup::from_name(lookup)?;
+        let [r, g, b] = <[f64; 3]>::try_from(rgb)
+            .map_err(|_| crate::Error::param("color", format!("{} values", rgb.len()), "3 values (r, g, b)"))?;
+        Ok(bridge_coefficients(&cube.0.lookup([r, g, b], mode, fluorescence)?))
+    })
+}
+
+/// Opaque per-texel models of a `fluo_jung` colour texture.
+pub struct JungTexture {
+    width: usize,
+    height: usize,
+    /// Index into `models` per texel, row-major from the top row.
+    texel: Vec<u32>,
+    models: Vec<JungModel>,
+    /// sRGB albedo per model (RGB variant).
+    rgb: Vec<Rgb>,
+    representative: usize,
+}
+
+fn model_of(c: &crate::upsample::Coefficients) -> crate::Result<JungModel> {
+    let fluorescence = JungFluorescence::new(JungParams {
+        emission_peak: c.emission_peak,
+        stokes_shift: c.stokes_shift,
+        concentration: c.concentration,
+        quantum_yield: crate::upsample::QUANTUM_YIELD,
+    })?;
+    let reflectance = Some(Reflectance::Sigmoid(SigmoidPolynomial::new(c.reflectance)?));
+    let generic = Fluorescence { model: Model::Jung(fluorescence.clone()), elastic: reflectance.clone() };
+    Ok(JungModel { fluorescence, reflectance, generic })
+}
+
+fn jung_texture_new(
+    cube: &UpsampleCube,
+    width: usize,
+    height: usize,
+    rgb: &[f32],
+    lookup: &str,
+    fluorescence: bool,
+) -> Result<Box<JungTexture>, String> {
+    guarded(|| {
+        let mode = crate::upsample::Lookup::from_name(lookup)?;
+        if width == 0 || height == 0 || rgb.len() != width * height * 3 {
+            return Err(crate::Error::data(format!(
+                "color texture: {} values for {width} x {height} texels (expected {})",
+                rgb.len(),
+                width * height * 3
+            )));
+        }
+        let mut index: std::collections::HashMap<[u64; 6], u32> = std::collections::HashMap::new();
+        let mut models = Vec::new();
+        let mut texel = Vec::with_capacity(width * height);
+        for (t, px) in rgb.chunks_exact(3).enumerate() {
+            let v = [f64::from(px[0]), f64::from(px[1]), f64::from(px[2])];
+            let c = cube.0.lookup(v, mode, fluorescence).map_err(|_| {
+                crate::Error::param(
+                    "color",
+                    format!("texel (x = {}, y = {}) = ({}, {}, {})", t % width, t / width, v[0], v[1], v[2]),
+                    "finite values in [0, 1] per component (the coefficient cube spans the unit RGB cube)",
+                )
+            })?;
+            let key = [
+                c.reflectance[0].to_bits(),
+                c.reflectance[1].to_bits(),
+                c.reflectance[2].to_bits(),
+                c.emission_peak.to_bits(),
+                c.concentration.to_bits(),
+                c.stokes_shift.to_bits(),
+            ];
+            let id = match index.get(&key) {
+                Some(&id) => id,
+                None => {
+                    let id = models.len() as u32;
+                    models.push(model_of(&c)?);
+                    index.insert(key, id);
+                    id
+                }
+            };
+            texel.push(id);
+        }
+        let rgb = models.iter().map(jung_rgb_albedo).collect();
+        let representative = models
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.fluorescence.is_fluorescent())
+            .max_by(|a, b| a.1.fluorescence.emission_support().1.total_cmp(&b.1.fluorescence.emission_support().1))
+            .map_or(0, |(i, _)| i);
+        Ok(Box::new(JungTexture { width, height, texel, models, rgb, representative }))
+    })
+}
+
+fn texel_index(tex: &JungTexture, x: i64, y: i64) -> usize {
+    let (w, h) = (tex.width as i64, tex.height as i64);
+    let (x, y) = (x.rem_euclid(w), y.rem_euclid(h));
+    tex.texel.get((y * w + x) as usize).map_or(0, |&i| i as usize)
+}
+
+fn jung_texture_model(tex: &JungTexture, x: i64, y: i64) -> &JungModel {
+    &tex.models[texel_index(tex, x, y).min(tex.models.len() - 1)]
+}
+
+fn jung_texture_rgb(tex: &JungTexture, x: i64, y: i64) -> Rgb {
+    let i = texel_index(tex, x, y).min(tex.rgb.len() - 1);
+    let c = &tex.rgb[i];
+    Rgb { r: c.r, g: c.g, b: c.b }
+}
+
+fn jung_texture_representative(tex: &JungTexture) -> &JungModel {
+    &tex.models[tex.representative]
+}
+
+fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool {
+    tex.models.iter().any(|m| m.fluorescence.is_fluorescent())
+}
+
+fn jung_texture_distinct(tex: &JungTexture) -> usize {
+    tex.models.len()
 }
 
 #[cfg(test)]

@@ -274,3 +274,138 @@ def test10_hard_cases_are_finite():
                             wo = mi.Vector3f(math.sqrt(1 - cos_o**2), 0, cos_o)
                             v = np.array(b.eval(ctx, surface_interaction(lam, wi=(0.99999, 0, 0.004472)), wo))
                             assert np.isfinite(v).all() and (v >= 0).all(), (le, s, c, q, lam, v)
+
+
+# ------------------------------------------------ wide-gamut upsampling (`color`, issue 6)
+import json
+import subprocess
+import sys
+
+import fluo
+from fluo import upsample_demo
+
+COLOR_SCENE = (REPO / "scenes" / "upsample_acescg.xml").read_text()
+
+
+def _color_scene(color_xml: str, fluorescence: str = "true", width: int = 32, height: int = 8) -> str:
+    """The demo scene (D65 sky, white Y = 1, direct light, head-on) with `color` replaced."""
+    import re
+    s = re.sub(r'<texture type="bitmap".*?</texture>', color_xml, COLOR_SCENE, flags=re.S)
+    s = s.replace('value="256"', f'value="{width}"').replace('value="64"/>\n            <rfilter',
+                                                            f'value="{height}"/>\n            <rfilter')
+    return s.replace("$fluorescence", fluorescence).replace("$spp", "32")
+
+
+def _cube_prediction_srgb(rgb, fluorescence=True):
+    """fluo-rs upsample-lookup: the colour the cube's coefficients reproduce (ACEScg,
+    Bradford-adapted from D65), converted to the linear sRGB a Mitsuba film shows."""
+    out = fluo.run_tool(["upsample-lookup", "--space", "acescg", "--rgb", ",".join(map(str, rgb)),
+                         "--fluorescence", "true" if fluorescence else "false", "--json"])
+    got = np.array(out["reproduced_rgb"])
+    d = upsample_demo
+    xyz = got @ d.ACESCG_TO_XYZ.T @ d.bradford(d.ACES_WHITE, d.D65_WHITE).T
+    return xyz @ np.linalg.inv(d.SRGB_TO_XYZ).T, out
+
+
+@pytest.mark.parametrize("rgb", [(1.0, 0.0, 0.0), (0.9, 0.0, 0.9), (1.0, 0.375, 0.0), (0.5, 0.5, 0.5)])
+def test11_color_render_matches_cube_prediction(rgb):
+    """A constant ACEScg colour renders (fluo_path, spectral) to the colour the cube's
+    Rust evaluator predicts: the shim, the lookup and fluo_path agree with eq. 7."""
+    mi.set_variant("scalar_spectral")
+    scene = mi.load_string(_color_scene('<rgb name="color" value="%g, %g, %g"/>' % rgb))
+    img = np.array(mi.render(scene, spp=32, seed=1))[..., :3].reshape(-1, 3).mean(0)
+    want, out = _cube_prediction_srgb(rgb)
+    # Monte Carlo noise (32 spp x 256 px) and Mitsuba's own 5 nm CIE table: ~1 %.
+    assert (np.abs(img - want) < 0.025 * np.maximum(np.abs(want), 1.0)).all(), (img, want, out)
+    if out["coefficients"]["concentration"] > 0:
+        # and fluorescence matters: without it the render is measurably different
+        scene = mi.load_string(_color_scene('<rgb name="color" value="%g, %g, %g"/>' % rgb, "false"))
+        nofl = np.array(mi.render(scene, spp=32, seed=1))[..., :3].reshape(-1, 3).mean(0)
+        assert np.abs(nofl - img).max() > 0.05
+
+
+def test12_texture_demo_de2000_map(tmp_path):
+    """The demo: saturated ACEScg card -> per-pixel CIEDE2000 map; fluorescence lowers it."""
+    res = {}
+    for flag in ([], ["--no-fluorescence"]):
+        out = subprocess.run([sys.executable, "-m", "fluo.upsample_demo", "--spp", "16", "--out", str(tmp_path)] + flag,
+                             capture_output=True, text=True, check=True, cwd=REPO,
+                             env={**__import__("os").environ, "PYTHONPATH": str(REPO / "python")})
+        res[bool(flag)] = json.loads(out.stdout.strip().splitlines()[-1])
+        assert Path(res[bool(flag)]["de2000_map"]).is_file()
+        assert Path(res[bool(flag)]["de2000_map"].replace(".exr", ".png")).is_file()
+    # per texel (noise averaged out): fluorescence brings the saturated card closer
+    assert res[False]["de2000_texel_mean"] < 3.0, res
+    assert res[False]["de2000_texel_mean"] < 0.7 * res[True]["de2000_texel_mean"], res
+
+
+def test13_ciede2000_matches_sharma_pairs():
+    """The demo's numpy CIEDE2000 against Sharma et al. (2005), Table 1 pairs 1, 7, 17, 25, 34."""
+    pairs = [((50, 2.6772, -79.7751), (50, 0, -82.7485), 2.0425),
+             ((50, 0, 0), (50, -1, 2), 2.3669),
+             ((50, 2.5, 0), (73, 25, -18), 27.1492),
+             ((60.2574, -34.0099, 36.2677), (60.4626, -34.1751, 39.4387), 1.2644),
+             ((2.0776, 0.0795, -1.1350), (0.9033, -0.0636, -0.5514), 0.9082)]
+    for a, b, want in pairs:
+        assert abs(upsample_demo.ciede2000(np.array(a), np.array(b)) - want) < 1e-4
+
+
+def _write_exr(path, data):
+    mi.set_variant("scalar_rgb")
+    mi.Bitmap(np.asarray(data, dtype=np.float32)).write(str(path))
+    return path
+
+
+def _textured(path, extra=""):
+    return ('<bsdf version="3.0.0" type="fluo_jung"><texture type="bitmap" name="color">'
+            f'<string name="filename" value="{path}"/><boolean name="raw" value="true"/></texture>{extra}</bsdf>')
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test14_texture_coefficients_precomputed_per_texel(variant, tmp_path):
+    """Coefficients are computed once per texel at load (distinct sets reported), and
+    the albedo at a texel is that of its own colour (spectral: elastic part)."""
+    tex = _write_exr(tmp_path / "t.exr", [[[0.9, 0, 0.9], [0.5, 0.5, 0.5]], [[0.5, 0.5, 0.5], [0.2, 0.6, 0.1]]])
+    mi.set_variant(variant)
+    b = mi.load_string(_textured(tex))
+    assert "texture 2 x 2 acescg, 3 distinct coefficient sets" in str(b), str(b)
+    grey = mi.load_string('<bsdf version="3.0.0" type="fluo_jung"><rgb name="color" value="0.5, 0.5, 0.5"/></bsdf>')
+    si = surface_interaction((400.0, 480.0, 560.0, 640.0))
+    si.uv = mi.Point2f(0.75, 0.25)  # texel (1, 0): grey
+    np.testing.assert_allclose(np.array(b.eval_diffuse_reflectance(si)),
+                               np.array(grey.eval_diffuse_reflectance(si)), rtol=1e-6)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test15_color_bad_input_raises_clear_errors(variant, tmp_path):
+    nan_tex = _write_exr(tmp_path / "nan.exr", [[[0.5, 0.5, 0.5], [0.1, float("nan"), 0.2]]] * 2)
+    big_tex = _write_exr(tmp_path / "big.exr", [[[0.5, 0.5, 0.5], [0.1, 1.5, 0.2]]] * 2)
+    bad_cube = tmp_path / "bad.cube"
+    bad_cube.write_bytes(b"FLUOCUBE" + b"\0" * 20)
+    srgb_cube = REPO / "data" / "cubes" / "srgb_d65_tinf_r33.cube"
+    mi.set_variant(variant)
+    cases = [
+        ('<rgb name="color" value="1.2, 0, 0.5"/>', 'invalid parameter "color"', "[0, 1]"),
+        ('<rgb name="color" value="0.5, -0.1, 0.5"/>', 'invalid parameter "color"', "[0, 1]"),
+        ('<rgb name="color" value="0.5, 0.5, 0.5"/><string name="color_space" value="p3"/>',
+         'invalid parameter "color_space" = "p3"', "acescg"),
+        ('<rgb name="color" value="0.5, 0.5, 0.5"/><string name="lookup" value="cubic"/>', '"lookup"', "nearest"),
+        ('<rgb name="color" value="0.5, 0.5, 0.5"/><float name="concentration" value="0.3"/>',
+         'do not also specify "concentration"', ""),
+        ('<rgb name="color" value="0.5, 0.5, 0.5"/><string name="cube" value="%s"/>' % bad_cube,
+         "not a valid coefficient cube", "bad.cube"),
+        ('<rgb name="color" value="0.5, 0.5, 0.5"/><string name="cube" value="%s"/>' % srgb_cube,
+         'a cube generated for color_space "acescg"', "srgb"),
+    ]
+    for xml, needle, needle2 in cases:
+        with pytest.raises(Exception) as err:
+            mi.load_string(f'<bsdf version="3.0.0" type="fluo_jung">{xml}</bsdf>')
+        assert needle in str(err.value) and needle2 in str(err.value), str(err.value)
+    for tex, needle in ((nan_tex, "NaN"), (big_tex, "texel (x = 1, y = 0)")):
+        with pytest.raises(Exception) as err:
+            mi.load_string(_textured(tex))
+        assert needle in str(err.value) and '"color" = texel (x =' in str(err.value), str(err.value)
+    if variant == "scalar_spectral":
+        with pytest.raises(Exception) as err:  # not raw: Mitsuba already turned it into spectra
+            mi.load_string(_textured(nan_tex).replace('<boolean name="raw" value="true"/>', ""))
+        assert "raw" in str(err.value), str(err.value)
