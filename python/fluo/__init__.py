@@ -120,13 +120,21 @@ def _load_library() -> ctypes.CDLL:
     try:
         # RTLD_GLOBAL: the plugins' symbols (and the Rust core's) stay visible to
         # Mitsuba once registered, like a plugin Mitsuba loaded itself.
-        return ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
+        lib = ctypes.CDLL(str(path), mode=ctypes.RTLD_GLOBAL)
     except OSError as err:
         raise ImportError(
             f"failed to load the fluo plugin library {path}: {err}; it must be built "
             f"against mitsuba=={mitsuba.__version__}; {_SETUP_HINT}",
             path=str(path),
         ) from err
+    if not hasattr(lib, "fluo_plugins_built"):
+        raise ImportError(
+            f"{path} contains no Mitsuba plugins: it was built without "
+            "`--features mitsuba` (a plain `cargo build --release` replaces it); "
+            f"{_SETUP_HINT}",
+            path=str(path),
+        )
+    return lib
 
 
 # Survives importlib.reload(): the module dict is reused, so the handle is kept.

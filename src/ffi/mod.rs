@@ -972,3 +972,12 @@ mod tests {
         assert_eq!(fluo_name(qd_fluorescence(&m)), "qd");
     }
 }
+
+/// Present only in the plugin build (`--features mitsuba`): `import fluo` checks for it,
+/// so that a library rebuilt without the shims fails with an explanation instead of
+/// "plugin not found".
+#[cfg(feature = "mitsuba")]
+#[no_mangle]
+pub extern "C" fn fluo_plugins_built() -> u32 {
+    1
+}
