@@ -15,8 +15,11 @@ mod error;
 
 pub mod bispectral;
 pub mod colour;
+pub mod gmm;
+pub mod gmm_report;
 pub mod jung;
 pub mod material;
+pub mod matrix;
 pub mod mitsuba;
 pub mod sigmoid;
 pub mod spectrum;
