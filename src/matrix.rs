@@ -14,7 +14,7 @@
 //!   per emission wavelength (the wavelength, then n_in values), then `EOD`. Blank
 //!   lines inside the data are skipped.
 //! * CSV (`.csv`): a header row `lambda_o\lambda_i,λi…` (a leading `#` is allowed),
-//!   then rows `λo,values…`; `#` lines are comments.
+//!   then rows `λo,values…`; other `#` lines are comments.
 //! * Bispectral Spectral OpenEXR (`.exr`, Fichet et al. 2021 layout): channels
 //!   `T.<λ>nm` (the diagonal) and `T.<λi>nm.<λo>nm` (reradiation), wavelengths written
 //!   with a `,` or no decimal separator (`T.550,000000nm`); other channels are ignored.
@@ -283,14 +283,14 @@ fn check_grid(given: &[f64], start: f64, step: f64, what: &str, source: &str, li
 pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
     let lines: Vec<&str> = text.lines().map(|l| l.trim_end_matches('\r')).collect();
     let truncated = |what: &str| Error::data(format!("{source}: truncated file: {what}"));
-    if lines.len() < BFC_HEADER_LINES {
-        return Err(truncated(&format!("{} lines, the BFC header alone has {BFC_HEADER_LINES}", lines.len())));
-    }
-    if !lines[1].trim().starts_with("BFC") {
+    if let Some(sig) = lines.get(1).filter(|l| !l.trim().starts_with("BFC")) {
         return Err(Error::data(format!(
             "{source}: line 2: wrong header \"{}\", expected the Labsphere signature \"BFC-450 Matrix File\"",
-            lines[1].trim()
+            sig.trim()
         )));
+    }
+    if lines.len() < BFC_HEADER_LINES {
+        return Err(truncated(&format!("{} lines, the BFC header alone has {BFC_HEADER_LINES}", lines.len())));
     }
     for (i, l) in lines.iter().enumerate().take(BFC_HEADER_LINES).skip(2) {
         if !l.trim_start().starts_with(';') {
@@ -398,10 +398,12 @@ pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
 /// Parse a CSV matrix (format in the module docs). `source` labels errors.
 pub fn parse_csv(text: &str, source: &str) -> Result<Donaldson> {
     let mut lines = text.lines().enumerate().map(|(i, l)| (i + 1, l.trim_end_matches('\r')));
+    // The header is the first line naming the axes; `#` comment lines may precede it.
+    let is_header = |l: &str| l.trim().trim_start_matches('#').trim().to_ascii_lowercase().starts_with("lambda");
     let (head_no, head) = lines
         .by_ref()
-        .find(|(_, l)| !l.trim().is_empty())
-        .ok_or_else(|| Error::data(format!("{source}: empty file")))?;
+        .find(|(_, l)| !l.trim().is_empty() && (is_header(l) || !l.trim().starts_with('#')))
+        .ok_or_else(|| Error::data(format!("{source}: empty file (no header line)")))?;
     let head = head.trim().trim_start_matches('#').trim();
     let fields: Vec<&str> = head.split(',').collect();
     if !fields[0].to_ascii_lowercase().contains("lambda") || fields.len() < MIN_GRID_POINTS + 1 {

@@ -12,7 +12,7 @@ use fluo::bispectral::patch_xyz;
 use fluo::gmm::{fit, FitOptions, Scaling};
 use fluo::gmm_report::{report, ACCEPTANCE_COMPONENTS, ACCEPTANCE_DELTA_E, COMPONENT_COUNTS};
 use fluo::matrix::{load_matrix, shared_bispectral_files, Filtered};
-use fluo::jung::{JungFluorescence, JungParams};
+use fluo::jung::{JungFluorescence, JungMaterial, JungParams, Reflectance};
 use fluo::material::load_material;
 use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer};
 use serde_json::{json, Value};
@@ -52,6 +52,12 @@ SUBCOMMANDS:
              colorimetry, white = the illuminant) and monochromatic 300-780 nm in
              10 nm steps; CIE 1931 observer. Exit status 1 if the 8-component mean
              under the CIE illuminants exceeds 0.3 (the paper's figure).
+
+    export-matrix  Write a fluo_jung material as a reradiation matrix CSV (our own
+             demo/test data, data/matrices/): diagonal (1 − c a) r, above it
+             c Q a(λi) e(λo) Δλo, on λi 300..780 and λo 380..780 nm (10 nm)
+             --emission-peak NM --stokes-shift NM --concentration C
+             --quantum-yield Q --reflectance R -o FILE.csv
 
 OPTIONS:
     -o FILE  output file (fit-gmm)
@@ -250,6 +256,43 @@ fn cmd_gmm_report(args: &Args) -> Result<Value, String> {
     Ok(out)
 }
 
+fn cmd_export_matrix(args: &Args) -> Result<Value, String> {
+    let output = args.values.get("output").ok_or("export-matrix needs -o FILE.csv")?;
+    let d = JungParams::default();
+    let p = JungParams {
+        emission_peak: args.f64_or("emission-peak", d.emission_peak)?,
+        stokes_shift: args.f64_or("stokes-shift", d.stokes_shift)?,
+        concentration: args.f64_or("concentration", d.concentration)?,
+        quantum_yield: args.f64_or("quantum-yield", d.quantum_yield)?,
+    };
+    let r = args.f64_or("reflectance", 0.5)?;
+    let m = JungMaterial::new(Reflectance::Constant(r), p).map_err(|e| e.to_string())?;
+    let (step, li, lo): (f64, Vec<f64>, Vec<f64>) =
+        (10.0, (0..49).map(|k| 300.0 + 10.0 * k as f64).collect(), (0..41).map(|j| 380.0 + 10.0 * j as f64).collect());
+    let mut text = format!(
+        "# fluo_jung as a reradiation matrix (fluo-rs export-matrix): {}, reflectance {r}\nlambda_o\\lambda_i",
+        serde_json::to_string(&p).map_err(|e| e.to_string())?
+    );
+    for x in &li {
+        text.push_str(&format!(",{x}"));
+    }
+    text.push('\n');
+    for &o in &lo {
+        text.push_str(&format!("{o}"));
+        for &i in &li {
+            let v = if (i - o).abs() < 1e-9 {
+                m.elastic_albedo(o)
+            } else {
+                m.fluorescence.reradiation(i, o) * step
+            };
+            text.push_str(&format!(",{v:.6e}"));
+        }
+        text.push('\n');
+    }
+    std::fs::write(output, text).map_err(|e| format!("{output}: {e}"))?;
+    Ok(json!({"output": output, "params": p, "reflectance": r, "lambda_i_nm": [300, 780], "lambda_o_nm": [380, 780], "step_nm": step}))
+}
+
 fn run(argv: &[String]) -> Result<(), String> {
     let Some(cmd) = argv.first() else {
         print!("{HELP}");
@@ -266,6 +309,7 @@ fn run(argv: &[String]) -> Result<(), String> {
     let out = match cmd.as_str() {
         "fit-gmm" => cmd_fit_gmm(&args)?,
         "gmm-report" => cmd_gmm_report(&args)?,
+        "export-matrix" => cmd_export_matrix(&args)?,
         "jung" => cmd_jung(&args)?,
         "patch" => cmd_patch(&args)?,
         other => return Err(format!("unknown subcommand \"{other}\" (see fluo-rs --help)")),
