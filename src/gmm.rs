@@ -102,6 +102,14 @@ pub const MAX_COMPONENTS: usize = 64;
 const SCALE_QUADRATURE_STEP_NM: f64 = 0.5;
 /// Tolerance on Σπ = 1 and on the symmetry of Σ when reading a fit file.
 const FILE_TOLERANCE: f64 = 1e-6;
+/// Half-width of the tabulated range of [`log_q`].
+pub const LOG_Q_TABLE_MAX: f64 = 10.0;
+/// Step of that table (cubic Hermite error ∝ step⁴).
+const LOG_Q_TABLE_STEP: f64 = 1.0 / 64.0;
+/// Normal tails below e^−this (relative) are dropped from interval masses (< f64 ε).
+const TAIL_NEGLIGIBLE: f64 = 40.0;
+/// Components whose conditional weight is below e^−this of the largest are skipped.
+const LN_NEGLIGIBLE: f64 = 45.0;
 /// `format` field of a fit file.
 pub const FORMAT: &str = "fluo-gmm";
 
@@ -159,7 +167,46 @@ pub fn erfc(x: f64) -> f64 {
 }
 
 /// ln Q(z), Q(z) = P(Z > z) the standard normal upper tail; finite for every finite z.
+///
+/// On |z| < [`LOG_Q_TABLE_MAX`] (the hot path of sampling) it is read from a table of
+/// ln Q and its derivative −φ/Q with cubic Hermite interpolation (absolute error in
+/// ln Q below 1e-10, the accuracy of erfc itself; a test checks it); elsewhere directly
+/// ([`log_q_direct`]). CDF inversion and pdf use this same function.
 pub fn log_q(z: f64) -> f64 {
+    if !(z.abs() < LOG_Q_TABLE_MAX) {
+        return log_q_direct(z);
+    }
+    let t = log_q_table();
+    let u = (z + LOG_Q_TABLE_MAX) / LOG_Q_TABLE_STEP;
+    let i = (u.floor() as usize).min(t.len() - 2);
+    let s = u - i as f64;
+    let (y0, d0) = t[i];
+    let (y1, d1) = t[i + 1];
+    let h = LOG_Q_TABLE_STEP;
+    let (s2, s3) = (s * s, s * s * s);
+    (2.0 * s3 - 3.0 * s2 + 1.0) * y0
+        + (s3 - 2.0 * s2 + s) * h * d0
+        + (-2.0 * s3 + 3.0 * s2) * y1
+        + (s3 - s2) * h * d1
+}
+
+/// (ln Q, d ln Q/dz) at z = −[`LOG_Q_TABLE_MAX`] + i·[`LOG_Q_TABLE_STEP`], built once.
+fn log_q_table() -> &'static [(f64, f64)] {
+    static TABLE: std::sync::OnceLock<Vec<(f64, f64)>> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        let n = (2.0 * LOG_Q_TABLE_MAX / LOG_Q_TABLE_STEP).round() as usize;
+        (0..=n)
+            .map(|i| {
+                let z = -LOG_Q_TABLE_MAX + i as f64 * LOG_Q_TABLE_STEP;
+                let lq = log_q_direct(z);
+                (lq, -(log_phi(z) - lq).exp())
+            })
+            .collect()
+    })
+}
+
+/// ln Q(z) from erfc / erfcx (see [`log_q`]).
+pub fn log_q_direct(z: f64) -> f64 {
     let x = z * std::f64::consts::FRAC_1_SQRT_2;
     if x < 0.0 {
         (-0.5 * erfc(-x)).ln_1p()
@@ -185,14 +232,22 @@ pub fn log_std_mass(a: f64, b: f64) -> f64 {
     if !(b > a) {
         return f64::NEG_INFINITY;
     }
+    // Tails beyond e^−TAIL_NEGLIGIBLE are below f64 resolution and need no erfc:
+    // Q(b)/Q(a) ≤ e^{−(b²−a²)/2} for 0 ≤ a < b (erfcx decreases), Q(z) ≤ e^{−z²/2}/2.
+    let far = |e: f64| e > TAIL_NEGLIGIBLE;
     if a >= 0.0 {
-        let (la, lb) = (log_q(a), log_q(b));
+        let la = log_q(a);
+        if far(0.5 * (b - a) * (b + a)) {
+            return la;
+        }
+        let lb = log_q(b);
         la + (-(lb - la).exp()).ln_1p()
     } else if b <= 0.0 {
         log_std_mass(-b, -a)
     } else {
         // 1 − Q(b) − Q(−a), both tails < 1/2.
-        (-(log_q(b).exp() + log_q(-a).exp())).ln_1p()
+        let tail = |z: f64| if far(0.5 * z * z) { 0.0 } else { log_q(z).exp() };
+        (-(tail(b) + tail(-a))).ln_1p()
     }
 }
 
@@ -552,17 +607,31 @@ impl GmmModel {
     }
 
     /// Per component: (ln[π N(x | μ_g, σ_gg) M_k], conditional mean, conditional sd) on [lo, hi].
+    ///
+    /// M_k needs two erfc evaluations, so components are visited by decreasing marginal
+    /// weight and M_k is skipped (the entry set to −∞) once ln π N < (best so far) −
+    /// [`LN_NEGLIGIBLE`]: since M_k ≤ 1, such a component changes the total by less than
+    /// e^−45 relative, below f64 resolution.
     fn conditional(&self, given: Given, x: f64, lo: f64, hi: f64) -> Vec<(f64, f64, f64)> {
         let (g, f) = (given as usize, 1 - given as usize);
-        self.comps
+        let mut out: Vec<(f64, f64, f64)> = self
+            .comps
             .iter()
-            .map(|c| {
-                let m = c.mu[f] + c.slope[g] * (x - c.mu[g]);
-                let sd = c.cond_var[g].sqrt();
-                let lm = log_std_mass((lo - m) / sd, (hi - m) / sd);
-                (c.ln_w + log_normal(x, c.mu[g], c.var[g]) + lm, m, sd)
-            })
-            .collect()
+            .map(|c| (c.ln_w + log_normal(x, c.mu[g], c.var[g]), c.mu[f] + c.slope[g] * (x - c.mu[g]), c.cond_var[g].sqrt()))
+            .collect();
+        let mut order: Vec<usize> = (0..out.len()).collect();
+        order.sort_unstable_by(|&a, &b| out[b].0.total_cmp(&out[a].0));
+        let mut best = f64::NEG_INFINITY;
+        for k in order {
+            let (lw, m, sd) = out[k];
+            if !(lw >= best - LN_NEGLIGIBLE) {
+                out[k].0 = f64::NEG_INFINITY;
+                continue;
+            }
+            out[k].0 = lw + log_std_mass((lo - m) / sd, (hi - m) / sd);
+            best = best.max(out[k].0);
+        }
+        out
     }
 
     fn given_ok(&self, given: Given, x: f64) -> bool {
@@ -1069,6 +1138,16 @@ mod tests {
     }
 
     #[test]
+    fn tabulated_log_q_matches_direct_evaluation() {
+        let mut worst: f64 = 0.0;
+        for i in 0..=200_000 {
+            let z = -10.5 + 21.0 * i as f64 / 200_000.0;
+            worst = worst.max((log_q(z) - log_q_direct(z)).abs());
+        }
+        assert!(worst < 1e-10, "max |Δ ln Q| = {worst}");
+    }
+
+    #[test]
     fn truncated_normal_inverts_its_cdf() {
         for (a, b) in [(-1.0, 2.0), (0.5, 3.0), (5.0, 5.5), (30.0, 31.0), (-40.0, -39.0), (-0.1, 0.2), (100.0, 300.0)] {
             let lm = log_std_mass(a, b);
@@ -1211,6 +1290,41 @@ mod tests {
         assert!(m.sample_emission(790.0, 0.5).is_none());
         assert!(m.sample_excitation(370.0, 0.5, 300.0, 830.0).is_none());
         assert_eq!(m.emission_pdf(500.0, 490.0), 0.0);
+    }
+
+    #[test]
+    fn measured_fit_sampling_matches_pdf_chi2() {
+        // 8-component fit of a measured matrix (shared data) or, without it, of our own.
+        let path = shared_bispectral_files()
+            .into_iter()
+            .find(|p| p.to_string_lossy().contains("TEXTYELL"))
+            .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("data/matrices/jung_yellow.csv"));
+        let f = Filtered::new(&load_matrix(&path).unwrap()).unwrap();
+        let m = GmmModel::new(fit(&f, &FitOptions::default()).unwrap()).unwrap();
+        // λi near the top: almost no mass of any component lies above it.
+        for li in [330.0_f64, 450.0, 600.0, 760.0, 778.0] {
+            let mass = m.reradiated_albedo(li);
+            assert!(mass.is_finite() && mass >= 0.0);
+            let lo = li.max(380.0);
+            let xs: Vec<f64> = uniforms(20_000, 9)
+                .into_iter()
+                .map(|u| {
+                    let (x, pdf) = m.sample_emission(li, u).expect("sample");
+                    assert!(x >= lo && x <= 780.0 && (pdf - m.emission_pdf(li, x)).abs() <= 1e-9 * pdf);
+                    x
+                })
+                .collect();
+            let (stat, dof) = chi2(&xs, lo, 780.0, 50, |x| m.emission_pdf(li, x));
+            assert!(stat < chi2_critical(dof), "{}: λi {li}: chi2 {stat} dof {dof}", path.display());
+        }
+        for lo in [400.0_f64, 520.0, 650.0, 779.0] {
+            let xs: Vec<f64> = uniforms(20_000, 11)
+                .into_iter()
+                .map(|u| m.sample_excitation(lo, u, 300.0, 830.0).expect("sample").0)
+                .collect();
+            let (stat, dof) = chi2(&xs, 300.0, lo, 50, |x| m.excitation_pdf(lo, x, 300.0, 830.0));
+            assert!(stat < chi2_critical(dof), "{}: λo {lo}: chi2 {stat} dof {dof}", path.display());
+        }
     }
 
     #[test]
