@@ -20,7 +20,8 @@
 //!
 //! Memory (sec. 7.6): floats stored in the file and bytes held at render time (f64),
 //! for the tabulated matrix with its two cumulative tables, and for the mixture with
-//! its baked conditionals.
+//! its baked conditionals (plus, once per process and shared by every mixture, the
+//! 20 kB ln Q table of [`crate::gmm::log_q`]).
 
 use std::path::Path;
 use std::time::Instant;

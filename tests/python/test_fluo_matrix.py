@@ -235,10 +235,19 @@ def test08_cli_errors():
         fluo.run_tool(["fit-gmm", str(OWN[0]), "--components", "0", "-o", "/tmp/x.gmm.json"])
     with pytest.raises(RuntimeError, match="no/such.BFC"):
         fluo.run_tool(["fit-gmm", "/no/such.BFC", "-o", "/tmp/x.gmm.json"])
-    # forwarded through the Python CLI
-    proc = subprocess.run([sys.executable, "-m", "fluo", "fit-gmm", "--help"], capture_output=True,
-                          text=True, check=False)
-    assert proc.returncode != 0 or "fit-gmm" in proc.stdout
+
+def test08b_fit_gmm_through_the_python_cli(tmp_path):
+    """`fluo fit-gmm X --components K -o Y` (forwarded to fluo-rs) writes a valid fit file."""
+    out = tmp_path / "orange.gmm.json"
+    proc = subprocess.run([sys.executable, "-m", "fluo", "fit-gmm", str(ORANGE), "--components", "3",
+                           "-o", str(out), "--json"], capture_output=True, text=True, check=True)
+    info = json.loads(proc.stdout)
+    fit = json.loads(out.read_text())
+    assert info["components"] == 3 and fit["format"] == "fluo-gmm" and len(fit["components"]) == 3
+    assert abs(sum(c["weight"] for c in fit["components"]) - 1) < 1e-9
+    assert fit["scale"] == info["scale"] > 0 and fit["source"] == ORANGE.name
+    lam, rho = diagonal(ORANGE)
+    np.testing.assert_allclose(fit["diagonal"]["values"], rho, rtol=1e-6)
 
 
 @pytest.mark.parametrize("name", ["fluo_measured.xml", "fluo_measured_uv.xml"])
