@@ -34,7 +34,9 @@
 //! narrow absorption band, see [`crate::jung::absorbed_power`]); I is normalised so
 //! that the perfect white diffuser has Y = 1 (`white_xyz`).
 
+use crate::gmm::GmmModel;
 use crate::jung::{absorbed_power, JungFluorescence};
+use crate::matrix::MatrixModel;
 use crate::spectrum::{Cmf, Spectral};
 
 /// Operations a wavelength-shifting integrator needs from a fluorescent model.
@@ -64,6 +66,10 @@ pub enum Model {
     Jung(JungFluorescence),
     /// Benamira & Pattanaik's quantum-dot coated microfacet model (boxed: it carries tables).
     Qd(Box<crate::qd::QdModel>),
+    /// A measured reradiation matrix, tabulated (`fluo_matrix`).
+    Matrix(MatrixModel),
+    /// A Gaussian-mixture fit of a measured matrix (`fluo_gmm`).
+    Gmm(GmmModel),
 }
 
 impl Model {
@@ -72,6 +78,8 @@ impl Model {
         match self {
             Model::Jung(_) => "jung",
             Model::Qd(_) => "qd",
+            Model::Matrix(_) => "matrix",
+            Model::Gmm(_) => "gmm",
         }
     }
 }
@@ -131,48 +139,64 @@ impl Bispectral for Model {
         match self {
             Model::Jung(m) => m.excitation_range(),
             Model::Qd(m) => m.excitation_range(),
+            Model::Matrix(m) => Bispectral::excitation_range(m),
+            Model::Gmm(m) => Bispectral::excitation_range(m),
         }
     }
     fn emission_range(&self) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.emission_range(),
             Model::Qd(m) => m.emission_range(),
+            Model::Matrix(m) => Bispectral::emission_range(m),
+            Model::Gmm(m) => Bispectral::emission_range(m),
         }
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             Model::Jung(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
             Model::Qd(m) => m.reradiation(wi, wo, lambda_i, lambda_o),
+            Model::Matrix(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
+            Model::Gmm(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
         }
     }
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.shift_albedo(wi, lambda_o, range),
             Model::Qd(m) => m.shift_albedo(wi, lambda_o, range),
+            Model::Matrix(m) => Bispectral::shift_albedo(m, wi, lambda_o, range),
+            Model::Gmm(m) => Bispectral::shift_albedo(m, wi, lambda_o, range),
         }
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.sample_excitation(wi, lambda_o, xi, range),
             Model::Qd(m) => m.sample_excitation(wi, lambda_o, xi, range),
+            Model::Matrix(m) => Bispectral::sample_excitation(m, wi, lambda_o, xi, range),
+            Model::Gmm(m) => Bispectral::sample_excitation(m, wi, lambda_o, xi, range),
         }
     }
     fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
             Model::Qd(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
+            Model::Matrix(m) => Bispectral::excitation_pdf(m, wi, lambda_o, lambda_i, range),
+            Model::Gmm(m) => Bispectral::excitation_pdf(m, wi, lambda_o, lambda_i, range),
         }
     }
     fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
             Model::Qd(m) => m.sample_emission(wi, lambda_i, xi),
+            Model::Matrix(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
+            Model::Gmm(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
         }
     }
     fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             Model::Jung(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
             Model::Qd(m) => m.emission_pdf(wi, lambda_i, lambda_o),
+            Model::Matrix(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
+            Model::Gmm(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
         }
     }
 }
@@ -202,6 +226,100 @@ impl PatchMaterial for crate::jung::JungMaterial {
         p.concentration * p.quantum_yield * f.emission(lambda_o) * absorbed_power(f, illum, (domain.0, hi), 1.0)
     }
 }
+
+// ---------------------------------------------------------------- measured models
+// `fluo_matrix` (src/matrix.rs) and `fluo_gmm` (src/gmm.rs): diffuse in direction,
+// f_fl = P(λi, λo)/π, with the same wavelength interface on both.
+
+/// λi step of the trapezoid in the measured models' [`PatchMaterial::reradiated`], nm.
+const MEASURED_PATCH_STEP_NM: f64 = 0.5;
+
+/// ∫_{lo}^{hi} p(λi) I(λi) dλi by the trapezoid rule on a ≤ [`MEASURED_PATCH_STEP_NM`] grid.
+fn integrate_excitation(p: impl Fn(f64) -> f64, illum: &dyn Fn(f64) -> f64, lo: f64, hi: f64) -> f64 {
+    if !(hi > lo) {
+        return 0.0;
+    }
+    let n = ((hi - lo) / MEASURED_PATCH_STEP_NM).ceil().max(1.0) as usize;
+    let h = (hi - lo) / n as f64;
+    let mut sum = 0.0;
+    for i in 0..=n {
+        let l = if i == n { hi } else { lo + i as f64 * h };
+        let w = if i == 0 || i == n { 0.5 } else { 1.0 };
+        sum += w * p(l) * illum(l);
+    }
+    sum * h
+}
+
+macro_rules! measured_bispectral {
+    ($ty:ty) => {
+        impl Bispectral for $ty {
+            fn excitation_range(&self) -> Option<(f64, f64)> {
+                self.excitation_support()
+            }
+            fn emission_range(&self) -> Option<(f64, f64)> {
+                self.emission_support()
+            }
+            fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
+                if !(wi[2] > 0.0 && wo[2] > 0.0) {
+                    return 0.0;
+                }
+                <$ty>::reradiation(self, lambda_i, lambda_o) * INV_PI * wo[2]
+            }
+            fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
+                if !(wi[2] > 0.0) {
+                    return 0.0;
+                }
+                self.absorbed_into(lambda_o, range.0, range.1) // Lambertian: ∫ cos/π dω = 1
+            }
+            fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
+                if !(wi[2] > 0.0) {
+                    return None;
+                }
+                <$ty>::sample_excitation(self, lambda_o, xi, range.0, range.1)
+            }
+            fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
+                if !(wi[2] > 0.0) {
+                    return 0.0;
+                }
+                <$ty>::excitation_pdf(self, lambda_o, lambda_i, range.0, range.1)
+            }
+            fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
+                if !(wi[2] > 0.0) {
+                    return None;
+                }
+                <$ty>::sample_emission(self, lambda_i, xi)
+            }
+            fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
+                if !(wi[2] > 0.0) {
+                    return 0.0;
+                }
+                <$ty>::emission_pdf(self, lambda_i, lambda_o)
+            }
+        }
+
+        impl crate::reduce::Reradiating for $ty {
+            fn diagonal(&self, lambda: f64) -> f64 {
+                self.reflectance(lambda)
+            }
+            fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
+                <$ty>::reradiation(self, lambda_i, lambda_o)
+            }
+        }
+
+        impl PatchMaterial for $ty {
+            fn elastic_albedo(&self, lambda: f64) -> f64 {
+                self.reflectance(lambda)
+            }
+            fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
+                // Only excitation below λo reaches it; P(λo, λo) is the limit from below.
+                integrate_excitation(|li| <$ty>::reradiation(self, li, lambda_o), illum, domain.0, domain.1.min(lambda_o))
+            }
+        }
+    };
+}
+
+measured_bispectral!(MatrixModel);
+measured_bispectral!(GmmModel);
 
 /// Result of [`patch_xyz`].
 #[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]

@@ -15,9 +15,12 @@ mod error;
 
 pub mod bispectral;
 pub mod colour;
+pub mod gmm;
+pub mod gmm_report;
 pub mod jung;
 pub mod material;
 pub mod reduce;
+pub mod matrix;
 pub mod mitsuba;
 pub mod qd;
 pub mod sigmoid;

@@ -10,6 +10,10 @@
 //!
 //! Omitted fields take the plugin defaults (those of `fluo_jung`). Unknown models and
 //! fields are errors.
+//!
+//! Measured materials are given by their file instead: a reradiation matrix
+//! (`*.bfc`, `*.csv`, `*.exr`: the tabulated model of `fluo_matrix`, [`crate::matrix`])
+//! or a Gaussian-mixture fit (`*.gmm.json`: `fluo_gmm`, [`crate::gmm`]).
 
 use serde_json::Value;
 
@@ -26,6 +30,9 @@ impl<T: PatchMaterial + Reradiating> Material for T {}
 
 /// Read a material argument: inline JSON (starting with `{`) or a path to a JSON file.
 pub fn load_material(arg: &str) -> Result<Box<dyn Material>> {
+    if let Some(measured) = load_measured(arg) {
+        return measured;
+    }
     let text = if arg.trim_start().starts_with('{') {
         arg.to_string()
     } else {
@@ -33,6 +40,18 @@ pub fn load_material(arg: &str) -> Result<Box<dyn Material>> {
     };
     let v: Value = serde_json::from_str(&text).map_err(|e| Error::data(format!("material JSON: {e}")))?;
     material_from_json(&v)
+}
+
+/// A measured material file by extension (`.bfc`, `.csv`, `.exr`, `.gmm.json`), or `None`.
+fn load_measured(arg: &str) -> Option<Result<Box<dyn Material>>> {
+    let lower = arg.trim().to_ascii_lowercase();
+    if lower.ends_with(".gmm.json") {
+        return Some(crate::gmm::GmmModel::from_file(arg.trim()).map(|m| Box::new(m) as Box<dyn Material>));
+    }
+    if [".bfc", ".csv", ".exr"].iter().any(|e| lower.ends_with(e)) {
+        return Some(crate::matrix::MatrixModel::from_file(arg.trim()).map(|m| Box::new(m) as Box<dyn Material>));
+    }
+    None
 }
 
 fn number(v: &Value, key: &str, default: f64) -> Result<f64> {
@@ -97,6 +116,8 @@ mod tests {
             (r#"{"model":"jung","reflectance":1.5}"#, "reflectance"),
             (r#"{"model":"jung""#, "JSON"),
             ("/no/such/file.json", "I/O"),
+            ("/no/such/file.BFC", "/no/such/file.BFC"),
+            ("/no/such/fit.gmm.json", "/no/such/fit.gmm.json"),
         ] {
             let e = load_material(bad).err().unwrap().to_string();
             assert!(e.contains(needle), "{bad}: {e}");

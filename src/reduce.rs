@@ -349,12 +349,16 @@ impl Reradiating for crate::bispectral::Model {
         match self {
             crate::bispectral::Model::Jung(m) => m.diagonal(lambda),
             crate::bispectral::Model::Qd(m) => QdAtAngle(m, 1.0).diagonal(lambda),
+            crate::bispectral::Model::Matrix(m) => Reradiating::diagonal(m, lambda),
+            crate::bispectral::Model::Gmm(m) => Reradiating::diagonal(m, lambda),
         }
     }
     fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             crate::bispectral::Model::Jung(m) => m.density(lambda_i, lambda_o),
             crate::bispectral::Model::Qd(m) => QdAtAngle(m, 1.0).density(lambda_i, lambda_o),
+            crate::bispectral::Model::Matrix(m) => Reradiating::density(m, lambda_i, lambda_o),
+            crate::bispectral::Model::Gmm(m) => Reradiating::density(m, lambda_i, lambda_o),
         }
     }
 }

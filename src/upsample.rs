@@ -867,7 +867,10 @@ impl Cube {
             }
         }
         if wf > 0.0 && conc > 0.0 {
-            Coefficients { reflectance: refl, emission_peak: le / wf, concentration: conc, stokes_shift: s / wf }
+            // Weights sum to 1 only up to rounding: a blend of c = 1 corners can come out
+            // as 1 + 2⁻⁵², which the model rightly rejects (found by tests/stability.rs).
+            let concentration = conc.min(1.0);
+            Coefficients { reflectance: refl, emission_peak: le / wf, concentration, stokes_shift: s / wf }
         } else {
             Coefficients::reflectance_only(refl)
         }

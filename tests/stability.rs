@@ -264,6 +264,12 @@ mod upsample {
         Ok(())
     }
 
+    /// Regression: trilinear weights summed to 1 + 2⁻⁵² and gave concentration > 1.
+    #[test]
+    fn lookup_blend_keeps_concentration_in_range() {
+        check_lookup([0.9704927459488814, 0.05562379772230015, 0.005569884935046937]).unwrap();
+    }
+
     proptest! {
         #![proptest_config(ProptestConfig { cases: 500, ..ProptestConfig::default() })]
 
@@ -282,6 +288,202 @@ mod upsample {
     fn lookup_edges() {
         for v in [[0.0; 3], [1.0; 3], [1.0, 0.0, 0.0], [0.0, 1.0, 1.0], [1.0, 1.0, 1e-12], [0.5, 1.0, 0.0]] {
             check_lookup(v).unwrap();
+        }
+    }
+}
+
+// ------------------------------------------------------------------ measured models
+// fluo_matrix (src/matrix.rs) and fluo_gmm (src/gmm.rs): random matrices on the BFC-like
+// grid (λo ⊂ λi) with noise (negatives, below-diagonal values, zero columns) and random
+// mixtures (any weights, means far outside the domain, near-singular covariances).
+
+mod measured {
+    use super::*;
+    use fluo::gmm::{Component, Diagonal, FitInfo, GmmFile, GmmModel, Scaling, FORMAT};
+    use fluo::matrix::{Donaldson, Filtered, MatrixModel};
+
+    /// λ worth probing: grid ends, just inside/outside, between nodes, Mitsuba's range ends.
+    fn probes(lo: f64, hi: f64) -> Vec<f64> {
+        let mut v = vec![lo, hi, lo - 1e-9, hi + 1e-9, lo + 1e-9, hi - 1e-9, 299.0, 360.0, 830.0];
+        v.extend((0..=20).map(|i| lo + (hi - lo) * i as f64 / 20.0 + 0.37));
+        v
+    }
+
+    /// A random matrix: λi = start + 10k (n_i), λo = the last n_o of them; column sums ≤ 1.
+    fn matrix(n_i: usize, n_o: usize, raw: &[f64]) -> Donaldson {
+        let li: Vec<f64> = (0..n_i).map(|k| 300.0 + 10.0 * k as f64).collect();
+        let lo: Vec<f64> = li[n_i - n_o..].to_vec();
+        let mut v = vec![0.0; n_i * n_o];
+        for (idx, x) in v.iter_mut().enumerate() {
+            *x = raw[idx % raw.len()];
+        }
+        // Normalise the non-negative part of each column to at most 1 (energy).
+        for k in 0..n_i {
+            let s: f64 = (0..n_o).map(|j| v[j * n_i + k].max(0.0)).sum();
+            if s > 1.0 {
+                for j in 0..n_o {
+                    v[j * n_i + k] /= s;
+                }
+            }
+        }
+        Donaldson::new("random", li, lo, v).unwrap()
+    }
+
+    fn check_matrix(d: &Donaldson) -> Result<(), TestCaseError> {
+        let f = Filtered::new(d).unwrap();
+        let m = MatrixModel::new(&f).unwrap();
+        let (lo_i, hi_i) = (d.lambda_i[0], d.lambda_i[d.lambda_i.len() - 1]);
+        let (lo_o, hi_o) = (d.lambda_o[0], d.lambda_o[d.lambda_o.len() - 1]);
+        for li in probes(lo_i, hi_i) {
+            let total = m.reradiated_albedo(li);
+            prop_assert!(total.is_finite() && total >= 0.0);
+            // energy: reflectance + reradiated ≤ 1 at excitation wavelengths on the λo grid
+            if li >= lo_o && li <= hi_o {
+                prop_assert!(m.reflectance(li) + total <= 1.0 + 1e-9, "λi {li}: {}", m.reflectance(li) + total);
+            }
+            for lo in probes(lo_o, hi_o) {
+                let p = m.reradiation(li, lo);
+                prop_assert!(p.is_finite() && p >= 0.0);
+                if li > lo {
+                    prop_assert!(p == 0.0);
+                }
+            }
+            for xi in [0.0, 1e-12, 0.5, 1.0 - 1e-12, 1.0] {
+                if let Some((lo, pdf)) = m.sample_emission(li, xi) {
+                    prop_assert!(lo >= li.max(lo_o) && lo <= hi_o && pdf.is_finite() && pdf > 0.0);
+                    let want = m.emission_pdf(li, lo);
+                    prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
+                }
+            }
+        }
+        for lo in probes(lo_o, hi_o) {
+            for (a, b) in [(0.0, f64::INFINITY), (300.0, 830.0), (355.0, 375.0)] {
+                let mass = m.absorbed_into(lo, a, b);
+                prop_assert!(mass.is_finite() && mass >= 0.0);
+                for xi in [0.0, 0.3, 1.0] {
+                    if let Some((li, pdf)) = m.sample_excitation(lo, xi, a, b) {
+                        prop_assert!(li >= a && li <= b.min(lo) && pdf.is_finite() && pdf > 0.0);
+                        let want = m.excitation_pdf(lo, li, a, b);
+                        prop_assert!((pdf - want).abs() <= 1e-9 * want);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn gmm(parts: &[(f64, f64, f64, f64, f64, f64)], scale: f64) -> Option<GmmModel> {
+        let total: f64 = parts.iter().map(|p| p.0).sum();
+        if !(total > 0.0) {
+            return None;
+        }
+        let components = parts
+            .iter()
+            .map(|&(w, ma, mb, sa, sb, rho)| Component {
+                weight: w / total,
+                mean: [ma, mb],
+                covariance: [[sa * sa, rho * sa * sb], [rho * sa * sb, sb * sb]],
+            })
+            .collect();
+        let file = GmmFile {
+            format: FORMAT.into(),
+            version: 1,
+            source: "random".into(),
+            lambda_i_range_nm: [300.0, 780.0],
+            lambda_o_range_nm: [380.0, 780.0],
+            diagonal: Diagonal { wavelengths_nm: vec![380.0, 780.0], values: vec![0.1, 0.9] },
+            scaling: Scaling::IntegralRatio,
+            scale,
+            scale_integral_ratio: scale,
+            scale_error_minimisation: scale,
+            components,
+            fit: FitInfo {
+                method: "weighted_em".into(),
+                iterations: 0,
+                converged: true,
+                log_likelihood: 0.0,
+                seed: 0,
+                restarts: 0,
+                regularisation_nm2: [0.0, 0.0],
+            },
+        };
+        match GmmModel::new(file) {
+            Ok(m) => Some(m),
+            Err(e) => {
+                assert!(e.to_string().contains("components["), "{e}");
+                None
+            }
+        }
+    }
+
+    fn check_gmm(m: &GmmModel) -> Result<(), TestCaseError> {
+        for li in probes(300.0, 780.0) {
+            let a = m.reradiated_albedo(li);
+            prop_assert!(a.is_finite() && a >= 0.0);
+            for lo in probes(380.0, 780.0) {
+                let p = m.reradiation(li, lo);
+                prop_assert!(p.is_finite() && p >= 0.0);
+            }
+            for xi in [0.0, 1e-12, 0.5, 1.0 - 1e-12, 1.0] {
+                if let Some((lo, pdf)) = m.sample_emission(li, xi) {
+                    prop_assert!(lo >= li.max(380.0) && lo <= 780.0 && pdf.is_finite() && pdf > 0.0, "{li} -> {lo}");
+                    let want = m.emission_pdf(li, lo);
+                    prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
+                }
+            }
+        }
+        for lo in probes(380.0, 780.0) {
+            for (a, b) in [(300.0, 830.0), (355.0, 375.0)] {
+                prop_assert!(m.absorbed_into(lo, a, b).is_finite());
+                for xi in [0.0, 0.5, 1.0] {
+                    if let Some((li, pdf)) = m.sample_excitation(lo, xi, a, b) {
+                        prop_assert!(li >= a && li <= b.min(lo) && pdf.is_finite() && pdf > 0.0);
+                        let want = m.excitation_pdf(lo, li, a, b);
+                        prop_assert!((pdf - want).abs() <= 1e-9 * want);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig { cases: 200, ..ProptestConfig::default() })]
+
+        #[test]
+        fn matrix_random(n_i in 2usize..12, frac in 0.0f64..=1.0,
+                         raw in prop::collection::vec(-0.05f64..0.3, 1..64)) {
+            let n_o = ((n_i as f64 * frac).round() as usize).clamp(2, n_i);
+            check_matrix(&matrix(n_i, n_o, &raw))?;
+        }
+
+        #[test]
+        fn gmm_random(parts in prop::collection::vec(
+                          (0.0f64..1.0, 0.0f64..1200.0, 0.0f64..1200.0, 0.5f64..300.0, 0.5f64..300.0, -0.999f64..0.999),
+                          1..6),
+                      scale in 0.0f64..1000.0) {
+            if let Some(m) = gmm(&parts, scale) {
+                check_gmm(&m)?;
+            }
+        }
+    }
+
+    /// Edges: all-zero and pure-diagonal matrices, a single narrow component at the top
+    /// corner, components far outside the domain, near-singular covariances.
+    #[test]
+    fn measured_edges() {
+        check_matrix(&matrix(3, 2, &[0.0])).unwrap();
+        check_matrix(&matrix(49, 41, &[-0.01, 0.0])).unwrap();
+        check_matrix(&matrix(49, 41, &[1.0])).unwrap();
+        for parts in [
+            vec![(1.0, 779.0, 779.9, 0.5, 0.5, 0.0)],
+            vec![(1.0, -5000.0, 9000.0, 1.0, 1.0, 0.0)],
+            vec![(1.0, 500.0, 600.0, 300.0, 0.5, 0.999)],
+            vec![(0.5, 400.0, 500.0, 10.0, 10.0, -0.999), (0.5, 770.0, 300.0, 5.0, 5.0, 0.5)],
+        ] {
+            if let Some(m) = gmm(&parts, 50.0) {
+                check_gmm(&m).unwrap();
+            }
         }
     }
 }

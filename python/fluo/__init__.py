@@ -44,7 +44,7 @@ __all__ = [
 ]
 
 #: Names of the Mitsuba plugins that ``libfluo.so`` registers (``type="..."`` in XML).
-PLUGINS: tuple[str, ...] = ("fluo_jung", "fluo_path", "fluo_illuminant", "fluo_qd")
+PLUGINS: tuple[str, ...] = ("fluo_jung", "fluo_path", "fluo_illuminant", "fluo_qd", "fluo_matrix", "fluo_gmm")
 
 #: Environment variable overriding the plugin library location.
 LIBRARY_ENV = "FLUO_LIBRARY"

@@ -15,6 +15,14 @@ through unchanged.
 A scene restricts the variants ``demo`` renders it in with an XML comment::
 
     <!-- fluo: variants=scalar_spectral -->
+
+A scene whose data may be missing (the measured matrices in ``../shared/data`` beside
+the repository) names a fallback for a ``<default>`` parameter::
+
+    <!-- fluo: fallback matrix_a=../data/matrices/jung_yellow.csv -->
+
+``demo`` passes ``matrix_a=<fallback>`` (paths relative to the scene) when the file the
+default names does not exist, and says so.
 """
 
 from __future__ import annotations
@@ -40,6 +48,8 @@ TOOL_HELP_TIMEOUT_S = 10.0
 
 _VARIANTS_COMMENT = re.compile(r"<!--\s*fluo:\s*variants\s*=\s*([^>]*?)\s*-->")
 _LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
+_FALLBACK_COMMENT = re.compile(r"<!--\s*fluo:\s*fallback\s+([A-Za-z_][\w]*)\s*=\s*([^>]*?)\s*-->")
+_DEFAULT_TAG = re.compile(r'<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
 
 
 # ---------------------------------------------------------------------------- parser
@@ -255,6 +265,23 @@ def scene_variants(scene: Path) -> tuple[str, ...]:
     return tuple(v for v in VARIANTS if v in wanted)
 
 
+def scene_fallback_params(scene: Path, force: bool = False) -> dict[str, str]:
+    """Parameters replacing a scene's missing data files (``<!-- fluo: fallback K=PATH -->``).
+
+    For each fallback whose ``<default name="K">`` file (relative to the scene) does not
+    exist, or for every fallback with ``force``: ``K`` -> ``PATH`` resolved against the
+    scene's directory.
+    """
+    text = scene.read_text(encoding="utf-8")
+    defaults = dict(_DEFAULT_TAG.findall(text))
+    params: dict[str, str] = {}
+    for key, path in _FALLBACK_COMMENT.findall(text):
+        default = defaults.get(key)
+        if force or default is None or not (scene.parent / default).exists():
+            params[key] = str((scene.parent / path).resolve())
+    return params
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     args.out = args.out.resolve()
     scenes = sorted(args.scenes.glob("*.xml"))
@@ -275,6 +302,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
             output = args.out / f"{scene.stem}_{variant}.exr"
             cmd = [sys.executable, "-m", "fluo", "render", str(scene), "--variant", variant,
                    "--spp", str(args.spp), "-o", str(output)]
+            for key, value in scene_fallback_params(scene).items():
+                print(f"fluo demo: {scene.name}: data for ${key} not found, using {value}",
+                      file=sys.stderr)
+                cmd += ["--param", f"{key}={value}"]
             # stderr (progress, errors) goes to the terminal; stdout is the paths.
             proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
             if proc.returncode != 0:

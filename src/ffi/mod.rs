@@ -10,7 +10,7 @@
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
-use crate::bispectral::{Bispectral, Model};
+use crate::bispectral::{Bispectral, Model, PatchMaterial};
 use crate::jung::{JungFluorescence, JungParams, Reflectance};
 use crate::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use crate::reduce::{Method, ReradiationOnly, Transport};
@@ -139,6 +139,25 @@ mod bridge {
         fn jung_to_string(model: &JungModel) -> String;
         /// The model's fluorescent part, for the integrator.
         fn jung_fluorescence(model: &JungModel) -> &Fluorescence;
+
+        /// A measured material (`fluo_matrix`, `fluo_gmm`): the diagonal (reflectance)
+        /// plus reradiation, diffuse in direction.
+        type MeasuredModel;
+
+        /// `fluo_matrix`: a reradiation matrix file (.bfc, .csv, .exr), tabulated.
+        fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>>;
+        /// `fluo_gmm`: a Gaussian-mixture fit file (.gmm.json, written by `fluo fit-gmm`).
+        fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>>;
+        fn measured_is_fluorescent(model: &MeasuredModel) -> bool;
+        /// out[j] = ρ(λ_j), the diagonal (elastic albedo).
+        fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]);
+        /// RGB variant: sRGB of ρ(λ) + ∫ P(λi, λ) dλi under equal-energy light (360–830 nm).
+        fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb;
+        /// RGB variant: sRGB of the diagonal ρ(λ) alone (the elastic part).
+        fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb;
+        fn measured_to_string(model: &MeasuredModel) -> String;
+        /// The model's fluorescent part, for the integrator.
+        fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence;
     }
 
     // ------------------------------------------------------------------ fluo_qd
@@ -576,6 +595,77 @@ fn jung_to_string(model: &JungModel) -> String {
     }
 }
 
+
+// ---------------------------------------------------------------- fluo_matrix, fluo_gmm
+
+/// Opaque measured material (`fluo_matrix`, `fluo_gmm`) handed to C++.
+pub struct MeasuredModel {
+    generic: Fluorescence,
+}
+
+impl MeasuredModel {
+    /// The colorimetric view of the model (always present: only `matrix_new` and
+    /// `gmm_new` build a `MeasuredModel`).
+    fn patch(&self) -> Option<&dyn PatchMaterial> {
+        match &self.generic.model {
+            Model::Matrix(m) => Some(m),
+            Model::Gmm(m) => Some(m),
+            Model::Jung(_) | Model::Qd(_) => None,
+        }
+    }
+
+    fn elastic_albedo(&self, lambda: f64) -> f64 {
+        self.patch().map_or(0.0, |p| p.elastic_albedo(lambda))
+    }
+}
+
+fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| {
+        let m = crate::matrix::MatrixModel::from_file(filename)?;
+        Ok(Box::new(MeasuredModel { generic: Fluorescence { model: Model::Matrix(m), elastic: Some(Reflectance::Constant(1.0)) } }))
+    })
+}
+
+fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| {
+        let m = crate::gmm::GmmModel::from_file(filename)?;
+        Ok(Box::new(MeasuredModel { generic: Fluorescence { model: Model::Gmm(m), elastic: Some(Reflectance::Constant(1.0)) } }))
+    })
+}
+
+fn measured_is_fluorescent(model: &MeasuredModel) -> bool {
+    model.generic.model.excitation_range().is_some()
+}
+
+fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.elastic_albedo(f64::from(l)) as f32;
+    }
+}
+
+fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb {
+    const UP: [f64; 3] = [0.0, 0.0, 1.0];
+    let shifted = |l: f64| model.generic.model.shift_albedo(UP, l, (CIE_MIN_NM, CIE_MAX_NM));
+    rgb(spectrum_to_srgb(|l| model.elastic_albedo(l) + shifted(l)))
+}
+
+fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {
+    rgb(spectrum_to_srgb(|l| model.elastic_albedo(l)))
+}
+
+fn measured_to_string(model: &MeasuredModel) -> String {
+    match &model.generic.model {
+        Model::Matrix(m) => m.to_string(),
+        Model::Gmm(m) => m.to_string(),
+        Model::Jung(m) => m.to_string(),
+        Model::Qd(m) => m.to_string(),
+    }
+}
+
+fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
+    &model.generic
+}
+
 // ---------------------------------------------------------------------- fluo_qd
 
 /// Opaque `fluo_qd` model handed to C++.
@@ -588,7 +678,7 @@ impl QdModel {
         match &self.generic.model {
             Model::Qd(m) => m,
             // qd_new only ever stores a Qd model; an unreachable default keeps this panic-free.
-            Model::Jung(_) => qd_fallback(),
+            _ => qd_fallback(),
         }
     }
 }

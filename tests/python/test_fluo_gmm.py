@@ -1,0 +1,107 @@
+"""Tests of fluo_gmm (Gaussian-mixture reradiation, Hua et al. 2022).
+
+References: the fit file's own diagonal (what the BSDF must serve), and the
+single-bounce patch integral of ``fluo patch`` of the same fit file (direct
+integration in Rust) that ``fluo_path`` renders must converge to within 1 %. The
+wavelength sampling's chi-square tests against its pdf (several λi and λo, λi near the
+top of the range) are Rust unit tests (``src/gmm.rs``), where the sampler is exposed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import fluo
+
+REPO = Path(__file__).resolve().parents[2]
+SHARED = Path(os.environ.get("FLUO_SHARED_DATA", REPO.parent / "shared" / "data"))
+OWN_FIT = REPO / "data" / "matrices" / "jung_orange.gmm.json"
+
+
+def transform():
+    return mi.ScalarTransform4f()
+
+
+def plane_xyz(bsdf: dict, illuminant: str, spp=192):
+    mi.set_variant("scalar_spectral")
+    scene = mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": "fluo_path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": transform().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "pixel_format": "xyz",
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "plane": {"type": "rectangle", "to_world": transform().scale(10), "bsdf": bsdf},
+        "light": {"type": "directional", "direction": [0, 0, -1],
+                  "irradiance": {"type": "fluo_illuminant", "illuminant": illuminant}},
+    })
+    img = np.array(mi.render(scene, seed=1), dtype=np.float64)
+    return img.reshape(-1, img.shape[-1])[:, :3].mean(axis=0) * math.pi
+
+
+def check_converges(fit_path: Path, illuminant: str):
+    xyz = plane_xyz({"type": "fluo_gmm", "filename": str(fit_path)}, illuminant)
+    ref = fluo.run_tool(["patch", "--material", str(fit_path), "--illuminant", illuminant,
+                         "--cmf", "cie1931"])
+    want, elastic = np.array(ref["xyz"]), np.array(ref["elastic_xyz"])
+    np.testing.assert_allclose(xyz, want, rtol=0.01)
+    assert want[1] - elastic[1] > 0.03, (want, elastic)  # fluorescence ≥ 3 × the tolerance
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+def test01_create_and_errors(variant, tmp_path):
+    mi.set_variant(variant)
+    b = mi.load_dict({"type": "fluo_gmm", "filename": str(OWN_FIT)})
+    assert "FluoGmm" in str(b) and "components = 8" in str(b)
+    fit = json.loads(OWN_FIT.read_text())
+    bad_cov = json.loads(OWN_FIT.read_text())
+    bad_cov["components"][2]["covariance"] = [[1.0, 5.0], [5.0, 1.0]]
+    bad_w = json.loads(OWN_FIT.read_text())
+    bad_w["components"][0]["weight"] += 0.5
+    for name, text, needle in [
+        ("cov.gmm.json", json.dumps(bad_cov), r"components\[2\]\.covariance"),
+        ("w.gmm.json", json.dumps(bad_w), "weight"),
+        ("trunc.gmm.json", json.dumps(fit)[:200], "fit file"),
+        ("nan.gmm.json", json.dumps(fit).replace('"scale": ', '"scale": NaN, "x": ', 1), "fit file"),
+    ]:
+        f = tmp_path / name
+        f.write_text(text)
+        with pytest.raises(Exception, match=needle):
+            mi.load_dict({"type": "fluo_gmm", "filename": str(f)})
+
+
+def test02_eval_serves_the_stored_diagonal():
+    mi.set_variant("scalar_spectral")
+    import drjit as dr
+    fit = json.loads(OWN_FIT.read_text())
+    lam, rho = np.array(fit["diagonal"]["wavelengths_nm"]), np.array(fit["diagonal"]["values"])
+    b = mi.load_dict({"type": "fluo_gmm", "filename": str(OWN_FIT)})
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.wi = mi.Vector3f(0, 0, 1)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    wl = (400.0, 505.0, 610.0, 777.0)
+    si.wavelengths = mi.Spectrum(*wl)
+    got = np.array(b.eval(mi.BSDFContext(), si, mi.Vector3f(0, 0, 1)))
+    np.testing.assert_allclose(got, np.interp(wl, lam, rho) / math.pi, rtol=1e-5)
+
+
+@pytest.mark.parametrize("illuminant", ["D65", "A"])
+def test03_plane_converges_to_patch_of_its_fit(illuminant):
+    check_converges(OWN_FIT, illuminant)
+
+
+@pytest.mark.skipif(not (SHARED / "bispectral" / "TEXTYELL.BFC").is_file(),
+                    reason=f"shared data not found at {SHARED} (set FLUO_SHARED_DATA)")
+def test04_measured_fit_converges_to_patch_of_its_fit(tmp_path):
+    out = tmp_path / "TEXTYELL.gmm.json"
+    fluo.run_tool(["fit-gmm", str(SHARED / "bispectral" / "TEXTYELL.BFC"), "--components", "8",
+                   "-o", str(out)])
+    check_converges(out, "D65")
