@@ -54,6 +54,9 @@ SUBCOMMANDS:
              illuminant's domain; light from the normal, viewed from the normal;
              normalised so that the perfect white diffuser has Y = 1.
 
+    reduce-report  Fichet et al.'s Table 1 on measured matrices (default: all of
+             ../shared/data/bispectral): mean ΔE2000 per illuminant (A, E, D60, D65,
+             FL1, FL2, HP5) for naive/ours x xyz/xyzu/x7, and the paper's row.
     reduce   The K x K reduced reradiation matrix of a material
              --material M (as for patch)  --basis xyz|xyzu|x7  --method ours|naive
              --cmf cie2006|cie1931 (default cie2006)
@@ -289,6 +292,41 @@ fn cmd_reduce(args: &Args) -> Result<Value, String> {
         "transfer": basis.transfer(),
         "gram_condition_number": basis.condition_number(),
         "acts_on": "basis coefficients c_k = ∫ L(λ) s_k(λ) dλ; c_out = matrix · c_in; XYZ = transferᵀ-columns · c",
+    }))
+}
+
+fn cmd_reduce_report(args: &Args) -> Result<Value, String> {
+    use fluo::reduce::{table1, Reradiating, TABLE1_ILLUMINANTS, TABLE1_XYZU_OURS};
+    let files: Vec<std::path::PathBuf> = if args.positional.is_empty() {
+        let f = shared_bispectral_files();
+        if f.is_empty() {
+            return Err("reduce-report: no files given and no shared data found (set FLUO_SHARED_DATA)".into());
+        }
+        f
+    } else {
+        args.positional.iter().map(std::path::PathBuf::from).collect()
+    };
+    let models = files
+        .iter()
+        .map(|f| fluo::matrix::MatrixModel::from_file(f).map_err(|e| e.to_string()))
+        .collect::<Result<Vec<_>, _>>()?;
+    let refs: Vec<&dyn Reradiating> = models.iter().map(|m| m as &dyn Reradiating).collect();
+    let rows = table1(&refs).map_err(|e| e.to_string())?;
+    if !args.json {
+        eprintln!("Fichet et al. Table 1 (mean ΔE2000 over {} materials, CIE 2006, white = illuminant)", files.len());
+        eprintln!("{:<12} {}  {:>6}", "method", TABLE1_ILLUMINANTS.map(|n| format!("{n:>6}")).join(" "), "mean");
+        for r in &rows {
+            let cells: Vec<String> = r.mean.iter().map(|v| format!("{v:>6.2}")).collect();
+            eprintln!("{:<12} {}  {:>6.2}", format!("{}-{}", r.method, r.basis), cells.join(" "), r.overall);
+        }
+        let paper: Vec<String> = TABLE1_XYZU_OURS.iter().map(|v| format!("{v:>6.2}")).collect();
+        eprintln!("{:<12} {}  {:>6.2}", "paper xyzu", paper.join(" "), TABLE1_XYZU_OURS.iter().sum::<f64>() / 7.0);
+    }
+    Ok(json!({
+        "files": files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
+        "illuminants": TABLE1_ILLUMINANTS,
+        "rows": rows,
+        "paper_xyzu_ours": TABLE1_XYZU_OURS,
     }))
 }
 
@@ -582,6 +620,7 @@ fn run(argv: &[String]) -> Result<(), String> {
         "jung" => cmd_jung(&args)?,
         "patch" => cmd_patch(&args)?,
         "reduce" => cmd_reduce(&args)?,
+        "reduce-report" => cmd_reduce_report(&args)?,
         "qd" => cmd_qd(&args)?,
         "upsample-cube" => cmd_upsample_cube(&args)?,
         "upsample-report" => cmd_upsample_report(&args)?,
