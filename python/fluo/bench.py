@@ -17,10 +17,10 @@ Columns (all measured):
 * ``equal_error_time``: time to reach mean ΔE00 ≤ ``target_de``, interpolated in
   (log time, ΔE) between rungs; a method whose error never gets there (its bias floor
   lies above the target) reports ``unreachable`` with that floor;
-* ``material_floats``: floats the renderer stores per fluorescent material for the
-  method (the representation's memory).
+* ``material_bytes``: bytes the renderer holds per fluorescent material for the method
+  at render time (model, tables, reduced matrices: the representation's memory).
 
-Methods are declared in :data:`METHODS`: how to turn a bench scene into the method's
+Methods are declared in :func:`methods`: how to turn a bench scene into the method's
 scene (variant, integrator, material rewrite). The table goes to stdout (Markdown),
 ``results.json`` and ``accuracy_vs_time.png`` to the output folder.
 """
@@ -52,19 +52,54 @@ def _to_path(text: str) -> str:
     return _strip_reduced_params(text.replace('<integrator type="fluo_path">', '<integrator type="path">'))
 
 
-def _remove_dyes(text: str) -> str:
-    """The same materials without fluorescent dye (concentration 0)."""
-    return re.sub(r'<float name="concentration" value="[^"]*"/>', '<float name="concentration" value="0"/>', text)
+def _matrix_to_diffuse(text: str) -> str:
+    """fluo_matrix -> diffuse with the matrix's diagonal (its elastic reflectance)."""
+    from . import run_tool
 
-
-def _jung_to_diffuse(text: str) -> str:
-    """Replace each fluo_jung by Mitsuba's diffuse with the same reflectance (bench
-    scenes give fluo_jung reflectances as <rgb>)."""
     def repl(m: re.Match) -> str:
-        body = m.group(1)
-        refl = re.search(r'<rgb name="reflectance" value="[^"]*"/>', body)
+        d = run_tool(["diagonal", "--material", m.group(1)])
+        values = ", ".join(f"{l:g}:{min(max(v, 0.0), 1.0):.5f}" for l, v in zip(d["wavelengths_nm"], d["values"]))
+        return f'<bsdf type="diffuse"><spectrum name="reflectance" value="{values}"/></bsdf>'
+    return re.sub(r'<bsdf type="fluo_matrix"><string name="filename" value="([^"]*)"/></bsdf>', repl, text)
+
+
+def _remove_dyes(text: str) -> str:
+    """The same materials without their fluorescent dye (concentration or density 0;
+    a measured matrix keeps its diagonal)."""
+    text = re.sub(r'<float name="concentration" value="[^"]*"/>', '<float name="concentration" value="0"/>', text)
+    text = re.sub(r'<float name="density" value="[^"]*"/>', '<float name="density" value="0"/>', text)
+    return _matrix_to_diffuse(text)
+
+
+def _to_native(text: str) -> str:
+    """Mitsuba's nearest native materials: diffuse for fluo_jung (same reflectance) and
+    fluo_matrix (its diagonal), roughconductor for fluo_qd (same substrate and roughness)."""
+    def jung(m: re.Match) -> str:
+        refl = re.search(r'<rgb name="reflectance" value="[^"]*"/>', m.group(1))
         return '<bsdf type="diffuse">' + (refl.group(0) if refl else "") + "</bsdf>"
-    return re.sub(r'<bsdf type="fluo_jung">(.*?)</bsdf>', repl, text, flags=re.S)
+
+    def qd(m: re.Match) -> str:
+        keep = re.findall(r'<(?:string|float) name="(?:material|alpha|distribution)" value="[^"]*"/>', m.group(1))
+        return '<bsdf type="roughconductor">' + "".join(keep) + "</bsdf>"
+    text = re.sub(r'<bsdf type="fluo_jung">(.*?)</bsdf>', jung, text, flags=re.S)
+    text = re.sub(r'<bsdf type="fluo_qd">(.*?)</bsdf>', qd, text, flags=re.S)
+    return _matrix_to_diffuse(text)
+
+
+def _gmm(components: int, cache: Path) -> Callable[[str], str]:
+    """fluo_matrix -> fluo_gmm of a `components`-Gaussian fit (fitted once, cached)."""
+    from . import run_tool
+
+    def rewrite(text: str) -> str:
+        def repl(m: re.Match) -> str:
+            src = Path(m.group(1))
+            key = hashlib.sha1(f"{src.resolve()}|{src.stat().st_mtime}|{components}".encode()).hexdigest()[:10]
+            fit = cache / f"{src.stem}_{components}_{key}.gmm.json"
+            if not fit.exists():
+                run_tool(["fit-gmm", str(src), "--components", str(components), "-o", str(fit)])
+            return f'<bsdf type="fluo_gmm"><string name="filename" value="{fit}"/></bsdf>'
+        return re.sub(r'<bsdf type="fluo_matrix"><string name="filename" value="([^"]*)"/></bsdf>', repl, text)
+    return rewrite
 
 
 def _reduced(basis: str, method: str) -> Callable[[str], str]:
@@ -74,6 +109,36 @@ def _reduced(basis: str, method: str) -> Callable[[str], str]:
     return rewrite
 
 
+def _material_kinds(text: str) -> set[str]:
+    return set(re.findall(r'<bsdf type="fluo_(jung|matrix|gmm|qd)"', text))
+
+
+def _material_bytes(text: str) -> float:
+    """Mean bytes at render time of the scene's fluorescent materials (model and tables)."""
+    from . import run_tool
+
+    sizes = []
+    for m in re.finditer(r'<bsdf type="fluo_(jung|matrix|gmm|qd)">(.*?)</bsdf>', text, flags=re.S):
+        kind, body = m.group(1), m.group(2)
+        if kind in ("matrix", "gmm"):
+            f = re.search(r'name="filename" value="([^"]*)"', body).group(1)
+            sizes.append(run_tool(["memory", "--material", f])["bytes"])
+        elif kind == "qd":
+            r = re.search(r'<float name="radius" value="([^"]*)"/>', body)
+            sizes.append(run_tool(["qd", "--radius", r.group(1) if r else "2.2"])["tables"]["bytes"])
+        else:
+            sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"])
+    return float(np.mean(sizes)) if sizes else 0.0
+
+
+def _reduced_bytes(k: int) -> Callable[[str], float]:
+    def size(text: str) -> float:
+        kinds = _material_kinds(text)
+        # a K×K matrix of f64 per material; angle-dependent coatings keep 17 of them
+        return float(8 * k * k * (17 if kinds == {"qd"} else 1)) if kinds else 0.0
+    return size
+
+
 @dataclass
 class Method:
     """One way of rendering a bench scene."""
@@ -81,25 +146,25 @@ class Method:
     name: str
     variant: str
     rewrite: Callable[[str], str]
-    #: floats stored per fluorescent material (None: not fluorescence-aware)
-    floats: Callable[[str], int]
+    #: bytes per fluorescent material at render time, given the rewritten scene
+    bytes: Callable[[str], float]
+    #: material kinds (before rewriting) the method applies to; None: all
+    kinds: set[str] | None = None
     note: str = ""
 
 
-def _jung_floats(_: str) -> int:
-    return 4  # λe, s, c, Q (plus the reflectance every method stores)
-
-
-METHODS: list[Method] = [
-    Method("spectral analytic (fluo_path)", "scalar_spectral", lambda t: t, _jung_floats),
-    *[Method(f"rgb {m}-{b} (fluo_path)", "scalar_rgb", _reduced(b, m),
-             (lambda k: (lambda _: k * k))({"rgb": 3, "xyzu": 4, "x7": 7}[b]))
-      for m in ("ours", "naive") for b in ("rgb", "xyzu", "x7")],
-    Method("rgb plain, no fluorescence (path)", "scalar_rgb", lambda t: _remove_dyes(_to_path(t)),
-           lambda _: 0, "what a user gets today"),
-    Method("spectral native path, nearest diffuse", "scalar_spectral",
-           lambda t: _jung_to_diffuse(_to_path(t)), lambda _: 0, "the cost floor"),
-]
+def methods(cache: Path) -> list[Method]:
+    """Every method the project offers, in table order."""
+    ms = [Method("spectral, scene's own model (fluo_path)", "scalar_spectral", lambda t: t, _material_bytes)]
+    ms += [Method(f"spectral GMM-{k} (fluo_path)", "scalar_spectral", _gmm(k, cache), _material_bytes, {"matrix"})
+           for k in (2, 4, 8)]
+    ms += [Method(f"rgb {m}-{b} (fluo_path)", "scalar_rgb", _reduced(b, m), _reduced_bytes({"rgb": 3, "xyzu": 4, "x7": 7}[b]))
+           for m in ("ours", "naive") for b in ("rgb", "xyzu", "x7")]
+    ms += [Method("rgb plain, no fluorescence (path)", "scalar_rgb", lambda t: _remove_dyes(_to_path(t)),
+                  lambda _: 0.0, note="what a user gets today"),
+           Method("spectral native path, nearest material", "scalar_spectral", lambda t: _to_native(_to_path(t)),
+                  lambda _: 0.0, note="the cost floor")]
+    return ms
 
 
 @dataclass
@@ -112,7 +177,7 @@ class Row:
     p95_de: list[float] = field(default_factory=list)
     equal_error_time: float | None = None
     floor_de: float = 0.0
-    material_floats: int = 0
+    material_bytes: float = 0.0
 
 
 def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: Path) -> tuple[np.ndarray, float]:
@@ -131,8 +196,23 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
 
 
 def _absolutise_includes(text: str, scene_dir: Path) -> str:
-    return re.sub(r'<include filename="([^"/][^"]*)"/>',
-                  lambda m: f'<include filename="{(scene_dir / m.group(1)).resolve()}"/>', text)
+    """Inline includes and substitute file-valued defaults (``$name``) with
+    absolute paths, using a ``<!-- fluo: fallback name=path -->`` when the file is missing."""
+    def inline(m: re.Match) -> str:
+        inc = (scene_dir / m.group(1)).resolve()
+        body = inc.read_text()
+        body = body[body.index(">", body.index("<scene")) + 1:body.rindex("</scene>")]
+        return _absolutise_includes(body, inc.parent)
+    # inlined, so that rewrites reach the included integrator and materials
+    text = re.sub(r'<include filename="([^"]*)"/>', inline, text)
+    fallbacks = dict(re.findall(r"<!--\s*fluo:\s*fallback\s+(\w+)=(\S+)\s*-->", text))
+    for name, value in re.findall(r'<default name="(\w+)" value="([^"]*[./][^"]*)"/>', text):
+        path = (scene_dir / value).resolve()
+        if not path.exists() and name in fallbacks:
+            path = (scene_dir / fallbacks[name]).resolve()
+        text = re.sub(rf'\s*<default name="{name}" value="[^"]*"/>', "", text)
+        text = text.replace(f"${name}", str(path))
+    return text
 
 
 def equal_error_time(seconds: list[float], errors: list[float], target: float) -> float | None:
@@ -172,10 +252,12 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
             np.save(ref_file, ref)
             ref_file.with_suffix(".json").write_text(json.dumps(
                 {"scene": scene_path.name, "res": res, "spp": ref_spp, "seconds": t}))
-        n_materials = len(re.findall(r'<bsdf type="fluo_(?!illuminant)', base))
-        for m in METHODS:
+        kinds = _material_kinds(base)
+        for m in methods(cache):
+            if m.kinds is not None and not (m.kinds & kinds):
+                continue
             text = m.rewrite(base)
-            row = Row(scene_path.stem, m.name, material_floats=m.floats(text) if n_materials else 0)
+            row = Row(scene_path.stem, m.name, material_bytes=m.bytes(text))
             for spp in ladder:
                 img, t = _render_text(text, m.variant, res, spp, 1, cache)
                 de = delta_e_map(np.maximum(img, 0), np.maximum(ref, 0))
@@ -205,13 +287,13 @@ def table(result: dict) -> str:
              f"{result['res']}x{result['res']}, time and ΔE00 at {result['ladder_spp'][-1]} spp, "
              f"reference {result['ref_spp']} spp, equal-error target mean ΔE00 ≤ {result['target_de']}",
              "",
-             "| scene | method | time (s) | mean ΔE00 | p95 ΔE00 | equal-error time (s) | floats/material |",
+             "| scene | method | time (s) | mean ΔE00 | p95 ΔE00 | equal-error time (s) | bytes/material |",
              "|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
         eet = (f"{r['equal_error_time']:.3f}" if r["equal_error_time"] is not None
                else f"unreachable (floor {r['floor_de']:.2f})")
         lines.append(f"| {r['scene']} | {r['method']} | {r['seconds'][-1]:.3f} | {r['mean_de'][-1]:.2f} | "
-                     f"{r['p95_de'][-1]:.2f} | {eet} | {r['material_floats']} |")
+                     f"{r['p95_de'][-1]:.2f} | {eet} | {r['material_bytes']:.0f} |")
     return "\n".join(lines) + "\n"
 
 

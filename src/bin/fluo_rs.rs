@@ -54,6 +54,8 @@ SUBCOMMANDS:
              illuminant's domain; light from the normal, viewed from the normal;
              normalised so that the perfect white diffuser has Y = 1.
 
+    memory   Bytes a material occupies at render time: --material M (JSON, matrix, fit)
+    diagonal The elastic reflectance (diagonal) of a matrix file: --material FILE
     reduce-report  Fichet et al.'s Table 1 on measured matrices (default: all of
              ../shared/data/bispectral): mean ΔE2000 per illuminant (A, E, D60, D65,
              FL1, FL2, HP5) for naive/ours x xyz/xyzu/x7, and the paper's row.
@@ -293,6 +295,32 @@ fn cmd_reduce(args: &Args) -> Result<Value, String> {
         "gram_condition_number": basis.condition_number(),
         "acts_on": "basis coefficients c_k = ∫ L(λ) s_k(λ) dλ; c_out = matrix · c_in; XYZ = transferᵀ-columns · c",
     }))
+}
+
+/// Bytes a material occupies at render time (model plus sampling tables).
+fn cmd_memory(args: &Args) -> Result<Value, String> {
+    let m = args.values.get("material").ok_or("memory needs --material")?;
+    let lower = m.trim().to_ascii_lowercase();
+    let (model, bytes) = if lower.ends_with(".gmm.json") {
+        let g = fluo::gmm::GmmModel::from_file(m.trim()).map_err(|e| e.to_string())?;
+        ("gmm", 8 * g.floats_at_render_time())
+    } else if [".bfc", ".csv", ".exr"].iter().any(|e| lower.ends_with(e)) {
+        let t = fluo::matrix::MatrixModel::from_file(m.trim()).map_err(|e| e.to_string())?;
+        ("matrix", 8 * t.floats_at_render_time())
+    } else {
+        load_material(m).map_err(|e| e.to_string())?;
+        // parameters and baked constants of JungFluorescence, plus 3 reflectance coefficients
+        ("jung", std::mem::size_of::<JungFluorescence>() + 3 * 8)
+    };
+    Ok(json!({"model": model, "bytes": bytes}))
+}
+
+/// The elastic reflectance (diagonal) of a measured matrix, for non-fluorescent stand-ins.
+fn cmd_diagonal(args: &Args) -> Result<Value, String> {
+    let m = args.values.get("material").ok_or("diagonal needs --material FILE")?;
+    let t = fluo::matrix::MatrixModel::from_file(m.trim()).map_err(|e| e.to_string())?;
+    let (nm, values) = t.diagonal();
+    Ok(json!({"wavelengths_nm": nm, "values": values}))
 }
 
 fn cmd_reduce_report(args: &Args) -> Result<Value, String> {
@@ -621,6 +649,8 @@ fn run(argv: &[String]) -> Result<(), String> {
         "patch" => cmd_patch(&args)?,
         "reduce" => cmd_reduce(&args)?,
         "reduce-report" => cmd_reduce_report(&args)?,
+        "memory" => cmd_memory(&args)?,
+        "diagonal" => cmd_diagonal(&args)?,
         "qd" => cmd_qd(&args)?,
         "upsample-cube" => cmd_upsample_cube(&args)?,
         "upsample-report" => cmd_upsample_report(&args)?,
