@@ -1108,6 +1108,7 @@ pub fn fit(matrix: &Filtered, opts: &FitOptions) -> Result<GmmFile> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
     use crate::matrix::{load_matrix, shared_bispectral_files};
 
     #[test]
@@ -1192,14 +1193,6 @@ mod tests {
         }
     }
 
-    fn simpson(f: impl Fn(f64) -> f64, a: f64, b: f64, n: usize) -> f64 {
-        let h = (b - a) / n as f64;
-        let mut s = f(a) + f(b);
-        for i in 1..n {
-            s += if i % 2 == 1 { 4.0 } else { 2.0 } * f(a + i as f64 * h);
-        }
-        s * h / 3.0
-    }
 
     #[test]
     fn conditional_masses_are_integrals_of_the_reradiation() {
@@ -1219,39 +1212,8 @@ mod tests {
         assert!((total - 1.0).abs() < 1e-6, "{total}");
     }
 
-    /// Chi-square statistic of samples against a pdf on [lo, hi] (pooling bins < 5).
-    fn chi2(samples: &[f64], lo: f64, hi: f64, bins: usize, pdf: impl Fn(f64) -> f64) -> (f64, usize) {
-        let mut obs = vec![0.0; bins];
-        for &x in samples {
-            let b = (((x - lo) / (hi - lo)) * bins as f64).floor();
-            let b = (b.max(0.0) as usize).min(bins - 1);
-            obs[b] += 1.0;
-        }
-        let n = samples.len() as f64;
-        let w = (hi - lo) / bins as f64;
-        let (mut stat, mut dof, mut po, mut pe) = (0.0, 0usize, 0.0, 0.0);
-        for (i, o) in obs.iter().enumerate() {
-            po += o;
-            pe += n * simpson(&pdf, lo + i as f64 * w, lo + (i + 1) as f64 * w, 8);
-            if pe >= 5.0 {
-                stat += (po - pe).powi(2) / pe;
-                dof += 1;
-                po = 0.0;
-                pe = 0.0;
-            }
-        }
-        (stat, dof.saturating_sub(1))
-    }
 
-    fn chi2_critical(dof: usize) -> f64 {
-        let k = dof.max(1) as f64;
-        k * (1.0 - 2.0 / (9.0 * k) + 3.719 * (2.0 / (9.0 * k)).sqrt()).powi(3)
-    }
 
-    fn uniforms(n: usize, seed: u64) -> Vec<f64> {
-        let mut r = SplitMix64(seed);
-        (0..n).map(|_| r.next_f64()).collect()
-    }
 
     #[test]
     fn conditional_sampling_matches_pdf_chi2() {

@@ -499,21 +499,13 @@ pub fn absorbed_power(f: &JungFluorescence, illum: &dyn Fn(f64) -> f64, range: (
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
 
     fn model(le: f64, s: f64) -> JungFluorescence {
         JungFluorescence::new(JungParams { emission_peak: le, stokes_shift: s, concentration: 0.7, quantum_yield: 0.96 })
             .unwrap()
     }
 
-    /// Composite Simpson on [a, b] with n (even) intervals.
-    fn simpson(f: impl Fn(f64) -> f64, a: f64, b: f64, n: usize) -> f64 {
-        let h = (b - a) / n as f64;
-        let mut s = f(a) + f(b);
-        for i in 1..n {
-            s += if i % 2 == 1 { 4.0 } else { 2.0 } * f(a + i as f64 * h);
-        }
-        s * h / 3.0
-    }
 
     #[test]
     fn bspline_integral_and_peak() {
@@ -615,54 +607,8 @@ mod tests {
         }
     }
 
-    /// Chi-square statistic of samples against a binned density (bins with expected
-    /// count < 5 are pooled), returns (statistic, degrees of freedom).
-    fn chi2(samples: &[f64], lo: f64, hi: f64, bins: usize, pdf: impl Fn(f64) -> f64) -> (f64, usize) {
-        let mut obs = vec![0.0; bins];
-        for &x in samples {
-            let b = (((x - lo) / (hi - lo)) * bins as f64).floor();
-            if b >= 0.0 && (b as usize) < bins {
-                obs[b as usize] += 1.0;
-            }
-        }
-        let n = samples.len() as f64;
-        let w = (hi - lo) / bins as f64;
-        let (mut stat, mut dof, mut pool_o, mut pool_e) = (0.0, 0usize, 0.0, 0.0);
-        for (i, o) in obs.iter().enumerate() {
-            let e = n * simpson(&pdf, lo + i as f64 * w, lo + (i + 1) as f64 * w, 64);
-            pool_o += o;
-            pool_e += e;
-            if pool_e >= 5.0 {
-                stat += (pool_o - pool_e).powi(2) / pool_e;
-                dof += 1;
-                pool_o = 0.0;
-                pool_e = 0.0;
-            }
-        }
-        (stat, dof.saturating_sub(1))
-    }
 
-    /// Upper 1e-4 quantile bound of chi-square via the Wilson–Hilferty approximation.
-    fn chi2_critical(dof: usize) -> f64 {
-        let k = dof as f64;
-        let z = 3.719; // one-sided 1e-4
-        k * (1.0 - 2.0 / (9.0 * k) + z * (2.0 / (9.0 * k)).sqrt()).powi(3)
-    }
 
-    /// Deterministic low-discrepancy-free uniform stream (SplitMix64).
-    fn uniforms(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = s;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                z ^= z >> 31;
-                (z >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
-    }
 
     #[test]
     fn emission_sampling_matches_pdf_chi2() {

@@ -12,6 +12,8 @@
 //! `lambda_o` the emission (outgoing) one.
 
 mod error;
+#[cfg(test)]
+mod testutil;
 
 pub mod bispectral;
 pub mod colour;

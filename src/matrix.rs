@@ -888,6 +888,7 @@ impl fmt::Display for MatrixModel {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
+    use crate::testutil::{simpson};
 
     /// A small synthetic BFC text: λi 300..380 step 20 (5), λo 340..380 step 20 (3).
     pub(crate) fn tiny_bfc() -> String {
@@ -1011,14 +1012,6 @@ pub(crate) mod tests {
         assert_eq!(m.reflectance(300.0), 0.5); // held constant below the first node
     }
 
-    fn simpson(f: impl Fn(f64) -> f64, a: f64, b: f64, n: usize) -> f64 {
-        let h = (b - a) / n as f64;
-        let mut s = f(a) + f(b);
-        for i in 1..n {
-            s += if i % 2 == 1 { 4.0 } else { 2.0 } * f(a + i as f64 * h);
-        }
-        s * h / 3.0
-    }
 
     #[test]
     fn tabulated_integrals_match_quadrature() {

@@ -1383,6 +1383,7 @@ impl crate::bispectral::Bispectral for QdModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::testutil::{chi2, chi2_critical, uniforms};
     use crate::bispectral::Bispectral;
 
     const GOLD: Substrate = Substrate::Constant { eta: 0.27, k: 2.9 };
@@ -1634,52 +1635,8 @@ mod tests {
 
     // ---- wavelength sampling
 
-    fn uniforms(n: usize, seed: u64) -> Vec<f64> {
-        let mut s = seed;
-        (0..n)
-            .map(|_| {
-                s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
-                let mut z = s;
-                z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-                z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-                z ^= z >> 31;
-                (z >> 11) as f64 / (1u64 << 53) as f64
-            })
-            .collect()
-    }
 
-    /// Pearson chi-square over `bins` equal bins with expected counts from `pdf`
-    /// (fine midpoint integration), pooling bins under 5 expected samples.
-    fn chi2(samples: &[f64], lo: f64, hi: f64, bins: usize, pdf: impl Fn(f64) -> f64) -> (f64, usize) {
-        let mut obs = vec![0.0; bins];
-        for &x in samples {
-            let b = (((x - lo) / (hi - lo)) * bins as f64).floor();
-            let b = if x == hi { bins as f64 - 1.0 } else { b };
-            assert!(b >= 0.0 && (b as usize) < bins, "sample {x} outside [{lo}, {hi}]");
-            obs[b as usize] += 1.0;
-        }
-        let n = samples.len() as f64;
-        let w = (hi - lo) / bins as f64;
-        let (mut stat, mut dof, mut po, mut pe) = (0.0, 0usize, 0.0, 0.0);
-        for (i, o) in obs.iter().enumerate() {
-            let sub = 200;
-            let e: f64 = (0..sub).map(|s| pdf(lo + w * (i as f64 + (s as f64 + 0.5) / sub as f64))).sum::<f64>() * w / sub as f64;
-            po += o;
-            pe += n * e;
-            if pe >= 5.0 {
-                stat += (po - pe) * (po - pe) / pe;
-                dof += 1;
-                po = 0.0;
-                pe = 0.0;
-            }
-        }
-        (stat, dof.saturating_sub(1))
-    }
 
-    fn chi2_critical(dof: usize) -> f64 {
-        let k = dof as f64;
-        k * (1.0 - 2.0 / (9.0 * k) + 3.719 * (2.0 / (9.0 * k)).sqrt()).powi(3)
-    }
 
     #[test]
     fn wavelength_sampling_chi2_including_hard_cases() {
