@@ -15,8 +15,8 @@ Columns (all measured):
 * ``time``: render time at the top rung (fixed spp);
 * ``mean_de``, ``p95_de``: mean and 95th-percentile per-pixel ΔE00 at that rung;
 * ``equal_error_time``: time to reach mean ΔE00 ≤ ``target_de``, interpolated in
-  (log time, ΔE) between rungs; a method whose error never gets there (its bias floor
-  lies above the target) reports ``unreachable`` with that floor;
+  (log time, ΔE) between rungs; a method whose error never gets there within the ladder
+  (its bias floor lies above the target) reports ∞ with that measured floor;
 * ``material_bytes``: bytes the renderer holds per fluorescent material for the method
   at render time (model, tables, reduced matrices: the representation's memory).
 
@@ -215,6 +215,20 @@ def _absolutise_includes(text: str, scene_dir: Path) -> str:
     return text
 
 
+def _machine() -> str:
+    """CPU model and core count (Linux /proc/cpuinfo; platform otherwise)."""
+    import os
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{cpu}, {os.cpu_count()} cores"
+
+
 def equal_error_time(seconds: list[float], errors: list[float], target: float) -> float | None:
     """Time at which the error ladder first reaches ``target`` (log-time interpolation)."""
     for i, (t, e) in enumerate(zip(seconds, errors)):
@@ -271,8 +285,7 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
             log(f"[bench]   {m.name:42s} {row.seconds[-1]:7.2f}s  ΔE00 {row.mean_de[-1]:.2f}")
     result = {
         "date": time.strftime("%Y-%m-%d"),
-        "machine": f"{platform.machine()}, {platform.processor() or 'unknown cpu'}, "
-                   f"{__import__('os').cpu_count()} cores",
+        "machine": _machine(),
         "quick": quick, "res": res, "ladder_spp": ladder, "ref_spp": ref_spp, "target_de": target_de,
         "rows": [r.__dict__ for r in rows],
     }
@@ -291,31 +304,40 @@ def table(result: dict) -> str:
              "|---|---|---|---|---|---|---|"]
     for r in result["rows"]:
         eet = (f"{r['equal_error_time']:.3f}" if r["equal_error_time"] is not None
-               else f"unreachable (floor {r['floor_de']:.2f})")
+               else f"∞: bias floor {r['floor_de']:.2f} > target")
         lines.append(f"| {r['scene']} | {r['method']} | {r['seconds'][-1]:.3f} | {r['mean_de'][-1]:.2f} | "
                      f"{r['p95_de'][-1]:.2f} | {eet} | {r['material_bytes']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
 def plot(result: dict, path: Path) -> None:
+    """Mean ΔE00 against render time along the spp ladder, one panel per scene; each
+    method keeps its colour and marker across panels."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     scenes = sorted({r["scene"] for r in result["rows"]})
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6.5 * len(scenes), 4.5), squeeze=False)
+    names = list(dict.fromkeys(r["method"] for r in result["rows"]))
+    cmap = plt.get_cmap("tab20")
+    style = {n: (cmap(i % 20), "osD^v<>"[i % 7]) for i, n in enumerate(names)}
+    fig, axes = plt.subplots(1, len(scenes), figsize=(6.0 * len(scenes), 4.6), squeeze=False)
     for ax, scene in zip(axes[0], scenes):
         for r in (r for r in result["rows"] if r["scene"] == scene):
-            ax.plot(r["seconds"], r["mean_de"], marker="o", label=r["method"])
+            colour, marker = style[r["method"]]
+            ax.plot(r["seconds"], r["mean_de"], marker=marker, ms=4, color=colour, label=r["method"])
         ax.axhline(result["target_de"], color="grey", ls="--", lw=0.8)
         ax.set_xscale("log")
+        ax.set_yscale("log")
         ax.set_xlabel("render time (s)")
         ax.set_ylabel("mean ΔE00 vs spectral reference")
         ax.set_title(scene)
-        ax.grid(alpha=0.3)
-    axes[0][-1].legend(fontsize=7, loc="upper right")
-    fig.suptitle(f"fluo bench, {result['date']}, {result['machine']}", fontsize=9)
-    fig.tight_layout()
+        ax.grid(alpha=0.3, which="both")
+    handles = [plt.Line2D([], [], color=style[n][0], marker=style[n][1], label=n) for n in names]
+    fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
+    fig.suptitle(f"fluo bench, {result['date']}, {result['machine']} (spp ladder "
+                 f"{result['ladder_spp'][0]}…{result['ladder_spp'][-1]}; dashed: equal-error target)", fontsize=9)
+    fig.tight_layout(rect=(0, 0.14, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
