@@ -9,6 +9,7 @@
 
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
+#include "fluo_lambertian.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -190,47 +191,22 @@ public:
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
                                              Mask active) const override {
-        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
-        active &= Frame3f::cos_theta(si.wi) > 0.f;
-        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
-            return { bs, 0.f };
-
-        bs.wo = warp::square_to_cosine_hemisphere(sample2);
-        bs.pdf = warp::square_to_cosine_hemisphere_pdf(bs.wo);
-        bs.eta = 1.f;
-        bs.sampled_type = +BSDFFlags::DiffuseReflection;
-        bs.sampled_component = 0;
-        if (!(bs.pdf > 0.f))
-            return { bs, 0.f };
-        return { bs, depolarizer<Spectrum>(albedo(si, active)) };
+        return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return albedo(si, active); });
     }
 
     Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
                   Mask active) const override {
-        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
-        active &= cos_i > 0.f && cos_o > 0.f;
-        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
-            return 0.f;
-        return depolarizer<Spectrum>(albedo(si, active) * dr::InvPi<Float> * cos_o);
+        return Lambertian<Float, Spectrum>::eval(ctx, si, wo, active, [&] { return albedo(si, active); });
     }
 
     Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
               Mask active) const override {
-        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
-        active &= cos_i > 0.f && cos_o > 0.f;
-        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
-            return 0.f;
-        return warp::square_to_cosine_hemisphere_pdf(wo);
+        return Lambertian<Float, Spectrum>::pdf(ctx, si, wo, active);
     }
 
     std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                         const Vector3f &wo, Mask active) const override {
-        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
-        active &= cos_i > 0.f && cos_o > 0.f;
-        if (!active || !ctx.is_enabled(BSDFFlags::DiffuseReflection))
-            return { 0.f, 0.f };
-        return { depolarizer<Spectrum>(albedo(si, active) * dr::InvPi<Float> * cos_o),
-                 warp::square_to_cosine_hemisphere_pdf(wo) };
+        return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return albedo(si, active); });
     }
 
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {
