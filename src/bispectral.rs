@@ -104,9 +104,15 @@ impl Bispectral for JungFluorescence {
             return 0.0;
         }
         // Lambertian: ∫ cos/π dω = 1. Only excitations below λo shift up to it.
+        // Most camera wavelengths lie outside the narrow emission band: return before
+        // integrating the absorption band.
+        let e = self.emission(lambda_o);
+        if !(e > 0.0) {
+            return 0.0;
+        }
         let p = self.params();
         let hi = range.1.min(lambda_o);
-        p.concentration * p.quantum_yield * self.emission(lambda_o) * self.absorption_integral_range(range.0, hi)
+        p.concentration * p.quantum_yield * e * self.absorption_integral_range(range.0, hi)
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         if !(wi[2] > 0.0) || !(self.emission(lambda_o) > 0.0) {
