@@ -77,7 +77,7 @@ pub const MAX_NEWTON_ITERATIONS: usize = 64;
 /// Relative tolerance (of the support width) at which the CDF inversion stops.
 const NEWTON_TOLERANCE: f64 = 1e-13;
 /// Below this β·v the absorption-CDF moments use their power series. The closed forms
-/// cancel to order x³ (g₂ ≈ x³/3), leaving a relative error near ε/x² ≈ 2e-12 at the
+/// cancel to order x³ (g₂ ≈ x³/3), leaving a relative error near 3ε/x² ≈ 7e-12 at the
 /// switch; the series needs ~8 terms there. (At 0.25 the series took ~30 terms and
 /// dominated the cost of fluorescent vertices.)
 const SERIES_MAX_X: f64 = 0.01;
