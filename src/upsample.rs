@@ -1182,13 +1182,7 @@ pub fn generate_cube(settings: &CubeSettings, log: &mut dyn FnMut(&str)) -> Resu
             }
             best
         });
-        let mut changed = 0;
-        for (&i, u) in todo.iter().zip(updates) {
-            if u.cost < state[i].cost {
-                changed += usize::from(u.cost < SIGNIFICANT_IMPROVEMENT * state[i].cost);
-                state[i] = u;
-            }
-        }
+        let changed = keep_improvements(&mut state, &todo, updates);
         log(&format!("  reflectance sweep {sweep}: {} unsolved, {changed} improved", todo.len()));
         if changed == 0 {
             break;
@@ -1241,13 +1235,7 @@ pub fn generate_cube(settings: &CubeSettings, log: &mut dyn FnMut(&str)) -> Resu
             }
             best
         });
-        let mut changed = 0;
-        for (&i, u) in todo.iter().zip(updates) {
-            if u.cost < state[i].cost {
-                changed += usize::from(u.cost < SIGNIFICANT_IMPROVEMENT * state[i].cost);
-                state[i] = u;
-            }
-        }
+        let changed = keep_improvements(&mut state, &todo, updates);
         log(&format!("  round {round}: {} with remaining error, {changed} improved", todo.len()));
         if changed == 0 {
             break;
@@ -1371,6 +1359,19 @@ impl fmt::Display for CubeHeader {
             self.threshold
         )
     }
+}
+
+/// Replace each entry of `todo` whose update lowers its cost; returns how many improved
+/// significantly (by more than [`SIGNIFICANT_IMPROVEMENT`]).
+fn keep_improvements(state: &mut [State], todo: &[usize], updates: Vec<State>) -> usize {
+    let mut changed = 0;
+    for (&i, u) in todo.iter().zip(updates) {
+        if u.cost < state[i].cost {
+            changed += usize::from(u.cost < SIGNIFICANT_IMPROVEMENT * state[i].cost);
+            state[i] = u;
+        }
+    }
+    changed
 }
 
 #[cfg(test)]

@@ -216,6 +216,27 @@ fn cmd_qd(args: &Args) -> Result<Value, String> {
     }))
 }
 
+/// `--cmf cie2006|cie1931` (default cie2006): the name and the observer.
+fn observer_arg(args: &Args) -> Result<(&str, Observer), String> {
+    match args.values.get("cmf").map_or("cie2006", String::as_str) {
+        "cie2006" => Ok(("cie2006", Observer::Cie2006)),
+        "cie1931" => Ok(("cie1931", Observer::Cie1931)),
+        other => Err(format!("--cmf \"{other}\": valid values are cie2006, cie1931")),
+    }
+}
+
+/// Matrix files named on the command line, or every shared measured file.
+fn report_files(args: &Args, command: &str) -> Result<Vec<std::path::PathBuf>, String> {
+    if !args.positional.is_empty() {
+        return Ok(args.positional.iter().map(std::path::PathBuf::from).collect());
+    }
+    let files = shared_bispectral_files();
+    if files.is_empty() {
+        return Err(format!("{command}: no files given and no shared data found (set FLUO_SHARED_DATA)"));
+    }
+    Ok(files)
+}
+
 fn cmd_patch(args: &Args) -> Result<Value, String> {
     let material_arg = args.values.get("material").ok_or("patch needs --material")?;
     let illum_arg = args.values.get("illuminant").ok_or("patch needs --illuminant")?;
@@ -229,12 +250,7 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
         let b = BasisKind::from_name(b).map_err(|_| format!("--method \"{method}\": valid methods are {METHODS}"))?;
         Some((m, b))
     };
-    let cmf_name = args.values.get("cmf").map_or("cie2006", String::as_str);
-    let observer = match cmf_name {
-        "cie2006" => Observer::Cie2006,
-        "cie1931" => Observer::Cie1931,
-        other => return Err(format!("--cmf \"{other}\": valid values are cie2006, cie1931")),
-    };
+    let (cmf_name, observer) = observer_arg(args)?;
     let material = load_material(material_arg).map_err(|e| e.to_string())?;
     let spectrum: IrregularSpectrum = if std::path::Path::new(illum_arg).is_file() {
         IrregularSpectrum::from_csv_file(illum_arg).map_err(|e| e.to_string())?
@@ -278,11 +294,7 @@ fn cmd_reduce(args: &Args) -> Result<Value, String> {
     let material_arg = args.values.get("material").or(args.values.get("matrix")).ok_or("reduce needs --material")?;
     let kind = BasisKind::from_name(args.values.get("basis").map_or("xyzu", String::as_str)).map_err(|e| e.to_string())?;
     let method = Method::from_name(args.values.get("method").map_or("ours", String::as_str)).map_err(|e| e.to_string())?;
-    let observer = match args.values.get("cmf").map_or("cie2006", String::as_str) {
-        "cie2006" => Observer::Cie2006,
-        "cie1931" => Observer::Cie1931,
-        other => return Err(format!("--cmf \"{other}\": valid values are cie2006, cie1931")),
-    };
+    let (_, observer) = observer_arg(args)?;
     let material = load_material(material_arg).map_err(|e| e.to_string())?;
     let basis = Basis::new(kind, observer).map_err(|e| e.to_string())?;
     let r = reduce(material.as_ref(), &basis, method);
@@ -325,15 +337,7 @@ fn cmd_diagonal(args: &Args) -> Result<Value, String> {
 
 fn cmd_reduce_report(args: &Args) -> Result<Value, String> {
     use fluo::reduce::{table1, Reradiating, TABLE1_ILLUMINANTS, TABLE1_XYZU_OURS};
-    let files: Vec<std::path::PathBuf> = if args.positional.is_empty() {
-        let f = shared_bispectral_files();
-        if f.is_empty() {
-            return Err("reduce-report: no files given and no shared data found (set FLUO_SHARED_DATA)".into());
-        }
-        f
-    } else {
-        args.positional.iter().map(std::path::PathBuf::from).collect()
-    };
+    let files = report_files(args, "reduce-report")?;
     let models = files
         .iter()
         .map(|f| fluo::matrix::MatrixModel::from_file(f).map_err(|e| e.to_string()))
@@ -539,15 +543,7 @@ fn cmd_fit_gmm(args: &Args) -> Result<Value, String> {
 }
 
 fn cmd_gmm_report(args: &Args) -> Result<Value, String> {
-    let files: Vec<std::path::PathBuf> = if args.positional.is_empty() {
-        let f = shared_bispectral_files();
-        if f.is_empty() {
-            return Err("gmm-report: no files given and no shared data found (set FLUO_SHARED_DATA)".into());
-        }
-        f
-    } else {
-        args.positional.iter().map(std::path::PathBuf::from).collect()
-    };
+    let files = report_files(args, "gmm-report")?;
     let counts: Vec<usize> = match args.values.get("components") {
         None => COMPONENT_COUNTS.to_vec(),
         Some(list) => list
