@@ -7,7 +7,8 @@
 //! wheels and link them, whole-archive, into `libfluo.so` (the cdylib only).
 //! The wheels are found through a Python interpreter: `$FLUO_PYTHON`, else the
 //! project's `.venv/bin/python`. Shims are compiled with `-msse4.2`, the wheel's ABI:
-//! without it `Spectrum`/`Color` layouts differ and renders come out black.
+//! without it `Spectrum`/`Color` layouts differ and renders come out black; and with
+//! [`CXX_FLAGS`] (no strict aliasing, hidden visibility).
 
 use std::env;
 use std::path::{Path, PathBuf};
@@ -18,12 +19,23 @@ fn main() {
     println!("cargo:rerun-if-changed=src/ffi/mod.rs");
     println!("cargo:rerun-if-env-changed=FLUO_PYTHON");
 
-    cxx_build::bridge("src/ffi/mod.rs").std("c++17").flag_if_supported("-msse4.2").compile("fluo_bridge");
+    cxx_build::bridge("src/ffi/mod.rs")
+        .std("c++17")
+        .flag_if_supported("-msse4.2")
+        .flags(CXX_FLAGS)
+        .compile("fluo_bridge");
 
     if env::var_os("CARGO_FEATURE_MITSUBA").is_some() {
         build_plugins();
     }
 }
+
+/// Flags every C++ translation unit gets besides `-msse4.2`: Dr.Jit's own build
+/// requires `-fno-strict-aliasing` (without it a g++ -O2 build crashed inside
+/// `ContinuousDistribution` in `scalar_spectral`), and hidden visibility keeps the
+/// library's exports to its registration symbols (otherwise ~900 weak template
+/// instantiations leak into the dynamic symbol table).
+const CXX_FLAGS: [&str; 3] = ["-fno-strict-aliasing", "-fvisibility=hidden", "-fvisibility-inlines-hidden"];
 
 /// Include and library directories of the Mitsuba/Dr.Jit/nanobind wheels.
 struct Wheels {
@@ -95,6 +107,7 @@ fn build_plugins() {
         .include(w.nanobind.join("include"))
         .include(w.nanobind.join("ext/robin_map/include"))
         .flag("-msse4.2")
+        .flags(CXX_FLAGS)
         .flag("-fPIC")
         .flag_if_supported("-fno-math-errno")
         .warnings(false)

@@ -24,15 +24,62 @@ pub enum Error {
 }
 
 impl Error {
-    /// Shorthand for [`Error::InvalidParameter`].
+    /// Shorthand for [`Error::InvalidParameter`]. The value is shown readably: a
+    /// number in exponent form when its plain form would be long (`1e-300`, not 300
+    /// digits), and any text cut to [`MAX_SHOWN_CHARS`] (see [`shown`]).
     pub fn param(name: &str, value: impl fmt::Display, valid: impl Into<String>) -> Self {
-        Error::InvalidParameter { name: name.to_string(), value: value.to_string(), valid: valid.into() }
+        Error::InvalidParameter { name: shown(&name), value: shown(&value), valid: valid.into() }
     }
 
-    /// Shorthand for [`Error::Data`].
+    /// Shorthand for [`Error::Data`]; the message is bounded as in [`shown`].
     pub fn data(msg: impl Into<String>) -> Self {
-        Error::Data(msg.into())
+        Error::Data(elide(&msg.into(), MAX_MESSAGE_CHARS))
     }
+}
+
+/// The most characters of one value (a parameter value, a token read from a file)
+/// that an error message repeats; longer text is elided in the middle.
+pub const MAX_SHOWN_CHARS: usize = 80;
+
+/// The most characters of a whole [`Error::Data`] message.
+pub const MAX_MESSAGE_CHARS: usize = 1000;
+
+/// A number as error messages show it: the shortest form that round-trips, at f32
+/// precision when the value is an f32 (as Mitsuba's properties are: `-0.1`, not
+/// `-0.10000000149011612`), in exponent form when the plain one would be long
+/// (`1e-300`, not 300 digits).
+pub fn num(x: f64) -> String {
+    let single = x as f32;
+    let plain = if f64::from(single) == x { format!("{single}") } else { format!("{x}") };
+    if plain.len() <= 12 || (x.abs() >= 1e-4 && x.abs() < 1e7) {
+        plain
+    } else if f64::from(single) == x {
+        format!("{single:e}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
+/// `value` as error messages show it: a number through [`num`], any other text cut
+/// to [`MAX_SHOWN_CHARS`] so that a message never echoes unbounded input (a 50 MB
+/// line of a data file, say).
+pub fn shown(value: &impl fmt::Display) -> String {
+    let text = value.to_string();
+    match text.trim().parse::<f64>() {
+        Ok(x) if !text.trim().is_empty() => num(x),
+        _ => elide(&text, MAX_SHOWN_CHARS),
+    }
+}
+
+/// `text` cut in the middle to at most about `max` characters, saying how long it was.
+fn elide(text: &str, max: usize) -> String {
+    let n = text.chars().count();
+    if n <= max {
+        return text.to_string();
+    }
+    let head: String = text.chars().take(max * 3 / 4).collect();
+    let tail: String = text.chars().skip(n - max / 4).collect();
+    format!("{head}…[{} characters cut]…{tail}", n - head.chars().count() - tail.chars().count())
 }
 
 impl fmt::Display for Error {
@@ -57,6 +104,26 @@ pub(crate) fn check_range(name: &str, value: f64, lo: f64, hi: f64) -> Result<f6
     if value.is_finite() && value >= lo && value <= hi {
         Ok(value)
     } else {
-        Err(Error::param(name, value, format!("[{lo}, {hi}]")))
+        Err(Error::param(name, value, format!("[{}, {}]", num(lo), num(hi))))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn numbers_and_text_are_shown_bounded() {
+        assert_eq!(num(0.5), "0.5");
+        assert_eq!(num(1e-300), "1e-300");
+        assert_eq!(num(3e38), "3e38");
+        assert_eq!(num(f64::from(-0.1f32)), "-0.1");
+        assert_eq!(num(1.0 / 3.0), "0.3333333333333333");
+        let e = Error::param("temperature", 1e-300, "(0, 1e4]");
+        assert_eq!(e.to_string(), "invalid parameter \"temperature\" = 1e-300: valid range is (0, 1e4]");
+        let long = "x".repeat(50_000_000);
+        let e = Error::data(format!("line 3: cannot read '{long}'"));
+        assert!(e.to_string().len() < 2 * MAX_MESSAGE_CHARS, "{}", e.to_string().len());
+        assert!(Error::param("name", &long, "text").to_string().len() < 4 * MAX_SHOWN_CHARS);
     }
 }

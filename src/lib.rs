@@ -32,4 +32,4 @@ pub mod upsample;
 #[allow(unsafe_code, missing_docs)]
 pub mod ffi;
 
-pub use error::{Error, Result};
+pub use error::{num, shown, Error, Result};
