@@ -73,7 +73,9 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use crate::matrix::{interp_clamped, Filtered, MatrixModel, WAVELENGTH_TOLERANCE_NM};
+use crate::matrix::{
+    interp_clamped, Filtered, MatrixModel, MAX_MATRIX_VALUE, MAX_WAVELENGTH_NM, WAVELENGTH_TOLERANCE_NM,
+};
 use crate::{Error, Result};
 
 /// Below this |x| erf uses its Taylor series; above, erfcx its continued fraction.
@@ -112,6 +114,10 @@ const TAIL_NEGLIGIBLE: f64 = 40.0;
 const LN_NEGLIGIBLE: f64 = 45.0;
 /// `format` field of a fit file.
 pub const FORMAT: &str = "fluo-gmm";
+
+/// Largest accepted magnitude of a covariance entry, nm² (a standard deviation of
+/// 10 000 nm): larger ones overflow the determinant.
+pub const MAX_COVARIANCE_NM2: f64 = 1e8;
 
 const LN_SQRT_2PI: f64 = 0.918_938_533_204_672_8;
 const FRAC_2_SQRT_PI: f64 = std::f64::consts::FRAC_2_SQRT_PI;
@@ -430,7 +436,7 @@ impl GmmFile {
     /// Read and parse (validated when baked by [`GmmModel::new`]).
     pub fn load(path: impl AsRef<Path>) -> Result<Self> {
         let p = path.as_ref();
-        let text = std::fs::read_to_string(p).map_err(|e| Error::Io(format!("{}: {e}", p.display())))?;
+        let text = crate::fileio::read_text(p, crate::fileio::MAX_SMALL_FILE_BYTES, "Gaussian-mixture fit")?;
         serde_json::from_str(&text).map_err(|e| Error::data(format!("{}: fit file: {e}", p.display())))
     }
 }
@@ -479,8 +485,12 @@ impl GmmModel {
             return Err(Error::param("version", file.version, "1"));
         }
         for (name, r) in [("lambda_i_range_nm", file.lambda_i_range_nm), ("lambda_o_range_nm", file.lambda_o_range_nm)] {
-            if !(r[0].is_finite() && r[1].is_finite() && r[0] > 0.0 && r[1] > r[0]) {
-                return Err(Error::param(name, format!("{r:?}"), "[lo, hi] with 0 < lo < hi"));
+            if !(r[0].is_finite() && r[1].is_finite() && r[0] > 0.0 && r[1] > r[0] && r[1] <= MAX_WAVELENGTH_NM) {
+                return Err(Error::param(
+                    name,
+                    format!("[{}, {}]", crate::num(r[0]), crate::num(r[1])),
+                    format!("[lo, hi] with 0 < lo < hi ≤ {MAX_WAVELENGTH_NM} nm"),
+                ));
             }
         }
         let d = &file.diagonal;
@@ -491,11 +501,13 @@ impl GmmModel {
                 "at least 2 wavelengths and as many values",
             ));
         }
-        if d.wavelengths_nm.windows(2).any(|w| !(w[1] > w[0])) || d.wavelengths_nm.iter().any(|x| !x.is_finite()) {
+        if d.wavelengths_nm.windows(2).any(|w| !(w[1] > w[0]))
+            || d.wavelengths_nm.iter().any(|x| !(x.is_finite() && *x <= MAX_WAVELENGTH_NM))
+        {
             return Err(Error::param("diagonal.wavelengths_nm", "(not increasing)", "strictly increasing finite wavelengths"));
         }
-        if let Some(v) = d.values.iter().find(|v| !(v.is_finite() && **v >= 0.0)) {
-            return Err(Error::param("diagonal.values", v, "finite and ≥ 0"));
+        if let Some(v) = d.values.iter().find(|v| !(**v >= 0.0 && **v <= MAX_MATRIX_VALUE)) {
+            return Err(Error::param("diagonal.values", v, format!("[0, {MAX_MATRIX_VALUE}]")));
         }
         if !(file.scale.is_finite() && file.scale >= 0.0) {
             return Err(Error::param("scale", file.scale, "[0, ∞)"));
@@ -513,10 +525,21 @@ impl GmmModel {
             if !(c.weight.is_finite() && c.weight >= 0.0) {
                 return Err(Error::param(&name("weight"), c.weight, "[0, 1]"));
             }
-            if !c.mean.iter().all(|m| m.is_finite()) {
-                return Err(Error::param(&name("mean"), format!("{:?}", c.mean), "finite wavelengths, nm"));
+            if !c.mean.iter().all(|m| m.abs() <= MAX_WAVELENGTH_NM) {
+                return Err(Error::param(
+                    &name("mean"),
+                    format!("[{}, {}]", crate::num(c.mean[0]), crate::num(c.mean[1])),
+                    format!("finite wavelengths in [-{MAX_WAVELENGTH_NM}, {MAX_WAVELENGTH_NM}] nm"),
+                ));
             }
             let [[aa, ab], [ba, bb]] = c.covariance;
+            if !c.covariance.iter().flatten().all(|v| v.abs() <= MAX_COVARIANCE_NM2) {
+                return Err(Error::param(
+                    &name("covariance"),
+                    format!("{:?}", c.covariance.map(|r| r.map(crate::num))),
+                    format!("entries in [-{MAX_COVARIANCE_NM2}, {MAX_COVARIANCE_NM2}] nm²"),
+                ));
+            }
             let det = aa * bb - ab * ba;
             let sym = (ab - ba).abs() <= FILE_TOLERANCE * (aa.abs() + bb.abs());
             if !(aa.is_finite() && bb.is_finite() && ab.is_finite() && sym && aa > 0.0 && bb > 0.0 && det > 0.0) {
@@ -536,6 +559,20 @@ impl GmmModel {
                 ln_norm2: -(2.0 * LN_SQRT_2PI) - 0.5 * det.ln(),
                 inv: [bb / det, -ab / det, aa / det],
             });
+        }
+        // The reradiation's peak is at most S·Σ w_k·N_k(μ_k) = S·Σ w_k / (2π √det Σ_k):
+        // held to the bound of a measured matrix entry, so that renders stay finite in f32.
+        let peak: f64 = file.scale
+            * comps.iter().map(|b| (b.ln_w + b.ln_norm2).exp()).sum::<f64>();
+        if !(peak <= MAX_MATRIX_VALUE) {
+            return Err(Error::param(
+                "scale",
+                file.scale,
+                format!(
+                    "a scale whose mixture peaks at most at {MAX_MATRIX_VALUE} per nm (this one peaks near {})",
+                    crate::num(peak)
+                ),
+            ));
         }
         let range = [file.lambda_i_range_nm, file.lambda_o_range_nm];
         Ok(Self { file, comps, range })

@@ -156,16 +156,13 @@ fn mono_wavelengths() -> Vec<f64> {
     (a..=b).step_by(s as usize).map(f64::from).collect()
 }
 
-fn colours(d: &Dense, lights: &[(String, crate::spectrum::RegularSpectrum)], c: &Cmf) -> Colours {
+fn colours(d: &Dense, lights: &[(String, crate::spectrum::RegularSpectrum)], c: &Cmf) -> Result<Colours> {
     let cie = lights
         .iter()
-        .map(|(_, s)| {
-            let p = patch_xyz(d, s, (s.start_nm(), s.end_nm()), c);
-            (p.xyz, p.white_xyz)
-        })
-        .collect();
+        .map(|(_, s)| patch_xyz(d, s, (s.start_nm(), s.end_nm()), c).map(|p| (p.xyz, p.white_xyz)))
+        .collect::<Result<_>>()?;
     let mono = mono_wavelengths().into_iter().map(|l| d.monochromatic_xyz(l, c)).collect();
-    Colours { cie, mono }
+    Ok(Colours { cie, mono })
 }
 
 /// Equal-energy white, Y = 1.
@@ -272,7 +269,7 @@ pub fn report(files: &[impl AsRef<Path>], counts: &[usize], base: &FitOptions) -
         let matrix = MatrixModel::new(&filtered)?;
         let li = (filtered.lambda_i[0], filtered.lambda_i[filtered.lambda_i.len() - 1]);
         let dense_ref = Dense::new(li, c, |a, b| matrix.reradiation(a, b), |l| matrix.reflectance(l));
-        let reference = colours(&dense_ref, &lights, c);
+        let reference = colours(&dense_ref, &lights, c)?;
         let mut fits = Vec::new();
         for &k in counts {
             let t0 = Instant::now();
@@ -281,7 +278,7 @@ pub fn report(files: &[impl AsRef<Path>], counts: &[usize], base: &FitOptions) -
             let (iterations, converged, floats_stored) = (file.fit.iterations, file.fit.converged, file.floats_stored());
             let model = GmmModel::new(file)?;
             let dense = Dense::new(li, c, |a, b| model.reradiation(a, b), |l| model.reflectance(l));
-            let got = colours(&dense, &lights, c);
+            let got = colours(&dense, &lights, c)?;
             let de_cie: Vec<f64> = reference
                 .cie
                 .iter()
@@ -353,7 +350,7 @@ mod tests {
         for name in ["D65", "A", "FL2"] {
             let s = illuminant(name).unwrap();
             let dom = (s.start_nm(), s.end_nm());
-            let (a, b) = (patch_xyz(&m, &s, dom, c), patch_xyz(&d, &s, dom, c));
+            let (a, b) = (patch_xyz(&m, &s, dom, c).unwrap(), patch_xyz(&d, &s, dom, c).unwrap());
             for k in 0..3 {
                 assert!((a.xyz[k] - b.xyz[k]).abs() < 2e-4 * a.xyz[k].abs().max(1e-3), "{name}: {:?} vs {:?}", a.xyz, b.xyz);
             }

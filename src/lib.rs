@@ -12,6 +12,7 @@
 //! `lambda_o` the emission (outgoing) one.
 
 mod error;
+pub mod fileio;
 #[cfg(test)]
 mod testutil;
 

@@ -36,7 +36,7 @@ pub fn load_material(arg: &str) -> Result<Box<dyn Material>> {
     let text = if arg.trim_start().starts_with('{') {
         arg.to_string()
     } else {
-        std::fs::read_to_string(arg).map_err(|e| Error::Io(format!("{arg}: {e}")))?
+        crate::fileio::read_text(std::path::Path::new(arg), crate::fileio::MAX_SMALL_FILE_BYTES, "material JSON")?
     };
     let v: Value = serde_json::from_str(&text).map_err(|e| Error::data(format!("material JSON: {e}")))?;
     material_from_json(&v)

@@ -22,7 +22,12 @@
 //!
 //! Every loader rejects malformed input with an error that names the file and the line
 //! and column (or channel): a truncated file, a non-finite value (NaN, inf), a wrong
-//! header, a wavelength off its grid.
+//! header, a wavelength off its grid. Files are read through [`crate::fileio`] (regular
+//! files only, at most [`crate::fileio::MAX_MATRIX_FILE_BYTES`]); a size a header
+//! claims (a BFC grid, an EXR data window) is checked against the bytes actually read
+//! and a cap ([`MAX_MATRIX_ENTRIES`], [`MAX_EXR_SAMPLES`]) before anything is allocated
+//! for it; entries are bounded by [`MAX_MATRIX_VALUE`] so that renders stay finite in
+//! float32.
 //!
 //! # Filtering (Hua et al. 2022, sec. 5.1)
 //! Entries below the diagonal (λo < λi, anti-Stokes) and negative entries are
@@ -74,6 +79,21 @@ pub const WAVELENGTH_TOLERANCE_NM: f64 = 1e-6;
 pub const BFC_HEADER_LINES: usize = 10;
 /// Largest accepted grid (per axis): guards against absurd headers.
 pub const MAX_GRID_POINTS: usize = 100_000;
+/// Largest accepted matrix (λi × λo entries): 1 nm steps over 200–1200 nm on both
+/// axes. A header claiming more is refused before anything is allocated for it.
+pub const MAX_MATRIX_ENTRIES: usize = 1_000_000;
+/// Largest accepted magnitude of a matrix entry. Measured radiance factors are O(1)
+/// (a bright fluorescent white peaks near 2); an entry of 1000 already means a patch
+/// returning a thousand times the light it receives. The bound keeps every product a
+/// render forms with it (light × throughput × entry) finite in float32.
+pub const MAX_MATRIX_VALUE: f64 = 1e3;
+/// Largest accepted wavelength of a matrix grid, nm.
+pub const MAX_WAVELENGTH_NM: f64 = 1e4;
+/// Most samples (pixels × channels, all parts) an EXR header may claim.
+pub const MAX_EXR_SAMPLES: usize = 1 << 24;
+/// An EXR header may claim at most this many samples per byte of file (the best
+/// lossless compression of constant data is far below it).
+pub const MAX_EXR_COMPRESSION_RATIO: u128 = 1024;
 
 /// Directory of the shared reference data: `$FLUO_SHARED_DATA`, else
 /// `<repo>/../shared/data`; `None` when it does not exist.
@@ -126,8 +146,11 @@ impl Donaldson {
             if let Some(w) = g.windows(2).find(|w| !(w[1] > w[0] + WAVELENGTH_TOLERANCE_NM)) {
                 return Err(Error::data(format!("{source}: {name} grid is not strictly increasing ({} then {})", w[0], w[1])));
             }
-            if let Some(x) = g.iter().find(|x| !(x.is_finite() && **x > 0.0)) {
-                return Err(Error::data(format!("{source}: {name} wavelength {x} is not a positive finite number")));
+            if let Some(x) = g.iter().find(|x| !(x.is_finite() && **x > 0.0 && **x <= MAX_WAVELENGTH_NM)) {
+                return Err(Error::data(format!(
+                    "{source}: {name} wavelength {} nm: valid range is (0, {MAX_WAVELENGTH_NM}] nm",
+                    crate::num(*x)
+                )));
             }
         }
         if values.len() != lambda_i.len() * lambda_o.len() {
@@ -138,13 +161,13 @@ impl Donaldson {
                 lambda_i.len()
             )));
         }
-        if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        if let Some(i) = values.iter().position(|v| !(v.abs() <= MAX_MATRIX_VALUE)) {
             let n = lambda_i.len();
             return Err(Error::data(format!(
-                "{source}: value at lambda_o = {} nm, lambda_i = {} nm is not finite ({})",
+                "{source}: value {} at lambda_o = {} nm, lambda_i = {} nm: valid range is [-{MAX_MATRIX_VALUE}, {MAX_MATRIX_VALUE}] (finite)",
+                crate::num(values[i]),
                 lambda_o[i / n],
                 lambda_i[i % n],
-                values[i]
             )));
         }
         Ok(Self { source: source.to_string(), lambda_i, lambda_o, values })
@@ -239,7 +262,7 @@ pub fn load_matrix(path: impl AsRef<Path>) -> Result<Donaldson> {
     match extension(path).as_str() {
         "exr" => read_exr(path),
         ext @ ("bfc" | "csv") => {
-            let text = std::fs::read_to_string(path).map_err(|e| Error::Io(format!("{label}: {e}")))?;
+            let text = crate::fileio::read_text(path, crate::fileio::MAX_MATRIX_FILE_BYTES, "reradiation matrix")?;
             if ext == "bfc" {
                 parse_bfc(&text, &label)
             } else {
@@ -327,6 +350,14 @@ pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
         return Err(grid_err(format!("n_in = {n_in}: valid range is whole numbers in [{MIN_GRID_POINTS}, {MAX_GRID_POINTS}]")));
     }
     let (n_out, n_in) = (n_out_f.round() as usize, n_in as usize);
+    // Each entry takes at least two bytes (a digit and a separator): a header claiming
+    // more than the text can hold is refused before allocating for it.
+    if n_out * n_in > MAX_MATRIX_ENTRIES || n_out * n_in > text.len() / 2 {
+        return Err(grid_err(format!(
+            "the header claims a {n_out} × {n_in} matrix, which a file of {} bytes cannot hold (at most {MAX_MATRIX_ENTRIES} entries)",
+            text.len()
+        )));
+    }
 
     // Line 12: r:c: followed by the excitation wavelengths.
     let head_line = spec_line + 1;
@@ -457,7 +488,33 @@ fn exr_channel(name: &str) -> Option<(f64, Option<f64>)> {
 /// Read a bispectral Spectral OpenEXR file (layout in the module docs).
 pub fn read_exr(path: &Path) -> Result<Donaldson> {
     let source = path.display().to_string();
-    let image = exr::prelude::read_all_flat_layers_from_file(path).map_err(|e| Error::Io(format!("{source}: {e}")))?;
+    let bytes = crate::fileio::read_bytes(path, crate::fileio::MAX_MATRIX_FILE_BYTES, "reradiation matrix")?;
+    // The headers first: `exr` allocates what a header's data window claims, so the
+    // claim is checked against a cap and against what the bytes can hold.
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&bytes), false)
+        .map_err(|e| Error::data(format!("{source}: not a readable OpenEXR file: {e}")))?;
+    let mut samples: u128 = 0;
+    for header in meta.headers.iter() {
+        let (w, h) = (header.layer_size.width() as u128, header.layer_size.height() as u128);
+        samples += w * h * header.channels.list.len() as u128;
+    }
+    let plausible = (bytes.len() as u128).saturating_mul(MAX_EXR_COMPRESSION_RATIO);
+    if samples > MAX_EXR_SAMPLES as u128 || samples > plausible {
+        return Err(Error::data(format!(
+            "{source}: the header claims {samples} samples (data window × channels) in a file of {} bytes; at most {} are read",
+            bytes.len(),
+            MAX_EXR_SAMPLES.min(plausible.min(usize::MAX as u128) as usize)
+        )));
+    }
+    use exr::prelude::{ReadChannels, ReadLayers};
+    let image = exr::prelude::read()
+        .no_deep_data()
+        .largest_resolution_level()
+        .all_channels()
+        .all_layers()
+        .all_attributes()
+        .from_buffered(std::io::Cursor::new(&bytes))
+        .map_err(|e| Error::data(format!("{source}: not a readable OpenEXR file: {e}")))?;
     // (λi, λo, value) triplets; the diagonal has λi = λo.
     let mut entries: Vec<(f64, f64, f64)> = Vec::new();
     let mut malformed = Vec::new();

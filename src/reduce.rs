@@ -61,6 +61,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::bispectral::normalise_patch;
 use crate::spectrum::{cmf, Observer, Spectral};
 use crate::{Error, Result};
 
@@ -431,17 +432,39 @@ pub fn reduce(material: &dyn Reradiating, basis: &Basis, method: Method) -> Redu
 /// Colour of a lit patch through the reduced pipeline: c_o = M down[I], XYZ = T c_o,
 /// normalised so that the illuminant's own XYZ (T down[I]) has Y = 1. Returns
 /// (xyz, white_xyz).
-pub fn reduced_patch_xyz(reduced: &Reduced, basis: &Basis, illum: &dyn Spectral) -> ([f64; 3], [f64; 3]) {
+pub fn reduced_patch_xyz(reduced: &Reduced, basis: &Basis, illum: &dyn Spectral) -> Result<([f64; 3], [f64; 3])> {
     let c = basis.down(&|l| illum.eval(l));
     let white = basis.to_xyz(&c);
     let out = basis.to_xyz(&reduced.apply(&c));
-    let k = if white[1] > 0.0 { 1.0 / white[1] } else { 0.0 };
-    (out.map(|v| v * k), white.map(|v| v * k))
+    let (k, white, _) = normalise_patch(white, equal_energy_white(basis, illum))?;
+    Ok((out.map(|v| v * k), white))
+}
+
+/// XYZ (basis CMFs, reduction grid) of a white diffuser under an equal-energy light
+/// with `illum`'s radiant power over the grid: the reference of the radiant
+/// normalisation ([`normalise_patch`]).
+fn equal_energy_white(basis: &Basis, illum: &dyn Spectral) -> [f64; 3] {
+    let lambdas = grid();
+    let power: f64 = lambdas.iter().zip(basis.w.iter()).map(|(&l, w)| illum.eval(l) * w).sum();
+    let width: f64 = basis.w.iter().sum();
+    let c = cmf(basis.observer);
+    let mut white = [0.0; 3];
+    for (&l, w) in lambdas.iter().zip(basis.w.iter()) {
+        let bar = [c.x().eval(l), c.y().eval(l), c.z().eval(l)];
+        for r in 0..3 {
+            white[r] += bar[r] * w * power / width;
+        }
+    }
+    white
 }
 
 /// Colour of the same patch by spectral integration on the reduction grid with the
 /// basis's own CMFs (the reference the reduction approximates), same normalisation.
-pub fn spectral_patch_xyz(material: &dyn Reradiating, basis: &Basis, illum: &dyn Spectral) -> ([f64; 3], [f64; 3]) {
+pub fn spectral_patch_xyz(
+    material: &dyn Reradiating,
+    basis: &Basis,
+    illum: &dyn Spectral,
+) -> Result<([f64; 3], [f64; 3])> {
     let lambdas = grid();
     let op = operator(material, basis);
     let i = DVector::from_fn(lambdas.len(), |k, _| illum.eval(lambdas[k]));
@@ -455,8 +478,8 @@ pub fn spectral_patch_xyz(material: &dyn Reradiating, basis: &Basis, illum: &dyn
             white[r] += bar[r] * i[k] * basis.w[k];
         }
     }
-    let k = if white[1] > 0.0 { 1.0 / white[1] } else { 0.0 };
-    (xyz.map(|v| v * k), white.map(|v| v * k))
+    let (k, white, _) = normalise_patch(white, equal_energy_white(basis, illum))?;
+    Ok((xyz.map(|v| v * k), white))
 }
 
 #[cfg(test)]
@@ -550,8 +573,8 @@ mod tests {
         let d65 = illuminant("D65").unwrap();
         for b in all_bases() {
             let r = reduce(&m, &b, Method::Ours);
-            let (xyz, white) = reduced_patch_xyz(&r, &b, &d65);
-            let (sxyz, _) = spectral_patch_xyz(&m, &b, &d65);
+            let (xyz, white) = reduced_patch_xyz(&r, &b, &d65).unwrap();
+            let (sxyz, _) = spectral_patch_xyz(&m, &b, &d65).unwrap();
             for k in 0..3 {
                 assert!((xyz[k] - sxyz[k]).abs() < 1e-9, "{:?} vs {:?}", xyz, sxyz);
             }
@@ -569,11 +592,11 @@ mod tests {
         for name in ["D65", "A", "FL2"] {
             let light = illuminant(name).unwrap();
             for b in all_bases() {
-                let (ref_xyz, white) = spectral_patch_xyz(&m, &b, &light);
+                let (ref_xyz, white) = spectral_patch_xyz(&m, &b, &light).unwrap();
                 let lab_ref = xyz_to_lab(ref_xyz, white);
                 let de = |method| {
                     let r = reduce(&m, &b, method);
-                    let (xyz, w) = reduced_patch_xyz(&r, &b, &light);
+                    let (xyz, w) = reduced_patch_xyz(&r, &b, &light).unwrap();
                     ciede2000(xyz_to_lab(xyz, w), lab_ref)
                 };
                 let (ours, naive) = (de(Method::Ours), de(Method::Naive));
@@ -783,11 +806,11 @@ pub fn table1(materials: &[&dyn Reradiating]) -> Result<Vec<Table1Row>> {
                 let des = lights
                     .iter()
                     .map(|light| {
-                        let (xyz, w) = reduced_patch_xyz(&r, &basis, light);
-                        let (sxyz, sw) = spectral_patch_xyz(*m, &basis, light);
-                        ciede2000(xyz_to_lab(xyz, w), xyz_to_lab(sxyz, sw))
+                        let (xyz, w) = reduced_patch_xyz(&r, &basis, light)?;
+                        let (sxyz, sw) = spectral_patch_xyz(*m, &basis, light)?;
+                        Ok(ciede2000(xyz_to_lab(xyz, w), xyz_to_lab(sxyz, sw)))
                     })
-                    .collect::<Vec<f64>>();
+                    .collect::<Result<Vec<f64>>>()?;
                 per_material.push(des);
             }
             let n = per_material.len().max(1) as f64;

@@ -971,7 +971,7 @@ impl Cube {
 
     /// Read from a file.
     pub fn load(path: &Path) -> Result<Self> {
-        let bytes = std::fs::read(path).map_err(|e| Error::Io(format!("{}: {e}", path.display())))?;
+        let bytes = crate::fileio::read_bytes(path, crate::fileio::MAX_CUBE_FILE_BYTES, "coefficient cube")?;
         Self::from_bytes(&bytes, &path.display().to_string())
     }
 

@@ -257,14 +257,16 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
     } else {
         illuminant(illum_arg).map_err(|e| e.to_string())?.into()
     };
+    fluo::spectrum::check_lamp(illum_arg, spectrum.wavelengths_nm(), spectrum.values()).map_err(|e| e.to_string())?;
     let w = spectrum.wavelengths_nm();
     let domain = (w[0], w[w.len() - 1]);
+    let p = patch_xyz(material.as_ref(), &spectrum, domain, cmf(observer)).map_err(|e| e.to_string())?;
     if let Some((m, kind)) = reduced {
         let basis = Basis::new(kind, observer).map_err(|e| e.to_string())?;
         let illum = |l: f64| if l >= domain.0 && l <= domain.1 { spectrum.eval(l) } else { 0.0 };
         let r = reduce(material.as_ref(), &basis, m);
-        let (xyz, white) = reduced_patch_xyz(&r, &basis, &illum);
-        let (sxyz, swhite) = spectral_patch_xyz(material.as_ref(), &basis, &illum);
+        let (xyz, white) = reduced_patch_xyz(&r, &basis, &illum).map_err(|e| e.to_string())?;
+        let (sxyz, swhite) = spectral_patch_xyz(material.as_ref(), &basis, &illum).map_err(|e| e.to_string())?;
         let de = ciede2000(xyz_to_lab(xyz, white), xyz_to_lab(sxyz, swhite));
         return Ok(json!({
             "method": method,
@@ -274,10 +276,10 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
             "white_xyz": white,
             "spectral_xyz": sxyz,
             "delta_e2000": de,
-            "normalisation": "white Y = 1; reduced: XYZ = T M down[I] / (T down[I])_Y",
+            "normalisation": p.normalisation.describe(),
+            "reduced": "XYZ = T M down[I], normalised as the spectral patch",
         }));
     }
-    let p = patch_xyz(material.as_ref(), &spectrum, domain, cmf(observer));
     Ok(json!({
         "method": method,
         "cmf": cmf_name,
@@ -286,7 +288,7 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
         "xyz": p.xyz,
         "white_xyz": p.white_xyz,
         "elastic_xyz": p.elastic_xyz,
-        "normalisation": "white Y = 1: XYZ = Σ cmf(λo) [ρ(λo) I(λo) + Σ P(λi,λo) I(λi)] / Σ I ȳ",
+        "normalisation": p.normalisation.describe(),
     }))
 }
 

@@ -357,9 +357,7 @@ fn illuminant_new(name: &str, filename: &str, scale: f64, normalize: bool) -> Re
         if !(scale.is_finite() && scale >= 0.0) {
             return Err(crate::Error::param("scale", scale, "[0, ∞)"));
         }
-        if spectrum.values().iter().any(|v| *v < 0.0) {
-            return Err(crate::Error::data(format!("{label}: negative spectral values")));
-        }
+        crate::spectrum::check_lamp(&label, spectrum.wavelengths_nm(), spectrum.values())?;
         let c = cmf(Observer::Cie1931);
         let y = c.y();
         let lum = spectrum.integrate_product(y, CIE_MIN_NM, CIE_MAX_NM, 1.0)?
@@ -378,6 +376,7 @@ fn illuminant_new(name: &str, filename: &str, scale: f64, normalize: bool) -> Re
             spectrum.wavelengths_nm().to_vec(),
             spectrum.values().iter().map(|v| v * k).collect(),
         )?;
+        crate::spectrum::check_lamp(&format!("{label} × {}", crate::num(k)), scaled.wavelengths_nm(), scaled.values())?;
         Ok(Box::new(Illuminant { label, spectrum: scaled }))
     })
 }

@@ -83,6 +83,26 @@ const BOLTZMANN_K: f64 = 1.380_649e-23;
 /// Highest temperature accepted by [`blackbody_spectrum`], K.
 const MAX_BLACKBODY_TEMPERATURE_K: f64 = 1e6;
 
+/// Largest accepted value of a light's spectrum (after any scaling). Lamp spectra
+/// with `normalize = false` carry physical units; the bound keeps radiance × BSDF ×
+/// sampling weights finite in the renderer's float32 with a wide margin.
+pub const MAX_LAMP_VALUE: f64 = 1e12;
+
+/// Check that a spectrum can light a scene: every value in `[0, MAX_LAMP_VALUE]`.
+/// `label` (a file or illuminant name) and the wavelength of the first bad value are
+/// named in the error. `fluo_illuminant` and `fluo patch` both validate through it.
+pub fn check_lamp(label: &str, wavelengths_nm: &[f64], values: &[f64]) -> Result<()> {
+    match values.iter().position(|v| !(*v >= 0.0 && *v <= MAX_LAMP_VALUE)) {
+        None => Ok(()),
+        Some(i) => Err(Error::data(format!(
+            "{label}: spectral value {} at {} nm: valid range is [0, {}] (no negative light)",
+            crate::num(values[i]),
+            crate::num(wavelengths_nm[i]),
+            crate::num(MAX_LAMP_VALUE)
+        ))),
+    }
+}
+
 /// A CIE standard illuminant by name (case-insensitive; see [`ILLUMINANT_NAMES`] and the
 /// module table for sources and domains). Unknown names give an error listing the valid
 /// ones.

@@ -46,7 +46,7 @@ mod csv;
 mod illuminant;
 
 pub use cmf::{cmf, Cmf, Observer};
-pub use illuminant::{blackbody, blackbody_spectrum, daylight, illuminant, ILLUMINANT_NAMES};
+pub use illuminant::{blackbody, blackbody_spectrum, check_lamp, daylight, illuminant, ILLUMINANT_NAMES, MAX_LAMP_VALUE};
 
 use crate::{Error, Result};
 
@@ -278,7 +278,7 @@ impl IrregularSpectrum {
     /// Read and parse a two-column CSV file; see [`IrregularSpectrum::from_csv_str`].
     pub fn from_csv_file(path: impl AsRef<std::path::Path>) -> Result<Self> {
         let path = path.as_ref();
-        let text = std::fs::read_to_string(path).map_err(|e| Error::Io(format!("{}: {e}", path.display())))?;
+        let text = crate::fileio::read_text(path, crate::fileio::MAX_SMALL_FILE_BYTES, "spectrum CSV")?;
         Self::from_csv_str(&text).map_err(|e| match e {
             Error::Data(msg) => Error::data(format!("{}: {msg}", path.display())),
             other => Error::data(format!("{}: {other}", path.display())),
