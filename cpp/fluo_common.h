@@ -40,6 +40,47 @@ inline double get_float(const char *plugin, const Properties &props, const char 
     }
 }
 
+/// A parameter update as a transaction: `apply()` copies the traversed values into
+/// `config` and `rebuild()` validates it in Rust and re-derives everything from it. If
+/// either throws, `config` is restored and rebuilt (which also resets the traversed
+/// values, so `mi.traverse` shows the old state) and the error propagates: a rejected
+/// update leaves the object exactly as it was, and later valid updates work.
+template <typename Config, typename Apply, typename Rebuild>
+void transactional_update(Config &config, Apply &&apply, Rebuild &&rebuild) {
+    const Config previous = config;
+    try {
+        apply();
+        rebuild();
+    } catch (...) {
+        config = previous;
+        rebuild();
+        throw;
+    }
+}
+
+/// Check that a reflectance-like texture stays within [lo, hi]: its mean and, where the
+/// texture reports one, its maximum (a constant, an <rgb>, a bitmap's largest texel).
+/// NaN, ±inf and out-of-range values are rejected naming the parameter, since Mitsuba
+/// itself accepts any float and a NaN reflectance renders an all-NaN image.
+template <typename Texture>
+void check_texture_range(const char *plugin, const char *name, const Texture *tex, double lo, double hi) {
+    if (!tex)
+        return;
+    auto check = [&](double v, const char *what) {
+        if (!(v >= lo && v <= hi))
+            Throw("%s: invalid parameter \"%s\" = %g (%s): valid range is [%g, %g]", plugin, name, v, what,
+                  lo, hi);
+    };
+    double mean = 0.0, max = 0.0;
+    bool has_mean = true, has_max = true;
+    try { mean = (double) dr::slice(tex->mean()); } catch (const std::exception &) { has_mean = false; }
+    try { max = (double) tex->max(); } catch (const std::exception &) { has_max = false; }
+    if (has_mean)
+        check(mean, "its mean");
+    if (has_max)
+        check(max, "its maximum");
+}
+
 /// Parse "a, b, c" (commas and/or spaces) into exactly N doubles.
 template <size_t N>
 std::array<double, N> parse_list(const char *plugin, const char *name, const std::string &text) {

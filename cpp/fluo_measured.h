@@ -45,7 +45,7 @@ public:
             fluo::Rgb c = fluo::measured_rgb_albedo(**m_model);
             m_rgb_albedo = Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
             fluo::Rgb e = fluo::measured_rgb_elastic(**m_model);
-            m_rgb_elastic = dr::maximum(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f);
+            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
         }
     }
 

@@ -92,10 +92,15 @@ What this plugin computes in each variant:
   ``fluo_path`` integrator; under Mitsuba's ``path`` the absorbed light is simply lost.
 - ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
   to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
-  sRGB[r (1 − c a) + c Q e ∫a], clipped at zero where a saturated emission falls outside
-  the sRGB gamut. With a textured ``reflectance`` the elastic part is approximated per
-  channel as texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r). Under ``fluo_path``
-  the RGB variant instead transports fluorescence with reduced reradiation matrices.
+  sRGB[r (1 − c a)] + k sRGB[c Q e ∫a], where negative channels (a saturated emission
+  outside the sRGB gamut) are clipped at zero and k ≤ 1 is the largest factor keeping
+  every channel ≤ 1: under equal-energy light a fluorescent green can out-reflect white
+  in the green channel, but an RGB integrator cannot take that energy from the other
+  channels, and a channel above 1 would gain energy in a closed furnace. With a
+  textured ``reflectance`` the elastic part is approximated per channel as
+  texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r), bounded the same way per hit;
+  a ``color`` bitmap serves each texel's bounded albedo. Under ``fluo_path`` the RGB
+  variant instead transports fluorescence with reduced reradiation matrices.
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
@@ -159,6 +164,7 @@ public:
             m_config.c2 = c[2];
         } else {
             m_reflectance = props.get_texture<Texture>("reflectance", .5f);
+            check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
         }
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
@@ -181,11 +187,12 @@ public:
         auto changed = [&](const char *name) {
             return keys.empty() || string::contains(keys, name);
         };
-        if (changed("emission_peak")) m_config.emission_peak = m_emission_peak;
-        if (changed("stokes_shift"))  m_config.stokes_shift  = m_stokes_shift;
-        if (changed("concentration")) m_config.concentration = m_concentration;
-        if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
-        rebuild();
+        fluo_detail::transactional_update(m_config, [&] {
+            if (changed("emission_peak")) m_config.emission_peak = m_emission_peak;
+            if (changed("stokes_shift"))  m_config.stokes_shift  = m_stokes_shift;
+            if (changed("concentration")) m_config.concentration = m_concentration;
+            if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
+        }, [&] { rebuild(); });
     }
 
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
@@ -278,14 +285,12 @@ private:
             auto to_color = [](const fluo::Rgb &c) {
                 return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
             };
-            Color3f albedo = to_color(fluo::jung_rgb_albedo(*m_model));
+            // Served albedo: elastic + reradiation, bounded to [0, 1] per channel
+            // (fluo::rgb_bounded_albedo; a channel above 1 gains energy in a furnace).
+            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
             m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
             m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
-            m_rgb_elastic_albedo = dr::maximum(albedo - m_rgb_fluorescence, 0.f);
-            // A saturated emission can lie outside the sRGB gamut (negative channels);
-            // an albedo cannot be negative, so the served values are clipped at zero.
-            m_rgb_albedo = dr::maximum(albedo, 0.f);
-            m_rgb_fluorescence = dr::maximum(m_rgb_fluorescence, 0.f);
+            m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(*m_model)), 0.f, 1.f);
         }
     }
 
@@ -390,7 +395,11 @@ private:
             UnpolarizedSpectrum r = m_reflectance->eval(si, active);
             if (!m_modifies_reflectance)
                 return r;
-            return r * m_rgb_elastic_scale + m_rgb_fluorescence;
+            Color3f e = r * m_rgb_elastic_scale;
+            fluo::Rgb b = fluo::rgb_bounded_albedo(fluo::Rgb{ e[0], e[1], e[2] },
+                                                   fluo::Rgb{ m_rgb_fluorescence[0], m_rgb_fluorescence[1],
+                                                              m_rgb_fluorescence[2] });
+            return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
         } else {
             std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
             if (!m_reflectance) {

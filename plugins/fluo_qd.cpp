@@ -200,12 +200,13 @@ public:
 
     void parameters_changed(const std::vector<std::string> &keys) override {
         auto changed = [&](const char *name) { return keys.empty() || string::contains(keys, name); };
-        if (changed("radius"))        m_config.radius = m_radius;
-        if (changed("width"))         m_config.width = m_width;
-        if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
-        if (changed("density"))       m_config.density = m_density;
-        if (changed("alpha"))         m_config.alpha = m_alpha;
-        rebuild();
+        fluo_detail::transactional_update(m_config, [&] {
+            if (changed("radius"))        m_config.radius = m_radius;
+            if (changed("width"))         m_config.width = m_width;
+            if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
+            if (changed("density"))       m_config.density = m_density;
+            if (changed("alpha"))         m_config.alpha = m_alpha;
+        }, [&] { rebuild(); });
     }
 
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,

@@ -191,6 +191,20 @@ fn lab_f(t: f64) -> f64 {
     }
 }
 
+/// The RGB albedo a fluorescent material serves to RGB integrators that do not
+/// transport fluorescence (Mitsuba's `path`): its elastic part (each channel clamped to
+/// [0, 1]) plus its reradiation under equal-energy light (negative channels, from an
+/// emission outside the gamut, clamped to 0) scaled by the largest `k` in [0, 1] that
+/// keeps every channel ≤ 1. A channel above 1 would gain energy in a closed furnace,
+/// which RGB transport cannot balance by the loss in the other channels; scaling the
+/// whole reradiation (rather than clipping channels) keeps the glow's hue.
+pub fn bounded_rgb_albedo(elastic: [f64; 3], reradiated: [f64; 3]) -> [f64; 3] {
+    let e = elastic.map(|v| if v > 0.0 { v.min(1.0) } else { 0.0 });
+    let f = reradiated.map(|v| if v > 0.0 { v } else { 0.0 });
+    let k = (0..3).filter(|&c| f[c] > 0.0).map(|c| (1.0 - e[c]) / f[c]).fold(1.0_f64, f64::min).max(0.0);
+    [0, 1, 2].map(|c| (e[c] + k * f[c]).min(1.0))
+}
+
 /// CIE 1976 L\*a\*b\* of `xyz` relative to the reference white `white_xyz` (same scale,
 /// e.g. both with Y = 1 or both with Y = 100).
 ///

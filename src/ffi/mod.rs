@@ -12,6 +12,7 @@ use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use crate::bispectral::{Bispectral, Model, PatchMaterial};
 use crate::jung::{JungFluorescence, JungParams, Reflectance};
+use crate::colour::bounded_rgb_albedo;
 use crate::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use crate::reduce::{Method, ReradiationOnly, Transport};
 use crate::sigmoid::SigmoidPolynomial;
@@ -130,8 +131,14 @@ mod bridge {
         fn jung_elastic_factor(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
         /// out[j] = r(λ_j)·(1 − c·a(λ_j)) for sigmoid reflectance (0 without coefficients).
         fn jung_elastic_albedo(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
-        /// RGB variant, sigmoid reflectance: sRGB of the spectrum reflected under E.
+        /// RGB variant, sigmoid reflectance: sRGB of the spectrum reflected under E,
+        /// bounded to [0, 1] per channel (`crate::colour::bounded_rgb_albedo`).
         fn jung_rgb_albedo(model: &JungModel) -> Rgb;
+        /// RGB variant: sRGB of the elastic part r(λ)(1 − c a(λ)) under E (unclamped).
+        fn jung_rgb_elastic(model: &JungModel) -> Rgb;
+        /// RGB variant: an elastic albedo plus a reradiated one, bounded to [0, 1] per
+        /// channel by scaling the reradiation (`crate::colour::bounded_rgb_albedo`).
+        fn rgb_bounded_albedo(elastic: Rgb, reradiated: Rgb) -> Rgb;
         /// RGB variant, texture reflectance: per-channel elastic scale sRGB(1 − c a)/sRGB(1).
         fn jung_rgb_elastic_scale(model: &JungModel) -> Rgb;
         /// RGB variant: sRGB of the reradiated spectrum under E, c Q e(λ) ∫ a.
@@ -151,7 +158,8 @@ mod bridge {
         fn measured_is_fluorescent(model: &MeasuredModel) -> bool;
         /// out[j] = ρ(λ_j), the diagonal (elastic albedo).
         fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]);
-        /// RGB variant: sRGB of ρ(λ) + ∫ P(λi, λ) dλi under equal-energy light (360–830 nm).
+        /// RGB variant: sRGB of ρ(λ) + ∫ P(λi, λ) dλi under equal-energy light (360–830 nm),
+        /// bounded to [0, 1] per channel (`crate::colour::bounded_rgb_albedo`).
         fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb;
         /// RGB variant: sRGB of the diagonal ρ(λ) alone (the elastic part).
         fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb;
@@ -572,12 +580,19 @@ fn jung_rgb_fluorescence(model: &JungModel) -> Rgb {
     rgb(spectrum_to_srgb(|l| w * model.fluorescence.emission(l)))
 }
 
-fn jung_rgb_albedo(model: &JungModel) -> Rgb {
-    let elastic = spectrum_to_srgb(|l| {
+fn jung_rgb_elastic(model: &JungModel) -> Rgb {
+    rgb(spectrum_to_srgb(|l| {
         model.reflectance.as_ref().map_or(0.0, |r| r.eval(l)) * model.fluorescence.elastic_factor(l)
-    });
-    let f = jung_rgb_fluorescence(model);
-    rgb([elastic[0] + f.r, elastic[1] + f.g, elastic[2] + f.b])
+    }))
+}
+
+fn jung_rgb_albedo(model: &JungModel) -> Rgb {
+    let (e, f) = (jung_rgb_elastic(model), jung_rgb_fluorescence(model));
+    rgb_bounded_albedo(e, f)
+}
+
+fn rgb_bounded_albedo(elastic: Rgb, reradiated: Rgb) -> Rgb {
+    rgb(bounded_rgb_albedo([elastic.r, elastic.g, elastic.b], [reradiated.r, reradiated.g, reradiated.b]))
 }
 
 fn jung_rgb_elastic_scale(model: &JungModel) -> Rgb {
@@ -645,7 +660,7 @@ fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f3
 fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb {
     const UP: [f64; 3] = [0.0, 0.0, 1.0];
     let shifted = |l: f64| model.generic.model.shift_albedo(UP, l, (CIE_MIN_NM, CIE_MAX_NM));
-    rgb(spectrum_to_srgb(|l| model.elastic_albedo(l) + shifted(l)))
+    rgb(bounded_rgb_albedo(spectrum_to_srgb(|l| model.elastic_albedo(l)), spectrum_to_srgb(shifted)))
 }
 
 fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {

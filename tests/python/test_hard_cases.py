@@ -1,0 +1,185 @@
+"""Hard cases and bad input through Mitsuba: each case asserts the exact outcome.
+
+Classes (the Rust side of the file loaders is in ``tests/bad_files.rs`` and
+``tests/fuzz_loaders.rs``):
+
+* files: hostile matrix, fit and lamp files reach Mitsuba as a ``RuntimeError``
+  naming the file and the value (never an abort or a hang), and ``fluo-rs`` exits
+  non-zero with one line;
+* parameters: invalid reflectances are refused; a rejected ``params.update()``
+  leaves the object exactly as before;
+* renders: under Mitsuba's own ``path`` in ``scalar_rgb`` no fluorescent BSDF serves
+  a channel above 1 (a closed furnace never gains energy) or below 0.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import fluo
+
+REPO = Path(__file__).resolve().parents[2]
+YELLOW = REPO / "data" / "matrices" / "jung_yellow.csv"
+ORANGE_FIT = REPO / "data" / "matrices" / "jung_orange.gmm.json"
+CARD = REPO / "scenes" / "textures" / "acescg_card.exr"
+
+
+def _bfc(grid_line: str, rc_line: str, rows: str) -> str:
+    head = "Labsphere\nBFC-450 Matrix File\n" + "; comment\n" * 8
+    return f"{head}{grid_line}\n{rc_line}\n{rows}EOD\n"
+
+
+# ------------------------------------------------------------------------------ files
+
+
+def test01_huge_bfc_header_is_a_python_error(tmp_path):
+    rc = "r:c: " + " ".join(str(300 + i) for i in range(100_000))
+    path = tmp_path / "huge.bfc"
+    path.write_text(_bfc("300 100299 1 100000 300 1", rc, "300 0.5\n"))
+    mi.set_variant("scalar_spectral")
+    with pytest.raises(RuntimeError) as err:
+        mi.load_dict({"type": "fluo_matrix", "filename": str(path)})
+    assert "huge.bfc" in str(err.value) and "cannot hold" in str(err.value)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device"])
+def test02_non_regular_files_are_refused_without_hanging(kind, tmp_path):
+    if kind == "fifo":
+        path = tmp_path / "pipe.bfc"
+        os.mkfifo(path)
+    else:
+        path = tmp_path / "zero.csv"
+        path.symlink_to("/dev/zero")
+    mi.set_variant("scalar_rgb")
+    with pytest.raises(RuntimeError, match="not a regular file"):
+        mi.load_dict({"type": "fluo_matrix", "filename": str(path)})
+    with pytest.raises(RuntimeError, match="not a regular file"):
+        mi.load_dict({"type": "fluo_illuminant", "filename": str(path), "normalize": False})
+
+
+def test03_absurd_values_are_refused_with_file_and_value(tmp_path):
+    mi.set_variant("scalar_spectral")
+    big = tmp_path / "big.bfc"
+    big.write_text(_bfc("400 500 100 2 400 100", "r:c: 400 500", "400 1e300 0\n500 0.1 0.6\n"))
+    with pytest.raises(RuntimeError, match=r"big\.bfc.*1e300"):
+        mi.load_dict({"type": "fluo_matrix", "filename": str(big)})
+    lamp = tmp_path / "lamp.csv"
+    lamp.write_text("300,1\n365,1e300\n400,1\n")
+    with pytest.raises(RuntimeError, match=r"lamp\.csv.*1e300.*365 nm"):
+        mi.load_dict({"type": "fluo_illuminant", "filename": str(lamp), "normalize": False})
+    fit = tmp_path / "big.gmm.json"
+    data = json.loads(ORANGE_FIT.read_text())
+    data["scale"] = 1e300
+    fit.write_text(json.dumps(data))
+    with pytest.raises(RuntimeError, match=r'"scale" = 1e300'):
+        mi.load_dict({"type": "fluo_gmm", "filename": str(fit)})
+
+
+def test04_fluo_rs_reports_bad_files_in_one_line(tmp_path):
+    big = tmp_path / "big.bfc"
+    rc = "r:c: " + " ".join(str(300 + i) for i in range(100_000))
+    big.write_text(_bfc("300 100299 1 100000 300 1", rc, "300 0.5\n"))
+    for args in (["patch", "--material", str(big), "--illuminant", "D65"],
+                 ["fit-gmm", str(big), "--components", "2", "-o", str(tmp_path / "x.gmm.json")]):
+        done = subprocess.run([str(fluo.tool_path()), *args], capture_output=True, text=True, timeout=60)
+        assert done.returncode != 0
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and "big.bfc" in lines[0], done.stderr
+
+
+# ------------------------------------------------------------------------- parameters
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e30, -0.5])
+def test05_invalid_reflectance_is_refused(variant, value):
+    mi.set_variant(variant)
+    with pytest.raises(RuntimeError, match=r'fluo_jung.*"reflectance"'):
+        mi.load_dict({"type": "fluo_jung", "reflectance": value})
+
+
+def _sphere_scene(bsdf: dict, integrator: str = "path") -> dict:
+    return {"type": "scene", "integrator": {"type": integrator, "max_depth": 2},
+            "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at(
+                origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                "film": {"type": "hdrfilm", "width": 8, "height": 8}},
+            "emitter": {"type": "constant"},
+            "shape": {"type": "sphere", "bsdf": bsdf}}
+
+
+@pytest.mark.parametrize("plugin, key, bad, good", [
+    ("fluo_jung", "quantum_yield", 5.0, 0.5),
+    ("fluo_jung", "emission_peak", -3.0, 600.0),
+    ("fluo_qd", "quantum_yield", 5.0, 0.5),
+    ("fluo_qd", "radius", -1.0, 3.0),
+])
+def test06_rejected_update_leaves_the_object_unchanged(plugin, key, bad, good):
+    mi.set_variant("scalar_spectral")
+    scene = mi.load_dict(_sphere_scene({"type": plugin, "id": "m"}, "fluo_path"))
+    params = mi.traverse(scene)
+    name = f"shape.bsdf.{key}" if f"shape.bsdf.{key}" in params else next(k for k in params.keys() if k.endswith(key))
+    before_value = float(params[name])
+    before = np.array(mi.render(scene, spp=4, seed=1))
+    params[name] = bad
+    with pytest.raises(RuntimeError, match=key):
+        params.update()
+    params = mi.traverse(scene)
+    assert float(params[name]) == pytest.approx(before_value)
+    assert np.array_equal(np.array(mi.render(scene, spp=4, seed=1)), before)
+    params[name] = good
+    params.update()
+    assert float(mi.traverse(scene)[name]) == pytest.approx(good)
+    assert not np.array_equal(np.array(mi.render(scene, spp=4, seed=1)), before)
+
+
+# ---------------------------------------------------------------------------- renders
+
+
+def _furnace(bsdf: dict, depth: int = 8) -> np.ndarray:
+    """Camera inside a closed emitting sphere: radiance = Σ_{k<depth} albedo^k per channel."""
+    scene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": depth},
+                          "sensor": {"type": "perspective",
+                                     "film": {"type": "hdrfilm", "width": 4, "height": 4}},
+                          "shape": {"type": "sphere", "flip_normals": True, "bsdf": bsdf,
+                                    "emitter": {"type": "area",
+                                                "radiance": {"type": "rgb", "value": [1, 1, 1]}}}})
+    return np.array(mi.render(scene, spp=4)).reshape(-1, 3).mean(0)
+
+
+@pytest.mark.parametrize("bsdf", [
+    {"type": "fluo_jung", "emission_peak": 450.0, "concentration": 1.0, "quantum_yield": 1.0, "reflectance": 1.0},
+    {"type": "fluo_jung", "emission_peak": 520.0, "concentration": 1.0, "quantum_yield": 1.0, "reflectance": 1.0},
+    {"type": "fluo_jung", "emission_peak": 600.0, "concentration": 1.0, "quantum_yield": 1.0, "reflectance": 1.0},
+    {"type": "fluo_jung", "emission_peak": 520.0, "concentration": 1.0, "quantum_yield": 1.0,
+     "reflectance": {"type": "checkerboard", "color0": 1.0, "color1": 0.9}},
+    {"type": "fluo_matrix", "filename": str(YELLOW)},
+    {"type": "fluo_gmm", "filename": str(ORANGE_FIT)},
+], ids=["jung450", "jung520", "jung600", "jung520-textured", "matrix", "gmm"])
+def test07_rgb_fallback_never_gains_energy_in_a_closed_furnace(bsdf):
+    # Before: 28.3 (blue, 450 nm), 19.7 (green, 520 nm), 47.2 (red, 600 nm) against 8.0.
+    mi.set_variant("scalar_rgb")
+    white = _furnace({"type": "diffuse", "reflectance": {"type": "rgb", "value": [1, 1, 1]}})
+    got = _furnace(bsdf)
+    assert np.all(got <= white + 1e-4), (got, white)
+    assert np.all(got >= 1.0 - 1e-6)  # at least the emission itself
+
+
+def test08_colour_bitmap_serves_albedos_in_0_1():
+    # The "albedo" AOV is the served albedo (eval_diffuse_reflectance) at each hit.
+    # Before: texels down to -0.47 and "Invalid sample value" warnings.
+    mi.set_variant("scalar_rgb")
+    bitmap = {"type": "bitmap", "filename": str(CARD), "raw": True, "filter_type": "nearest"}
+    scene = _sphere_scene({"type": "fluo_jung", "color": bitmap, "color_space": "acescg"})
+    scene["integrator"] = {"type": "aov", "aovs": "a:albedo"}
+    scene["sensor"]["film"]["rfilter"] = {"type": "box"}
+    img = np.array(mi.render(mi.load_dict(scene), spp=16))
+    assert img.max() > 0.5  # the sphere is seen
+    assert np.isfinite(img).all()
+    assert img.min() >= 0.0 and img.max() <= 1.0 + 1e-5, (img.min(), img.max())
