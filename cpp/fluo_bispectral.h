@@ -9,6 +9,9 @@
 // come from a texture.
 #pragma once
 
+#include <atomic>
+
+#include <mitsuba/core/logger.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/interaction.h>
 
@@ -16,12 +19,28 @@
 
 NAMESPACE_BEGIN(mitsuba)
 
+namespace fluo_detail {
+/// Armed when a fluorescent material is constructed (a scene is being loaded),
+/// disarmed by the first warning: one "needs fluo_path" warning per loaded scene.
+inline std::atomic<bool> &unmanaged_warning_armed() {
+    static std::atomic<bool> armed{ true };
+    return armed;
+}
+} // namespace fluo_detail
+
 template <typename Float, typename Spectrum> class BispectralBSDF {
 public:
     using SurfaceInteraction3f = SurfaceInteraction<Float, Spectrum>;
     using UnpolarizedSpectrum = unpolarized_spectrum_t<Spectrum>;
 
+    BispectralBSDF() { fluo_detail::unmanaged_warning_armed().store(true, std::memory_order_relaxed); }
     virtual ~BispectralBSDF() = default;
+
+    /// fluo_path marks the materials it transports (wrapped ones included) when it
+    /// prepares a render. A fluorescent material sampled by any other integrator
+    /// (Mitsuba's path, volpath, direct, ...) renders its elastic part only: it says so
+    /// once per loaded scene (warn_if_unmanaged, called from sample()).
+    void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
 
     /// The fluorescent model, or nullptr when this material never re-emits
     /// (e.g. concentration or quantum yield 0).
@@ -51,6 +70,23 @@ public:
 
     /// Whether fluorescence_at() depends on si.
     virtual bool fluorescence_varies() const { return false; }
+
+protected:
+    /// The once-per-scene warning of set_managed(); an atomic load when managed.
+    void warn_if_unmanaged(const char *plugin) const {
+        if (m_managed.load(std::memory_order_relaxed) || !fluorescence())
+            return;
+        if (fluo_detail::unmanaged_warning_armed().exchange(false, std::memory_order_relaxed)) {
+            constexpr const char *ClassName = "fluo";
+            Log(Warn, "%s: this material fluoresces, but the scene's integrator does not transport "
+                      "fluorescence: only its elastic (non-shifted) part is rendered (in scalar_rgb an "
+                      "equal-energy approximation). Use <integrator type=\"fluo_path\"/> to render "
+                      "fluorescence. (This warning is printed once per scene.)", plugin);
+        }
+    }
+
+private:
+    mutable std::atomic<bool> m_managed{ false };
 };
 
 /// A texture that knows its emission spectrum (fluo_illuminant), so that reduced

@@ -54,6 +54,7 @@ public:
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
                                              Mask active) const override {
+        this->warn_if_unmanaged(m_plugin);
         return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return albedo(si); });
     }
 

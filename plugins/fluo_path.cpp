@@ -106,8 +106,15 @@ Spatially varying fluorescence (``fluo_jung`` with a ``color`` texture) is looke
 per vertex through the bispectral interface's ``fluorescence_at(si)``: each vertex
 uses its own texel's model and intersects its excitation band with R.
 
-Fluorescent materials must be used directly (not inside ``twosided`` or ``blendbsdf``),
-since the integrator finds the bispectral interface on the BSDF a ray hits.
+Fluorescent materials may be wrapped in ``twosided`` and ``blendbsdf`` (nested too):
+at each vertex the integrator resolves the wrapper to the child that acts there —
+``twosided``: the front or back child, with the local frame mirrored for the back side
+exactly as ``twosided`` does; ``blendbsdf``: child 1 with probability w(si), else child
+0 (unbiased selection; the render equals the wrapper's within noise) — and treats that
+child as an unwrapped material. Any other BSDF around a fluorescent one (``mask``,
+``bumpmap``, ``normalmap``, ...) is refused with an error at render start rather than
+rendered without its fluorescence. Mitsuba's own integrators (``path``, ...) render
+only the elastic part of fluorescent materials, and say so once per scene.
 
 .. tabs::
     .. code-tab:: xml
@@ -193,6 +200,8 @@ public:
             }
 
             BSDFPtr bsdf = si.bsdf(ray);
+            if (!m_wrappers.empty())
+                bsdf = resolve(bsdf, si, sampler);
 
             // ---------------------- Fluorescence ----------------------
             // Choose, per hero wavelength, the elastic event or a shift λo -> λi.
@@ -338,6 +347,122 @@ private:
         return dr::fmadd(a, b, c);
     }
 
+    /// Collects every object reachable from a root (each once).
+    struct Collector : TraversalCallback {
+        std::vector<Object *> objects;
+        std::unordered_set<Object *> seen;
+        void visit(Object *o) {
+            if (!o || !seen.insert(o).second)
+                return;
+            objects.push_back(o);
+            o->traverse(this);
+        }
+        void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+        void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
+    };
+
+    /// A supported BSDF wrapper around fluorescent materials (see the doc comment).
+    struct Wrapper {
+        const BSDF *bsdf;
+        bool twosided;               // else blendbsdf
+        const BSDF *child[2]{};      // front/back, or bsdf_0/bsdf_1
+        const Texture *weight = nullptr;
+    };
+
+    /// Direct children of an object as (name, object), in traverse order.
+    struct Children : TraversalCallback {
+        std::vector<std::pair<std::string, Object *>> list;
+        void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+        void put_object(std::string_view name, Object *o, uint32_t) override {
+            if (o)
+                list.emplace_back(std::string(name), o);
+        }
+    };
+
+    /// Whether `o` is, or has below it, a material that fluoresces.
+    static bool holds_fluorescence(Object *o, std::unordered_set<Object *> &seen) {
+        if (!o || !seen.insert(o).second)
+            return false;
+        if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o); b && b->fluorescence())
+            return true;
+        Children c;
+        o->traverse(&c);
+        for (auto &[name, child] : c.list)
+            if (holds_fluorescence(child, seen))
+                return true;
+        return false;
+    }
+
+    /// Mark every bispectral material as transported by fluo_path, and record the
+    /// wrappers around fluorescent ones; refuse wrappers it cannot see through.
+    void scan_wrappers(const Collector &c) {
+        m_wrappers.clear();
+        for (Object *o : c.objects) {
+            if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
+                b->set_managed(true);
+            auto *bsdf = dynamic_cast<BSDF *>(o);
+            if (!bsdf || dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
+                continue;
+            Children kids;
+            o->traverse(&kids);
+            bool wraps = false;
+            for (auto &[name, child] : kids.list) {
+                std::unordered_set<Object *> seen;
+                wraps |= dynamic_cast<BSDF *>(child) && holds_fluorescence(child, seen);
+            }
+            if (!wraps)
+                continue;
+            std::string_view cls = o->class_name();
+            Wrapper w{ bsdf, cls == "TwoSidedBRDF" };
+            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF")
+                Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which fluo_path cannot "
+                      "see through (its fluorescence would be lost). Supported wrappers: twosided, "
+                      "blendbsdf; use the fluorescent material directly or inside one of those.",
+                      Plugin, std::string(cls));
+            for (auto &[name, child] : kids.list) {
+                auto *cb = dynamic_cast<BSDF *>(child);
+                if (cb && (name == "brdf_0" || name == "bsdf_0"))
+                    w.child[0] = cb;
+                else if (cb && (name == "brdf_1" || name == "bsdf_1"))
+                    w.child[1] = cb;
+                else if (name == "weight")
+                    w.weight = dynamic_cast<Texture *>(child);
+            }
+            if (w.twosided && !w.child[1])
+                w.child[1] = w.child[0]; // one child: used on both sides
+            if (!w.child[0] || !w.child[1] || (!w.twosided && !w.weight))
+                Throw("%s: cannot read the children of the \"%s\" BSDF around a fluorescent material",
+                      Plugin, std::string(cls));
+            m_wrappers.push_back(w);
+        }
+    }
+
+    /// The BSDF that acts at si: wrappers (twosided, blendbsdf; nested) resolved to
+    /// the child acting at this hit. For a twosided back side the local frame is
+    /// mirrored (n -> -n), as twosided mirrors wi and wo.
+    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler) const {
+        for (size_t guard = 0; guard < 64; ++guard) {
+            const Wrapper *w = nullptr;
+            for (const Wrapper &x : m_wrappers)
+                if (x.bsdf == bsdf)
+                    w = &x;
+            if (!w)
+                return bsdf;
+            if (w->twosided) {
+                bool back = Frame3f::cos_theta(si.wi) < 0.f;
+                if (back) {
+                    si.sh_frame.n = -si.sh_frame.n;
+                    si.wi.z() = -si.wi.z();
+                }
+                bsdf = w->child[back ? 1 : 0];
+            } else {
+                Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
+                bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
+            }
+        }
+        return bsdf;
+    }
+
     const Entry *find(const BSDF *bsdf) const {
         for (const Entry &e : m_entries)
             if (e.bsdf == bsdf)
@@ -413,23 +538,10 @@ private:
         }
     }
 
-    /// Collects every object reachable from a root (each once).
-    struct Collector : TraversalCallback {
-        std::vector<Object *> objects;
-        std::unordered_set<Object *> seen;
-        void visit(Object *o) {
-            if (!o || !seen.insert(o).second)
-                return;
-            objects.push_back(o);
-            o->traverse(this);
-        }
-        void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
-        void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
-    };
-
     /// Scan the scene once per render: fluorescent BSDFs and emitter spectral ranges.
     void prepare(Scene *scene) {
         m_entries.clear();
+        m_wrappers.clear();
         m_active = false;
         if constexpr (is_rgb_v<Spectrum>) {
             prepare_reduced(scene);
@@ -461,6 +573,7 @@ private:
             Collector c;
             for (const auto &shape : scene->shapes())
                 c.visit(const_cast<Shape *>(shape.get()));
+            scan_wrappers(c);
             std::vector<Entry> candidates;
             for (Object *o : c.objects) {
                 auto *bsdf = dynamic_cast<BSDF *>(o);
@@ -608,6 +721,8 @@ private:
                 }
 
                 BSDFPtr bsdf = si.bsdf(ray);
+                if (!m_wrappers.empty())
+                    bsdf = resolve(bsdf, si, sampler);
                 const Entry *fl = find(bsdf);
 
                 // ---------------------- Emitter sampling ----------------------
@@ -683,6 +798,7 @@ private:
         Collector c;
         for (const auto &shape : scene->shapes())
             c.visit(const_cast<Shape *>(shape.get()));
+        scan_wrappers(c);
         for (Object *o : c.objects) {
             auto *bsdf = dynamic_cast<BSDF *>(o);
             auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
@@ -721,6 +837,7 @@ private:
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
     std::vector<EmitterSource> m_sources;
     std::vector<Entry> m_entries;
+    std::vector<Wrapper> m_wrappers;
     fluo::Range m_range{ 0, 0 };
     bool m_active = false;
 };

@@ -212,6 +212,7 @@ public:
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
                                              Mask active) const override {
+        this->warn_if_unmanaged(Plugin);
         BSDFSample3f bs = dr::zeros<BSDFSample3f>();
         Float cos_theta_i = Frame3f::cos_theta(si.wi);
         active &= cos_theta_i > 0.f;
