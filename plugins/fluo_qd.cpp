@@ -171,7 +171,14 @@ public:
             m_eta = constant_texture(int_ior / m_config.ext_ior);
             m_k = constant_texture(0.0);
         } else if (has_material) {
-            std::tie(m_eta, m_k) = conductor_textures(props.get<std::string_view>("material"));
+            std::string material(props.get<std::string_view>("material"));
+            try {
+                std::tie(m_eta, m_k) = conductor_textures(material);
+            } catch (const std::exception &e) {
+                Throw("%s: invalid parameter \"material\" = \"%s\": no conductor data for it (Mitsuba's "
+                      "data/ior/%s.eta.spd and .k.spd; give \"eta\"/\"k\" spectra instead): %s",
+                      Plugin, material, material, e.what());
+            }
         } else {
             m_eta = props.get_unbounded_texture<Texture>("eta", 0.f);
             m_k   = props.get_unbounded_texture<Texture>("k", 1.f);

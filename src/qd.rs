@@ -155,6 +155,12 @@ pub const RADIUS_RANGE_NM: (f64, f64) = (1.0, 5.0);
 pub const WIDTH_RANGE_NM: (f64, f64) = (0.01, 100.0);
 /// Valid range of the integration limits λmin, λmax, nm.
 pub const LAMBDA_RANGE_NM: (f64, f64) = (200.0, 1200.0);
+/// Band edges λQD the constants may give, nm: wide around the visible (CdSe dots of
+/// 1–5 nm sit at 400–690 nm), so that only absurd constants are refused.
+pub const BAND_RANGE_NM: (f64, f64) = (100.0, 5000.0);
+/// Largest Stokes shift the constants may give, nm: far above the largest of the valid
+/// parameter box with the paper's constants (8.1e3 nm at radius 1 nm, width 100 nm).
+pub const MAX_STOKES_SHIFT_NM: f64 = 1e6;
 
 // ------------------------------------------------------------------ complex numbers
 
@@ -285,6 +291,22 @@ impl QdConstants {
         ]
     }
 
+    /// `name = value` of those of `involved` that differ from the defaults (the ones
+    /// the user set), or of all of `involved` when none does: what an error blames.
+    fn blame(&self, involved: &[&str]) -> String {
+        let defaults = Self::default().named();
+        let pick = |changed_only: bool| -> Vec<String> {
+            self.named()
+                .iter()
+                .zip(defaults.iter())
+                .filter(|((n, v), (_, d))| involved.contains(n) && (!changed_only || v != d))
+                .map(|((n, v), _)| format!("\"{n}\" = {}", crate::num(*v)))
+                .collect()
+        };
+        let changed = pick(true);
+        if changed.is_empty() { pick(false) } else { changed }.join(", ")
+    }
+
     /// Every constant must be finite and positive.
     pub fn validate(&self) -> Result<()> {
         for (name, v) in self.named() {
@@ -343,10 +365,35 @@ impl QdBand {
         }
         let hc = constants.planck * constants.light_speed;
         let lambda_qd_nm = hc / e * 1e9;
+        if !(lambda_qd_nm >= BAND_RANGE_NM.0 && lambda_qd_nm <= BAND_RANGE_NM.1) {
+            return Err(Error::data(format!(
+                "invalid constants {}: the band edge λQD = h c / E_abs = {} nm at radius {} nm; valid range is [{}, {}] nm",
+                constants.blame(&[
+                    "planck",
+                    "light_speed",
+                    "gap_energy",
+                    "elementary_charge",
+                    "electron_mass",
+                    "hole_mass",
+                    "vacuum_permittivity",
+                    "relative_permittivity"
+                ]),
+                crate::num(lambda_qd_nm),
+                crate::num(radius_nm),
+                BAND_RANGE_NM.0,
+                BAND_RANGE_NM.1
+            )));
+        }
         let thermal_nm = hc / (constants.boltzmann * constants.temperature) * 1e9;
         let stokes_shift_nm = thermal_nm * width_nm * width_nm / (lambda_qd_nm * lambda_qd_nm);
-        if !(lambda_qd_nm.is_finite() && stokes_shift_nm.is_finite()) {
-            return Err(Error::param("temperature", constants.temperature, "a value giving a finite Stokes shift"));
+        if !(stokes_shift_nm <= MAX_STOKES_SHIFT_NM) {
+            return Err(Error::data(format!(
+                "invalid constants {}: Stokes shift h c w² / (k T λQD²) = {} nm at λQD = {} nm; valid is at most {} nm",
+                constants.blame(&["boltzmann", "temperature", "planck", "light_speed"]),
+                crate::num(stokes_shift_nm),
+                crate::num(lambda_qd_nm),
+                crate::num(MAX_STOKES_SHIFT_NM)
+            )));
         }
         Ok(Self {
             radius_nm,

@@ -86,7 +86,10 @@ def run_tool(args: list[str]) -> dict:
     if not tool.is_file():
         raise FileNotFoundError(f"fluo-rs not found at {tool}; {_SETUP_HINT}")
     cmd = [str(tool), *map(str, args), "--json"]
-    proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    try:
+        proc = subprocess.run(cmd, capture_output=True, text=True, check=False)
+    except OSError as err:  # not executable, not a program
+        raise RuntimeError(f"cannot run fluo-rs at {tool}: {err.strerror or err}") from err
     if proc.returncode != 0:
         raise RuntimeError(
             f"{' '.join(cmd)} exited with status {proc.returncode}:\n{proc.stderr.strip()}"

@@ -28,6 +28,7 @@ default names does not exist, and says so.
 from __future__ import annotations
 
 import argparse
+import os
 import re
 import subprocess
 import sys
@@ -77,7 +78,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="samples per pixel")
     render.add_argument("-o", "--output", type=Path, required=True, metavar="PATH",
                         help="output image; EXR if it ends in .exr (a PNG is written beside it)")
-    render.add_argument("--seed", type=int, default=0, metavar="S",
+    render.add_argument("--seed", type=_seed, default=0, metavar="S",
                         help="sampler seed (default: 0)")
     render.add_argument("--param", action="append", default=[], type=_parse_param,
                         metavar="KEY=VALUE",
@@ -127,6 +128,10 @@ def _parser() -> argparse.ArgumentParser:
 def _cmd_bench(args: argparse.Namespace) -> int:
     from . import bench
 
+    problem = check_output_path(args.out, directory=True)
+    if problem:
+        print(f"fluo bench: error: {problem}", file=sys.stderr)
+        return 1
     _log_to_stderr(mi.LogLevel.Warn) if hasattr(mi, "LogLevel") else None
     result = bench.run(quick=args.quick, out=args.out, target_de=args.target,
                        log=lambda m: print(m, file=sys.stderr, flush=True))
@@ -137,10 +142,57 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 
 def _positive_int(text: str) -> int:
-    value = int(text)
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be a positive integer, got {text}")
     return value
+
+
+#: Largest sampler seed Mitsuba takes (an unsigned 32-bit integer).
+MAX_SEED = 2**32 - 1
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number in [0, {MAX_SEED}], got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"must be a whole number in [0, {MAX_SEED}], got {text}")
+    return value
+
+
+#: Image formats ``render`` writes (EXR through the film, the others as 8-bit sRGB).
+OUTPUT_SUFFIXES = (".exr",) + _LDR_SUFFIXES
+
+
+def check_output_path(path: Path, *, directory: bool = False) -> str | None:
+    """Why ``path`` cannot be written (checked before rendering), or ``None``.
+
+    ``directory``: ``path`` is an output directory (created if missing)."""
+    if directory:
+        target = path
+        if target.exists() and not target.is_dir():
+            return f"output directory {path} exists and is not a directory"
+    else:
+        if path.is_dir():
+            return f"output path {path} is a directory"
+        if path.suffix.lower() not in OUTPUT_SUFFIXES:
+            return f"output path {path}: unsupported extension {path.suffix!r} (use one of {', '.join(OUTPUT_SUFFIXES)})"
+        target = path.parent
+    existing = target
+    while not existing.exists():
+        if existing.parent == existing:
+            break
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"cannot create {target}: {existing} is not a directory"
+    if not os.access(existing, os.W_OK | os.X_OK):
+        return f"cannot write to {target}: {existing} is not writable"
+    return None
 
 
 def _parse_param(text: str) -> tuple[str, int | float | str]:
@@ -237,6 +289,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
     if not args.scene.is_file():
         print(f"fluo render: error: no scene file {args.scene}", file=sys.stderr)
         return 1
+    problem = check_output_path(args.output)
+    if problem:
+        print(f"fluo render: error: {problem}", file=sys.stderr)
+        return 1
     try:
         paths = render_to_files(args.scene, args.variant, args.spp, args.output,
                                 seed=args.seed, params=dict(args.param))
@@ -284,6 +340,10 @@ def scene_fallback_params(scene: Path, force: bool = False) -> dict[str, str]:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     args.out = args.out.resolve()
+    problem = check_output_path(args.out, directory=True)
+    if problem:
+        print(f"fluo demo: error: {problem}", file=sys.stderr)
+        return 1
     scenes = sorted(args.scenes.glob("*.xml"))
     if not scenes:
         print(f"fluo demo: no scenes in {args.scenes}", file=sys.stderr)
@@ -337,6 +397,9 @@ def _forward(argv: list[str]) -> int:
         return subprocess.run([str(tool), *argv], check=False).returncode
     except KeyboardInterrupt:
         return 130
+    except OSError as err:  # not executable, not a program, ...
+        print(f"fluo: error: cannot run fluo-rs at {tool} ({err.strerror or err})", file=sys.stderr)
+        return 126
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -349,7 +412,13 @@ def main(argv: list[str] | None = None) -> int:
         _print_help(parser)
         return 0 if argv else 2
     args = parser.parse_args(argv)
-    return args.run(args)
+    try:
+        return args.run(args)
+    except KeyboardInterrupt:
+        return 130
+    except (OSError, RuntimeError) as err:  # I/O and Mitsuba errors: one line, no traceback
+        print(f"fluo {args.command}: error: {err}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -118,26 +118,172 @@ struct Args {
     positional: Vec<String>,
 }
 
-fn parse_args(args: &[String]) -> Result<Args, String> {
-    let mut values = BTreeMap::new();
-    let mut json = false;
-    let mut multi = Vec::new();
-    let mut positional = Vec::new();
-    let mut it = args.iter();
-    while let Some(a) = it.next() {
-        if a == "--json" {
-            json = true;
-        } else if let Some(key) = a.strip_prefix("--").or(if a == "-o" { Some("output") } else { None }) {
-            let v = it.next().ok_or_else(|| format!("option --{key} needs a value"))?;
-            if key == "cube" {
-                multi.push(v.clone());
+/// What an option takes; clap validates it before any subcommand runs.
+#[derive(Clone, Copy)]
+enum Kind {
+    /// A finite number.
+    Num,
+    /// A whole number in [1, MAX_COUNT].
+    Count,
+    /// Text (a name, a file, a list), checked by the subcommand.
+    Text,
+}
+
+/// Largest value of a whole-number option (`--threads`, `--res`, `--components`, ...):
+/// each subcommand applies its own, smaller, range on top.
+const MAX_COUNT: u64 = 1 << 20;
+
+const QD_CONSTANTS: [&str; 10] = [
+    "gap-energy",
+    "elementary-charge",
+    "planck",
+    "light-speed",
+    "boltzmann",
+    "electron-mass",
+    "hole-mass",
+    "vacuum-permittivity",
+    "relative-permittivity",
+    "temperature",
+];
+
+/// Every subcommand: name, summary, options (long name, kind), and the name of its
+/// positional file arguments (none: positionals are refused).
+fn subcommands() -> Vec<(&'static str, &'static str, Vec<(&'static str, Kind)>, Option<&'static str>)> {
+    use Kind::*;
+    let jung = vec![("emission-peak", Num), ("stokes-shift", Num), ("concentration", Num), ("quantum-yield", Num)];
+    let mut qd = vec![("radius", Num), ("width", Num)];
+    qd.extend(QD_CONSTANTS.iter().map(|k| (*k, Num)));
+    let mut export = jung.clone();
+    export.extend([("reflectance", Num), ("output", Text)]);
+    vec![
+        ("jung", "Derived quantities of a fluo_jung material", jung, None),
+        ("qd", "Quantum-dot band of a fluo_qd coating (Brus equation, Stokes shift)", qd, None),
+        (
+            "patch",
+            "XYZ of a flat patch under a light, by direct single-bounce integration",
+            vec![("material", Text), ("illuminant", Text), ("method", Text), ("cmf", Text)],
+            None,
+        ),
+        ("memory", "Bytes a material occupies at render time", vec![("material", Text)], None),
+        ("diagonal", "The elastic reflectance (diagonal) of a matrix file", vec![("material", Text)], None),
+        ("reduce-report", "Fichet et al.'s Table 1 on measured matrices", vec![], Some("FILES")),
+        (
+            "reduce",
+            "The K x K reduced reradiation matrix of a material",
+            vec![("material", Text), ("matrix", Text), ("basis", Text), ("method", Text), ("cmf", Text)],
+            None,
+        ),
+        (
+            "upsample-cube",
+            "Generate an RGB -> (reflectance + fluorescence) coefficient cube",
+            vec![
+                ("space", Text),
+                ("res", Count),
+                ("threshold", Text),
+                ("illuminant", Text),
+                ("rounds", Count),
+                ("threads", Count),
+                ("output", Text),
+            ],
+            None,
+        ),
+        (
+            "upsample-lookup",
+            "Coefficients of one colour and the colour they reproduce",
+            vec![("rgb", Text), ("cube", Text), ("space", Text), ("lookup", Text), ("fluorescence", Text)],
+            None,
+        ),
+        ("upsample-report", "HSV test card through coefficient cubes", vec![("cube", Text), ("card", Count)], None),
+        (
+            "fit-gmm",
+            "Fit a Gaussian mixture to a measured reradiation matrix (Hua et al. 2022)",
+            vec![
+                ("components", Count),
+                ("scaling", Text),
+                ("seed", Text),
+                ("restarts", Count),
+                ("max-iterations", Count),
+                ("output", Text),
+            ],
+            Some("MATRIX"),
+        ),
+        ("gmm-report", "ΔE2000 of fits against their tabulated matrices", vec![("components", Text)], Some("FILES")),
+        ("export-matrix", "Write a fluo_jung material as a reradiation matrix CSV", export, None),
+    ]
+}
+
+/// The clap command line: every subcommand with exactly its options, `--json`,
+/// `--help` and `--version`; unknown options, missing values and malformed numbers
+/// are usage errors (exit status 2) before anything runs.
+fn command() -> clap::Command {
+    use clap::{value_parser, Arg, ArgAction, Command};
+    let mut root = Command::new("fluo-rs")
+        .version(env!("CARGO_PKG_VERSION"))
+        .about("Physics subcommands of the fluo command line")
+        .after_long_help(HELP)
+        .subcommand_required(true)
+        .arg_required_else_help(true);
+    for (name, about, options, positional) in subcommands() {
+        let mut sub = Command::new(name)
+            .about(about)
+            .args_override_self(true)
+            .arg(Arg::new("json").long("json").action(ArgAction::SetTrue).help("print one JSON object on stdout"));
+        for (long, kind) in options {
+            let value_name: &'static str = Box::leak(long.to_uppercase().into_boxed_str());
+            let mut arg = Arg::new(long).long(long).value_name(value_name);
+            if long == "output" {
+                arg = arg.short('o');
             }
-            values.insert(key.to_string(), v.clone());
-        } else {
-            positional.push(a.clone());
+            arg = match kind {
+                Kind::Num => arg.value_parser(|s: &str| -> Result<f64, String> {
+                    match s.trim().parse::<f64>() {
+                        Ok(v) if v.is_finite() => Ok(v),
+                        _ => Err(format!("\"{}\" is not a finite number", fluo::shown(&s))),
+                    }
+                }),
+                Kind::Count => arg.value_parser(value_parser!(u64).range(1..=MAX_COUNT)),
+                Kind::Text => arg,
+            };
+            if long == "cube" {
+                arg = arg.action(ArgAction::Append);
+            }
+            sub = sub.arg(arg);
+        }
+        if let Some(p) = positional {
+            sub = sub.arg(Arg::new("positional").value_name(p).num_args(0..).action(ArgAction::Append));
+        }
+        root = root.subcommand(sub);
+    }
+    root
+}
+
+/// Parse the command line (clap exits with usage on errors, `--help`, `--version`).
+fn parse_args(argv: &[String]) -> (String, Args) {
+    let matches = command().get_matches_from(std::iter::once("fluo-rs".to_string()).chain(argv.iter().cloned()));
+    let (name, sub) = matches.subcommand().expect("subcommand_required");
+    let mut values = BTreeMap::new();
+    let mut multi = Vec::new();
+    for id in sub.ids() {
+        let key = id.as_str();
+        if key == "json" || key == "positional" {
+            continue;
+        }
+        if let Ok(Some(v)) = sub.try_get_one::<f64>(key) {
+            values.insert(key.to_string(), v.to_string());
+        } else if let Ok(Some(v)) = sub.try_get_one::<u64>(key) {
+            values.insert(key.to_string(), v.to_string());
+        } else if let Ok(Some(all)) = sub.try_get_many::<String>(key) {
+            let all: Vec<String> = all.cloned().collect();
+            if key == "cube" {
+                multi.extend(all.iter().cloned());
+            }
+            if let Some(last) = all.last() {
+                values.insert(key.to_string(), last.clone());
+            }
         }
     }
-    Ok(Args { values, multi, json, positional })
+    let positional = sub.get_many::<String>("positional").map(|v| v.cloned().collect()).unwrap_or_default();
+    (name.to_string(), Args { values, multi, json: sub.get_flag("json"), positional })
 }
 
 impl Args {
@@ -627,18 +773,7 @@ fn cmd_export_matrix(args: &Args) -> Result<Value, String> {
 }
 
 fn run(argv: &[String]) -> Result<(), String> {
-    let Some(cmd) = argv.first() else {
-        print!("{HELP}");
-        return Ok(());
-    };
-    if cmd == "--help" || cmd == "-h" || cmd == "help" {
-        print!("{HELP}");
-        return Ok(());
-    }
-    let args = parse_args(&argv[1..])?;
-    if let (false, Some(a)) = (matches!(cmd.as_str(), "fit-gmm" | "gmm-report"), args.positional.first()) {
-        return Err(format!("unexpected argument \"{a}\""));
-    }
+    let (cmd, args) = parse_args(argv);
     let out = match cmd.as_str() {
         "fit-gmm" => cmd_fit_gmm(&args)?,
         "gmm-report" => cmd_gmm_report(&args)?,
@@ -664,6 +799,10 @@ fn run(argv: &[String]) -> Result<(), String> {
 }
 
 fn main() -> ExitCode {
+    // A panic is a bug; still, the user gets one line, not a backtrace.
+    std::panic::set_hook(Box::new(|info| {
+        eprintln!("fluo-rs: internal error: {info} (please report this)");
+    }));
     let argv: Vec<String> = std::env::args().skip(1).collect();
     match run(&argv) {
         Ok(()) => ExitCode::SUCCESS,

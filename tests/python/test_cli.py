@@ -164,3 +164,54 @@ def test10_plugins_registered_in_any_import_order(variant_first):
     """)
     proc = run([sys.executable, "-c", script])
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stdout + proc.stderr
+
+
+# ------------------------------------------------------------- user errors: one line
+
+
+def _one_line_error(proc, code=None):
+    assert proc.returncode != 0 if code is None else proc.returncode == code, proc
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [l for l in proc.stderr.strip().splitlines() if "error" in l]
+    assert len(lines) >= 1, proc.stderr
+    return proc.stderr
+
+
+@pytest.mark.parametrize("output, needle", [
+    ("not_a_dir.txt/out.exr", "is not a directory"),
+    (".", "is a directory"),
+    ("out.tiff", "unsupported extension"),
+])
+def test_render_checks_the_output_path_before_rendering(fluo_cli, tmp_path, scene_xml, output, needle):
+    (tmp_path / "not_a_dir.txt").write_text("x")
+    scene = scene_xml(tmp_path, '<bsdf type="diffuse"/>')
+    proc = subprocess.run([str(fluo_cli), "render", str(scene), "--variant", "scalar_rgb", "--spp", "1",
+                           "-o", str(tmp_path / output)], capture_output=True, text=True, timeout=120)
+    err = _one_line_error(proc, 1)
+    assert needle in err and "fluo render: error:" in err, err
+
+
+@pytest.mark.parametrize("seed", ["-1", "abc", str(2**32), "1.5"])
+def test_render_rejects_bad_seeds(fluo_cli, tmp_path, scene_xml, seed):
+    scene = scene_xml(tmp_path, '<bsdf type="diffuse"/>')
+    proc = subprocess.run([str(fluo_cli), "render", str(scene), "--variant", "scalar_rgb", "--spp", "1",
+                           "-o", str(tmp_path / "x.exr"), "--seed", seed], capture_output=True, text=True, timeout=120)
+    err = _one_line_error(proc, 2)
+    assert "--seed" in err, err
+
+
+def test_bench_rejects_an_unusable_output_directory(fluo_cli, tmp_path):
+    (tmp_path / "file").write_text("x")
+    proc = subprocess.run([str(fluo_cli), "bench", "--quick", "--out", str(tmp_path / "file")],
+                          capture_output=True, text=True, timeout=120)
+    assert "not a directory" in _one_line_error(proc, 1)
+
+
+def test_a_non_executable_tool_is_a_one_line_error(fluo_cli, tmp_path):
+    fake = tmp_path / "fluo-rs"
+    fake.write_text("not a program\n")
+    fake.chmod(0o644)
+    env = {**os.environ, "FLUO_TOOL": str(fake)}
+    proc = subprocess.run([str(fluo_cli), "patch", "--material", "{}", "--illuminant", "D65"],
+                          capture_output=True, text=True, env=env, timeout=120)
+    assert "cannot run fluo-rs" in _one_line_error(proc, 126)

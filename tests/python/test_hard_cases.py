@@ -183,3 +183,26 @@ def test08_colour_bitmap_serves_albedos_in_0_1():
     assert img.max() > 0.5  # the sphere is seen
     assert np.isfinite(img).all()
     assert img.min() >= 0.0 and img.max() <= 1.0 + 1e-5, (img.min(), img.max())
+
+
+@pytest.mark.parametrize("key, value, named", [
+    ("planck", 1e-300, '"planck" = 1e-300'),
+    ("light_speed", 1e300, '"light_speed" = 1e300'),
+    ("boltzmann", 1e-300, '"boltzmann" = 1e-300'),
+    ("temperature", 1e-300, '"temperature" = 1e-300'),
+])
+def test09_qd_constant_errors_name_the_constant_set(key, value, named):
+    # Before: planck = 1e-300 blamed "temperature" and printed 300 digits.
+    mi.set_variant("scalar_spectral")
+    with pytest.raises(RuntimeError) as err:
+        mi.load_dict({"type": "fluo_qd", key: value})
+    text = str(err.value)
+    assert named in text and len(text) < 600, text
+    others = {"planck", "light_speed", "boltzmann", "temperature"} - {key}
+    assert not any(f'"{o}" =' in text for o in others), text
+
+
+def test10_qd_unknown_material_names_the_parameter():
+    mi.set_variant("scalar_rgb")
+    with pytest.raises(RuntimeError, match=r'fluo_qd: invalid parameter "material" = "Unobtainium"'):
+        mi.load_dict({"type": "fluo_qd", "material": "Unobtainium"})

@@ -1,0 +1,70 @@
+//! The `fluo-rs` command line: a real argument parser (clap) rejects what it does not
+//! know, validates numbers before any work starts, and reports errors in one line.
+
+use std::process::Command;
+
+fn run(args: &[&str]) -> (i32, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_fluo-rs")).args(args).output().expect("run fluo-rs");
+    (
+        out.status.code().unwrap_or(-1),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn misspelt_and_unknown_flags_are_usage_errors() {
+    // Before: exit 0 with the default emission peak (520 nm).
+    let (code, stdout, stderr) = run(&["jung", "--emision-peak", "700", "--json"]);
+    assert_eq!(code, 2, "{stdout}{stderr}");
+    assert!(stderr.contains("--emision-peak") && stderr.contains("Usage"), "{stderr}");
+    assert!(stderr.contains("--emission-peak"), "suggests the right flag: {stderr}");
+    let (code, _, stderr) = run(&["patch", "--material", "{}", "--frobnicate", "1"]);
+    assert_eq!(code, 2, "{stderr}");
+    let (code, _, stderr) = run(&["jung", "stray-positional"]);
+    assert_eq!(code, 2, "{stderr}");
+    let (code, _, stderr) = run(&["no-such-subcommand"]);
+    assert_eq!(code, 2, "{stderr}");
+}
+
+#[test]
+fn numbers_are_validated_before_running() {
+    // Before: `--threads 1e30` panicked.
+    for (args, flag) in [
+        (vec!["upsample-cube", "--space", "srgb", "--threads", "1e30", "-o", "/tmp/x.cube"], "--threads"),
+        (vec!["upsample-cube", "--space", "srgb", "--threads", "0", "-o", "/tmp/x.cube"], "--threads"),
+        (vec!["jung", "--concentration", "nan"], "--concentration"),
+        (vec!["jung", "--emission-peak", "abc"], "--emission-peak"),
+        (vec!["qd", "--radius", "inf"], "--radius"),
+        (vec!["fit-gmm", "x.bfc", "--components=-3", "-o", "/tmp/x.json"], "--components"),
+        (vec!["fit-gmm", "x.bfc", "--components", "0", "-o", "/tmp/x.json"], "--components"),
+    ] {
+        let (code, _, stderr) = run(&args);
+        assert_eq!(code, 2, "{args:?}: {stderr}");
+        assert!(stderr.contains(flag) && !stderr.contains("panicked"), "{args:?}: {stderr}");
+    }
+}
+
+#[test]
+fn version_help_and_valid_calls() {
+    let (code, stdout, _) = run(&["--version"]);
+    assert_eq!(code, 0);
+    assert_eq!(stdout.trim(), format!("fluo-rs {}", env!("CARGO_PKG_VERSION")));
+    let (code, stdout, _) = run(&["patch", "--help"]);
+    assert_eq!(code, 0);
+    assert!(stdout.contains("--illuminant") && stdout.contains("--material"));
+    let (code, stdout, stderr) = run(&["jung", "--emission-peak", "700", "--stokes-shift", "50", "--json"]);
+    assert_eq!(code, 0, "{stderr}");
+    assert!(stdout.contains("700"), "{stdout}");
+}
+
+#[test]
+fn library_errors_are_one_line_with_status_1() {
+    let (code, _, stderr) = run(&["jung", "--concentration", "2"]);
+    assert_eq!(code, 1);
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+    assert!(stderr.starts_with("fluo-rs: error:") && stderr.contains("concentration"), "{stderr}");
+    let (code, _, stderr) = run(&["patch", "--material", "/dev/zero.bfc", "--illuminant", "D65"]);
+    assert_eq!(code, 1, "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+}
