@@ -41,8 +41,14 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      for ``x7``, 0.79 / 0.57 / 0.44 for ``xyzu``, 0.95 / 0.85 / 0.60 for ``rgb``; p95
      1.54 / 1.75 / 1.00 against 2.49 / 1.60 / 0.97 and 3.27 / 3.56 / 2.07 (``--quick``,
      48², 1024 spp). Its 7×7 matrices cost 392 bytes per material and no measurable
-     time over ``xyzu``. ``rgb`` cannot carry UV excitation at all: use ``xyzu`` or ``x7``
-     with UV lamps.)
+     time over ``xyzu``.) Which basis when (``fluo-rs saturated-report`` and the second
+     table of ``fluo bench`` measure it per basis): ``x7`` for saturated, narrow-band
+     emitters (a pure green dye keeps its luminance within 20 % under daylight and
+     incandescent light, where ``rgb`` and ``xyzu`` lose a third or more) and for
+     anything excited in the UV; ``xyzu`` when materials are broad and 4×4 matrices
+     matter; ``rgb`` only for scenes without UV excitation (it has no UV band: an
+     optical brightener's reradiation under daylight all but vanishes) or to compare
+     with a plain RGB renderer.
  * - method
    - |string|
    - ``scalar_rgb`` only: reduction of the reradiation, ``ours`` (dual basis, Fichet et

@@ -7,6 +7,7 @@
 #include <mitsuba/render/microfacet.h>
 #include <mitsuba/render/texture.h>
 
+#include <algorithm>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -98,9 +99,19 @@ What this plugin computes in each variant:
   R_tot = R_spe + T²(1−A)²R/(1 − R R_spe) (coating coefficients from Rust). The
   reradiation is served through fluo's bispectral interface to ``fluo_path``; under
   Mitsuba's ``path`` the absorbed light is simply lost.
-- ``scalar_rgb``: the elastic part only, with the coating coefficients evaluated at
-  611, 549 and 464 nm for the red, green and blue channels (an approximation; there
-  is no fluorescence in RGB).
+- ``scalar_rgb``: the elastic part per hit and per RGB channel, from the substrate's
+  own (coloured) eta/k and the coating coefficients at 611, 549 and 464 nm for the
+  red, green and blue channels: a gold substrate stays gold, and with a negligible
+  coating the BSDF is ``roughconductor``'s in both variants. Under ``fluo_path`` the
+  reradiation is added through reduced transport; its absorption tables are built
+  from the substrate's spectral eta/k (a named ``material``'s data files) or, for
+  RGB-valued eta/k, from the piecewise-linear spectrum through the three channel
+  values at those wavelengths.
+- Spatially varying (textured) ``eta``/``k`` are evaluated per hit in the elastic
+  part, in every variant. The reradiation's absorption tables are baked for one
+  substrate, so a textured substrate under a fluorescent coating (``density`` and
+  ``quantum_yield`` > 0) is refused with an error rather than rendered with the
+  substrate of one texel.
 
 Invalid parameters raise an error naming the parameter, its value and the valid range.
 ``alpha`` is a float (the Rust model needs one roughness), and directions are always
@@ -172,6 +183,7 @@ public:
             m_k = constant_texture(0.0);
         } else if (has_material) {
             std::string material(props.get<std::string_view>("material"));
+            m_material = material;
             try {
                 std::tie(m_eta, m_k) = conductor_textures(material);
             } catch (const std::exception &e) {
@@ -373,6 +385,47 @@ private:
         return PluginManager::instance()->create_object<Texture>(p);
     }
 
+    /// The substrate's spectral eta and k on one wavelength grid, for the coating's
+    /// absorption tables: the eta/k textures in spectral variants; in RGB variants a named
+    /// material's data files, else the piecewise-linear spectrum through the channel values
+    /// at RgbWavelengths (what the per-channel elastic evaluation sees).
+    void sample_substrate(std::vector<double> &wavelengths, std::vector<double> &eta, std::vector<double> &k) const {
+        std::vector<double> tmp;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            if (!m_material.empty()) {
+                std::vector<double> kw, kv;
+                spectrum_from_file("data/ior/" + m_material + ".eta.spd", wavelengths, eta);
+                spectrum_from_file("data/ior/" + m_material + ".k.spd", kw, kv);
+                k.clear();
+                for (double l : wavelengths)
+                    k.push_back(interpolate(kw, kv, l));
+                return;
+            }
+            wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
+            for (auto [tex, out] : { std::pair{ m_eta.get(), &eta }, std::pair{ m_k.get(), &k } }) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                UnpolarizedSpectrum v = tex->eval(si, true);
+                *out = { (double) v[2], (double) v[1], (double) v[0] };
+            }
+            return;
+        }
+        sample_texture(m_eta.get(), wavelengths, eta);
+        sample_texture(m_k.get(), tmp, k);
+    }
+
+    /// Linear interpolation in a sorted table, clamped at its ends.
+    static double interpolate(const std::vector<double> &x, const std::vector<double> &y, double at) {
+        if (x.empty())
+            return 0.0;
+        if (at <= x.front())
+            return y.front();
+        if (at >= x.back())
+            return y.back();
+        size_t j = (size_t) (std::upper_bound(x.begin(), x.end(), at) - x.begin());
+        double t = (at - x[j - 1]) / (x[j] - x[j - 1]);
+        return (1.0 - t) * y[j - 1] + t * y[j];
+    }
+
     /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
     void sample_texture(const Texture *tex, std::vector<double> &wavelengths, std::vector<double> &values) const {
         wavelengths.clear();
@@ -411,16 +464,23 @@ private:
     /// Validate the configuration in Rust and bake the model (tables included).
     void rebuild() {
         std::vector<double> sw, se, sk, qw, qe, qk, tmp;
-        sample_texture(m_eta.get(), sw, se);
-        sample_texture(m_k.get(), tmp, sk);
+        sample_substrate(sw, se, sk);
         if (m_qd_eta) {
             sample_texture(m_qd_eta.get(), qw, qe);
             sample_texture(m_qd_k.get(), tmp, qk);
         }
         auto sl = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
-        m_model = fluo_detail::rust_call(Plugin, [&] {
+        rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, sl(sw), sl(se), sl(sk), sl(qw), sl(qe), sl(qk));
         });
+        if (fluo::qd_is_fluorescent(*model) &&
+            (m_eta->is_spatially_varying() || m_k->is_spatially_varying()))
+            Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
+                  "with a fluorescent coating: the coating's absorption tables are baked for one "
+                  "substrate (the elastic part alone is evaluated per hit); give constant "
+                  "\"eta\"/\"k\", or \"density\" = 0 or \"quantum_yield\" = 0",
+                  Plugin);
+        m_model = std::move(model);
         m_radius = (ScalarFloat) m_config.radius;
         m_width = (ScalarFloat) m_config.width;
         m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
@@ -461,6 +521,7 @@ private:
     });
     MicrofacetType m_type = MicrofacetType::Beckmann;
     ref<Texture> m_eta, m_k, m_qd_eta, m_qd_k;
+    std::string m_material; ///< named conductor substrate, or empty
     ScalarFloat m_radius = 0.f, m_width = 0.f, m_quantum_yield = 0.f, m_density = 0.f, m_alpha = 0.f;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;

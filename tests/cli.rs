@@ -68,3 +68,25 @@ fn library_errors_are_one_line_with_status_1() {
     assert_eq!(code, 1, "{stderr}");
     assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
 }
+
+#[test]
+fn negative_numbers_reach_the_model_and_are_refused_by_name() {
+    // Before: `--emission-peak -5` was "unexpected argument '-5'" (a usage error that
+    // never named the parameter's range).
+    let (code, _, stderr) = run(&["jung", "--emission-peak", "-5"]);
+    assert_eq!(code, 1, "{stderr}");
+    assert!(stderr.contains("\"emission_peak\" = -5") && stderr.contains("[200, 1200]"), "{stderr}");
+    assert_eq!(stderr.trim().lines().count(), 1, "{stderr}");
+}
+
+#[test]
+fn saturated_report_compares_every_basis() {
+    let (code, stdout, stderr) = run(&["saturated-report", "--json"]);
+    assert_eq!(code, 0, "{stderr}");
+    let v: serde_json::Value = serde_json::from_str(&stdout).unwrap();
+    let rows = v["saturated"].as_array().unwrap();
+    for basis in ["rgb", "xyzu", "x7"] {
+        assert!(rows.iter().any(|r| r["basis"] == basis), "{basis}");
+    }
+    assert!(rows.iter().all(|r| r["luminance_ratio"].as_f64().unwrap().is_finite()));
+}

@@ -20,6 +20,13 @@ Columns (all measured):
 * ``material_bytes``: bytes the renderer holds per fluorescent material for the method
   at render time (model, tables, reduced matrices: the representation's memory).
 
+A second table, from ``fluo-rs saturated-report`` (Rust, ``src/reduce.rs``), reports
+saturated fluorescence through reduced RGB transport per basis (``rgb``, ``xyzu``,
+``x7``): a pure green and a pure red emitter and a UV optical brightener under D65, A
+and FL2, as the luminance ratio reduced/spectral of the patch and of its reradiated
+light alone, and the patch's ΔE00. It is where the bases differ most, and what the
+``basis`` advice in ``fluo_path``'s documentation rests on.
+
 Methods are declared in :func:`methods`: how to turn a bench scene into the method's
 scene (variant, integrator, material rewrite). The table goes to stdout (Markdown),
 ``results.json`` and ``accuracy_vs_time.png`` to the output folder.
@@ -38,7 +45,7 @@ from typing import Callable
 
 import numpy as np
 
-from . import repo_root
+from . import repo_root, run_tool
 from .colour import delta_e_map
 
 BENCH_DIR = repo_root() / "scenes" / "bench"
@@ -288,6 +295,7 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
         "machine": _machine(),
         "quick": quick, "res": res, "ladder_spp": ladder, "ref_spp": ref_spp, "target_de": target_de,
         "rows": [r.__dict__ for r in rows],
+        "saturated": run_tool(["saturated-report"])["saturated"],
     }
     (out / "results.json").write_text(json.dumps(result, indent=1))
     (out / "results.md").write_text(table(result))
@@ -307,6 +315,24 @@ def table(result: dict) -> str:
                else f"∞: bias floor {r['floor_de']:.2f} > target")
         lines.append(f"| {r['scene']} | {r['method']} | {r['seconds'][-1]:.3f} | {r['mean_de'][-1]:.2f} | "
                      f"{r['p95_de'][-1]:.2f} | {eet} | {r['material_bytes']:.0f} |")
+    return "\n".join(lines) + "\n" + saturated_table(result.get("saturated", []))
+
+
+def saturated_table(rows: list[dict]) -> str:
+    """Markdown table of ``fluo-rs saturated-report`` rows: per material and light, for
+    each basis, luminance ratio of the patch / of its reradiated light, and ΔE00."""
+    if not rows:
+        return ""
+    bases = list(dict.fromkeys(r["basis"] for r in rows))
+    lines = ["", "Saturated fluorescence through reduced RGB transport (patch facing the light; "
+             "luminance reduced/spectral of the patch and of its reradiated light alone, 1 is exact; ΔE00):",
+             "", "| material | light | " + " | ".join(bases) + " |", "|---|---|" + "---|" * len(bases)]
+    for case, light in dict.fromkeys((r["case"], r["illuminant"]) for r in rows):
+        cells = []
+        for b in bases:
+            r = next(x for x in rows if x["case"] == case and x["illuminant"] == light and x["basis"] == b)
+            cells.append(f"{r['luminance_ratio']:.2f} / {r['fluorescence_ratio']:.2f} / {r['delta_e']:.1f}")
+        lines.append(f"| {case} | {light} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

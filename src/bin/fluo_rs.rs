@@ -58,7 +58,12 @@ SUBCOMMANDS:
     diagonal The elastic reflectance (diagonal) of a matrix file: --material FILE
     reduce-report  Fichet et al.'s Table 1 on measured matrices (default: all of
              ../shared/data/bispectral): mean ΔE2000 per illuminant (A, E, D60, D65,
-             FL1, FL2, HP5) for naive/ours x xyz/xyzu/x7, and the paper's row.
+             FL1, FL2, HP5) for naive/ours x xyz/xyzu/x7 with the paper's rows
+             beside ours, then the saturated-report table.
+    saturated-report  Saturated fluorescence (pure green and red emitters, a UV
+             brightener) under D65, A and FL2 through reduced RGB transport as
+             fluo_path renders it in scalar_rgb, per basis (rgb, xyzu, x7): the
+             luminance ratio to the spectral patch and ΔE2000.
     reduce   The K x K reduced reradiation matrix of a material
              --material M (as for patch)  --basis xyz|xyzu|x7  --method ours|naive
              --cmf cie2006|cie1931 (default cie2006)
@@ -167,6 +172,7 @@ fn subcommands() -> Vec<(&'static str, &'static str, Vec<(&'static str, Kind)>, 
         ("memory", "Bytes a material occupies at render time", vec![("material", Text)], None),
         ("diagonal", "The elastic reflectance (diagonal) of a matrix file", vec![("material", Text)], None),
         ("reduce-report", "Fichet et al.'s Table 1 on measured matrices", vec![], Some("FILES")),
+        ("saturated-report", "Saturated fluorescence through reduced RGB transport, per basis", vec![], None),
         (
             "reduce",
             "The K x K reduced reradiation matrix of a material",
@@ -235,7 +241,9 @@ fn command() -> clap::Command {
                 arg = arg.short('o');
             }
             arg = match kind {
-                Kind::Num => arg.value_parser(|s: &str| -> Result<f64, String> {
+                // Negative numbers are values (then refused by the model naming the
+                // parameter and its valid range), not unknown flags.
+                Kind::Num => arg.allow_negative_numbers(true).value_parser(|s: &str| -> Result<f64, String> {
                     match s.trim().parse::<f64>() {
                         Ok(v) if v.is_finite() => Ok(v),
                         _ => Err(format!("\"{}\" is not a finite number", fluo::shown(&s))),
@@ -484,7 +492,9 @@ fn cmd_diagonal(args: &Args) -> Result<Value, String> {
 }
 
 fn cmd_reduce_report(args: &Args) -> Result<Value, String> {
-    use fluo::reduce::{table1, Reradiating, TABLE1_ILLUMINANTS, TABLE1_XYZU_OURS};
+    use fluo::reduce::{
+        table1, Reradiating, TABLE1_ILLUMINANTS, TABLE1_XYZU_NAIVE, TABLE1_XYZU_OURS, TABLE1_XYZ_NAIVE, TABLE1_XYZ_OURS,
+    };
     let files = report_files(args, "reduce-report")?;
     let models = files
         .iter()
@@ -492,22 +502,72 @@ fn cmd_reduce_report(args: &Args) -> Result<Value, String> {
         .collect::<Result<Vec<_>, _>>()?;
     let refs: Vec<&dyn Reradiating> = models.iter().map(|m| m as &dyn Reradiating).collect();
     let rows = table1(&refs).map_err(|e| e.to_string())?;
+    let paper = [
+        ("naive", "xyz", TABLE1_XYZ_NAIVE),
+        ("naive", "xyzu", TABLE1_XYZU_NAIVE),
+        ("ours", "xyz", TABLE1_XYZ_OURS),
+        ("ours", "xyzu", TABLE1_XYZU_OURS),
+    ];
+    let saturated = fluo::reduce::saturated_report().map_err(|e| e.to_string())?;
     if !args.json {
-        eprintln!("Fichet et al. Table 1 (mean ΔE2000 over {} materials, CIE 2006, white = illuminant)", files.len());
-        eprintln!("{:<12} {}  {:>6}", "method", TABLE1_ILLUMINANTS.map(|n| format!("{n:>6}")).join(" "), "mean");
+        eprintln!(
+            "Fichet et al. Table 1 (mean ΔE2000 over {} materials, CIE 2006, white = illuminant; \
+             paper: their database)",
+            files.len()
+        );
+        eprintln!("{:<18} {}  {:>6}", "method", TABLE1_ILLUMINANTS.map(|n| format!("{n:>6}")).join(" "), "mean");
+        let line = |label: String, values: &[f64]| {
+            let cells: Vec<String> = values.iter().map(|v| format!("{v:>6.2}")).collect();
+            let mean = values.iter().sum::<f64>() / values.len().max(1) as f64;
+            eprintln!("{label:<18} {}  {mean:>6.2}", cells.join(" "));
+        };
         for r in &rows {
-            let cells: Vec<String> = r.mean.iter().map(|v| format!("{v:>6.2}")).collect();
-            eprintln!("{:<12} {}  {:>6.2}", format!("{}-{}", r.method, r.basis), cells.join(" "), r.overall);
+            line(format!("{}-{}", r.method, r.basis), &r.mean);
+            if let Some((_, _, p)) = paper.iter().find(|(m, b, _)| *m == r.method && *b == r.basis) {
+                line(format!("  paper {}-{}", r.method, r.basis), p);
+            }
         }
-        let paper: Vec<String> = TABLE1_XYZU_OURS.iter().map(|v| format!("{v:>6.2}")).collect();
-        eprintln!("{:<12} {}  {:>6.2}", "paper xyzu", paper.join(" "), TABLE1_XYZU_OURS.iter().sum::<f64>() / 7.0);
+        eprintln!();
+        print_saturated(&saturated);
     }
     Ok(json!({
         "files": files.iter().map(|f| f.display().to_string()).collect::<Vec<_>>(),
         "illuminants": TABLE1_ILLUMINANTS,
         "rows": rows,
-        "paper_xyzu_ours": TABLE1_XYZU_OURS,
+        "paper": paper.iter().map(|(m, b, p)| json!({"method": m, "basis": b, "mean": p})).collect::<Vec<_>>(),
+        "saturated": saturated,
     }))
+}
+
+fn print_saturated(rows: &[fluo::reduce::SaturatedRow]) {
+    eprintln!("Saturated fluorescence through reduced RGB transport (fluo_path, scalar_rgb, method ours):");
+    eprintln!(
+        "per basis: luminance reduced/spectral of the patch, of its reradiated light alone (1 is exact), \
+         and ΔE2000 of the patch (white = illuminant)"
+    );
+    eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", "material", "light", "rgb", "xyzu", "x7");
+    let mut seen: Vec<(&str, &str)> = Vec::new();
+    for r in rows {
+        if seen.contains(&(r.case, r.illuminant)) {
+            continue;
+        }
+        seen.push((r.case, r.illuminant));
+        let cell = |b: &str| {
+            rows.iter()
+                .find(|x| x.case == r.case && x.illuminant == r.illuminant && x.basis == b)
+                .map(|x| format!("{:.2} {:.2} {:.1}", x.luminance_ratio, x.fluorescence_ratio, x.delta_e))
+                .unwrap_or_default()
+        };
+        eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", r.case, r.illuminant, cell("rgb"), cell("xyzu"), cell("x7"));
+    }
+}
+
+fn cmd_saturated_report(args: &Args) -> Result<Value, String> {
+    let rows = fluo::reduce::saturated_report().map_err(|e| e.to_string())?;
+    if !args.json {
+        print_saturated(&rows);
+    }
+    Ok(json!({ "saturated": rows }))
 }
 
 // ------------------------------------------------------------------ upsampling (issue 6)
@@ -782,6 +842,7 @@ fn run(argv: &[String]) -> Result<(), String> {
         "patch" => cmd_patch(&args)?,
         "reduce" => cmd_reduce(&args)?,
         "reduce-report" => cmd_reduce_report(&args)?,
+        "saturated-report" => cmd_saturated_report(&args)?,
         "memory" => cmd_memory(&args)?,
         "diagonal" => cmd_diagonal(&args)?,
         "qd" => cmd_qd(&args)?,

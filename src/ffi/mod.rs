@@ -465,10 +465,12 @@ fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>
                 let tables = (0..REDUCED_COS_NODES)
                     .map(|j| {
                         let c = j as f64 / (REDUCED_COS_NODES - 1) as f64;
-                        t.0.reduce(&crate::reduce::QdAtAngle(m, c.max(1e-3)))
+                        t.0.reduce(&crate::reduce::QdReradiationAtAngle(m, c.max(1e-3)))
                     })
                     .collect();
-                ReducedModel { directional: Directional::Microfacet { micro: *m.microfacet(), tables }, full: true }
+                // Reradiation only: the plugin serves the elastic part per hit and per RGB
+                // channel from the substrate's own eta/k (a gold substrate stays gold).
+                ReducedModel { directional: Directional::Microfacet { micro: *m.microfacet(), tables }, full: false }
             }
             (_, Some(r)) => {
                 ReducedModel { directional: Directional::Lambertian(t.0.reduce(&FullOperator(&f.model, r))), full: true }

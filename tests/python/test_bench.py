@@ -51,3 +51,15 @@ def test02_every_method_loads_every_bench_scene(scene, index, tmp_path):
     assert method.bytes(text) >= 0
     if "fluo_path" in method.name:
         assert integrator == "FluoPath"
+
+
+def test03_bench_reports_saturated_fluorescence_per_basis():
+    # fluo bench's second table: saturated emitters and a UV brightener per basis.
+    import fluo
+    rows = fluo.run_tool(["saturated-report"])["saturated"]
+    text = bench.saturated_table(rows)
+    assert "| material | light | rgb | xyzu | x7 |" in text
+    for case in ["green emitter", "red emitter", "UV brightener"]:
+        assert sum(line.startswith(f"| {case} |") for line in text.splitlines()) == 3
+    uv = next(r for r in rows if r["case"] == "UV brightener" and r["illuminant"] == "D65" and r["basis"] == "rgb")
+    assert uv["fluorescence_ratio"] < 0.05  # rgb has no UV band

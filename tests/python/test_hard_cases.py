@@ -206,3 +206,66 @@ def test10_qd_unknown_material_names_the_parameter():
     mi.set_variant("scalar_rgb")
     with pytest.raises(RuntimeError, match=r'fluo_qd: invalid parameter "material" = "Unobtainium"'):
         mi.load_dict({"type": "fluo_qd", "material": "Unobtainium"})
+
+
+# --------------------------------------------------------------- coloured qd substrates
+
+
+def _gold_ball(bsdf, integrator, variant):
+    mi.set_variant(variant)
+    light = {"type": "rgb", "value": 1.0} if "rgb" in variant else {"type": "d65"}
+    return mi.load_dict({
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": 4},
+        "sensor": {
+            "type": "perspective", "fov": 30,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": 64},
+        },
+        "ball": {"type": "sphere", "bsdf": bsdf},
+        "light": {"type": "constant", "radiance": light},
+    })
+
+
+def _centre(scene):
+    return np.array(mi.render(scene, seed=1))[8:24, 8:24].reshape(-1, 3).mean(0)
+
+
+@pytest.mark.parametrize("metal", ["Au", "Cu"])
+def test11_qd_over_a_coloured_metal_keeps_its_colour_in_rgb(metal):
+    # Before: the RGB path averaged eta/k into a grey substrate and the reduced table's
+    # elastic part came from it (gold rendered grey under fluo_path in scalar_rgb).
+    native = _centre(_gold_ball({"type": "roughconductor", "material": metal, "alpha": 0.2}, "path", "scalar_rgb"))
+    faint = _centre(_gold_ball({"type": "fluo_qd", "material": metal, "alpha": 0.2, "density": 1e-6},
+                               "fluo_path", "scalar_rgb"))
+    assert native[0] > 1.5 * native[2]  # the reference is coloured
+    np.testing.assert_allclose(faint, native, rtol=1e-4)
+
+
+def test12_qd_over_gold_in_rgb_follows_the_spectral_render():
+    # A real coating: the RGB render's hue must follow the spectral one (reduced
+    # reradiation over a gold elastic part), not a grey substrate's. Native gold itself
+    # differs by 0.015 in chromaticity between the variants; a grey substrate is ~0.15 off.
+    bsdf = {"type": "fluo_qd", "material": "Au", "alpha": 0.2, "density": 0.5}
+    rgb = _centre(_gold_ball(bsdf, "fluo_path", "scalar_rgb"))
+    spectral = _centre(_gold_ball(bsdf, "fluo_path", "scalar_spectral"))
+    assert rgb[0] / rgb[2] > 3.0 and spectral[0] / spectral[2] > 3.0, (rgb, spectral)
+    np.testing.assert_allclose(rgb / rgb.sum(), spectral / spectral.sum(), atol=0.03)
+
+
+def test13_textured_substrate_is_per_hit_or_refused():
+    checker = {"type": "checkerboard", "color0": 0.2, "color1": 1.5,
+               "to_uv": mi.ScalarTransform4f().scale([8, 8, 1])}
+    for variant in ["scalar_rgb", "scalar_spectral"]:
+        # Elastic part alone (no coating): per hit, exactly roughconductor with the texture.
+        mi.set_variant(variant)
+        tex = dict(checker, to_uv=mi.ScalarTransform4f().scale([8, 8, 1]))
+        native = _centre(_gold_ball({"type": "roughconductor", "eta": tex, "k": 2.0, "alpha": 0.2}, "path", variant))
+        plain = _centre(_gold_ball({"type": "fluo_qd", "eta": dict(tex), "k": 2.0, "alpha": 0.2, "density": 0.0},
+                                   "path", variant))
+        np.testing.assert_allclose(plain, native, rtol=1e-4)
+        # A fluorescent coating over it cannot bake one substrate: refused, not one texel's.
+        with pytest.raises(RuntimeError, match=r'fluo_qd: a spatially varying substrate \(textured "eta"/"k"\)'):
+            mi.load_dict({"type": "fluo_qd", "eta": dict(tex), "k": 2.0, "density": 0.5})
