@@ -124,14 +124,16 @@ Spatially varying fluorescence (``fluo_jung`` with a ``color`` texture) is looke
 per vertex through the bispectral interface's ``fluorescence_at(si)``: each vertex
 uses its own texel's model and intersects its excitation band with R.
 
-Fluorescent materials may be wrapped in ``twosided`` and ``blendbsdf`` (nested too):
-at each vertex the integrator resolves the wrapper to the child that acts there —
-``twosided``: the front or back child, with the local frame mirrored for the back side
-exactly as ``twosided`` does; ``blendbsdf``: child 1 with probability w(si), else child
-0 (unbiased selection; the render equals the wrapper's within noise) — and treats that
-child as an unwrapped material. Any other BSDF around a fluorescent one (``mask``,
-``bumpmap``, ``normalmap``, ...) is refused with an error at render start rather than
-rendered without its fluorescence. Mitsuba's own integrators (``path``, ...) render
+Fluorescent materials may be wrapped in ``twosided``, ``blendbsdf`` and ``mask``
+(nested too): at each vertex the integrator resolves the wrapper to the BSDF that acts
+there — ``twosided``: the front or back child, with the local frame mirrored for the
+back side exactly as ``twosided`` does; ``blendbsdf``: child 1 with probability w(si),
+else child 0; ``mask``: the nested BSDF with probability opacity(si), else a null
+(pass-through) interaction, as ``mask`` samples it — and treats that child as an
+unwrapped material. The selections are unbiased: renders equal the wrapper's within
+noise. Any other BSDF around a fluorescent one (``bumpmap``, ``normalmap``, ...) is
+refused with an error at render start (the first access the integrator has to the
+scene) rather than rendered without its fluorescence. Mitsuba's own integrators (``path``, ...) render
 only the elastic part of fluorescent materials, and say so once per scene.
 
 .. tabs::
@@ -381,10 +383,11 @@ private:
 
     /// A supported BSDF wrapper around fluorescent materials (see the doc comment).
     struct Wrapper {
+        enum Kind { TwoSided, Blend, Mask };
         const BSDF *bsdf;
-        bool twosided;               // else blendbsdf
-        const BSDF *child[2]{};      // front/back, or bsdf_0/bsdf_1
-        const Texture *weight = nullptr;
+        Kind kind;
+        const BSDF *child[2]{};      // front/back, bsdf_0/bsdf_1, or nested/null
+        const Texture *weight = nullptr; // blend weight or mask opacity
     };
 
     /// Direct children of an object as (name, object), in traverse order.
@@ -431,24 +434,27 @@ private:
             if (!wraps)
                 continue;
             std::string_view cls = o->class_name();
-            Wrapper w{ bsdf, cls == "TwoSidedBRDF" };
-            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF")
+            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF" && cls != "MaskBSDF")
                 Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which fluo_path cannot "
                       "see through (its fluorescence would be lost). Supported wrappers: twosided, "
-                      "blendbsdf; use the fluorescent material directly or inside one of those.",
+                      "blendbsdf, mask; use the fluorescent material directly or inside one of those.",
                       Plugin, std::string(cls));
+            Wrapper w{ bsdf, cls == "TwoSidedBRDF" ? Wrapper::TwoSided
+                             : cls == "BlendBSDF" ? Wrapper::Blend : Wrapper::Mask };
             for (auto &[name, child] : kids.list) {
                 auto *cb = dynamic_cast<BSDF *>(child);
-                if (cb && (name == "brdf_0" || name == "bsdf_0"))
+                if (cb && (name == "brdf_0" || name == "bsdf_0" || name == "nested_bsdf"))
                     w.child[0] = cb;
                 else if (cb && (name == "brdf_1" || name == "bsdf_1"))
                     w.child[1] = cb;
-                else if (name == "weight")
+                else if (name == "weight" || name == "opacity")
                     w.weight = dynamic_cast<Texture *>(child);
             }
-            if (w.twosided && !w.child[1])
+            if (w.kind == Wrapper::TwoSided && !w.child[1])
                 w.child[1] = w.child[0]; // one child: used on both sides
-            if (!w.child[0] || !w.child[1] || (!w.twosided && !w.weight))
+            if (w.kind == Wrapper::Mask)
+                w.child[1] = null_bsdf();
+            if (!w.child[0] || !w.child[1] || (w.kind != Wrapper::TwoSided && !w.weight))
                 Throw("%s: cannot read the children of the \"%s\" BSDF around a fluorescent material",
                       Plugin, std::string(cls));
             m_wrappers.push_back(w);
@@ -466,19 +472,30 @@ private:
                     w = &x;
             if (!w)
                 return bsdf;
-            if (w->twosided) {
+            if (w->kind == Wrapper::TwoSided) {
                 bool back = Frame3f::cos_theta(si.wi) < 0.f;
                 if (back) {
                     si.sh_frame.n = -si.sh_frame.n;
                     si.wi.z() = -si.wi.z();
                 }
                 bsdf = w->child[back ? 1 : 0];
-            } else {
+            } else if (w->kind == Wrapper::Blend) {
                 Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
                 bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
+            } else {
+                Float opacity = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
+                bsdf = w->child[sampler->next_1d() < opacity ? 0 : 1];
             }
         }
         return bsdf;
+    }
+
+    /// Mitsuba's `null` BSDF (pass-through, sampled as a Null/Delta event), created once:
+    /// the transparent part of a `mask`.
+    const BSDF *null_bsdf() {
+        if (!m_null)
+            m_null = PluginManager::instance()->create_object<BSDF>(Properties("null"));
+        return m_null.get();
     }
 
     const Entry *find(const BSDF *bsdf) const {
@@ -886,6 +903,7 @@ private:
     Row3 m_output{}, m_from_rgb{};
     Coeffs m_white{};
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
+    ref<BSDF> m_null; ///< see null_bsdf()
     std::vector<EmitterSource> m_sources;
     std::vector<Entry> m_entries;
     std::vector<Wrapper> m_wrappers;

@@ -80,9 +80,25 @@ def test03_blendbsdf_is_the_weighted_mean_of_its_children(variant, lamp):
     np.testing.assert_allclose(nested, want, rtol=3e-2, atol=3e-5)
 
 
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("lamp", ["uv", "d65"])
+def test03b_mask_is_opacity_times_the_material_plus_pass_through(variant, lamp):
+    # mask(α): the nested material with probability α, else the environment behind
+    # the rectangle seen straight through (a null interaction). Before: refused.
+    def mask(alpha):
+        return _render({"type": "mask", "opacity": alpha, "bsdf": JUNG}, variant, lamp, spp=512).mean((0, 1))
+
+    plain = _render(JUNG, variant, lamp, spp=512).mean((0, 1))
+    np.testing.assert_allclose(mask(1.0), plain, rtol=2e-2, atol=2e-5)
+    clear = mask(0.0)
+    assert np.abs(clear - plain).max() > 0.05 * np.abs(plain).max()  # the two ends differ
+    np.testing.assert_allclose(mask(0.4), 0.4 * plain + 0.6 * clear, rtol=3e-2, atol=3e-5)
+
+
 @pytest.mark.parametrize("wrapper", [
-    {"type": "mask", "opacity": 0.5},
     {"type": "bumpmap", "arbitrary": {"type": "checkerboard"}},
+    {"type": "normalmap", "normalmap": {"type": "bitmap", "raw": True,
+                                        "filename": str(REPO / "scenes" / "textures" / "acescg_card.exr")}},
 ])
 @pytest.mark.parametrize("variant", VARIANTS)
 def test04_unsupported_wrappers_are_refused(wrapper, variant):
@@ -113,7 +129,7 @@ def test05_other_integrators_warn_once_per_scene(variant):
                              "emitter": {"type": "constant"}, **shapes})
 
     mi.set_variant(variant)
-    logger = mi.Thread.thread().logger()
+    logger = mi.logger()
     catch = _Catch()
     logger.add_appender(catch)
     try:
