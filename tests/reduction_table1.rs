@@ -4,21 +4,28 @@
 //! basis must improve on XYZU; ours must beat naive everywhere.
 
 use fluo::matrix::{shared_bispectral_files, MatrixModel};
-use fluo::reduce::{table1, Reradiating, TABLE1_ILLUMINANTS, TABLE1_XYZU_OURS};
+use fluo::reduce::{table1, Reradiating, Table1Row, TABLE1_ILLUMINANTS, TABLE1_XYZU_OURS};
+
+/// Table 1 over the shared measured matrices (None, said on stderr, without them).
+fn shared_rows() -> Option<Vec<Table1Row>> {
+    let files = shared_bispectral_files();
+    if files.is_empty() {
+        eprintln!("skipping: ../shared/data/bispectral not found (set FLUO_SHARED_DATA)");
+        return None;
+    }
+    let models: Vec<MatrixModel> = files.iter().map(|f| MatrixModel::from_file(f).unwrap()).collect();
+    let refs: Vec<&dyn Reradiating> = models.iter().map(|m| m as &dyn Reradiating).collect();
+    Some(table1(&refs).unwrap())
+}
 
 /// The tolerance per illuminant.
 const PER_ILLUMINANT_TOLERANCE: f64 = 0.5;
 
 #[test]
 fn table1_matches_the_paper_on_the_measured_materials() {
-    let files = shared_bispectral_files();
-    if files.is_empty() {
-        eprintln!("skipping: ../shared/data/bispectral not found (set FLUO_SHARED_DATA)");
+    let Some(rows) = shared_rows() else {
         return;
-    }
-    let models: Vec<MatrixModel> = files.iter().map(|f| MatrixModel::from_file(f).unwrap()).collect();
-    let refs: Vec<&dyn Reradiating> = models.iter().map(|m| m as &dyn Reradiating).collect();
-    let rows = table1(&refs).unwrap();
+    };
     let row = |m: &str, b: &str| rows.iter().find(|r| r.method == m && r.basis == b).unwrap();
     let ours = row("ours", "xyzu");
     for (j, name) in TABLE1_ILLUMINANTS.iter().enumerate() {
@@ -45,14 +52,9 @@ const NAIVE_TOLERANCE: f64 = 1.0;
 #[test]
 fn naive_rows_follow_eq_7_as_the_paper_computed_them() {
     use fluo::reduce::{TABLE1_XYZU_NAIVE, TABLE1_XYZ_NAIVE};
-    let files = shared_bispectral_files();
-    if files.is_empty() {
-        eprintln!("skipping: ../shared/data/bispectral not found (set FLUO_SHARED_DATA)");
+    let Some(rows) = shared_rows() else {
         return;
-    }
-    let models: Vec<MatrixModel> = files.iter().map(|f| MatrixModel::from_file(f).unwrap()).collect();
-    let refs: Vec<&dyn Reradiating> = models.iter().map(|m| m as &dyn Reradiating).collect();
-    let rows = table1(&refs).unwrap();
+    };
     for (basis, paper) in [("xyz", TABLE1_XYZ_NAIVE), ("xyzu", TABLE1_XYZU_NAIVE)] {
         let got = &rows.iter().find(|r| r.method == "naive" && r.basis == basis).unwrap().mean;
         eprintln!("naive-{basis}: ours {got:.2?} paper {paper:?}");
