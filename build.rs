@@ -18,6 +18,7 @@ fn main() {
     println!("cargo:rerun-if-changed=build.rs");
     println!("cargo:rerun-if-changed=src/ffi/mod.rs");
     println!("cargo:rerun-if-env-changed=FLUO_PYTHON");
+    println!("cargo:rerun-if-env-changed=FLUO_RPATH");
 
     cxx_build::bridge("src/ffi/mod.rs")
         .std("c++17")
@@ -85,6 +86,11 @@ fn build_plugins() {
     let manifest = PathBuf::from(env::var("CARGO_MANIFEST_DIR").expect("CARGO_MANIFEST_DIR"));
     let out_dir = PathBuf::from(env::var("OUT_DIR").expect("OUT_DIR"));
     let w = find_wheels(&manifest);
+    // The wheels may live in a temporary build environment (pip's isolated build puts
+    // them on PYTHONPATH): rerun when that changes or the libraries are gone.
+    println!("cargo:rerun-if-env-changed=PYTHONPATH");
+    println!("cargo:rerun-if-changed={}", w.mitsuba.join("libmitsuba.so").display());
+    println!("cargo:rerun-if-changed={}", w.drjit.join("libdrjit-core.so").display());
     for d in ["plugins", "cpp"] {
         println!("cargo:rerun-if-changed={d}");
     }
@@ -132,11 +138,25 @@ fn build_plugins() {
         "-ldrjit-core".to_string(),
         "-ldrjit-extra".to_string(),
         "-lnanothread".to_string(),
-        format!("-Wl,-rpath,{m}"),
-        format!("-Wl,-rpath,{d}"),
         "-lstdc++".to_string(),
         "-Wl,-z,defs".to_string(),
     ] {
         println!("cargo:rustc-link-arg-cdylib={arg}");
     }
+    for dir in run_paths(&w) {
+        println!("cargo:rustc-link-arg-cdylib=-Wl,-rpath,{dir}");
+    }
+}
+
+/// Where the installed library finds libmitsuba/libdrjit-*: next to it in a wheel
+/// (`site-packages/fluo/libfluo.so` → `$ORIGIN/../mitsuba`, `$ORIGIN/../drjit`), and,
+/// unless `FLUO_RPATH=relative` (the wheel build, whose build environment is temporary),
+/// the wheels it was compiled against (the developer build in target/release).
+fn run_paths(w: &Wheels) -> Vec<String> {
+    let mut dirs = vec!["$ORIGIN/../mitsuba".to_string(), "$ORIGIN/../drjit".to_string()];
+    if env::var("FLUO_RPATH").as_deref() != Ok("relative") {
+        dirs.push(w.mitsuba.display().to_string());
+        dirs.push(w.drjit.display().to_string());
+    }
+    dirs
 }

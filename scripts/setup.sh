@@ -24,13 +24,14 @@ if [[ ! -x .venv/bin/python ]]; then
 fi
 
 # 2. Python packages; the stamp names the pyproject.toml they were installed for.
-hash=$(sha256sum pyproject.toml | cut -c1-16)
+hash=$(cat pyproject.toml setup.py | sha256sum | cut -c1-16)
 stamp=".venv/.fluo-deps-$hash"
 if [[ -e $stamp ]]; then
     say "python packages up to date ($stamp)"
 else
     say "installing mitsuba==3.8.0, drjit==1.3.1, nanobind, numpy, pytest and fluo (editable) into .venv"
-    .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[test,build]'
+    # FLUO_SKIP_RUST: the editable install carries no compiled parts; step 3 builds them.
+    FLUO_SKIP_RUST=1 .venv/bin/python -m pip install --quiet --disable-pip-version-check -e '.[test,build]'
     rm -f .venv/.fluo-deps-*
     touch "$stamp"
 fi

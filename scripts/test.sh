@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Run all tests: set up (scripts/setup.sh), pure-Rust tests (cargo test --release),
-# then the Python/Mitsuba tests (pytest tests/python; extra args are passed to pytest).
+# the Python/Mitsuba tests (pytest tests/python; extra args are passed to pytest), then
+# the user path: build the wheel and use it from a fresh venv (scripts/wheel_smoke.sh).
 # Every suite runs; the exit status is non-zero if any failed, or if pytest collected
 # no tests (its status 5).
 set -euo pipefail
@@ -24,6 +25,9 @@ if (( status == 5 )); then
     echo "[test] pytest collected no tests" >&2
 fi
 (( status == 0 )) || failed+=("pytest (exit status $status)")
+
+echo "[test] wheel smoke test (scripts/wheel_smoke.sh)"
+bash scripts/wheel_smoke.sh || failed+=("wheel smoke test")
 
 if (( ${#failed[@]} )); then
     echo "[test] FAILED: ${failed[*]}" >&2

@@ -189,6 +189,14 @@ fn bradford(from: [f64; 3], to: [f64; 3]) -> Mat3 {
     mat_mul(&mat_inv(&BRADFORD), &mat_mul(&scale, &BRADFORD))
 }
 
+/// Directory of the shipped cubes: `$FLUO_CUBE_DIR` (set by the Python package to its
+/// data folder, which is how an installed wheel finds them), else `<repo>/data/cubes`.
+pub fn shipped_cube_dir() -> std::path::PathBuf {
+    std::env::var_os("FLUO_CUBE_DIR")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes"))
+}
+
 /// Stable name of a colour space (file headers, CLI).
 pub fn space_name(space: RgbSpace) -> &'static str {
     match space {

@@ -11,16 +11,20 @@ with Mitsuba's plugin manager for both ``scalar_rgb`` and ``scalar_spectral``, s
     mi.set_variant("scalar_spectral")
     scene = mi.load_file("scenes/jung_spheres.xml")
 
-Where things are found (environment variables win):
+Where things are found (environment variables win), from a wheel (``pip install``)
+and from a checkout (the editable developer install of scripts/setup.sh):
 
-============== ================ ==================================
-what           variable         default
-============== ================ ==================================
-plugin library ``FLUO_LIBRARY`` ``<repo>/target/release/libfluo.so``
-physics tool   ``FLUO_TOOL``    ``<repo>/target/release/fluo-rs``
-============== ================ ==================================
+============== ================== ============================ ================================
+what           variable           wheel                        checkout
+============== ================== ============================ ================================
+plugin library ``FLUO_LIBRARY``   ``fluo/libfluo*.so``          ``<repo>/target/release/libfluo.so``
+physics tool   ``FLUO_TOOL``      ``<env>/bin/fluo-rs``         ``<repo>/target/release/fluo-rs``
+cubes          ``FLUO_CUBE_DIR``  ``fluo/data/cubes``           ``<repo>/data/cubes``
+scenes                            ``fluo/data/scenes``          ``<repo>/scenes``
+============== ================== ============================ ================================
 
-``<repo>`` is the checkout this package was installed from (editable install).
+Importing against another Mitsuba than the one the library was built for raises an
+``ImportError`` naming both versions (``BUILT_FOR``).
 """
 
 from __future__ import annotations
@@ -30,16 +34,25 @@ from __future__ import annotations
 import mitsuba  # noqa: F401  (imported for its side effect)
 
 import ctypes
+import importlib.metadata
+import importlib.resources
 import json
 import os
+import re
 import subprocess
+import sysconfig
 from pathlib import Path
 
 __all__ = [
+    "BUILT_FOR",
     "PLUGINS",
+    "data_dir",
+    "in_checkout",
     "library_path",
+    "out_dir",
     "repo_root",
     "run_tool",
+    "scenes_dir",
     "tool_path",
 ]
 
@@ -51,28 +64,105 @@ LIBRARY_ENV = "FLUO_LIBRARY"
 #: Environment variable overriding the ``fluo-rs`` tool location.
 TOOL_ENV = "FLUO_TOOL"
 
-_SETUP_HINT = "run the setup command in README.md (bash scripts/setup.sh)"
+_PACKAGE = Path(__file__).resolve().parent
+
+
+def _pins() -> dict[str, str]:
+    """The exact ``mitsuba``/``drjit`` versions this package requires (pyproject.toml,
+    read back from the installed metadata: the one place the pins are written)."""
+    pins = {}
+    try:
+        requires = importlib.metadata.requires("fluo") or []
+    except importlib.metadata.PackageNotFoundError:
+        requires = []
+    for req in requires:
+        m = re.fullmatch(r"\s*(mitsuba|drjit)\s*==\s*([\w.]+)\s*", req)
+        if m:
+            pins[m.group(1)] = m.group(2)
+    return pins
+
+
+#: The Mitsuba and Dr.Jit versions the plugin library is built for (``libfluo.so`` is
+#: compiled against exactly these wheels' headers and ABI).
+BUILT_FOR: dict[str, str] = _pins()
+
+
+def in_checkout() -> bool:
+    """Whether this package runs from a source checkout (editable developer install)
+    rather than from an installed wheel."""
+    return (_PACKAGE.parents[1] / "Cargo.toml").is_file() and not any(_PACKAGE.glob("libfluo*.so"))
 
 
 def repo_root() -> Path:
-    """The repository root: ``python/fluo/__init__.py`` is two levels below it."""
-    return Path(__file__).resolve().parents[2]
+    """The repository root of a checkout (``python/fluo/__init__.py`` is two levels
+    below it). From a wheel there is none: use :func:`data_dir`, :func:`scenes_dir`
+    and :func:`out_dir` for what a checkout would provide."""
+    return _PACKAGE.parents[1]
+
+
+_SETUP_HINT = ("run the setup command in README.md (bash scripts/setup.sh)" if in_checkout()
+               else "reinstall the fluo wheel")
+
+
+def data_dir(name: str) -> Path:
+    """A data folder shipped with fluo: ``cubes``, ``matrices`` or ``scenes``
+    (``fluo/data/<name>`` in a wheel; ``data/<name>``, or ``scenes``, in a checkout)."""
+    if name not in ("cubes", "matrices", "scenes"):
+        raise ValueError(f"unknown data folder {name!r}: one of cubes, matrices, scenes")
+    packaged = Path(str(importlib.resources.files("fluo") / "data" / name))
+    if packaged.is_dir():
+        return packaged
+    return repo_root() / ("scenes" if name == "scenes" else f"data/{name}")
+
+
+def scenes_dir() -> Path:
+    """The demo scenes (:func:`data_dir` ``("scenes")``)."""
+    return data_dir("scenes")
+
+
+def out_dir() -> Path:
+    """Where ``fluo demo``/``bench`` write by default: ``<repo>/out`` in a checkout, else
+    ``./out`` (the working directory)."""
+    return repo_root() / "out" if in_checkout() else Path.cwd() / "out"
 
 
 def library_path() -> Path:
-    """Path of the plugin library: ``$FLUO_LIBRARY`` or ``<repo>/target/release/libfluo.so``."""
+    """Path of the plugin library: ``$FLUO_LIBRARY``, the wheel's ``fluo/libfluo*.so``, or
+    ``<repo>/target/release/libfluo.so``."""
     override = os.environ.get(LIBRARY_ENV)
     if override:
         return Path(override).expanduser().resolve()
+    packaged = sorted(_PACKAGE.glob("libfluo*.so"))
+    if packaged:
+        return packaged[0]
     return repo_root() / "target" / "release" / "libfluo.so"
 
 
 def tool_path() -> Path:
-    """Path of the ``fluo-rs`` physics tool: ``$FLUO_TOOL`` or ``<repo>/target/release/fluo-rs``."""
+    """Path of the ``fluo-rs`` physics tool: ``$FLUO_TOOL``, the environment's
+    ``bin/fluo-rs`` (installed with the wheel), or ``<repo>/target/release/fluo-rs``."""
     override = os.environ.get(TOOL_ENV)
     if override:
         return Path(override).expanduser().resolve()
+    if not in_checkout():
+        return Path(sysconfig.get_path("scripts")) / "fluo-rs"
     return repo_root() / "target" / "release" / "fluo-rs"
+
+
+def _check_versions() -> None:
+    """Refuse a Mitsuba/Dr.Jit other than the pinned ones before loading the library
+    (a mismatched libmitsuba.so fails to load, or worse, loads and renders wrongly)."""
+    import drjit
+
+    have = {"mitsuba": mitsuba.__version__, "drjit": drjit.__version__}
+    wrong = {k: v for k, v in have.items() if k in BUILT_FOR and BUILT_FOR[k] != v}
+    if wrong:
+        built = ", ".join(f"{k}=={BUILT_FOR[k]}" for k in sorted(BUILT_FOR))
+        found = ", ".join(f"{k} {v}" for k, v in sorted(wrong.items()))
+        raise ImportError(
+            f"fluo's plugin library is built for {built}, but this Python has {found}: "
+            f"install those exact versions (pip install {built.replace(', ', ' ')})"
+        )
 
 
 def run_tool(args: list[str]) -> dict:
@@ -113,6 +203,9 @@ def _load_library() -> ctypes.CDLL:
     handle = globals().get("_LIBRARY")
     if handle is not None:
         return handle
+    _check_versions()
+    # The Rust side finds the shipped cubes through FLUO_CUBE_DIR (wheel: package data).
+    os.environ.setdefault("FLUO_CUBE_DIR", str(data_dir("cubes")))
     path = library_path()
     if not path.is_file():
         raise ImportError(

@@ -611,7 +611,7 @@ fn cmd_upsample_cube(args: &Args) -> Result<Value, String> {
 }
 
 fn shipped_cubes() -> Vec<std::path::PathBuf> {
-    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes");
+    let dir = fluo::upsample::shipped_cube_dir();
     let mut v: Vec<_> = std::fs::read_dir(dir)
         .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
         .unwrap_or_default();
@@ -673,8 +673,7 @@ fn cmd_upsample_lookup(args: &Args) -> Result<Value, String> {
         (Some(c), _) => std::path::PathBuf::from(c),
         (None, Some(sp)) => {
             let space = RgbSpace::from_name(sp).map_err(|e| e.to_string())?;
-            std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-                .join(format!("data/cubes/{}_d65_tinf_r33.cube", space_name(space)))
+            fluo::upsample::shipped_cube_dir().join(format!("{}_d65_tinf_r33.cube", space_name(space)))
         }
         _ => return Err("upsample-lookup needs --cube FILE or --space S".into()),
     };

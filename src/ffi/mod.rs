@@ -825,12 +825,6 @@ fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
 /// Opaque coefficient cube handed to C++.
 pub struct UpsampleCube(crate::upsample::Cube);
 
-/// Directory of the shipped cubes: `$FLUO_CUBE_DIR`, else `<repo>/data/cubes`.
-fn cube_dir() -> std::path::PathBuf {
-    std::env::var_os("FLUO_CUBE_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("data/cubes"))
-}
 
 fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
     guarded(|| {
@@ -838,7 +832,7 @@ fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, 
             crate::Error::param("color_space", format!("\"{space}\""), "one of \"srgb\", \"rec2020\", \"acescg\"")
         })?;
         let path = if filename.is_empty() {
-            cube_dir().join(format!("{}_d65_tinf_r33.cube", crate::upsample::space_name(space)))
+            crate::upsample::shipped_cube_dir().join(format!("{}_d65_tinf_r33.cube", crate::upsample::space_name(space)))
         } else {
             std::path::PathBuf::from(filename)
         };

@@ -1,0 +1,76 @@
+#!/usr/bin/env bash
+# The user path, checked end to end: build the platform wheel (`pip wheel .`), install
+# it into a fresh virtual environment outside the checkout, and from /tmp, with no cargo,
+# rustc or compiler on PATH, render fluo_path with fluo_jung in both variants, use the
+# shipped cubes and scenes, and run fluo-rs. Called by scripts/test.sh (so by CI).
+set -euo pipefail
+cd "$(dirname "${BASH_SOURCE[0]}")/.."
+say() { printf '[wheel] %s\n' "$*"; }
+
+wheels=out/wheel
+rm -f "$wheels"/fluo-*.whl
+say "pip wheel . (setuptools-rust; cargo target folder target/wheel)"
+.venv/bin/python -m pip wheel . -w "$wheels" --no-deps --quiet --disable-pip-version-check
+wheel=$(ls "$wheels"/fluo-*.whl)
+say "built $wheel ($(du -h "$wheel" | cut -f1))"
+
+work=$(mktemp -d /tmp/fluo-wheel-XXXXXX)
+trap 'rm -rf "$work"' EXIT
+base=$(.venv/bin/python -c 'import sys; print(sys._base_executable)')
+"$base" -m venv "$work/venv"
+say "installing into a fresh venv in $work (dependencies from the package index)"
+"$work/venv/bin/python" -m pip install --quiet --disable-pip-version-check "$PWD/$wheel"
+
+cd "$work"
+say "smoke test from $work without a toolchain on PATH"
+env -i HOME="$HOME" PATH="$work/venv/bin:/usr/bin:/bin" "$work/venv/bin/python" - <<'PY'
+import shutil, subprocess, sys
+for tool in ("cargo", "rustc", "c++"):
+    assert shutil.which(tool) is None or tool == "c++", f"{tool} is on PATH"
+assert shutil.which("cargo") is None
+
+import mitsuba as mi
+import numpy as np
+import fluo
+
+assert not fluo.in_checkout(), fluo.library_path()
+assert fluo.library_path().parent.name == "fluo" and "site-packages" in str(fluo.library_path())
+print("[wheel] library", fluo.library_path(), "built for", fluo.BUILT_FOR)
+
+def render(variant, concentration, bsdf=None):
+    mi.set_variant(variant)
+    bsdf = bsdf or {"type": "fluo_jung", "emission_peak": 520.0, "concentration": concentration}
+    scene = mi.load_dict({
+        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 3},
+        "sensor": {"type": "perspective",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 4], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
+        "light": {"type": "constant", "radiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
+        "ball": {"type": "sphere", "bsdf": bsdf}})
+    return np.array(mi.render(scene, spp=32, seed=1))
+
+for variant in ("scalar_spectral", "scalar_rgb"):
+    dyed, plain = render(variant, 0.9), render(variant, 0.0)
+    assert np.isfinite(dyed).all() and dyed.mean() > 0.01, (variant, dyed.mean())
+    # The dye moves blue light to green: the centre's green/blue ratio rises.
+    c = lambda img: img[6:10, 6:10].reshape(-1, 3).mean(0)
+    assert c(dyed)[1] / c(dyed)[2] > 1.2 * c(plain)[1] / c(plain)[2], (variant, c(dyed), c(plain))
+    print(f"[wheel] {variant}: fluo_path + fluo_jung renders, centre rgb {c(dyed).round(3)} vs undyed {c(plain).round(3)}")
+
+# The shipped cube (package data) through fluo_jung's colour upsampling.
+img = render("scalar_rgb", 0.0, {"type": "fluo_jung", "color": {"type": "rgb", "value": [0.9, 0.8, 0.1]}})
+assert np.isfinite(img).all() and img.mean() > 0.01
+print("[wheel] fluo_jung color upsampling finds", fluo.data_dir("cubes"))
+
+# The physics tool and the shipped scenes through the command line.
+out = subprocess.run(["fluo-rs", "--version"], capture_output=True, text=True, check=True).stdout
+print("[wheel]", out.strip())
+res = fluo.run_tool(["patch", "--material", '{"model":"jung","emission_peak":520,"concentration":0.8}',
+                     "--illuminant", "D65"])
+assert 0 < res["xyz"][1] < 2, res
+scene = fluo.scenes_dir() / "fluo_path_d65.xml"
+subprocess.run(["fluo", "render", str(scene), "--variant", "scalar_rgb", "--spp", "4", "-o", "smoke.exr"],
+               check=True, capture_output=True)
+print("[wheel] fluo render of the shipped", scene.name, "ok")
+PY
+say "ok"

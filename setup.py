@@ -1,0 +1,60 @@
+"""What pyproject.toml cannot say: the compiled parts of the wheel and its data.
+
+``pip wheel .`` (or ``python -m build``) builds a platform wheel with setuptools-rust:
+
+* ``fluo/libfluo.so`` — the Mitsuba plugin library (Rust core + C++ shims), built with
+  ``cargo --features mitsuba`` against the ``mitsuba``/``drjit``/``nanobind`` wheels of
+  the isolated build environment (``FLUO_PYTHON`` = that environment's Python, see
+  build.rs), with run paths relative to the installed package (``FLUO_RPATH=relative``:
+  ``$ORIGIN/../mitsuba`` and ``$ORIGIN/../drjit``);
+* ``fluo-rs`` — the physics tool, installed into the environment's ``bin/``;
+* ``fluo/data/{cubes,matrices,scenes}`` — the coefficient cubes, the example matrices and
+  the demo scenes, found at run time through ``importlib.resources`` (``fluo.data_dir``).
+
+The developer path (scripts/setup.sh) installs this package editable with
+``FLUO_SKIP_RUST=1`` and builds the library with cargo itself (target/release).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+from pathlib import Path
+
+from setuptools import setup
+from setuptools.command.build_py import build_py
+from setuptools_rust import Binding, RustBin, RustExtension
+
+ROOT = Path(__file__).resolve().parent
+#: Package data: fluo/data/<name> <- <repository>/<source>.
+DATA = {"cubes": "data/cubes", "matrices": "data/matrices", "scenes": "scenes"}
+
+
+class BuildPyWithData(build_py):
+    """build_py that also copies the repository's data folders into fluo/data/."""
+
+    def run(self) -> None:
+        super().run()
+        for name, source in DATA.items():
+            target = Path(self.build_lib) / "fluo" / "data" / name
+            shutil.copytree(ROOT / source, target, dirs_exist_ok=True,
+                            ignore=shutil.ignore_patterns("*.md", "__pycache__"))
+
+
+def rust_targets() -> list:
+    if os.environ.get("FLUO_SKIP_RUST"):
+        return []
+    # setuptools-rust runs cargo (and rustc -V) with exactly this environment.
+    env = dict(os.environ, FLUO_PYTHON=sys.executable, FLUO_RPATH="relative")
+    # A target folder of its own: the wheel's library has relative run paths and must
+    # not replace the developer build in target/release.
+    env.setdefault("CARGO_TARGET_DIR", str(ROOT / "target" / "wheel"))
+    return [
+        RustExtension("fluo.libfluo", binding=Binding.NoBinding, features=["mitsuba"], env=env,
+                      py_limited_api=False),
+        RustBin("fluo-rs", features=["mitsuba"], env=env),
+    ]
+
+
+setup(rust_extensions=rust_targets(), cmdclass={"build_py": BuildPyWithData}, zip_safe=False)
