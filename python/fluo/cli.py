@@ -378,8 +378,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         if row.mean_de is not None:
             times = ", ".join(f"{k} {p.seconds:.2f} s" for k, p in row.panels.items()
                               if p.seconds is not None)
+            noise = "n/a" if row.noise_de is None else f"{row.noise_de:.2f}"
             print(f"  {row.scene}: mean ΔE00 spectral vs without fluorescence "
-                  f"{row.mean_de:.2f} (p95 {row.p95_de:.2f}); {times}")
+                  f"{row.mean_de:.2f} (noise floor {noise}, p95 {row.p95_de:.2f}); {times}")
     print(f"Gallery: {args.out / 'gallery.png'} and {args.out / 'index.html'}")
     failed = [row.scene for row in rows if row.failed]
     if failed:

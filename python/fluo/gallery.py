@@ -69,7 +69,7 @@ CELL_IN = 3.0
 HEADER_IN = 0.5
 #: Resolution of ``gallery.png``, dots per inch.
 DPI = 100
-#: Width of the README copy (``docs/gallery.png``), pixels.
+#: Width of the README copy (``docs/gallery.png``), pixels: 180 per panel.
 README_WIDTH_PX = 720
 
 
@@ -227,7 +227,8 @@ def run(scenes: list[Path], out: Path, spp: int, res: int | None = None, seed: i
             _save_de_png(row.de_map, de_png)
             row.panels["de00"] = Panel("de00", files=[str(de_png)])
             try:
-                noise, _, _ = _render(text, scene.parent, "scalar_spectral", spp, seed + 1, None)
+                other_seed = (seed + 1) % 2**32  # Mitsuba's seeds are unsigned 32-bit
+                noise, _, _ = _render(text, scene.parent, "scalar_spectral", spp, other_seed, None)
                 row.noise_de = float(delta_e_map(np.maximum(noise, 0), np.maximum(spectral, 0)).mean())
             except RuntimeError as err:
                 log(f"fluo demo: {scene.name}: noise-floor render failed: {err}")
@@ -321,17 +322,10 @@ def write_figure(rows: list[Row], path: Path, spp: int, dpi: float = DPI) -> Non
 
 
 def write_readme_copy(rows: list[Row], path: Path, spp: int) -> None:
-    """The gallery figure :data:`README_WIDTH_PX` wide, in a 256-colour palette (a
-    few hundred kB less in the repository; the panels are small and the ΔE map a
-    256-entry colour map anyway)."""
-    from PIL import Image  # matplotlib's own dependency
-
+    """The gallery figure :data:`README_WIDTH_PX` wide (kept in full RGB: a 256-colour
+    palette, a third of the size, bands the shaded spheres)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     write_figure(rows, path, spp, dpi=README_WIDTH_PX / (len(PANELS) * CELL_IN))
-    with Image.open(path) as image:
-        palette = image.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT,
-                                                dither=Image.Dither.NONE)
-    palette.save(path, optimize=True)
 
 
 def _materials_label(materials: list[str]) -> str:
