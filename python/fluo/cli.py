@@ -6,7 +6,9 @@ Python subcommands:
     Render one scene file in a scalar variant, write an EXR (or whatever the ``-o``
     extension says) plus an sRGB PNG beside it, and print the written paths.
 ``demo``
-    Render every ``scenes/*.xml`` in every scalar variant it allows into ``out/``.
+    Render every ``scenes/*.xml`` in every scalar variant it allows, and without
+    fluorescence, into ``out/``, and write the gallery (``out/gallery.png``,
+    ``out/index.html``; :mod:`fluo.gallery`).
 
 Every other subcommand (``patch``, ``qd``, ``fit-gmm``, ``reduce``, ...) is forwarded
 verbatim to the ``fluo-rs`` physics tool, whose stdout, stderr and exit status pass
@@ -89,10 +91,13 @@ def _parser() -> argparse.ArgumentParser:
 
     demo = sub.add_parser(
         "demo",
-        help="render every scenes/*.xml in both scalar variants",
+        help="render every scenes/*.xml in both scalar variants and write a gallery",
         description=(
             "Render every SCENES/*.xml (not subfolders) in scalar_spectral and scalar_rgb "
-            "into OUT/<scene>_<variant>.exr and .png, each in a fresh process. A comment "
+            "into OUT/<scene>_<variant>.exr and .png, plus the same scene without "
+            "fluorescence (OUT/<scene>_no_fluorescence.exr/.png) and the per-pixel CIEDE2000 "
+            "between spectral and without (OUT/<scene>_de00.png), and put them side by side "
+            "in OUT/gallery.png and OUT/index.html (numbers in OUT/gallery.json). A comment "
             "'<!-- fluo: variants=scalar_spectral -->' in a scene restricts its variants."
         ),
     )
@@ -102,6 +107,14 @@ def _parser() -> argparse.ArgumentParser:
                       help="output directory (default: <repo>/out)")
     demo.add_argument("--scenes", type=Path, default=repo_root() / "scenes", metavar="DIR",
                       help="scene directory (default: <repo>/scenes)")
+    demo.add_argument("--res", type=_positive_int, default=None, metavar="N",
+                      help="film width and height for scenes with a $res parameter "
+                           "(default: each scene's own)")
+    demo.add_argument("--seed", type=_seed, default=0, metavar="S",
+                      help="sampler seed (default: 0)")
+    demo.add_argument("--readme", action="store_true",
+                      help="also write a small copy of the gallery to <repo>/docs/gallery.png "
+                           "(the image README.md shows)")
     demo.set_defaults(run=_cmd_demo)
 
     bench = sub.add_parser(
@@ -339,6 +352,8 @@ def scene_fallback_params(scene: Path, force: bool = False) -> dict[str, str]:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
+    from . import gallery
+
     args.out = args.out.resolve()
     problem = check_output_path(args.out, directory=True)
     if problem:
@@ -348,35 +363,26 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if not scenes:
         print(f"fluo demo: no scenes in {args.scenes}", file=sys.stderr)
         return 1
-    written: list[str] = []
-    failed: list[str] = []
-    for scene in scenes:
-        allowed = scene_variants(scene)
-        for variant in VARIANTS:
-            label = f"{scene.name} [{variant}]"
-            if variant not in allowed:
-                print(f"fluo demo: skipping {label} (scene allows {', '.join(allowed)})",
-                      file=sys.stderr)
-                continue
-            print(f"fluo demo: rendering {label} at {args.spp} spp", file=sys.stderr)
-            output = args.out / f"{scene.stem}_{variant}.exr"
-            cmd = [sys.executable, "-m", "fluo", "render", str(scene), "--variant", variant,
-                   "--spp", str(args.spp), "-o", str(output)]
-            for key, value in scene_fallback_params(scene).items():
-                print(f"fluo demo: {scene.name}: data for ${key} not found, using {value}",
-                      file=sys.stderr)
-                cmd += ["--param", f"{key}={value}"]
-            # stderr (progress, errors) goes to the terminal; stdout is the paths.
-            proc = subprocess.run(cmd, stdout=subprocess.PIPE, text=True, check=False)
-            if proc.returncode != 0:
-                failed.append(label)
-                print(f"fluo demo: FAILED {label} (exit status {proc.returncode})",
-                      file=sys.stderr)
-                continue
-            written.extend(line for line in proc.stdout.splitlines() if line.strip())
-    print("Written:" if written else "Nothing written.")
+    # Warnings and errors only: the gallery's own bar shows the progress.
+    _log_to_stderr(mi.LogLevel.Warn)
+    readme = (repo_root() / "docs" / "gallery.png") if args.readme else None
+    rows = gallery.run(scenes, args.out, args.spp, res=args.res, seed=args.seed, readme=readme)
+    written = [f for row in rows for panel in row.panels.values() for f in panel.files]
+    written += [str(args.out / name) for name in ("gallery.png", "index.html", "gallery.json")]
+    if readme is not None:
+        written.append(str(readme))
+    print("Written:")
     for path in written:
         print(f"  {path}")
+    for row in rows:
+        if row.mean_de is not None:
+            times = ", ".join(f"{k} {p.seconds:.2f} s" for k, p in row.panels.items()
+                              if p.seconds is not None)
+            noise = "n/a" if row.noise_de is None else f"{row.noise_de:.2f}"
+            print(f"  {row.scene}: mean ΔE00 spectral vs without fluorescence "
+                  f"{row.mean_de:.2f} (noise floor {noise}, p95 {row.p95_de:.2f}); {times}")
+    print(f"Gallery: {args.out / 'gallery.png'} and {args.out / 'index.html'}")
+    failed = [row.scene for row in rows if row.failed]
     if failed:
         print(f"Failed: {', '.join(failed)}", file=sys.stderr)
         return 1

@@ -102,12 +102,17 @@ def test06_demo_respects_variant_comment(fluo_cli, tmp_path, scene_xml):
     out = tmp_path / "out"
     proc = run([fluo_cli, "demo", "--scenes", scenes, "--out", out, "--spp", 1])
     assert proc.returncode == 0, proc.stderr
-    expected = {f"{stem}_{variant}{ext}"
-                for stem, variants in (("both", VARIANTS), ("spectral_only", ("scalar_spectral",)))
-                for variant in variants for ext in (".exr", ".png")}
+    renders = {f"{stem}_{variant}{ext}"
+               for stem, variants in (("both", VARIANTS), ("spectral_only", ("scalar_spectral",)))
+               for variant in variants + ("no_fluorescence",) for ext in (".exr", ".png")}
+    expected = renders | {"both_de00.png", "spectral_only_de00.png",
+                          "gallery.png", "index.html", "gallery.json"}
     assert {p.name for p in out.iterdir()} == expected
     for name in expected:
         assert str(out / name) in proc.stdout
+    assert f"Gallery: {out / 'gallery.png'}" in proc.stdout
+    # the restricted scene's reduced-RGB panel says why it is missing
+    assert "the scene allows scalar_spectral" in (out / "index.html").read_text()
 
 
 def test07_unknown_subcommand_is_forwarded(fluo_cli, tmp_path):
