@@ -48,7 +48,11 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      anything excited in the UV; ``xyzu`` when materials are broad and 4×4 matrices
      matter; ``rgb`` only for scenes without UV excitation (it has no UV band: an
      optical brightener's reradiation under daylight all but vanishes) or to compare
-     with a plain RGB renderer.
+     with a plain RGB renderer. Under narrow UV lamps every basis is coarse: one UV band
+     averages a dye's absorption over 300-400 nm (a brightener under a 365 nm lamp glows
+     ~5x too dark in ``xyzu``/``x7``, and not at all in ``rgb``); fluo_path warns once per
+     scene when an emitter is mostly ultraviolet. Render such scenes in
+     ``scalar_spectral``.
  * - method
    - |string|
    - ``scalar_rgb`` only: reduction of the reradiation, ``ours`` (dual basis, Fichet et
@@ -880,6 +884,7 @@ private:
             m_entries.push_back(Entry{ bsdf, bisp, model, fluo::fluo_excitation_range(*model), false,
                                        &*m_reduced.back() });
         }
+        bool warned_uv = m_uv_warned == scene; // one warning per scene
         for (const auto &emitter : scene->emitters()) {
             Collector ce;
             ce.visit(const_cast<Emitter *>(emitter.get()));
@@ -890,6 +895,15 @@ private:
                                                   rust::Slice<double>(es.coeffs.data(), m_k));
                     es.luminance = src->rgb_luminance();
                     m_sources.push_back(es);
+                    if (!warned_uv && !m_entries.empty() && fluo::illuminant_is_mostly_uv(src->illuminant())) {
+                        warned_uv = true;
+                        m_uv_warned = scene;
+                        Log(Warn, "%s (scalar_rgb): emitter \"%s\" is mostly ultraviolet; reduced transport "
+                                  "carries it in one UV band, which can misstate UV-excited fluorescence "
+                                  "several times over (a narrow 365 nm lamp: ~5x too dark, see `fluo-rs "
+                                  "saturated-report`). Render UV-lit scenes in scalar_spectral where that "
+                                  "matters.", Plugin, emitter->id());
+                    }
                     break;
                 }
         }
@@ -904,6 +918,7 @@ private:
     Coeffs m_white{};
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
     ref<BSDF> m_null; ///< see null_bsdf()
+    const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
     std::vector<EmitterSource> m_sources;
     std::vector<Entry> m_entries;
     std::vector<Wrapper> m_wrappers;

@@ -860,10 +860,11 @@ pub struct SaturatedRow {
     pub basis: &'static str,
     /// CIE illuminant.
     pub illuminant: &'static str,
-    /// Luminance of the reduced patch over the spectral one (1 is exact).
-    pub luminance_ratio: f64,
+    /// Luminance of the reduced patch over the spectral one (1 is exact); None where the
+    /// spectral patch is black (below [`SATURATED_MIN_Y`] of the white).
+    pub luminance_ratio: Option<f64>,
     /// The same for the reradiated light alone (elastic part removed on both sides).
-    pub fluorescence_ratio: f64,
+    pub fluorescence_ratio: Option<f64>,
     /// ΔE2000 between the two (reference white: the illuminant).
     pub delta_e: f64,
 }
@@ -890,8 +891,25 @@ pub const SATURATED_CASES: [(&str, f64, crate::jung::JungParams); 3] = [
     ),
 ];
 
-/// Illuminants of [`saturated_report`]: daylight, incandescent and a fluorescent lamp.
-pub const SATURATED_ILLUMINANTS: [&str; 3] = ["D65", "A", "FL2"];
+/// Illuminants of [`saturated_report`]: daylight, incandescent, a fluorescent lamp and
+/// [`UV_LAMP`], a narrow 365 nm "blacklight".
+pub const SATURATED_ILLUMINANTS: [&str; 4] = ["D65", "A", "FL2", UV_LAMP];
+
+/// Luminance (relative to the white) below which a patch counts as black in
+/// [`saturated_report`], and no ratio is formed.
+pub const SATURATED_MIN_Y: f64 = 1e-4;
+
+/// Name of the narrow UV lamp of [`saturated_report`]: a Gaussian at 365 nm, σ = 5 nm.
+pub const UV_LAMP: &str = "UV365";
+
+/// A light of [`saturated_report`] by name (a CIE illuminant or [`UV_LAMP`]).
+fn saturated_light(name: &str) -> Result<crate::spectrum::RegularSpectrum> {
+    if name == UV_LAMP {
+        let values = grid().iter().map(|&l| (-0.5 * ((l - 365.0) / 5.0).powi(2)).exp()).collect();
+        return crate::spectrum::RegularSpectrum::new(GRID_START_NM, GRID_STEP_NM, values);
+    }
+    crate::spectrum::illuminant(name)
+}
 
 /// Saturated fluorescence through reduced RGB transport, as `fluo_path` renders it in
 /// `scalar_rgb` (a patch facing a spectrally defined light: c = coefficients of the
@@ -921,16 +939,25 @@ pub fn saturated_rows(
         .collect();
     let transports =
         ["rgb", "xyzu", "x7"].iter().map(|b| Transport::new(b, Method::Ours)).collect::<Result<Vec<_>>>()?;
+    let ratio = |got: f64, want: f64| (want.abs() >= SATURATED_MIN_Y).then(|| got / want);
     let mut rows = Vec::new();
     for &(case, reflectance, params) in cases {
         let material = crate::jung::JungMaterial::new(crate::jung::Reflectance::Constant(reflectance), params)?;
         for &name in illuminants {
-            let light = crate::spectrum::illuminant(name)?;
+            let light = saturated_light(name)?;
             let i: Vec<f64> = lambdas.iter().map(|&l| light.eval(l)).collect();
             let shifted = |lo: f64| -> f64 {
                 lambdas.iter().zip(&i).zip(&weights).map(|((&li, &v), &w)| material.density(li, lo) * v * w).sum()
             };
-            let white = to_xyz(spectrum_to_srgb(|l| light.eval(l)));
+            // Reference white: the light itself, or for the UV lamp (which the observer
+            // hardly sees) an equal-energy light of the same radiant power.
+            let white = if name == UV_LAMP {
+                let power: f64 = i.iter().zip(&weights).map(|(v, w)| v * w).sum();
+                let span = GRID_END_NM - GRID_START_NM;
+                to_xyz(spectrum_to_srgb(|_| power / span))
+            } else {
+                to_xyz(spectrum_to_srgb(|l| light.eval(l)))
+            };
             let scale = 1.0 / white[1];
             let white = white.map(|v| v * scale);
             let fluorescent = to_xyz(spectrum_to_srgb(shifted)).map(|v| v * scale);
@@ -950,8 +977,8 @@ pub fn saturated_rows(
                     case,
                     basis: t.name,
                     illuminant: name,
-                    luminance_ratio: got[1] / reference[1],
-                    fluorescence_ratio: got_fluorescent[1] / fluorescent[1],
+                    luminance_ratio: ratio(got[1], reference[1]),
+                    fluorescence_ratio: ratio(got_fluorescent[1], fluorescent[1]),
                     delta_e: ciede2000(xyz_to_lab(got, white), xyz_to_lab(reference, white)),
                 });
             }
@@ -976,7 +1003,7 @@ mod saturated_tests {
         let rows = saturated_rows(&[("grey", 0.6, grey)], &["D65", "A", "FL2"]).unwrap();
         assert_eq!(rows.len(), 9);
         for r in &rows {
-            assert!((r.luminance_ratio - 1.0).abs() < 2e-3 && r.delta_e < 0.05, "{r:?}");
+            assert!((r.luminance_ratio.unwrap() - 1.0).abs() < 2e-3 && r.delta_e < 0.05, "{r:?}");
         }
     }
 
@@ -984,18 +1011,24 @@ mod saturated_tests {
     fn the_report_shows_what_each_basis_can_carry() {
         let rows = saturated_report().unwrap();
         assert_eq!(rows.len(), SATURATED_CASES.len() * SATURATED_ILLUMINANTS.len() * 3);
-        assert!(rows.iter().all(|r| r.luminance_ratio.is_finite() && r.delta_e.is_finite()));
+        assert!(rows.iter().all(|r| r.luminance_ratio.is_none_or(f64::is_finite) && r.delta_e.is_finite()));
         // rgb has no UV band: a brightener's reradiation under daylight all but vanishes,
         // while the UV bases carry most of it.
-        assert!(row(&rows, "UV brightener", "D65", "rgb").fluorescence_ratio < 0.05);
+        assert!(row(&rows, "UV brightener", "D65", "rgb").fluorescence_ratio.unwrap() < 0.05);
         for b in ["xyzu", "x7"] {
-            assert!(row(&rows, "UV brightener", "D65", b).fluorescence_ratio > 0.5, "{b}");
+            assert!(row(&rows, "UV brightener", "D65", b).fluorescence_ratio.unwrap() > 0.5, "{b}");
+            // Under a narrow 365 nm lamp one UV band averages the brightener's absorption
+            // over 300-400 nm: its glow comes out ~5x too dark (what fluo_path warns of).
+            let uv = row(&rows, "UV brightener", UV_LAMP, b).fluorescence_ratio.unwrap();
+            assert!(uv > 0.1 && uv < 0.35, "{b}: {uv}");
         }
+        // Emitters that do not absorb at 365 nm are black under the lamp: no ratio.
+        assert!(row(&rows, "green emitter", UV_LAMP, "x7").luminance_ratio.is_none());
         // x7 splits the visible range finely enough for a narrow green emitter under
         // daylight and incandescent light (within 20 %), where 3-4 bands lose a third.
         for light in ["D65", "A"] {
-            let x7 = row(&rows, "green emitter", light, "x7").luminance_ratio;
-            let rgb = row(&rows, "green emitter", light, "rgb").luminance_ratio;
+            let x7 = row(&rows, "green emitter", light, "x7").luminance_ratio.unwrap();
+            let rgb = row(&rows, "green emitter", light, "rgb").luminance_ratio.unwrap();
             assert!((x7 - 1.0).abs() < 0.2 && (x7 - 1.0).abs() < (rgb - 1.0).abs(), "{light}: x7 {x7} rgb {rgb}");
         }
     }

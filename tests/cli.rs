@@ -88,5 +88,5 @@ fn saturated_report_compares_every_basis() {
     for basis in ["rgb", "xyzu", "x7"] {
         assert!(rows.iter().any(|r| r["basis"] == basis), "{basis}");
     }
-    assert!(rows.iter().all(|r| r["luminance_ratio"].as_f64().unwrap().is_finite()));
+    assert!(rows.iter().all(|r| r["delta_e"].as_f64().unwrap().is_finite()));
 }

@@ -331,7 +331,8 @@ def saturated_table(rows: list[dict]) -> str:
         cells = []
         for b in bases:
             r = next(x for x in rows if x["case"] == case and x["illuminant"] == light and x["basis"] == b)
-            cells.append(f"{r['luminance_ratio']:.2f} / {r['fluorescence_ratio']:.2f} / {r['delta_e']:.1f}")
+            ratio = lambda v: "–" if v is None else f"{v:.2f}"  # None: the spectral patch is black
+            cells.append(f"{ratio(r['luminance_ratio'])} / {ratio(r['fluorescence_ratio'])} / {r['delta_e']:.1f}")
         lines.append(f"| {case} | {light} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 

@@ -543,7 +543,8 @@ fn print_saturated(rows: &[fluo::reduce::SaturatedRow]) {
     eprintln!("Saturated fluorescence through reduced RGB transport (fluo_path, scalar_rgb, method ours):");
     eprintln!(
         "per basis: luminance reduced/spectral of the patch, of its reradiated light alone (1 is exact), \
-         and ΔE2000 of the patch (white = illuminant)"
+         and ΔE2000 of the patch (white = illuminant; UV365: equal-energy light of its power); \
+         - where the spectral patch is black"
     );
     eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", "material", "light", "rgb", "xyzu", "x7");
     let mut seen: Vec<(&str, &str)> = Vec::new();
@@ -555,7 +556,10 @@ fn print_saturated(rows: &[fluo::reduce::SaturatedRow]) {
         let cell = |b: &str| {
             rows.iter()
                 .find(|x| x.case == r.case && x.illuminant == r.illuminant && x.basis == b)
-                .map(|x| format!("{:.2} {:.2} {:.1}", x.luminance_ratio, x.fluorescence_ratio, x.delta_e))
+                .map(|x| {
+                    let r = |v: Option<f64>| v.map_or("-".to_string(), |v| format!("{v:.2}"));
+                    format!("{} {} {:.1}", r(x.luminance_ratio), r(x.fluorescence_ratio), x.delta_e)
+                })
                 .unwrap_or_default()
         };
         eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", r.case, r.illuminant, cell("rgb"), cell("xyzu"), cell("x7"));

@@ -93,9 +93,13 @@ mod bridge {
         fn illuminant_range(s: &Illuminant) -> Range;
         /// Mean value over Mitsuba's 360–830 nm.
         fn illuminant_mean(s: &Illuminant) -> f64;
-        /// Linear sRGB (Mitsuba's convention) for the RGB variant.
+        /// Linear sRGB (Mitsuba's convention) for the RGB variant, negative channels clipped.
         fn illuminant_srgb(s: &Illuminant) -> Rgb;
         fn illuminant_to_string(s: &Illuminant) -> String;
+        /// Whether most of its radiant power lies below `UV_EDGE_NM` (a UV lamp: reduced
+        /// RGB transport carries it in one UV band and misstates UV-excited fluorescence
+        /// by up to ~5x, see `fluo-rs saturated-report`).
+        fn illuminant_is_mostly_uv(s: &Illuminant) -> bool;
 
         /// Reduced (matrix-throughput) transport for scalar_rgb (src/reduce.rs).
         type TransportBasis;
@@ -404,8 +408,21 @@ fn illuminant_mean(s: &Illuminant) -> f64 {
     s.spectrum.integrate_product(&|_: f64| 1.0, CIE_MIN_NM, CIE_MAX_NM, 1.0).unwrap_or(0.0) / (CIE_MAX_NM - CIE_MIN_NM)
 }
 
+/// Wavelength below which light counts as ultraviolet for [`illuminant_is_mostly_uv`], nm.
+const UV_EDGE_NM: f64 = 400.0;
+
+fn illuminant_is_mostly_uv(s: &Illuminant) -> bool {
+    let Range { lo, hi } = illuminant_range(s);
+    let power = |a: f64, b: f64| if b > a { s.spectrum.integrate_product(&|_: f64| 1.0, a, b, 1.0).unwrap_or(0.0) } else { 0.0 };
+    let total = power(lo, hi);
+    total > 0.0 && power(lo, hi.min(UV_EDGE_NM)) > 0.5 * total
+}
+
 fn illuminant_srgb(s: &Illuminant) -> Rgb {
-    rgb(spectrum_to_srgb(|l| s.spectrum.eval(l)))
+    // Out-of-gamut (negative) channels clipped, as an sRGB film must store them: a violet
+    // or UV lamp has negative linear-sRGB green, which Mitsuba reports per sample as an
+    // invalid value.
+    rgb(spectrum_to_srgb(|l| s.spectrum.eval(l)).map(|v| v.max(0.0)))
 }
 
 fn illuminant_to_string(s: &Illuminant) -> String {

@@ -60,6 +60,6 @@ def test03_bench_reports_saturated_fluorescence_per_basis():
     text = bench.saturated_table(rows)
     assert "| material | light | rgb | xyzu | x7 |" in text
     for case in ["green emitter", "red emitter", "UV brightener"]:
-        assert sum(line.startswith(f"| {case} |") for line in text.splitlines()) == 3
+        assert sum(line.startswith(f"| {case} |") for line in text.splitlines()) == 4  # D65, A, FL2, UV365
     uv = next(r for r in rows if r["case"] == "UV brightener" and r["illuminant"] == "D65" and r["basis"] == "rgb")
     assert uv["fluorescence_ratio"] < 0.05  # rgb has no UV band
