@@ -38,7 +38,7 @@ from pathlib import Path
 
 import mitsuba as mi
 
-from . import repo_root, tool_path
+from . import out_dir, repo_root, scenes_dir, tool_path
 
 #: Subcommands implemented here; anything else goes to fluo-rs.
 PYTHON_COMMANDS = ("render", "demo", "bench")
@@ -103,10 +103,10 @@ def _parser() -> argparse.ArgumentParser:
     )
     demo.add_argument("--spp", type=_positive_int, default=64, metavar="N",
                       help="samples per pixel (default: 64)")
-    demo.add_argument("--out", type=Path, default=repo_root() / "out", metavar="DIR",
-                      help="output directory (default: <repo>/out)")
-    demo.add_argument("--scenes", type=Path, default=repo_root() / "scenes", metavar="DIR",
-                      help="scene directory (default: <repo>/scenes)")
+    demo.add_argument("--out", type=Path, default=out_dir(), metavar="DIR",
+                      help="output directory (default: <repo>/out in a checkout, else ./out)")
+    demo.add_argument("--scenes", type=Path, default=scenes_dir(), metavar="DIR",
+                      help="scene directory (default: the shipped scenes, <repo>/scenes in a checkout)")
     demo.add_argument("--res", type=_positive_int, default=None, metavar="N",
                       help="film width and height for scenes with a $res parameter "
                            "(default: each scene's own)")
