@@ -69,6 +69,14 @@ Quantum-dot coated rough surface (:monosp:`fluo_qd`)
    - |float|
    - Range over which the emission is normalised and excitation is tabulated, nm.
      (Default: 300, 830)
+ * - table_cos_nodes
+   - |int|
+   - Rows of the excitation tables A_tot(θ, λ), uniform in cos θ, in [2, 1025]: an
+     accuracy/memory knob (memory and bake time grow linearly). (Default: 33)
+ * - table_step
+   - |float|
+   - Base λ step of the excitation tables in nm, in [0.05, 50]; the grid is refined to
+     δλ/8 near λQD regardless. An accuracy/memory knob. (Default: 1)
  * - gap_energy, elementary_charge, planck, light_speed, boltzmann, electron_mass,
      hole_mass, vacuum_permittivity, relative_permittivity, temperature
    - |float|
@@ -159,6 +167,13 @@ public:
         m_config.lambda_min    = get_double(props, "lambda_min", m_config.lambda_min);
         m_config.lambda_max    = get_double(props, "lambda_max", m_config.lambda_max);
         m_config.alpha         = get_double(props, "alpha", m_config.alpha);
+        m_config.table_step    = get_double(props, "table_step", m_config.table_step);
+        if (props.has_property("table_cos_nodes")) {
+            int64_t rows = props.get<int64_t>("table_cos_nodes");
+            if (rows < 2 || rows > 1025)
+                Throw("%s: invalid parameter \"table_cos_nodes\" = %d: valid range is [2, 1025]", Plugin, rows);
+            m_config.table_cos_nodes = (size_t) rows;
+        }
         for (auto &[name, field] : constant_fields())
             m_config.*field = get_double(props, name, m_config.*field);
 

@@ -77,6 +77,8 @@
 //! | `lambda_min/max`| λmin/max | nm | 200 ≤ min < max ≤ 1200 | 300/830 |
 //! | `alpha`         | α      | 1    | [0, 4] (0 → 1e-4)       | 0.1     |
 //! | `distribution`  |        |      | beckmann, ggx           | beckmann|
+//! | `table_cos_nodes` | rows of the tables | 1 | [2, 1025]       | 33      |
+//! | `table_step`    | base λ step of the tables | nm | [0.05, 50] | 1       |
 //! | Table 1 constants (`gap_energy` … `temperature`) | | SI | finite, > 0 | CdSe |
 //!
 //! `alpha` = 0 is clamped to [`MIN_ALPHA`] as Mitsuba does. The substrate is a
@@ -93,7 +95,8 @@
 //!
 //! # Precomputation (per material)
 //! A_tot(θ_j, λ_k) on [`COS_NODES`] rows uniform in cos θ and a λ grid of 1 nm over
-//! [λmin, λmax] refined to δλ/8 within ±[`GAUSS_CUTOFF`]·δλ of λQD, with its running
+//! [λmin, λmax] (defaults: `table_cos_nodes` and `table_step` set both per material)
+//! refined to δλ/8 within ±[`GAUSS_CUTOFF`]·δλ of λQD, with its running
 //! integral: this gives γ(θ), the shift albedo and an exact inverse-CDF sampler of
 //! λi | λo (piecewise-linear density of the row nearest cos θi). Memory: (2 · rows + 1)
 //! · nodes · 8 B: 33 × 534 nodes, 286 KB with the defaults ([`QdModel::table_bytes`];
@@ -128,10 +131,14 @@ use crate::error::check_range;
 use crate::spectrum::{IrregularSpectrum, Spectral};
 use crate::{Error, Result};
 
-/// Rows of the A_tot table, uniform in cos θ over [0, 1].
+/// Rows of the A_tot table, uniform in cos θ over [0, 1] (default of `table_cos_nodes`).
 pub const COS_NODES: usize = 33;
-/// Base step of the λ grid of the tables, nm.
+/// Valid range of `table_cos_nodes`.
+pub const COS_NODES_RANGE: (usize, usize) = (2, 1025);
+/// Base step of the λ grid of the tables, nm (default of `table_step`).
 pub const TABLE_STEP_NM: f64 = 1.0;
+/// Valid range of `table_step`, nm.
+pub const TABLE_STEP_RANGE_NM: (f64, f64) = (0.05, 50.0);
 /// Refinement of the λ grid near λQD: nodes every δλ / this.
 pub const TABLE_REFINE: f64 = 8.0;
 /// The quantum-absorption Gaussian is zero beyond this many δλ from λQD.
@@ -614,7 +621,7 @@ impl QdVolume {
         let beta =
             rayleigh_absorption_cross_section_nm2(band.radius_nm, band.lambda_qd_nm, index.eval(band.lambda_qd_nm), n_env);
         let mut v = Self { band, index, n_env, quantum_yield, lambda_range, beta, gamma: 0.0 };
-        let grid = lambda_grid(lambda_range, &band);
+        let grid = lambda_grid(lambda_range, &band, TABLE_STEP_NM);
         let total = trapezoid(&grid, |l| v.absorption_cross_section_nm2(l));
         let i = v.emission_normalisation();
         v.gamma = if i > 0.0 { quantum_yield / i * total } else { 0.0 };
@@ -688,13 +695,13 @@ fn check_lambda_range(r: (f64, f64)) -> Result<()> {
 }
 
 /// The λ grid of the tables: 1 nm over the range, refined near λQD, sorted.
-fn lambda_grid(range: (f64, f64), band: &QdBand) -> Vec<f64> {
+fn lambda_grid(range: (f64, f64), band: &QdBand, base_step: f64) -> Vec<f64> {
     let (lo, hi) = range;
-    let n = ((hi - lo) / TABLE_STEP_NM).ceil().max(1.0) as usize;
+    let n = ((hi - lo) / base_step).ceil().max(1.0) as usize;
     let mut g: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
     let (c, d) = (band.lambda_qd_nm, band.width_nm);
     let step = d / TABLE_REFINE;
-    if step < TABLE_STEP_NM {
+    if step < base_step {
         let m = (2.0 * GAUSS_CUTOFF * TABLE_REFINE).round() as usize;
         for i in 0..=m {
             let l = c - GAUSS_CUTOFF * d + i as f64 * step;
@@ -930,6 +937,10 @@ pub struct QdParams {
     pub alpha: f64,
     /// Table 1 constants.
     pub constants: QdConstants,
+    /// Rows of the A_tot tables, uniform in cos θ (accuracy/memory knob).
+    pub cos_nodes: usize,
+    /// Base λ step of the tables, nm (accuracy/memory knob; refined near λQD regardless).
+    pub table_step_nm: f64,
 }
 
 impl Default for QdParams {
@@ -945,6 +956,8 @@ impl Default for QdParams {
             distribution: Distribution::Beckmann,
             alpha: 0.1,
             constants: QdConstants::default(),
+            cos_nodes: COS_NODES,
+            table_step_nm: TABLE_STEP_NM,
         }
     }
 }
@@ -1010,6 +1023,8 @@ impl QdModel {
         check_range("ext_ior", params.ext_ior, 1.0, 3.0)?;
         check_lambda_range((params.lambda_min_nm, params.lambda_max_nm))?;
         check_range("alpha", params.alpha, 0.0, 4.0)?;
+        check_range("table_cos_nodes", params.cos_nodes as f64, COS_NODES_RANGE.0 as f64, COS_NODES_RANGE.1 as f64)?;
+        check_range("table_step", params.table_step_nm, TABLE_STEP_RANGE_NM.0, TABLE_STEP_RANGE_NM.1)?;
         index.validate()?;
         substrate.validate()?;
         let microfacet = Microfacet { kind: params.distribution, alpha: params.alpha.max(MIN_ALPHA) };
@@ -1032,12 +1047,14 @@ impl QdModel {
     }
 
     fn bake(&mut self) {
-        let lambda = lambda_grid((self.params.lambda_min_nm, self.params.lambda_max_nm), &self.band);
+        let lambda =
+            lambda_grid((self.params.lambda_min_nm, self.params.lambda_max_nm), &self.band, self.params.table_step_nm);
         let n = lambda.len();
-        let mut a_tot = Vec::with_capacity(COS_NODES * n);
-        let mut cdf = Vec::with_capacity(COS_NODES * n);
-        for j in 0..COS_NODES {
-            let c = j as f64 / (COS_NODES - 1) as f64;
+        let rows = self.params.cos_nodes;
+        let mut a_tot = Vec::with_capacity(rows * n);
+        let mut cdf = Vec::with_capacity(rows * n);
+        for j in 0..rows {
+            let c = j as f64 / (rows - 1) as f64;
             let row: Vec<f64> = lambda.iter().map(|&l| self.a_tot(c, l)).collect();
             let mut acc = 0.0;
             cdf.push(0.0);
@@ -1048,7 +1065,7 @@ impl QdModel {
             a_tot.extend(row);
         }
         // Support: nodes where any row absorbs, widened to the neighbouring nodes.
-        let any = |k: usize| (0..COS_NODES).any(|j| a_tot[j * n + k] > 0.0);
+        let any = |k: usize| (0..rows).any(|j| a_tot[j * n + k] > 0.0);
         let first = (0..n).find(|&k| any(k));
         let last = (0..n).rev().find(|&k| any(k));
         self.excitation = match (first, last) {
@@ -1196,8 +1213,9 @@ impl QdModel {
             return 0.0;
         }
         let n = self.tables.lambda.len();
-        let x = cos_theta.clamp(0.0, 1.0) * (COS_NODES - 1) as f64;
-        let j = (x.floor() as usize).min(COS_NODES - 2);
+        let rows = self.params.cos_nodes;
+        let x = cos_theta.clamp(0.0, 1.0) * (rows - 1) as f64;
+        let j = (x.floor() as usize).min(rows - 2);
         let f = x - j as f64;
         let total = |j: usize| self.tables.cdf.get(j * n + n - 1).copied().unwrap_or(0.0);
         self.params.quantum_yield / self.norm * ((1.0 - f) * total(j) + f * total(j + 1))
@@ -1224,7 +1242,8 @@ impl QdModel {
     // ---- excitation tables
 
     fn row(&self, cos_theta: f64) -> usize {
-        ((cos_theta.clamp(0.0, 1.0) * (COS_NODES - 1) as f64).round() as usize).min(COS_NODES - 1)
+        let rows = self.params.cos_nodes;
+        ((cos_theta.clamp(0.0, 1.0) * (rows - 1) as f64).round() as usize).min(rows - 1)
     }
 
     /// Interpolated table value and running integral at λ on row j.
@@ -1336,7 +1355,7 @@ impl fmt::Display for QdModel {
             b.emission_peak_nm,
             p.lambda_min_nm,
             p.lambda_max_nm,
-            COS_NODES,
+            self.params.cos_nodes,
             self.tables.lambda.len(),
             self.table_bytes()
         )
@@ -1530,6 +1549,22 @@ mod tests {
             let got = rayleigh_absorption_cross_section_nm2(a, lam, m, n_env);
             assert!((got - want).abs() < 1e-9 * want, "{got} vs {want}");
         }
+    }
+
+    #[test]
+    fn table_knobs_are_validated_and_converge() {
+        for (rows, step) in [(1, 1.0), (2000, 1.0), (33, 0.0), (33, f64::NAN), (33, 100.0)] {
+            let p = QdParams { cos_nodes: rows, table_step_nm: step, ..QdParams::default() };
+            let e = QdModel::new(p, QdIndex::CdSe, GOLD).err().expect("out of range");
+            assert!(e.to_string().contains(if rows == 33 { "table_step" } else { "table_cos_nodes" }), "{e}");
+        }
+        let fine = model(QdParams { cos_nodes: 129, table_step_nm: 0.25, ..QdParams::default() });
+        let base = model(QdParams::default());
+        let coarse = model(QdParams { cos_nodes: 5, table_step_nm: 8.0, ..QdParams::default() });
+        assert!(coarse.table_bytes() < base.table_bytes() && base.table_bytes() < fine.table_bytes());
+        let err = |m: &QdModel| (0..=20).map(|i| (m.gamma(i as f64 / 20.0) - fine.gamma(i as f64 / 20.0)).abs()).fold(0.0, f64::max);
+        assert!(err(&base) <= err(&coarse) + 1e-12, "{} vs {}", err(&base), err(&coarse));
+        assert!(err(&base) < 1e-2 * fine.gamma(1.0), "{}", err(&base));
     }
 
     #[test]

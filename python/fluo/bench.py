@@ -6,17 +6,24 @@ on the same machine in one process:
 * a converged spectral reference (``fluo_path`` in ``scalar_spectral`` at
   ``ref_spp``), cached in ``out/cache/bench/`` with its settings (a changed scene or
   setting makes a new one);
-* each method at a ladder of sample counts; at every rung the render time and the
-  per-pixel CIEDE2000 against the reference (linear sRGB → XYZ → L*a*b*, white: D65 at
-  the reference's peak luminance) are measured.
+* each method at a ladder of sample counts; at every rung the render is timed
+  ``repeats`` times (default 3; the scene is loaded once, the same seed each time, so
+  the images are identical and only the time varies) and the per-pixel CIEDE2000 of
+  that image against the reference (linear sRGB → XYZ → L*a*b*, white: D65 at the
+  reference's peak luminance) is measured.
 
 Columns (all measured):
 
-* ``time``: render time at the top rung (fixed spp);
-* ``mean_de``, ``p95_de``: mean and 95th-percentile per-pixel ΔE00 at that rung;
+* ``time``: median render time at the top rung (fixed spp), with the min–max of the
+  repeats (``seconds``: medians per rung; ``seconds_min``, ``seconds_max``,
+  ``seconds_all``: the spread);
+* ``mean_de``, ``p95_de``: mean and 95th-percentile per-pixel ΔE00 at that rung (of the
+  one image all repeats produce);
 * ``equal_error_time``: time to reach mean ΔE00 ≤ ``target_de``, interpolated in
-  (log time, ΔE) between rungs; a method whose error never gets there within the ladder
-  (its bias floor lies above the target) reports ∞ with that measured floor;
+  (log time, ΔE) between rungs on the median times (``equal_error_range``: the same on
+  the fastest and the slowest repeat of every rung); a method whose error never gets
+  there within the ladder (its bias floor lies above the target) reports ∞ with that
+  measured floor;
 * ``material_bytes``: bytes the renderer holds per fluorescent material for the method
   at render time (model, tables, reduced matrices: the representation's memory).
 
@@ -27,8 +34,15 @@ and FL2, as the luminance ratio reduced/spectral of the patch and of its reradia
 light alone, and the patch's ΔE00. It is where the bases differ most, and what the
 ``basis`` advice in ``fluo_path``'s documentation rests on.
 
+Knob rows (``Method.knob``) vary one accuracy/cost setting of a model against the same
+reference: ``fluo_qd``'s excitation tables (``table_cos_nodes``, ``table_step``), the
+coefficient cube of ``fluo_jung``'s ``color`` (resolution 9 and 17, generated into
+``out/cache/cubes/`` on first use, and ``trilinear`` lookup), and the GMM component count
+of measured matrices (2/4/8).
+
 Methods are declared in :func:`methods`: how to turn a bench scene into the method's
-scene (variant, integrator, material rewrite). The table goes to stdout (Markdown),
+scene (variant, integrator, material rewrite). ``scripts/bench_readme.py`` turns a
+``results.json`` into the README's table and its reading (:func:`readme_region`). The table goes to stdout (Markdown),
 ``results.json`` and ``accuracy_vs_time.png`` to the output folder.
 """
 
@@ -71,25 +85,42 @@ def _matrix_to_diffuse(text: str) -> str:
 
 
 def _remove_dyes(text: str) -> str:
-    """The same materials without their fluorescent dye (concentration or density 0;
-    a measured matrix keeps its diagonal)."""
+    """The same materials without their fluorescent dye (concentration or density 0; a
+    ``color`` through the cube takes the cube's reflectance-only solution; a measured
+    matrix keeps its diagonal)."""
     text = re.sub(r'<float name="concentration" value="[^"]*"/>', '<float name="concentration" value="0"/>', text)
+    text = re.sub(r'(<rgb name="color" value="[^"]*"/>)', r'\1<boolean name="fluorescence" value="false"/>', text)
     text = re.sub(r'<float name="density" value="[^"]*"/>', '<float name="density" value="0"/>', text)
     return _matrix_to_diffuse(text)
+
+
+#: Linear ACEScg (AP1) to linear sRGB / Rec. 709 (Bradford D60 → D65), for the nearest
+#: native material of a ``color`` given in ACEScg.
+ACESCG_TO_SRGB = np.array([[1.70505, -0.62179, -0.08326],
+                           [-0.13026, 1.14080, -0.01055],
+                           [-0.02400, -0.12897, 1.15297]])
 
 
 def _to_native(text: str) -> str:
     """Mitsuba's nearest native materials: diffuse for fluo_jung (same reflectance) and
     fluo_matrix (its diagonal), roughconductor for fluo_qd (same substrate and roughness)."""
     def jung(m: re.Match) -> str:
-        refl = re.search(r'<rgb name="reflectance" value="[^"]*"/>', m.group(1))
-        return '<bsdf type="diffuse">' + (refl.group(0) if refl else "") + "</bsdf>"
+        refl = re.search(r'<rgb name="reflectance" value="[^"]*"/>', m.group(2))
+        color = re.search(r'<rgb name="color" value="([^"]*)"/>', m.group(2))
+        if color and not refl:
+            space = re.search(r'<string name="color_space" value="([^"]*)"/>', m.group(2))
+            rgb = np.array([float(v) for v in color.group(1).split(",")])
+            if (space.group(1) if space else "acescg").lower() == "acescg":
+                rgb = ACESCG_TO_SRGB @ rgb
+            values = ", ".join(f"{v:.4f}" for v in np.clip(rgb, 0.0, 1.0))
+            return f'<bsdf type="diffuse"{m.group(1) or ""}><rgb name="reflectance" value="{values}"/></bsdf>'
+        return f'<bsdf type="diffuse"{m.group(1) or ""}>' + (refl.group(0) if refl else "") + "</bsdf>"
 
     def qd(m: re.Match) -> str:
-        keep = re.findall(r'<(?:string|float) name="(?:material|alpha|distribution)" value="[^"]*"/>', m.group(1))
-        return '<bsdf type="roughconductor">' + "".join(keep) + "</bsdf>"
-    text = re.sub(r'<bsdf type="fluo_jung">(.*?)</bsdf>', jung, text, flags=re.S)
-    text = re.sub(r'<bsdf type="fluo_qd">(.*?)</bsdf>', qd, text, flags=re.S)
+        keep = re.findall(r'<(?:string|float) name="(?:material|alpha|distribution)" value="[^"]*"/>', m.group(2))
+        return f'<bsdf type="roughconductor"{m.group(1) or ""}>' + "".join(keep) + "</bsdf>"
+    text = re.sub(r'<bsdf type="fluo_jung"( id="[^"]*")?>(.*?)</bsdf>', jung, text, flags=re.S)
+    text = re.sub(r'<bsdf type="fluo_qd"( id="[^"]*")?>(.*?)</bsdf>', qd, text, flags=re.S)
     return _matrix_to_diffuse(text)
 
 
@@ -109,6 +140,37 @@ def _gmm(components: int, cache: Path) -> Callable[[str], str]:
     return rewrite
 
 
+def _qd_knob(name: str, value: str) -> Callable[[str], str]:
+    """Every fluo_qd with ``name`` (an excitation-table knob) set to ``value``."""
+    kind = "integer" if name == "table_cos_nodes" else "float"
+
+    def rewrite(text: str) -> str:
+        return re.sub(r'(<bsdf type="fluo_qd"[^>]*>)', rf'\1<{kind} name="{name}" value="{value}"/>', text)
+    return rewrite
+
+
+def cube_path(res: int, space: str = "acescg") -> Path:
+    """A coefficient cube of resolution ``res``: the shipped one for 33, else generated
+    once (threshold ∞, like the shipped ones) into ``out/cache/cubes/``."""
+    shipped = repo_root() / "data" / "cubes" / f"{space}_d65_tinf_r{res}.cube"
+    if shipped.exists():
+        return shipped
+    path = repo_root() / "out" / "cache" / "cubes" / f"{space}_d65_tinf_r{res}.cube"
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        run_tool(["upsample-cube", "--space", space, "--res", res, "--threshold", "inf", "-o", path])
+    return path
+
+
+def _cube_knob(res: int, lookup: str = "nearest") -> Callable[[str], str]:
+    """Every fluo_jung ``color`` through the cube of resolution ``res`` with ``lookup``."""
+    def rewrite(text: str) -> str:
+        cube = cube_path(res)
+        return re.sub(r'(<rgb name="color" value="[^"]*"/>)',
+                      rf'\1<string name="cube" value="{cube}"/><string name="lookup" value="{lookup}"/>', text)
+    return rewrite
+
+
 def _reduced(basis: str, method: str) -> Callable[[str], str]:
     def rewrite(text: str) -> str:
         text = re.sub(r'<string name="basis" value="[^"]*"/>', f'<string name="basis" value="{basis}"/>', text)
@@ -117,7 +179,11 @@ def _reduced(basis: str, method: str) -> Callable[[str], str]:
 
 
 def _material_kinds(text: str) -> set[str]:
-    return set(re.findall(r'<bsdf type="fluo_(jung|matrix|gmm|qd)"', text))
+    """Fluorescent material kinds of a scene; ``cube`` when a fluo_jung takes a ``color``."""
+    kinds = set(re.findall(r'<bsdf type="fluo_(jung|matrix|gmm|qd)"', text))
+    if re.search(r'<bsdf type="fluo_jung"[^>]*>(?:(?!</bsdf>).)*name="color"', text, flags=re.S):
+        kinds.add("cube")
+    return kinds
 
 
 def _material_bytes(text: str) -> float:
@@ -125,14 +191,25 @@ def _material_bytes(text: str) -> float:
     from . import run_tool
 
     sizes = []
-    for m in re.finditer(r'<bsdf type="fluo_(jung|matrix|gmm|qd)">(.*?)</bsdf>', text, flags=re.S):
+    for m in re.finditer(r'<bsdf type="fluo_(jung|matrix|gmm|qd)"(?: id="[^"]*")?>(.*?)</bsdf>', text, flags=re.S):
         kind, body = m.group(1), m.group(2)
         if kind in ("matrix", "gmm"):
             f = re.search(r'name="filename" value="([^"]*)"', body).group(1)
             sizes.append(run_tool(["memory", "--material", f])["bytes"])
         elif kind == "qd":
             r = re.search(r'<float name="radius" value="([^"]*)"/>', body)
-            sizes.append(run_tool(["qd", "--radius", r.group(1) if r else "2.2"])["tables"]["bytes"])
+            args = ["qd", "--radius", r.group(1) if r else "2.2"]
+            for name in ("table_cos_nodes", "table_step"):
+                k = re.search(rf'name="{name}" value="([^"]*)"', body)
+                if k:
+                    args += [f"--{name.replace('_', '-')}", k.group(1)]
+            sizes.append(run_tool(args)["tables"]["bytes"])
+        elif "name=\"color\"" in body:
+            # the model plus the coefficient cube it looks colours up in (shared by all
+            # materials of a colour space; counted whole, once per material)
+            cube = re.search(r'<string name="cube" value="([^"]*)"/>', body)
+            path = Path(cube.group(1)) if cube else repo_root() / "data" / "cubes" / "acescg_d65_tinf_r33.cube"
+            sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"] + path.stat().st_size)
         else:
             sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"])
     return float(np.mean(sizes)) if sizes else 0.0
@@ -158,13 +235,32 @@ class Method:
     #: material kinds (before rewriting) the method applies to; None: all
     kinds: set[str] | None = None
     note: str = ""
+    #: the accuracy/cost knob the row varies ("" for the methods themselves)
+    knob: str = ""
+    #: scene stems the method is restricted to; None: every scene it applies to
+    scenes: set[str] | None = None
+
+    def applies(self, scene: str, kinds: set[str]) -> bool:
+        return ((self.kinds is None or bool(self.kinds & kinds))
+                and (self.scenes is None or scene in self.scenes))
 
 
 def methods(cache: Path) -> list[Method]:
     """Every method the project offers, in table order."""
     ms = [Method("spectral, scene's own model (fluo_path)", "scalar_spectral", lambda t: t, _material_bytes)]
-    ms += [Method(f"spectral GMM-{k} (fluo_path)", "scalar_spectral", _gmm(k, cache), _material_bytes, {"matrix"})
+    ms += [Method(f"spectral GMM-{k} (fluo_path)", "scalar_spectral", _gmm(k, cache), _material_bytes, {"matrix"},
+                  knob="GMM components")
            for k in (2, 4, 8)]
+    # excitation tables of fluo_qd (defaults: 33 rows in cos θ, 1 nm base step), on the
+    # blacklight scene, where the coatings are excited hardest
+    ms += [Method(f"spectral, fluo_qd {name}={value} (fluo_path)", "scalar_spectral", _qd_knob(name, value),
+                  _material_bytes, {"qd"}, knob="QD tables", scenes={"blacklight_box"})
+           for name, value in (("table_cos_nodes", "2"), ("table_cos_nodes", "5"), ("table_cos_nodes", "129"),
+                               ("table_step", "10"), ("table_step", "0.25"))]
+    # coefficient cube of fluo_jung's `color` (shipped: 33³, nearest)
+    ms += [Method(f"spectral, color cube {res}³ {lookup} (fluo_path)", "scalar_spectral", _cube_knob(res, lookup),
+                  _material_bytes, {"cube"}, knob="cube resolution")
+           for res, lookup in ((9, "nearest"), (17, "nearest"), (33, "trilinear"))]
     ms += [Method(f"rgb {m}-{b} (fluo_path)", "scalar_rgb", _reduced(b, m), _reduced_bytes({"rgb": 3, "xyzu": 4, "x7": 7}[b]))
            for m in ("ours", "naive") for b in ("rgb", "xyzu", "x7")]
     ms += [Method("rgb plain, no fluorescence (path)", "scalar_rgb", lambda t: _remove_dyes(_to_path(t)),
@@ -179,15 +275,25 @@ class Row:
     scene: str
     method: str
     spp: list[int] = field(default_factory=list)
+    #: median render time per rung over the repeats, and its spread
     seconds: list[float] = field(default_factory=list)
+    seconds_min: list[float] = field(default_factory=list)
+    seconds_max: list[float] = field(default_factory=list)
+    seconds_all: list[list[float]] = field(default_factory=list)
     mean_de: list[float] = field(default_factory=list)
     p95_de: list[float] = field(default_factory=list)
     equal_error_time: float | None = None
+    #: equal-error time on the fastest and on the slowest repeat of every rung
+    equal_error_range: list[float | None] = field(default_factory=lambda: [None, None])
     floor_de: float = 0.0
     material_bytes: float = 0.0
+    knob: str = ""
 
 
-def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: Path) -> tuple[np.ndarray, float]:
+def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: Path,
+                 repeats: int = 1) -> tuple[np.ndarray, list[float]]:
+    """Load once, render ``repeats`` times with the same seed; the first image and the
+    render time of every repeat."""
     import mitsuba as mi
 
     mi.set_variant(variant)
@@ -197,9 +303,14 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
     path = cache / f"scene_{digest}.xml"
     path.write_text(text)
     scene = mi.load_file(str(path), res=res, spp=spp)
-    t0 = time.perf_counter()
-    img = np.array(mi.render(scene, seed=seed), dtype=np.float64)[..., :3]
-    return img, time.perf_counter() - t0
+    img, seconds = None, []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = mi.render(scene, seed=seed)
+        seconds.append(time.perf_counter() - t0)
+        if img is None:
+            img = np.array(out, dtype=np.float64)[..., :3]
+    return img, seconds
 
 
 def _absolutise_includes(text: str, scene_dir: Path) -> str:
@@ -249,15 +360,20 @@ def equal_error_time(seconds: list[float], errors: list[float], target: float) -
 
 
 def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None = None,
-        target_de: float = 1.5, log=print) -> dict:
-    """Run the benchmark; returns the results dict (also written to ``out``)."""
+        target_de: float = 1.5, repeats: int = 3, log=print, *, res: int | None = None,
+        ladder: list[int] | None = None, ref_spp: int | None = None) -> dict:
+    """Run the benchmark; returns the results dict (also written to ``out``).
+
+    ``quick``: 48x48, spp ladder 4…256, reference 4096 spp; full: 96x96, ladder 4…1024,
+    reference 16384 spp (``res``, ``ladder``, ``ref_spp`` override either).
+    """
     out = Path(out or repo_root() / "out" / "bench")
     cache = repo_root() / "out" / "cache" / "bench"
     out.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
-    res = 48 if quick else 96
-    ladder = [4, 16, 64, 256, 1024]
-    ref_spp = 4096 if quick else 16384
+    res = res or (48 if quick else 96)
+    ladder = ladder or ([4, 16, 64, 256] if quick else [4, 16, 64, 256, 1024])
+    ref_spp = ref_spp or (4096 if quick else 16384)
     rows: list[Row] = []
     scenes = scenes or sorted(BENCH_DIR.glob("*.xml"))
     for scene_path in scenes:
@@ -272,28 +388,35 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
             ref, t = _render_text(base, "scalar_spectral", res, ref_spp, 12345, cache)
             np.save(ref_file, ref)
             ref_file.with_suffix(".json").write_text(json.dumps(
-                {"scene": scene_path.name, "res": res, "spp": ref_spp, "seconds": t}))
+                {"scene": scene_path.name, "res": res, "spp": ref_spp, "seconds": t[0]}))
         kinds = _material_kinds(base)
         for m in methods(cache):
-            if m.kinds is not None and not (m.kinds & kinds):
+            if not m.applies(scene_path.stem, kinds):
                 continue
             text = m.rewrite(base)
-            row = Row(scene_path.stem, m.name, material_bytes=m.bytes(text))
+            row = Row(scene_path.stem, m.name, material_bytes=m.bytes(text), knob=m.knob)
             for spp in ladder:
-                img, t = _render_text(text, m.variant, res, spp, 1, cache)
+                img, ts = _render_text(text, m.variant, res, spp, 1, cache, repeats)
                 de = delta_e_map(np.maximum(img, 0), np.maximum(ref, 0))
                 row.spp.append(spp)
-                row.seconds.append(t)
+                row.seconds.append(float(np.median(ts)))
+                row.seconds_min.append(min(ts))
+                row.seconds_max.append(max(ts))
+                row.seconds_all.append(ts)
                 row.mean_de.append(float(de.mean()))
                 row.p95_de.append(float(np.percentile(de, 95)))
             row.equal_error_time = equal_error_time(row.seconds, row.mean_de, target_de)
+            row.equal_error_range = [equal_error_time(row.seconds_min, row.mean_de, target_de),
+                                     equal_error_time(row.seconds_max, row.mean_de, target_de)]
             row.floor_de = min(row.mean_de)
             rows.append(row)
-            log(f"[bench]   {m.name:42s} {row.seconds[-1]:7.2f}s  ΔE00 {row.mean_de[-1]:.2f}")
+            log(f"[bench]   {m.name:48s} {row.seconds[-1]:7.2f}s "
+                f"[{row.seconds_min[-1]:.2f}-{row.seconds_max[-1]:.2f}]  ΔE00 {row.mean_de[-1]:.2f}")
     result = {
         "date": time.strftime("%Y-%m-%d"),
         "machine": _machine(),
         "quick": quick, "res": res, "ladder_spp": ladder, "ref_spp": ref_spp, "target_de": target_de,
+        "repeats": repeats,
         "rows": [r.__dict__ for r in rows],
         "saturated": run_tool(["saturated-report"])["saturated"],
     }
@@ -303,19 +426,208 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
     return result
 
 
+SPECTRAL = "spectral, scene's own model (fluo_path)"
+NO_FLUORESCENCE = "rgb plain, no fluorescence (path)"
+README_BEGIN = "<!-- bench:begin (generated by scripts/bench_readme.py from docs/bench/results.json; do not edit) -->"
+README_END = "<!-- bench:end -->"
+
+
+def _eet(r: dict) -> str:
+    if r["equal_error_time"] is None:
+        return f"∞: bias floor {r['floor_de']:.2f} > target"
+    lo, hi = r.get("equal_error_range", [None, None])
+    spread = (f" [{lo:.3f}–{hi:.3f}]" if lo is not None and hi is not None else "")
+    return f"{r['equal_error_time']:.3f}{spread}"
+
+
+def _time(r: dict) -> str:
+    lo, hi = r.get("seconds_min"), r.get("seconds_max")
+    return f"{r['seconds'][-1]:.3f}" + (f" [{lo[-1]:.3f}–{hi[-1]:.3f}]" if lo and hi else "")
+
+
+def header(result: dict) -> str:
+    return (f"fluo bench ({'quick' if result['quick'] else 'full'}), {result['date']}, {result['machine']}; "
+            f"{result['res']}x{result['res']}, time and ΔE00 at {result['ladder_spp'][-1]} spp, "
+            f"reference {result['ref_spp']} spp, equal-error target mean ΔE00 ≤ {result['target_de']}; "
+            f"times: median [min–max] of {result.get('repeats', 1)} renders per rung, ΔE00 of their "
+            f"(identical, same seed) image")
+
+
+def rows_table(rows: list[dict], knob: bool = False) -> str:
+    """Markdown table of bench rows (``knob``: with the knob's name as first column)."""
+    head = ("| knob | " if knob else "| ") + ("scene | method | time (s) | mean ΔE00 | p95 ΔE00 | "
+                                              "equal-error time (s) | bytes/material |")
+    lines = [head, "|" + "---|" * (head.count("|") - 1)]
+    for r in rows:
+        lines.append(("| " + r.get("knob", "") + " " if knob else "") +
+                     f"| {r['scene']} | {r['method']} | {_time(r)} | {r['mean_de'][-1]:.2f} | "
+                     f"{r['p95_de'][-1]:.2f} | {_eet(r)} | {r['material_bytes']:.0f} |")
+    return "\n".join(lines) + "\n"
+
+
+def _split(result: dict) -> tuple[list[dict], list[dict]]:
+    """(method rows, knob rows); the GMM rows are both a method and a knob: kept with the
+    methods and not repeated."""
+    rows = result["rows"]
+    knobs = [r for r in rows if r.get("knob") and not r["method"].startswith("spectral GMM")]
+    return [r for r in rows if r not in knobs], knobs
+
+
 def table(result: dict) -> str:
-    lines = [f"fluo bench ({'quick' if result['quick'] else 'full'}), {result['date']}, {result['machine']}; "
-             f"{result['res']}x{result['res']}, time and ΔE00 at {result['ladder_spp'][-1]} spp, "
-             f"reference {result['ref_spp']} spp, equal-error target mean ΔE00 ≤ {result['target_de']}",
-             "",
-             "| scene | method | time (s) | mean ΔE00 | p95 ΔE00 | equal-error time (s) | bytes/material |",
-             "|---|---|---|---|---|---|---|"]
-    for r in result["rows"]:
-        eet = (f"{r['equal_error_time']:.3f}" if r["equal_error_time"] is not None
-               else f"∞: bias floor {r['floor_de']:.2f} > target")
-        lines.append(f"| {r['scene']} | {r['method']} | {r['seconds'][-1]:.3f} | {r['mean_de'][-1]:.2f} | "
-                     f"{r['p95_de'][-1]:.2f} | {eet} | {r['material_bytes']:.0f} |")
-    return "\n".join(lines) + "\n" + saturated_table(result.get("saturated", []))
+    methods_rows, knob_rows = _split(result)
+    text = header(result) + "\n\n" + rows_table(methods_rows)
+    if knob_rows:
+        text += "\nAccuracy/cost knobs (same reference; compare with the scene's own-model row above):\n\n"
+        text += rows_table(knob_rows, knob=True)
+    return text + saturated_table(result.get("saturated", []))
+
+
+def _range(values: list[float], fmt: str = "{:.1f}", unit: str = "") -> str:
+    lo, hi = fmt.format(min(values)), fmt.format(max(values))
+    return f"{lo}{unit}" if lo == hi else f"{lo}–{hi}{unit}"
+
+
+def claims(result: dict) -> dict:
+    """Every number the README's reading states, computed from ``result``."""
+    methods_rows, knob_rows = _split(result)
+    scenes = list(dict.fromkeys(r["scene"] for r in result["rows"]))
+    spectral = {r["scene"]: r for r in methods_rows if r["method"] == SPECTRAL}
+    ours = [r for r in methods_rows if r["method"].startswith("rgb ours-")]
+    ratios, ratio_cases, ours_missing = [], [], []
+    for r in ours:
+        s = spectral.get(r["scene"])
+        if r["equal_error_time"] is None:
+            ours_missing.append((r["method"], r["scene"]))
+        elif s is not None and s["equal_error_time"] is not None:
+            ratios.append(s["equal_error_time"] / r["equal_error_time"])
+            ratio_cases.append(f"{r['method'].split()[1]} on {r['scene']}")
+    # scenes where spectral rendering itself stays above the target: compare at the top rung
+    unconverged = {sc: {"spectral": s["mean_de"][-1],
+                        "ours": [r["mean_de"][-1] for r in ours if r["scene"] == sc]}
+                   for sc, s in spectral.items() if s["equal_error_time"] is None}
+    others = [r for r in methods_rows if r["method"].startswith("rgb naive-") or
+              r["method"] in (NO_FLUORESCENCE, "spectral native path, nearest material")]
+    never = [r for r in others if r["equal_error_time"] is None]
+    reach = [r for r in others if r["equal_error_time"] is not None]
+    no_fluo = {r["scene"]: r["mean_de"][-1] for r in methods_rows if r["method"] == NO_FLUORESCENCE}
+    gmm_time, gmm_mem = [], []
+    for r in methods_rows:
+        s = spectral.get(r["scene"])
+        if r["method"].startswith("spectral GMM") and s and r["material_bytes"] > 0:
+            gmm_time.append(r["seconds"][-1] / s["seconds"][-1])
+            gmm_mem.append(s["material_bytes"] / r["material_bytes"])
+    spreads = [(r["seconds_max"][-1] - r["seconds_min"][-1]) / r["seconds"][-1]
+               for r in result["rows"] if r.get("seconds_max") and r["seconds"][-1] > 0]
+    knobs = []
+    for r in knob_rows:
+        s = spectral.get(r["scene"])
+        knobs.append({"knob": r["knob"], "scene": r["scene"], "method": r["method"],
+                      "mean_de": r["mean_de"][-1], "own_mean_de": s["mean_de"][-1] if s else None,
+                      "time_ratio": r["seconds"][-1] / s["seconds"][-1] if s else None,
+                      "bytes": r["material_bytes"], "own_bytes": s["material_bytes"] if s else None,
+                      "reaches": r["equal_error_time"] is not None})
+    return {"scenes": scenes, "target": result["target_de"], "repeats": result.get("repeats", 1),
+            "ratios": ratios, "ratio_cases": ratio_cases, "ours_cases": len(ours), "ours_missing": ours_missing,
+            "unconverged": unconverged,
+            "ours_floors": [r["floor_de"] for r in ours],
+            "never": [(r["method"], r["scene"], r["floor_de"]) for r in never],
+            "reach": [(r["method"], r["scene"], r["equal_error_time"]) for r in reach],
+            "no_fluorescence": no_fluo, "gmm_time": gmm_time, "gmm_mem": gmm_mem,
+            "spreads": spreads, "knobs": knobs}
+
+
+def _short(method: str) -> str:
+    return {NO_FLUORESCENCE: "plain RGB", "spectral native path, nearest material": "native"}.get(
+        method, method.replace(" (fluo_path)", "").replace("rgb ", ""))
+
+
+def _by_scene(items: list[tuple[str, str]]) -> str:
+    """"a, b on s1; c on s2" from (method, scene) pairs, scenes in first-seen order."""
+    groups: dict[str, list[str]] = {}
+    for method, scene in items:
+        groups.setdefault(scene, []).append(_short(method))
+    return "; ".join(f"{', '.join(ms)} on {sc}" for sc, ms in groups.items())
+
+
+def reading(result: dict) -> str:
+    """The README's one-paragraph reading of ``result``: every number from :func:`claims`."""
+    c = claims(result)
+    t = c["target"]
+    out = ["Reading it (generated from the results above by `scripts/bench_readme.py`):"]
+    if c["ratios"]:
+        n = len(c["ratios"])
+        faster = [x for x in c["ratios"] if x > 1.0]
+        slower = [(x, case) for x, case in zip(c["ratios"], c["ratio_cases"]) if x <= 1.0]
+        sent = (f"where both reach the target (mean ΔE00 ≤ {t:g}), reduced RGB transport with the dual "
+                f"basis (`ours`) gets there sooner than spectral rendering in {len(faster)} of {n} "
+                f"scene × basis cases")
+        if faster:
+            sent += f" ({_range(faster)}× sooner)"
+        if slower:
+            sent += ", not sooner in " + ", ".join(f"{case} ({x:.2f}×)" for x, case in slower)
+        out.append(sent + f"; spectral / ours equal-error time ranges over {_range(c['ratios'])}×.")
+    if c["unconverged"]:
+        out.append("Spectral rendering itself stays above the target within the ladder on "
+                   + "; ".join(f"{sc} (mean ΔE00 {u['spectral']:.2f} at the top rung, `ours` "
+                               f"{_range(u['ours'], '{:.2f}')})" for sc, u in c["unconverged"].items())
+                   + ".")
+    if c["ours_missing"]:
+        out.append(f"`ours` never reaches the target for {_by_scene(c['ours_missing'])}.")
+    if c["ours_floors"]:
+        out.append(f"`ours` floors (lowest mean ΔE00 along the ladder): {_range(c['ours_floors'], '{:.2f}')}.")
+    if c["never"]:
+        out.append(f"{len(c['never'])} rows of the naive reduction, plain RGB and the native materials never "
+                   f"reach the target within the ladder (floors {_range([f for *_, f in c['never']], '{:.2f}')}: "
+                   + _by_scene([(m, s) for m, s, _ in c["never"]]) + ")"
+                   + (f"; {len(c['reach'])} do reach it: "
+                      + ", ".join(f"{_short(m)} on {s} ({e:.2f} s)" for m, s, e in c["reach"])
+                      if c["reach"] else "") + ".")
+    elif c["reach"]:
+        out.append("Every row of the naive reduction, plain RGB and the native materials reaches the target.")
+    if c["no_fluorescence"]:
+        out.append("Removing the dyes (plain RGB, what a user gets today) costs a mean ΔE00 of "
+                   + ", ".join(f"{v:.2f} on {s}" for s, v in c["no_fluorescence"].items()) + ".")
+    if c["gmm_time"]:
+        out.append(f"GMM fits take {_range(c['gmm_time'], '{:.2f}')}× the tabulated matrix's time for "
+                   f"{_range(c['gmm_mem'], '{:.0f}')}× less memory.")
+    by_knob: dict[str, list[dict]] = {}
+    for k in c["knobs"]:
+        by_knob.setdefault(k["knob"], []).append(k)
+    for name, ks in by_knob.items():
+        own = ks[0]["own_mean_de"]
+        change = max(abs(k["mean_de"] - own) for k in ks)
+        out.append(f"Knob {name} on {', '.join(dict.fromkeys(k['scene'] for k in ks))} (own model: "
+                   f"mean ΔE00 {own:.2f}; largest change {change:.2f}): "
+                   + "; ".join(f"{_short(k['method']).replace('spectral, ', '')}: ΔE00 {k['mean_de']:.2f}, "
+                               f"{k['time_ratio']:.2f}× the time, {k['bytes']:.0f} B"
+                               for k in ks) + ".")
+    if c["spreads"]:
+        sp = sorted(c["spreads"])
+        out.append(f"Times are medians of {c['repeats']} renders; at the top rung the spread (max − min) / "
+                   f"median is {100 * sp[len(sp) // 2]:.0f} % in the median row and up to "
+                   f"{100 * sp[-1]:.0f} % (a shared machine).")
+    return " ".join(out) + "\n"
+
+
+def readme_region(result: dict, image: str = "docs/bench/accuracy_vs_time.png") -> str:
+    """The README's generated region (markers included): header, tables, plot, reading."""
+    methods_rows, knob_rows = _split(result)
+    parts = [README_BEGIN, "", header(result), "", rows_table(methods_rows).rstrip()]
+    if knob_rows:
+        parts += ["", "Accuracy/cost knobs (same reference; compare with the scene's own-model row above):", "",
+                  rows_table(knob_rows, knob=True).rstrip()]
+    parts += ["", f"![accuracy against time]({image})", "", reading(result).rstrip(), "", README_END]
+    return "\n".join(parts) + "\n"
+
+
+def replace_region(readme: str, region: str) -> str:
+    """``readme`` with the text between the bench markers replaced by ``region``."""
+    start = readme.find("<!-- bench:begin")
+    end = readme.find(README_END)
+    if start < 0 or end < 0 or end < start:
+        raise ValueError("README has no <!-- bench:begin ... --> … <!-- bench:end --> region")
+    rest = readme[end + len(README_END):]
+    return readme[:start] + region + (rest[1:] if rest.startswith("\n") else rest)
 
 
 def saturated_table(rows: list[dict]) -> str:
@@ -345,13 +657,18 @@ def plot(result: dict, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    scenes = sorted({r["scene"] for r in result["rows"]})
-    names = list(dict.fromkeys(r["method"] for r in result["rows"]))
+    rows, _ = _split(result)  # knob rows: in the tables only
+    scenes = sorted({r["scene"] for r in rows})
+    names = list(dict.fromkeys(r["method"] for r in rows))
     cmap = plt.get_cmap("tab20")
     style = {n: (cmap(i % 20), "osD^v<>"[i % 7]) for i, n in enumerate(names)}
-    fig, axes = plt.subplots(1, len(scenes), figsize=(6.0 * len(scenes), 4.6), squeeze=False)
-    for ax, scene in zip(axes[0], scenes):
-        for r in (r for r in result["rows"] if r["scene"] == scene):
+    ncols = min(3, len(scenes))
+    nrows = -(-len(scenes) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(6.0 * ncols, 4.6 * nrows + 1.0), squeeze=False)
+    for ax in axes.flat[len(scenes):]:
+        ax.set_visible(False)
+    for ax, scene in zip(axes.flat, scenes):
+        for r in (r for r in rows if r["scene"] == scene):
             colour, marker = style[r["method"]]
             ax.plot(r["seconds"], r["mean_de"], marker=marker, ms=4, color=colour, label=r["method"])
         ax.axhline(result["target_de"], color="grey", ls="--", lw=0.8)
@@ -365,6 +682,6 @@ def plot(result: dict, path: Path) -> None:
     fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.suptitle(f"fluo bench, {result['date']}, {result['machine']} (spp ladder "
                  f"{result['ladder_spp'][0]}…{result['ladder_spp'][-1]}; dashed: equal-error target)", fontsize=9)
-    fig.tight_layout(rect=(0, 0.14, 1, 1))
+    fig.tight_layout(rect=(0, 0.9 / (4.6 * nrows + 1.0) + 0.05, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -129,11 +129,14 @@ def _parser() -> argparse.ArgumentParser:
         ),
     )
     bench.add_argument("--quick", action="store_true",
-                       help="48x48 instead of 96x96 and a 4096-spp reference (spp ladder 4..1024 either way)")
+                       help="48x48 instead of 96x96, spp ladder 4..256 instead of 4..1024, and a 4096-spp "
+                            "reference instead of 16384")
     bench.add_argument("--out", type=Path, default=repo_root() / "out" / "bench", metavar="DIR",
                        help="output directory (default: <repo>/out/bench)")
     bench.add_argument("--target", type=float, default=1.5, metavar="DE",
                        help="equal-error target, mean CIEDE2000 (default: 1.5)")
+    bench.add_argument("--repeats", type=_positive_int, default=3, metavar="N",
+                       help="renders timed per rung; tables give the median and min-max (default: 3)")
     bench.set_defaults(run=_cmd_bench)
     return parser
 
@@ -146,7 +149,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(f"fluo bench: error: {problem}", file=sys.stderr)
         return 1
     _log_to_stderr(mi.LogLevel.Warn) if hasattr(mi, "LogLevel") else None
-    result = bench.run(quick=args.quick, out=args.out, target_de=args.target,
+    result = bench.run(quick=args.quick, out=args.out, target_de=args.target, repeats=args.repeats,
                        log=lambda m: print(m, file=sys.stderr, flush=True))
     print(bench.table(result))
     print(f"wrote {args.out / 'results.json'}, {args.out / 'results.md'}, "

@@ -156,7 +156,7 @@ const QD_CONSTANTS: [&str; 10] = [
 fn subcommands() -> Vec<(&'static str, &'static str, Vec<(&'static str, Kind)>, Option<&'static str>)> {
     use Kind::*;
     let jung = vec![("emission-peak", Num), ("stokes-shift", Num), ("concentration", Num), ("quantum-yield", Num)];
-    let mut qd = vec![("radius", Num), ("width", Num)];
+    let mut qd = vec![("radius", Num), ("width", Num), ("table-cos-nodes", Count), ("table-step", Num)];
     qd.extend(QD_CONSTANTS.iter().map(|k| (*k, Num)));
     let mut export = jung.clone();
     export.extend([("reflectance", Num), ("output", Text)]);
@@ -323,7 +323,7 @@ fn cmd_jung(args: &Args) -> Result<Value, String> {
 }
 
 fn cmd_qd(args: &Args) -> Result<Value, String> {
-    use fluo::qd::{QdBand, QdConstants, QdIndex, QdModel, QdParams, Substrate, COS_NODES};
+    use fluo::qd::{QdBand, QdConstants, QdIndex, QdModel, QdParams, Substrate};
     let d = QdParams::default();
     let mut c = QdConstants::default();
     let fields: [(&str, &mut f64); 10] = [
@@ -343,11 +343,13 @@ fn cmd_qd(args: &Args) -> Result<Value, String> {
     }
     let radius = args.f64_or("radius", d.radius_nm)?;
     let width = args.f64_or("width", d.width_nm)?;
+    let cos_nodes = usize_or(args, "table-cos-nodes", d.cos_nodes)?;
+    let table_step_nm = args.f64_or("table-step", d.table_step_nm)?;
     let band = QdBand::new(&c, radius, width).map_err(|e| e.to_string())?;
     // Cost of the per-material precomputation (a constant dielectric substrate).
     let t0 = std::time::Instant::now();
     let model = QdModel::new(
-        QdParams { radius_nm: radius, width_nm: width, constants: c, ..d },
+        QdParams { radius_nm: radius, width_nm: width, constants: c, cos_nodes, table_step_nm, ..d },
         QdIndex::CdSe,
         Substrate::Constant { eta: 1.5, k: 0.0 },
     )
@@ -362,7 +364,7 @@ fn cmd_qd(args: &Args) -> Result<Value, String> {
         "emission_peak_nm": band.emission_peak_nm,
         "constants": c,
         "tables": {
-            "rows_cos_theta": COS_NODES,
+            "rows_cos_theta": cos_nodes,
             "lambda_nodes": model.table_nodes(),
             "bytes": model.table_bytes(),
             "build_ms": build_ms,

@@ -195,6 +195,10 @@ mod bridge {
         vacuum_permittivity: f64,
         relative_permittivity: f64,
         temperature: f64,
+        /// Rows of the excitation tables, uniform in cos θ.
+        table_cos_nodes: usize,
+        /// Base λ step of the excitation tables, nm.
+        table_step: f64,
     }
 
     extern "Rust" {
@@ -767,6 +771,8 @@ fn qd_new(
                 relative_permittivity: config.relative_permittivity,
                 temperature: config.temperature,
             },
+            cos_nodes: config.table_cos_nodes,
+            table_step_nm: config.table_step,
         };
         let substrate = match (substrate_eta, substrate_k) {
             ([eta], [k]) => Substrate::Constant { eta: *eta, k: *k },
@@ -812,6 +818,8 @@ fn qd_default_config() -> QdConfig {
         vacuum_permittivity: c.vacuum_permittivity,
         relative_permittivity: c.relative_permittivity,
         temperature: c.temperature,
+        table_cos_nodes: p.cos_nodes,
+        table_step: p.table_step_nm,
     }
 }
 
@@ -1071,6 +1079,8 @@ mod tests {
             vacuum_permittivity: c.vacuum_permittivity,
             relative_permittivity: c.relative_permittivity,
             temperature: c.temperature,
+            table_cos_nodes: crate::qd::COS_NODES,
+            table_step: crate::qd::TABLE_STEP_NM,
         }
     }
 

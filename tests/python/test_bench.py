@@ -27,13 +27,20 @@ def _pairs():
     for scene in sorted(bench.BENCH_DIR.glob("*.xml")):
         kinds = bench._material_kinds(bench._absolutise_includes(scene.read_text(), scene.parent))
         for i, m in enumerate(bench.methods(Path("."))):
-            if m.kinds is None or m.kinds & kinds:
+            if m.applies(scene.stem, kinds):
                 out.append(pytest.param(scene, i, id=f"{scene.stem}-{m.name}"))
     return out
 
 
+def _shipped_cube(space):
+    import fluo
+    return fluo.repo_root() / "data" / "cubes" / f"{space}_d65_tinf_r33.cube"
+
+
 @pytest.mark.parametrize("scene, index", _pairs())
-def test02_every_method_loads_every_bench_scene(scene, index, tmp_path):
+def test02_every_method_loads_every_bench_scene(scene, index, tmp_path, monkeypatch):
+    # cubes other than the shipped 33³ take minutes to generate: load with the shipped one
+    monkeypatch.setattr(bench, "cube_path", lambda res, space="acescg": _shipped_cube(space))
     method = bench.methods(tmp_path)[index]
     text = method.rewrite(bench._absolutise_includes(scene.read_text(), scene.parent))
     path = tmp_path / "s.xml"
@@ -63,3 +70,118 @@ def test03_bench_reports_saturated_fluorescence_per_basis():
         assert sum(line.startswith(f"| {case} |") for line in text.splitlines()) == 4  # D65, A, FL2, UV365
     uv = next(r for r in rows if r["case"] == "UV brightener" and r["illuminant"] == "D65" and r["basis"] == "rgb")
     assert uv["fluorescence_ratio"] < 0.05  # rgb has no UV band
+
+
+# ---------------------------------------------------------------- README generation
+
+def _row(scene, method, eet, floor, seconds=1.0, knob="", nbytes=100.0):
+    return {"scene": scene, "method": method, "spp": [4, 16], "seconds": [seconds / 4, seconds],
+            "seconds_min": [seconds / 5, 0.9 * seconds], "seconds_max": [seconds / 3, 1.2 * seconds],
+            "seconds_all": [[seconds / 4] * 3, [seconds] * 3],
+            "mean_de": [floor + 1.0, floor], "p95_de": [floor + 3.0, floor + 2.0],
+            "equal_error_time": eet, "equal_error_range": [eet, eet] if eet else [None, None],
+            "floor_de": floor, "material_bytes": nbytes, "knob": knob}
+
+
+def _synthetic():
+    """Two scenes; `ours` 2x and 5x sooner on one, never on the other; plain RGB reaches the
+    target on scene b only; a knob row."""
+    rows = [
+        _row("a", bench.SPECTRAL, 4.0, 0.5, 10.0),
+        _row("a", "rgb ours-xyzu (fluo_path)", 2.0, 0.6, 8.0),
+        _row("a", "rgb ours-x7 (fluo_path)", 0.8, 0.9, 8.5),
+        _row("a", "rgb naive-xyzu (fluo_path)", None, 3.3, 8.0),
+        _row("a", bench.NO_FLUORESCENCE, None, 7.25, 6.0, nbytes=0.0),
+        _row("b", bench.SPECTRAL, None, 1.9, 20.0),
+        _row("b", "rgb ours-xyzu (fluo_path)", 3.0, 1.2, 15.0),
+        _row("b", bench.NO_FLUORESCENCE, 1.1, 1.2, 9.0, nbytes=0.0),
+        _row("b", "spectral, fluo_qd table_cos_nodes=5 (fluo_path)", None, 2.4, 19.0, knob="QD tables"),
+    ]
+    return {"date": "2026-01-01", "machine": "test", "quick": True, "res": 8, "ladder_spp": [4, 16],
+            "ref_spp": 64, "target_de": 1.5, "repeats": 3, "rows": rows, "saturated": []}
+
+
+def test04_reading_claims_follow_the_numbers():
+    result = _synthetic()
+    c = bench.claims(result)
+    assert sorted(c["ratios"]) == pytest.approx([2.0, 5.0])  # spectral 4.0 s / 2.0 s and / 0.8 s
+    text = bench.reading(result)
+    assert "sooner than spectral rendering in 2 of 2 scene × basis cases (2.0–5.0× sooner)" in text
+    assert "ranges over 2.0–5.0×" in text
+    # b's spectral never reaches: no ratio there, compared at the top rung instead
+    assert "stays above the target within the ladder on b (mean ΔE00 1.90 at the top rung, `ours` 1.20)" in text
+    assert "floors (lowest mean ΔE00 along the ladder): 0.60–1.20" in text
+    # rows that reach the target are not among those said never to reach it
+    never = text[text.index("never reach the target"):text.index("do reach it")]
+    assert "naive-xyzu, plain RGB on a" in never
+    assert "on b" not in never
+    assert "1 do reach it: plain RGB on b (1.10 s)" in text
+    assert "floors 3.30–7.25" in text
+    assert "costs a mean ΔE00 of 7.25 on a, 1.20 on b" in text
+    assert "Knob QD tables on b (own model: mean ΔE00 1.90; largest change 0.50)" in text
+    assert "0.95× the time" in text
+    # timing spread at the top rung: (1.2 - 0.9) / 1 = 30 % everywhere
+    assert "Times are medians of 3 renders" in text and "is 30 % in the median row and up to 30 %" in text
+    # the knob row goes to its own table, not the methods' one
+    region = bench.readme_region(result)
+    methods_table, knob_table = region.split("Accuracy/cost knobs")
+    assert "table_cos_nodes=5" in knob_table and "table_cos_nodes=5" not in methods_table
+    assert "| 10.000 [9.000–12.000] |" in methods_table
+
+
+def test05_reading_never_overstates():
+    # none of the others reaches: no "do reach it" clause
+    result = _synthetic()
+    result["rows"] = [r for r in result["rows"] if r["scene"] == "a"]
+    text = bench.reading(result)
+    assert "do reach it" not in text and "stays above the target" not in text
+    # a case where ours is slower is not counted as sooner, and is named with its ratio
+    result["rows"][2]["equal_error_time"] = 8.0   # ours-x7: spectral 4.0 / 8.0 = 0.5
+    text = bench.reading(result)
+    assert "in 1 of 2 scene × basis cases (2.0× sooner), not sooner in ours-x7 on a (0.50×)" in text
+    assert "ranges over 0.5–2.0×" in text
+    c = bench.claims(result)
+    assert min(c["ratios"]) == pytest.approx(0.5) and max(c["ratios"]) == pytest.approx(2.0)
+
+
+def test06_replace_region_keeps_the_rest():
+    readme = "intro\n<!-- bench:begin -->\nold\n<!-- bench:end -->\noutro\n"
+    region = bench.readme_region(_synthetic())
+    out = bench.replace_region(readme, region)
+    assert out.startswith("intro\n" + bench.README_BEGIN) and out.endswith(bench.README_END + "\noutro\n")
+    assert bench.replace_region(out, region) == out
+    with pytest.raises(ValueError):
+        bench.replace_region("no markers", region)
+
+
+def test07_readme_region_is_generated_from_committed_results():
+    import importlib.util
+    import fluo
+    root = fluo.repo_root()
+    spec = importlib.util.spec_from_file_location("bench_readme", root / "scripts" / "bench_readme.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    readme = root / "README.md"
+    assert mod.generate(root / "docs" / "bench" / "results.json", readme) == readme.read_text(), \
+        "README's bench region is stale: run scripts/bench_readme.py"
+
+
+def test08_strong_scenes_and_knob_rows_apply():
+    kinds = {s.stem: bench._material_kinds(bench._absolutise_includes(s.read_text(), s.parent))
+             for s in bench.BENCH_DIR.glob("*.xml")}
+    assert kinds["highlighter_box"] == {"jung", "cube"} and kinds["blacklight_box"] == {"jung", "qd"}
+    applied = {(m.knob, scene) for m in bench.methods(Path(".")) if m.knob
+               for scene, k in kinds.items() if m.applies(scene, k)}
+    assert applied == {("GMM components", "measured_box"), ("QD tables", "blacklight_box"),
+                       ("cube resolution", "highlighter_box")}
+
+
+@pytest.mark.parametrize("name, value", [("table_cos_nodes", "1"), ("table_cos_nodes", "2000"),
+                                         ("table_step", "0"), ("table_step", "100")])
+def test09_qd_table_knobs_are_validated(name, value, tmp_path):
+    mi.set_variant("scalar_spectral")
+    kind = "integer" if name == "table_cos_nodes" else "float"
+    with pytest.raises(Exception, match=name):
+        mi.load_dict({"type": "fluo_qd", name: int(value) if kind == "integer" else float(value)})
+    ok = mi.load_dict({"type": "fluo_qd", "table_cos_nodes": 5, "table_step": 4.0})
+    assert "FluoQd" in ok.class_name()
