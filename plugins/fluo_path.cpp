@@ -36,12 +36,10 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
    - |string|
    - ``scalar_rgb`` only: transport basis for fluorescence, ``rgb`` (3 channels),
      ``xyzu`` (CIE 1931 XYZ plus a UV band) or ``x7`` (7 bands: X split in three, Y in two,
-     Z, U). (Default: ``x7``, the most accurate on ``fluo bench``: mean ΔE00 against the
-     spectral reference over the Jung, measured and quantum-dot boxes 0.53 / 0.61 / 0.46
-     for ``x7``, 0.79 / 0.57 / 0.44 for ``xyzu``, 0.95 / 0.85 / 0.60 for ``rgb``; p95
-     1.54 / 1.75 / 1.00 against 2.49 / 1.60 / 0.97 and 3.27 / 3.56 / 2.07 (``--quick``,
-     48², 1024 spp). Its 7×7 matrices cost 392 bytes per material and no measurable
-     time over ``xyzu``.) Which basis when (``fluo-rs saturated-report`` and the second
+     Z, U). (Default: ``x7``: over the ``fluo bench`` scenes its mean ΔE00 against the
+     spectral reference is the lowest on average and within noise of the best on each
+     scene; README's generated bench table has the numbers. Its 7×7 matrices cost 392
+     bytes per material and no measurable time over ``xyzu``.) Which basis when (``fluo-rs saturated-report`` and the second
      table of ``fluo bench`` measure it per basis): ``x7`` for saturated, narrow-band
      emitters (a pure green dye keeps its luminance within 20 % under daylight and
      incandescent light, where ``rgb`` and ``xyzu`` lose a third or more) and for

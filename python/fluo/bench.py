@@ -59,10 +59,10 @@ from typing import Callable
 
 import numpy as np
 
-from . import repo_root, run_tool
+from . import data_dir, out_dir, run_tool, scenes_dir
 from .colour import delta_e_map
 
-BENCH_DIR = repo_root() / "scenes" / "bench"
+BENCH_DIR = scenes_dir() / "bench"
 
 
 def _strip_reduced_params(text: str) -> str:
@@ -152,10 +152,10 @@ def _qd_knob(name: str, value: str) -> Callable[[str], str]:
 def cube_path(res: int, space: str = "acescg") -> Path:
     """A coefficient cube of resolution ``res``: the shipped one for 33, else generated
     once (threshold ∞, like the shipped ones) into ``out/cache/cubes/``."""
-    shipped = repo_root() / "data" / "cubes" / f"{space}_d65_tinf_r{res}.cube"
+    shipped = data_dir("cubes") / f"{space}_d65_tinf_r{res}.cube"
     if shipped.exists():
         return shipped
-    path = repo_root() / "out" / "cache" / "cubes" / f"{space}_d65_tinf_r{res}.cube"
+    path = out_dir() / "cache" / "cubes" / f"{space}_d65_tinf_r{res}.cube"
     if not path.exists():
         path.parent.mkdir(parents=True, exist_ok=True)
         run_tool(["upsample-cube", "--space", space, "--res", res, "--threshold", "inf", "-o", path])
@@ -208,7 +208,7 @@ def _material_bytes(text: str) -> float:
             # the model plus the coefficient cube it looks colours up in (shared by all
             # materials of a colour space; counted whole, once per material)
             cube = re.search(r'<string name="cube" value="([^"]*)"/>', body)
-            path = Path(cube.group(1)) if cube else repo_root() / "data" / "cubes" / "acescg_d65_tinf_r33.cube"
+            path = Path(cube.group(1)) if cube else data_dir("cubes") / "acescg_d65_tinf_r33.cube"
             sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"] + path.stat().st_size)
         else:
             sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"])
@@ -367,8 +367,8 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
     ``quick``: 48x48, spp ladder 4…256, reference 4096 spp; full: 96x96, ladder 4…1024,
     reference 16384 spp (``res``, ``ladder``, ``ref_spp`` override either).
     """
-    out = Path(out or repo_root() / "out" / "bench")
-    cache = repo_root() / "out" / "cache" / "bench"
+    out = Path(out or out_dir() / "bench")
+    cache = out_dir() / "cache" / "bench"
     out.mkdir(parents=True, exist_ok=True)
     cache.mkdir(parents=True, exist_ok=True)
     res = res or (48 if quick else 96)

@@ -131,8 +131,8 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--quick", action="store_true",
                        help="48x48 instead of 96x96, spp ladder 4..256 instead of 4..1024, and a 4096-spp "
                             "reference instead of 16384")
-    bench.add_argument("--out", type=Path, default=repo_root() / "out" / "bench", metavar="DIR",
-                       help="output directory (default: <repo>/out/bench)")
+    bench.add_argument("--out", type=Path, default=out_dir() / "bench", metavar="DIR",
+                       help="output directory (default: <repo>/out/bench in a checkout, else ./out/bench)")
     bench.add_argument("--target", type=float, default=1.5, metavar="DE",
                        help="equal-error target, mean CIEDE2000 (default: 1.5)")
     bench.add_argument("--repeats", type=_positive_int, default=3, metavar="N",
