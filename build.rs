@@ -46,9 +46,7 @@ struct Wheels {
 }
 
 fn find_wheels(manifest: &Path) -> Wheels {
-    let python = env::var_os("FLUO_PYTHON")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| manifest.join(".venv/bin/python"));
+    let python = env::var_os("FLUO_PYTHON").map(PathBuf::from).unwrap_or_else(|| manifest.join(".venv/bin/python"));
     let script = "import importlib.util as u\n\
                   for m in ('mitsuba', 'drjit', 'nanobind'):\n\
                   \x20   s = u.find_spec(m)\n\
@@ -74,9 +72,8 @@ fn find_wheels(manifest: &Path) -> Wheels {
 }
 
 fn cpp_sources(dir: &Path) -> Vec<PathBuf> {
-    let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
-        .unwrap_or_default();
+    let mut files: Vec<PathBuf> =
+        std::fs::read_dir(dir).map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
     files.retain(|p| p.extension().is_some_and(|e| e == "cpp"));
     files.sort();
     files

@@ -319,7 +319,12 @@ macro_rules! measured_bispectral {
             }
             fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
                 // Only excitation below λo reaches it; P(λo, λo) is the limit from below.
-                integrate_excitation(|li| <$ty>::reradiation(self, li, lambda_o), illum, domain.0, domain.1.min(lambda_o))
+                integrate_excitation(
+                    |li| <$ty>::reradiation(self, li, lambda_o),
+                    illum,
+                    domain.0,
+                    domain.1.min(lambda_o),
+                )
             }
         }
     };
@@ -431,8 +436,13 @@ mod tests {
     const UP: [f64; 3] = [0.0, 0.0, 1.0];
 
     fn jung() -> JungFluorescence {
-        JungFluorescence::new(JungParams { emission_peak: 520.0, stokes_shift: 60.0, concentration: 0.8, quantum_yield: 0.9 })
-            .unwrap()
+        JungFluorescence::new(JungParams {
+            emission_peak: 520.0,
+            stokes_shift: 60.0,
+            concentration: 0.8,
+            quantum_yield: 0.9,
+        })
+        .unwrap()
     }
 
     #[test]
@@ -475,11 +485,9 @@ mod tests {
     fn patch_of_white_is_white_and_fluorescence_adds_light() {
         let c = cmf(Observer::Cie2006);
         let e = |_: f64| 1.0;
-        let white = JungMaterial::new(
-            Reflectance::Constant(1.0),
-            JungParams { concentration: 0.0, ..JungParams::default() },
-        )
-        .unwrap();
+        let white =
+            JungMaterial::new(Reflectance::Constant(1.0), JungParams { concentration: 0.0, ..JungParams::default() })
+                .unwrap();
         let p = patch_xyz(&white, &e, (300.0, 830.0), c).unwrap();
         for k in 0..3 {
             assert!((p.xyz[k] - p.white_xyz[k]).abs() < 1e-12);

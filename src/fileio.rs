@@ -50,7 +50,11 @@ pub fn read_bytes(path: &Path, cap: u64, what: &str) -> Result<Vec<u8>> {
 pub fn read_text(path: &Path, cap: u64, what: &str) -> Result<String> {
     let bytes = read_bytes(path, cap, what)?;
     String::from_utf8(bytes).map_err(|e| {
-        Error::data(format!("{}: {what} is not UTF-8 text (invalid byte at offset {})", path.display(), e.utf8_error().valid_up_to()))
+        Error::data(format!(
+            "{}: {what} is not UTF-8 text (invalid byte at offset {})",
+            path.display(),
+            e.utf8_error().valid_up_to()
+        ))
     })
 }
 

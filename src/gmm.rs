@@ -190,10 +190,7 @@ pub fn log_q(z: f64) -> f64 {
     let (y1, d1) = t[i + 1];
     let h = LOG_Q_TABLE_STEP;
     let (s2, s3) = (s * s, s * s * s);
-    (2.0 * s3 - 3.0 * s2 + 1.0) * y0
-        + (s3 - 2.0 * s2 + s) * h * d0
-        + (-2.0 * s3 + 3.0 * s2) * y1
-        + (s3 - s2) * h * d1
+    (2.0 * s3 - 3.0 * s2 + 1.0) * y0 + (s3 - 2.0 * s2 + s) * h * d0 + (-2.0 * s3 + 3.0 * s2) * y1 + (s3 - s2) * h * d1
 }
 
 /// (ln Q, d ln Q/dz) at z = −[`LOG_Q_TABLE_MAX`] + i·[`LOG_Q_TABLE_STEP`], built once.
@@ -484,7 +481,8 @@ impl GmmModel {
         if file.version != 1 {
             return Err(Error::param("version", file.version, "1"));
         }
-        for (name, r) in [("lambda_i_range_nm", file.lambda_i_range_nm), ("lambda_o_range_nm", file.lambda_o_range_nm)] {
+        for (name, r) in [("lambda_i_range_nm", file.lambda_i_range_nm), ("lambda_o_range_nm", file.lambda_o_range_nm)]
+        {
             if !(r[0].is_finite() && r[1].is_finite() && r[0] > 0.0 && r[1] > r[0] && r[1] <= MAX_WAVELENGTH_NM) {
                 return Err(Error::param(
                     name,
@@ -504,7 +502,11 @@ impl GmmModel {
         if d.wavelengths_nm.windows(2).any(|w| !(w[1] > w[0]))
             || d.wavelengths_nm.iter().any(|x| !(x.is_finite() && *x <= MAX_WAVELENGTH_NM))
         {
-            return Err(Error::param("diagonal.wavelengths_nm", "(not increasing)", "strictly increasing finite wavelengths"));
+            return Err(Error::param(
+                "diagonal.wavelengths_nm",
+                "(not increasing)",
+                "strictly increasing finite wavelengths",
+            ));
         }
         if let Some(v) = d.values.iter().find(|v| !(**v >= 0.0 && **v <= MAX_MATRIX_VALUE)) {
             return Err(Error::param("diagonal.values", v, format!("[0, {MAX_MATRIX_VALUE}]")));
@@ -543,12 +545,20 @@ impl GmmModel {
             let det = aa * bb - ab * ba;
             let sym = (ab - ba).abs() <= FILE_TOLERANCE * (aa.abs() + bb.abs());
             if !(aa.is_finite() && bb.is_finite() && ab.is_finite() && sym && aa > 0.0 && bb > 0.0 && det > 0.0) {
-                return Err(Error::param(&name("covariance"), format!("{:?}", c.covariance), "symmetric positive definite"));
+                return Err(Error::param(
+                    &name("covariance"),
+                    format!("{:?}", c.covariance),
+                    "symmetric positive definite",
+                ));
             }
             let ab = 0.5 * (ab + ba);
             let det = aa * bb - ab * ab;
             if !(det > 0.0) {
-                return Err(Error::param(&name("covariance"), format!("{:?}", c.covariance), "symmetric positive definite"));
+                return Err(Error::param(
+                    &name("covariance"),
+                    format!("{:?}", c.covariance),
+                    "symmetric positive definite",
+                ));
             }
             comps.push(Baked {
                 ln_w: if c.weight > 0.0 { c.weight.ln() } else { f64::NEG_INFINITY },
@@ -562,8 +572,7 @@ impl GmmModel {
         }
         // The reradiation's peak is at most S·Σ w_k·N_k(μ_k) = S·Σ w_k / (2π √det Σ_k):
         // held to the bound of a measured matrix entry, so that renders stay finite in f32.
-        let peak: f64 = file.scale
-            * comps.iter().map(|b| (b.ln_w + b.ln_norm2).exp()).sum::<f64>();
+        let peak: f64 = file.scale * comps.iter().map(|b| (b.ln_w + b.ln_norm2).exp()).sum::<f64>();
         if !(peak <= MAX_MATRIX_VALUE) {
             return Err(Error::param(
                 "scale",
@@ -654,7 +663,9 @@ impl GmmModel {
         let mut out: Vec<(f64, f64, f64)> = self
             .comps
             .iter()
-            .map(|c| (c.ln_w + log_normal(x, c.mu[g], c.var[g]), c.mu[f] + c.slope[g] * (x - c.mu[g]), c.cond_var[g].sqrt()))
+            .map(|c| {
+                (c.ln_w + log_normal(x, c.mu[g], c.var[g]), c.mu[f] + c.slope[g] * (x - c.mu[g]), c.cond_var[g].sqrt())
+            })
             .collect();
         let mut order: Vec<usize> = (0..out.len()).collect();
         order.sort_unstable_by(|&a, &b| out[b].0.total_cmp(&out[a].0));
@@ -728,9 +739,12 @@ impl GmmModel {
 
     fn conditional_pdf_with(&self, given: Given, x: f64, v: f64, c: &[(f64, f64, f64)], total: f64) -> f64 {
         let g = given as usize;
-        let num = log_sum_exp(self.comps.iter().zip(c).map(|(k, t)| {
-            k.ln_w + log_normal(x, k.mu[g], k.var[g]) + log_normal(v, t.1, t.2 * t.2)
-        }));
+        let num = log_sum_exp(
+            self.comps
+                .iter()
+                .zip(c)
+                .map(|(k, t)| k.ln_w + log_normal(x, k.mu[g], k.var[g]) + log_normal(v, t.1, t.2 * t.2)),
+        );
         (num - total).exp()
     }
 
@@ -942,9 +956,7 @@ fn em(x: &[[f64; 2]], w: &[f64], init: Vec<Gauss>, reg: [f64; 2], opts: &FitOpti
             let nk: f64 = (0..x.len()).map(|n| w[n] * resp[n * k + c]).sum();
             if !(nk > DEAD_COMPONENT_MASS) {
                 // Re-seed at the observation the mixture explains worst.
-                let worst = (0..x.len())
-                    .max_by(|&a, &b| (-w[a] * lse[a]).total_cmp(&(-w[b] * lse[b])))
-                    .unwrap_or(0);
+                let worst = (0..x.len()).max_by(|&a, &b| (-w[a] * lse[a]).total_cmp(&(-w[b] * lse[b]))).unwrap_or(0);
                 *gk = Gauss { w: DEAD_COMPONENT_MASS, mu: x[worst], cov: [4.0 * reg[0], 0.0, 4.0 * reg[1]] };
                 continue;
             }
@@ -1028,7 +1040,8 @@ pub fn fit(matrix: &Filtered, opts: &FitOptions) -> Result<GmmFile> {
         return Err(Error::param("max_iterations/restarts", "0", "≥ 1"));
     }
     let model = MatrixModel::new(matrix)?;
-    let source = Path::new(&matrix.source).file_name().map_or(matrix.source.clone(), |n| n.to_string_lossy().into_owned());
+    let source =
+        Path::new(&matrix.source).file_name().map_or(matrix.source.clone(), |n| n.to_string_lossy().into_owned());
     let (li, lo) = (&matrix.lambda_i, &matrix.lambda_o);
     let ni = li.len();
     let (mut x, mut w) = (Vec::new(), Vec::new());
@@ -1145,8 +1158,8 @@ pub fn fit(matrix: &Filtered, opts: &FitOptions) -> Result<GmmFile> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
     use crate::matrix::{load_matrix, shared_bispectral_files};
+    use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
 
     #[test]
     fn erfc_matches_reference_values() {
@@ -1230,7 +1243,6 @@ mod tests {
         }
     }
 
-
     #[test]
     fn conditional_masses_are_integrals_of_the_reradiation() {
         let m = GmmModel::new(synthetic_file()).unwrap();
@@ -1248,9 +1260,6 @@ mod tests {
         let total = simpson(|li| simpson(|lo| m.density(li, lo), 0.0, 1200.0, 600), 0.0, 1200.0, 600);
         assert!((total - 1.0).abs() < 1e-6, "{total}");
     }
-
-
-
 
     #[test]
     fn conditional_sampling_matches_pdf_chi2() {
@@ -1272,7 +1281,9 @@ mod tests {
             assert!(stat < chi2_critical(dof), "λi {li}: chi2 {stat} dof {dof}");
         }
         // λi | λo with ranges
-        for (lo, r) in [(450.0, (300.0, 830.0_f64)), (700.0, (300.0, 830.0)), (600.0, (350.0, 420.0)), (381.0, (300.0, 830.0))] {
+        for (lo, r) in
+            [(450.0, (300.0, 830.0_f64)), (700.0, (300.0, 830.0)), (600.0, (350.0, 420.0)), (381.0, (300.0, 830.0))]
+        {
             let hi = r.1.min(lo);
             let xs: Vec<f64> = uniforms(20_000, 5)
                 .into_iter()
@@ -1380,7 +1391,8 @@ mod tests {
         let mut values = vec![0.0; li.len() * lo.len()];
         for (j, &o) in lo.iter().enumerate() {
             for (k, &i) in li.iter().enumerate() {
-                values[j * li.len() + k] = if (i - o).abs() < 1e-9 { 0.5 } else { 10.0 * 0.05 * g.log_pdf([i, o]).exp() * 100.0 };
+                values[j * li.len() + k] =
+                    if (i - o).abs() < 1e-9 { 0.5 } else { 10.0 * 0.05 * g.log_pdf([i, o]).exp() * 100.0 };
             }
         }
         let d = crate::matrix::Donaldson::new("gauss", li, lo, values).unwrap();

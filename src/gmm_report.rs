@@ -275,7 +275,8 @@ pub fn report(files: &[impl AsRef<Path>], counts: &[usize], base: &FitOptions) -
             let t0 = Instant::now();
             let file = fit(&filtered, &FitOptions { components: k, ..*base })?;
             let fit_seconds = t0.elapsed().as_secs_f64();
-            let (iterations, converged, floats_stored) = (file.fit.iterations, file.fit.converged, file.floats_stored());
+            let (iterations, converged, floats_stored) =
+                (file.fit.iterations, file.fit.converged, file.floats_stored());
             let model = GmmModel::new(file)?;
             let dense = Dense::new(li, c, |a, b| model.reradiation(a, b), |l| model.reflectance(l));
             let got = colours(&dense, &lights, c)?;
@@ -320,7 +321,8 @@ pub fn report(files: &[impl AsRef<Path>], counts: &[usize], base: &FitOptions) -
             mean_delta_e_mono: materials.iter().map(|m| m.fits[i].delta_e_mono.mean).sum::<f64>() / n,
             mean_fit_seconds: materials.iter().map(|m| m.fits[i].fit_seconds).sum::<f64>() / n,
             mean_bytes_at_render_time: materials.iter().map(|m| m.fits[i].bytes_at_render_time as f64).sum::<f64>() / n,
-            matrix_bytes_at_render_time: materials.iter().map(|m| m.matrix_bytes_at_render_time as f64).sum::<f64>() / n,
+            matrix_bytes_at_render_time: materials.iter().map(|m| m.matrix_bytes_at_render_time as f64).sum::<f64>()
+                / n,
         })
         .collect();
     Ok(Report {
@@ -352,7 +354,12 @@ mod tests {
             let dom = (s.start_nm(), s.end_nm());
             let (a, b) = (patch_xyz(&m, &s, dom, c).unwrap(), patch_xyz(&d, &s, dom, c).unwrap());
             for k in 0..3 {
-                assert!((a.xyz[k] - b.xyz[k]).abs() < 2e-4 * a.xyz[k].abs().max(1e-3), "{name}: {:?} vs {:?}", a.xyz, b.xyz);
+                assert!(
+                    (a.xyz[k] - b.xyz[k]).abs() < 2e-4 * a.xyz[k].abs().max(1e-3),
+                    "{name}: {:?} vs {:?}",
+                    a.xyz,
+                    b.xyz
+                );
             }
             assert!(a.xyz[1] - a.elastic_xyz[1] > 0.01, "{name}: fluorescence present");
         }

@@ -505,10 +505,14 @@ mod tests {
     use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
 
     fn model(le: f64, s: f64) -> JungFluorescence {
-        JungFluorescence::new(JungParams { emission_peak: le, stokes_shift: s, concentration: 0.7, quantum_yield: 0.96 })
-            .unwrap()
+        JungFluorescence::new(JungParams {
+            emission_peak: le,
+            stokes_shift: s,
+            concentration: 0.7,
+            quantum_yield: 0.96,
+        })
+        .unwrap()
     }
-
 
     #[test]
     fn bspline_integral_and_peak() {
@@ -610,9 +614,6 @@ mod tests {
         }
     }
 
-
-
-
     #[test]
     fn emission_sampling_matches_pdf_chi2() {
         let m = model(520.0, 60.0);
@@ -630,7 +631,7 @@ mod tests {
         for (le, s, range) in [
             (520.0, 60.0, (0.0_f64, f64::INFINITY)),
             (400.0, 120.0, (0.0, f64::INFINITY)),
-            (450.0, 80.0, (360.0, 830.0)), // truncated by the camera range
+            (450.0, 80.0, (360.0, 830.0)),  // truncated by the camera range
             (420.0, 100.0, (300.0, 330.0)), // a narrow UV lamp band
         ] {
             let m = model(le, s);

@@ -18,8 +18,8 @@
 use serde_json::Value;
 
 use crate::bispectral::PatchMaterial;
-use crate::reduce::Reradiating;
 use crate::jung::{JungMaterial, JungParams, Reflectance};
+use crate::reduce::Reradiating;
 use crate::sigmoid::SigmoidPolynomial;
 use crate::{Error, Result};
 
@@ -88,7 +88,9 @@ pub fn material_from_json(v: &Value) -> Result<Box<dyn Material>> {
                         .and_then(Value::as_array)
                         .filter(|a| a.len() == 3)
                         .and_then(|a| a.iter().map(Value::as_f64).collect::<Option<Vec<f64>>>())
-                        .ok_or_else(|| Error::param("reflectance", r, "a number or {\"coefficients\": [c0, c1, c2]}"))?;
+                        .ok_or_else(|| {
+                            Error::param("reflectance", r, "a number or {\"coefficients\": [c0, c1, c2]}")
+                        })?;
                     Reflectance::Sigmoid(SigmoidPolynomial::new([c[0], c[1], c[2]])?)
                 }
             };

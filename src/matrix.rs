@@ -144,7 +144,10 @@ impl Donaldson {
                 )));
             }
             if let Some(w) = g.windows(2).find(|w| !(w[1] > w[0] + WAVELENGTH_TOLERANCE_NM)) {
-                return Err(Error::data(format!("{source}: {name} grid is not strictly increasing ({} then {})", w[0], w[1])));
+                return Err(Error::data(format!(
+                    "{source}: {name} grid is not strictly increasing ({} then {})",
+                    w[0], w[1]
+                )));
             }
             if let Some(x) = g.iter().find(|x| !(x.is_finite() && **x > 0.0 && **x <= MAX_WAVELENGTH_NM)) {
                 return Err(Error::data(format!(
@@ -336,18 +339,25 @@ pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
     }
     let nums: Vec<f64> =
         f.iter().enumerate().map(|(c, x)| parse_number(x, source, spec_line, c + 1)).collect::<Result<_>>()?;
-    let [out_start, out_end, out_step, n_in, in_start, in_step] = [nums[0], nums[1], nums[2], nums[3], nums[4], nums[5]];
+    let [out_start, out_end, out_step, n_in, in_start, in_step] =
+        [nums[0], nums[1], nums[2], nums[3], nums[4], nums[5]];
     let grid_err = |m: String| Error::data(format!("{source}: line {spec_line}: {m}"));
     if !(out_step > 0.0 && in_step > 0.0) {
         return Err(grid_err(format!("steps must be positive (out_step = {out_step}, in_step = {in_step})")));
     }
     let n_out_f = (out_end - out_start) / out_step + 1.0;
-    if !(n_out_f >= MIN_GRID_POINTS as f64 && n_out_f <= MAX_GRID_POINTS as f64 && (n_out_f - n_out_f.round()).abs() < 1e-6)
+    if !(n_out_f >= MIN_GRID_POINTS as f64
+        && n_out_f <= MAX_GRID_POINTS as f64
+        && (n_out_f - n_out_f.round()).abs() < 1e-6)
     {
-        return Err(grid_err(format!("({out_start}..{out_end} step {out_step}) is not a whole number of emission steps")));
+        return Err(grid_err(format!(
+            "({out_start}..{out_end} step {out_step}) is not a whole number of emission steps"
+        )));
     }
     if !(n_in >= MIN_GRID_POINTS as f64 && n_in <= MAX_GRID_POINTS as f64 && n_in.fract() == 0.0) {
-        return Err(grid_err(format!("n_in = {n_in}: valid range is whole numbers in [{MIN_GRID_POINTS}, {MAX_GRID_POINTS}]")));
+        return Err(grid_err(format!(
+            "n_in = {n_in}: valid range is whole numbers in [{MIN_GRID_POINTS}, {MAX_GRID_POINTS}]"
+        )));
     }
     let (n_out, n_in) = (n_out_f.round() as usize, n_in as usize);
     // Each entry takes at least two bytes (a digit and a separator): a header claiming
@@ -364,7 +374,9 @@ pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
     let head = lines.get(head_line - 1).ok_or_else(|| truncated("no \"r:c:\" line (line 12)"))?;
     let h: Vec<&str> = head.split_whitespace().collect();
     if h.first() != Some(&"r:c:") {
-        return Err(Error::data(format!("{source}: line {head_line}: wrong header, expected \"r:c:\" and {n_in} wavelengths")));
+        return Err(Error::data(format!(
+            "{source}: line {head_line}: wrong header, expected \"r:c:\" and {n_in} wavelengths"
+        )));
     }
     if h.len() != n_in + 1 {
         return Err(Error::data(format!(
@@ -401,7 +413,9 @@ pub fn parse_bfc(text: &str, source: &str) -> Result<Donaldson> {
         let lo = parse_number(cols[0], source, line_no, 1)?;
         let want = out_start + out_step * lambda_o.len() as f64;
         if (lo - want).abs() > 1e-6 * out_step.max(1.0) {
-            return Err(Error::data(format!("{source}: line {line_no}, column 1: emission wavelength {lo} nm, expected {want} nm")));
+            return Err(Error::data(format!(
+                "{source}: line {line_no}, column 1: emission wavelength {lo} nm, expected {want} nm"
+            )));
         }
         lambda_o.push(lo);
         for (c, x) in cols[1..].iter().enumerate() {
@@ -546,7 +560,9 @@ pub fn read_exr(path: &Path) -> Result<Donaldson> {
         )));
     }
     if entries.is_empty() {
-        return Err(Error::data(format!("{source}: no bispectral channels (T.<lambda>nm, T.<lambda_i>nm.<lambda_o>nm)")));
+        return Err(Error::data(format!(
+            "{source}: no bispectral channels (T.<lambda>nm, T.<lambda_i>nm.<lambda_o>nm)"
+        )));
     }
     let uniq = |mut v: Vec<f64>| {
         v.sort_by(|a, b| a.total_cmp(b));
@@ -566,7 +582,9 @@ pub fn read_exr(path: &Path) -> Result<Donaldson> {
 /// Write a matrix as a bispectral Spectral OpenEXR file (1×1 pixel; the diagonal as
 /// `T.<λ>nm`, reradiation above it as `T.<λi>nm.<λo>nm`, wavelengths with a `,`).
 pub fn write_exr(d: &Donaldson, path: &Path) -> Result<()> {
-    use exr::prelude::{AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec, WritableImage};
+    use exr::prelude::{
+        AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec, WritableImage,
+    };
     let fmt_nm = |x: f64| format!("{x:.6}nm").replace('.', ",");
     let mut list: SmallVec<[AnyChannel<FlatSamples>; 4]> = SmallVec::new();
     for (j, &lo) in d.lambda_o.iter().enumerate() {
@@ -900,7 +918,11 @@ impl MatrixModel {
 
     /// Floats held at render time (matrix, both cumulative tables, grids, diagonal).
     pub fn floats_at_render_time(&self) -> usize {
-        self.p.len() + self.col_cdf.len() + self.row_cdf.len() + self.lambda_i.len() + self.lambda_o.len()
+        self.p.len()
+            + self.col_cdf.len()
+            + self.row_cdf.len()
+            + self.lambda_i.len()
+            + self.lambda_o.len()
             + 2 * self.diagonal.len()
     }
 }
@@ -945,7 +967,7 @@ impl fmt::Display for MatrixModel {
 #[cfg(test)]
 pub(crate) mod tests {
     use super::*;
-    use crate::testutil::{simpson};
+    use crate::testutil::simpson;
 
     /// A small synthetic BFC text: λi 300..380 step 20 (5), λo 340..380 step 20 (3).
     pub(crate) fn tiny_bfc() -> String {
@@ -1038,7 +1060,9 @@ pub(crate) mod tests {
             }
         }
         // A malformed spectral channel name is reported.
-        use exr::prelude::{AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec, WritableImage};
+        use exr::prelude::{
+            AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec, WritableImage,
+        };
         let list: SmallVec<[AnyChannel<FlatSamples>; 4]> =
             SmallVec::from_vec(vec![AnyChannel::new("T.abcnm", FlatSamples::F32(vec![0.5]))]);
         let layer = Layer::new((1, 1), LayerAttributes::named(""), Encoding::UNCOMPRESSED, AnyChannels::sort(list));
@@ -1068,7 +1092,6 @@ pub(crate) mod tests {
         assert!((m.reflectance(350.0) - 0.55).abs() < 1e-15);
         assert_eq!(m.reflectance(300.0), 0.5); // held constant below the first node
     }
-
 
     #[test]
     fn tabulated_integrals_match_quadrature() {

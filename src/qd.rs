@@ -618,8 +618,12 @@ impl QdVolume {
         check_range("quantum_yield", quantum_yield, 0.0, 1.0)?;
         check_lambda_range(lambda_range)?;
         index.validate()?;
-        let beta =
-            rayleigh_absorption_cross_section_nm2(band.radius_nm, band.lambda_qd_nm, index.eval(band.lambda_qd_nm), n_env);
+        let beta = rayleigh_absorption_cross_section_nm2(
+            band.radius_nm,
+            band.lambda_qd_nm,
+            index.eval(band.lambda_qd_nm),
+            n_env,
+        );
         let mut v = Self { band, index, n_env, quantum_yield, lambda_range, beta, gamma: 0.0 };
         let grid = lambda_grid(lambda_range, &band, TABLE_STEP_NM);
         let total = trapezoid(&grid, |l| v.absorption_cross_section_nm2(l));
@@ -1255,7 +1259,10 @@ impl QdModel {
             return (t.a_tot.get(j * n).copied().unwrap_or(0.0), 0.0);
         }
         if lambda >= l1 {
-            return (t.a_tot.get(j * n + n - 1).copied().unwrap_or(0.0), t.cdf.get(j * n + n - 1).copied().unwrap_or(0.0));
+            return (
+                t.a_tot.get(j * n + n - 1).copied().unwrap_or(0.0),
+                t.cdf.get(j * n + n - 1).copied().unwrap_or(0.0),
+            );
         }
         let k = (t.lambda.partition_point(|&x| x <= lambda) - 1).min(n - 2);
         let (xa, xb) = (t.lambda[k], t.lambda[k + 1]);
@@ -1449,8 +1456,8 @@ impl crate::bispectral::Bispectral for QdModel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::testutil::{chi2, chi2_critical, uniforms};
     use crate::bispectral::Bispectral;
+    use crate::testutil::{chi2, chi2_critical, uniforms};
 
     const GOLD: Substrate = Substrate::Constant { eta: 0.27, k: 2.9 };
 
@@ -1500,12 +1507,18 @@ mod tests {
     #[test]
     fn volume_cross_sections_follow_figs_5_and_6() {
         let c = QdConstants::default();
-        let vol = |r: f64, d: f64| QdVolume::new(QdBand::new(&c, r, d).unwrap(), QdIndex::CdSe, 1.446, 0.8, (300.0, 830.0)).unwrap();
+        let vol = |r: f64, d: f64| {
+            QdVolume::new(QdBand::new(&c, r, d).unwrap(), QdIndex::CdSe, 1.446, 0.8, (300.0, 830.0)).unwrap()
+        };
         // Emission peak (argmax of σ_em) grows with R.
         let argmax = |v: &QdVolume| {
             (0..=5300).map(|i| 300.0 + 0.1 * i as f64).fold((0.0, 0.0), |b, l| {
                 let s = v.emission_cross_section_nm2(l);
-                if s > b.1 { (l, s) } else { b }
+                if s > b.1 {
+                    (l, s)
+                } else {
+                    b
+                }
             })
         };
         let mut prev = 0.0;
@@ -1562,7 +1575,9 @@ mod tests {
         let base = model(QdParams::default());
         let coarse = model(QdParams { cos_nodes: 5, table_step_nm: 8.0, ..QdParams::default() });
         assert!(coarse.table_bytes() < base.table_bytes() && base.table_bytes() < fine.table_bytes());
-        let err = |m: &QdModel| (0..=20).map(|i| (m.gamma(i as f64 / 20.0) - fine.gamma(i as f64 / 20.0)).abs()).fold(0.0, f64::max);
+        let err = |m: &QdModel| {
+            (0..=20).map(|i| (m.gamma(i as f64 / 20.0) - fine.gamma(i as f64 / 20.0)).abs()).fold(0.0, f64::max)
+        };
         assert!(err(&base) <= err(&coarse) + 1e-12, "{} vs {}", err(&base), err(&coarse));
         assert!(err(&base) < 1e-2 * fine.gamma(1.0), "{}", err(&base));
     }
@@ -1582,7 +1597,9 @@ mod tests {
     #[test]
     fn fresnel_level_energy_balance() {
         // R_tot + A_tot + substrate absorption = 1 (eqs. 22-24 are an exact series).
-        for p in [QdParams { density: 1.0, quantum_yield: 1.0, radius_nm: 5.0, ..QdParams::default() }, QdParams::default()] {
+        for p in
+            [QdParams { density: 1.0, quantum_yield: 1.0, radius_nm: 5.0, ..QdParams::default() }, QdParams::default()]
+        {
             let m = model(p);
             for c in [0.0, 1e-6, 0.1, 0.5, 1.0] {
                 for l in [300.0, 350.0, 420.0, m.band().lambda_qd_nm, 600.0, 830.0] {
@@ -1669,7 +1686,14 @@ mod tests {
             for alpha in [1e-3, 0.2, 1.0] {
                 for (rho, q, r) in [(1.0, 1.0, 5.0), (1.0, 1.0, 1.0), (0.5, 0.8, 2.2)] {
                     let m = QdModel::new(
-                        QdParams { density: rho, quantum_yield: q, radius_nm: r, alpha, distribution: dist, ..QdParams::default() },
+                        QdParams {
+                            density: rho,
+                            quantum_yield: q,
+                            radius_nm: r,
+                            alpha,
+                            distribution: dist,
+                            ..QdParams::default()
+                        },
                         QdIndex::CdSe,
                         Substrate::Constant { eta: 1e-3, k: 1e3 }, // a near-perfect mirror: worst case
                     )
@@ -1682,11 +1706,15 @@ mod tests {
                             let e_int = trapezoid(&grid, |l| m.emission_given(li, l));
                             assert!(e_int <= 1.0 + 1e-6, "∫e = {e_int}");
                             let total = integrate_reflected(&m, wi, |wo| {
-                                let rer = if e_ref > 0.0 { m.reradiation(wi, wo, li, lo_ref) / e_ref * e_int } else { 0.0 };
+                                let rer =
+                                    if e_ref > 0.0 { m.reradiation(wi, wo, li, lo_ref) / e_ref * e_int } else { 0.0 };
                                 m.elastic(wi, wo, li) + rer
                             });
                             assert!(total.is_finite() && total >= 0.0);
-                            assert!(total <= 1.0 + 2e-3, "{dist:?} α={alpha} ρ={rho} Q={q} R={r} θ={theta} λi={li}: {total}");
+                            assert!(
+                                total <= 1.0 + 2e-3,
+                                "{dist:?} α={alpha} ρ={rho} Q={q} R={r} θ={theta} λi={li}: {total}"
+                            );
                         }
                     }
                 }
@@ -1717,13 +1745,18 @@ mod tests {
 
     // ---- wavelength sampling
 
-
-
-
     #[test]
     fn wavelength_sampling_chi2_including_hard_cases() {
-        for (r, width, theta) in [(2.2, 15.0, 0.0), (1.0, 15.0, 60.0), (5.0, 15.0, 89.9), (3.3, 0.05, 30.0), (1.5, 100.0, 0.0)] {
-            let m = model(QdParams { radius_nm: r, width_nm: width, density: 1.0, quantum_yield: 1.0, ..QdParams::default() });
+        for (r, width, theta) in
+            [(2.2, 15.0, 0.0), (1.0, 15.0, 60.0), (5.0, 15.0, 89.9), (3.3, 0.05, 30.0), (1.5, 100.0, 0.0)]
+        {
+            let m = model(QdParams {
+                radius_nm: r,
+                width_nm: width,
+                density: 1.0,
+                quantum_yield: 1.0,
+                ..QdParams::default()
+            });
             let wi = dir(theta);
             // λi | λo (camera paths), over the scene range [300, 830]
             let lo_nm = m.band().emission_peak_nm.min(829.0);
@@ -1774,7 +1807,8 @@ mod tests {
         let total = trapezoid(&grid, |l| m.excitation_pdf([0.0, 0.0, 1.0], lo_nm, l, range));
         assert!((total - 1.0).abs() < 1e-4, "{total}");
         // shift albedo = Q e(λo) ∫ A_tot(θi) dλi below λo (smooth limit)
-        let want = 0.8 * m.emission_given(300.0, lo_nm) * trapezoid(&grid, |l| if l < lo_nm { m.a_tot(1.0, l) } else { 0.0 });
+        let want =
+            0.8 * m.emission_given(300.0, lo_nm) * trapezoid(&grid, |l| if l < lo_nm { m.a_tot(1.0, l) } else { 0.0 });
         let got = m.shift_albedo([0.0, 0.0, 1.0], lo_nm, range);
         assert!((got - want).abs() < 2e-3 * want, "{got} vs {want}");
     }
@@ -1822,7 +1856,10 @@ mod tests {
         let dir = shared_data().join("ior");
         let cubic = dir.join("CdSe_Ninomiya-cubic.yml");
         if !cubic.is_file() {
-            eprintln!("SKIP cdse_default_matches_the_tabulated_data: {} absent (shared data not beside the repo)", cubic.display());
+            eprintln!(
+                "SKIP cdse_default_matches_the_tabulated_data: {} absent (shared data not beside the repo)",
+                cubic.display()
+            );
             return;
         }
         // Cubic CdSe: the table was generated from the same published model (Table III),

@@ -432,8 +432,9 @@ pub fn reduce(material: &dyn Reradiating, basis: &Basis, method: Method) -> Redu
             // of eq. 8. This reproduces the paper's naive rows of Table 1 (tested, ~0.2
             // ΔE00 off on average); an L² norm on both sides gives 15–19 ΔE00 where Table 1
             // has 10–15, and the area norm on both sides ~75.
-            let norms: Vec<f64> =
-                (0..basis.len()).map(|k| (0..basis.s.nrows()).map(|i| basis.s[(i, k)] * basis.w[i]).sum::<f64>()).collect();
+            let norms: Vec<f64> = (0..basis.len())
+                .map(|k| (0..basis.s.nrows()).map(|i| basis.s[(i, k)] * basis.w[i]).sum::<f64>())
+                .collect();
             let sbar = DMatrix::from_fn(basis.s.nrows(), basis.len(), |i, k| {
                 if norms[k] > 0.0 {
                     basis.s[(i, k)] / norms[k]
@@ -539,8 +540,11 @@ mod tests {
                 }
             }
             let n = reduce(&Identity, &b, Method::Naive);
-            let off: f64 = (0..b.len()).flat_map(|i| (0..b.len()).map(move |j| (i, j))).filter(|(i, j)| i != j)
-                .map(|(i, j)| n.matrix[i][j].abs()).sum();
+            let off: f64 = (0..b.len())
+                .flat_map(|i| (0..b.len()).map(move |j| (i, j)))
+                .filter(|(i, j)| i != j)
+                .map(|(i, j)| n.matrix[i][j].abs())
+                .sum();
             assert!(off > 0.1, "naive should inject energy off the diagonal ({off})");
         }
     }
@@ -590,8 +594,9 @@ mod tests {
     #[test]
     fn non_fluorescent_material_is_exact_under_ours_for_smooth_light() {
         // A constant-albedo material is a multiple of the identity: exact in any basis.
-        let m = JungMaterial::new(Reflectance::Constant(0.4), JungParams { concentration: 0.0, ..JungParams::default() })
-            .unwrap();
+        let m =
+            JungMaterial::new(Reflectance::Constant(0.4), JungParams { concentration: 0.0, ..JungParams::default() })
+                .unwrap();
         let d65 = illuminant("D65").unwrap();
         for b in all_bases() {
             let r = reduce(&m, &b, Method::Ours);
@@ -660,7 +665,8 @@ impl Transport {
             "x7" => BasisKind::X7,
             _ => return Err(Error::param("basis", format!("\"{name}\""), "one of rgb, xyzu, x7")),
         };
-        let label = if name.eq_ignore_ascii_case("rgb") || name.eq_ignore_ascii_case("xyz") { "rgb" } else { kind.name() };
+        let label =
+            if name.eq_ignore_ascii_case("rgb") || name.eq_ignore_ascii_case("xyz") { "rgb" } else { kind.name() };
         let basis = Basis::new(kind, Observer::Cie1931)?;
         let m = nalgebra::Matrix3::from_fn(|r, c| crate::mitsuba::XYZ_TO_SRGB[r][c]);
         let minv = m.try_inverse().ok_or_else(|| Error::data("XYZ→sRGB matrix is singular"))?;
@@ -842,7 +848,8 @@ pub fn table1(materials: &[&dyn Reradiating]) -> Result<Vec<Table1Row>> {
                 per_material.push(des);
             }
             let n = per_material.len().max(1) as f64;
-            let mean: Vec<f64> = (0..lights.len()).map(|j| per_material.iter().map(|d| d[j]).sum::<f64>() / n).collect();
+            let mean: Vec<f64> =
+                (0..lights.len()).map(|j| per_material.iter().map(|d| d[j]).sum::<f64>() / n).collect();
             let overall = mean.iter().sum::<f64>() / mean.len() as f64;
             rows.push(Table1Row { method: method.name(), basis: kind.name(), mean, overall, per_material });
         }

@@ -412,8 +412,7 @@ impl ColourSystem {
         }
         let white = white.map(|w| w / y_i);
         let adapt = bradford(white, space.white_xyz());
-        let cmf_rgb: Vec<[f64; 3]> =
-            xyz.iter().map(|v| space.to_rgb(mat_vec(&adapt, *v)).map(|x| x / y_i)).collect();
+        let cmf_rgb: Vec<[f64; 3]> = xyz.iter().map(|v| space.to_rgb(mat_vec(&adapt, *v)).map(|x| x / y_i)).collect();
         let knots = ((LAMBDA_MAX_NM - LAMBDA_MIN_NM) / GRID_STEP_NM).round() as usize + 1;
         let grid_lambda: Vec<f64> = (0..knots).map(|k| LAMBDA_MIN_NM + k as f64 * GRID_STEP_NM).collect();
         let mut grid_w = vec![[0.0; 3]; knots];
@@ -537,12 +536,8 @@ fn max_slope_params(p: &Params) -> f64 {
             r
         }
     };
-    let t1 = roots
-        .iter()
-        .copied()
-        .filter(|t| t.is_finite())
-        .min_by(|x, y| dist01(*x).total_cmp(&dist01(*y)))
-        .unwrap_or(0.5);
+    let t1 =
+        roots.iter().copied().filter(|t| t.is_finite()).min_by(|x, y| dist01(*x).total_cmp(&dist01(*y))).unwrap_or(0.5);
     let slope_t = sigmoid_derivative(poly(p, t1)) * (2.0 * a * t1 + b);
     (slope_t / T_SPAN).abs()
 }
@@ -1164,7 +1159,12 @@ pub fn generate_cube(settings: &CubeSettings, log: &mut dyn FnMut(&str)) -> Resu
         State { p, cost }
     });
     let unsolved = |st: &[State]| -> Vec<usize> {
-        (0..count).filter(|&i| problem(i).rgb_error(&st[i].p) > FLUORESCENCE_TRIGGER * 0.1 || st[i].cost.sqrt() > FLUORESCENCE_TRIGGER * 0.1).collect()
+        (0..count)
+            .filter(|&i| {
+                problem(i).rgb_error(&st[i].p) > FLUORESCENCE_TRIGGER * 0.1
+                    || st[i].cost.sqrt() > FLUORESCENCE_TRIGGER * 0.1
+            })
+            .collect()
     };
     lap("reflectance solve", &mut stats, log, format!("{} entries", count));
     for sweep in 0..STAGE1_SWEEPS {
@@ -1216,7 +1216,8 @@ pub fn generate_cube(settings: &CubeSettings, log: &mut dyn FnMut(&str)) -> Resu
     for (&i, u) in needs.iter().zip(init) {
         state[i] = u;
     }
-    let remaining = |st: &[State]| needs.iter().copied().filter(|&i| st[i].cost.sqrt() > FLUORESCENCE_TRIGGER).collect::<Vec<_>>();
+    let remaining =
+        |st: &[State]| needs.iter().copied().filter(|&i| st[i].cost.sqrt() > FLUORESCENCE_TRIGGER).collect::<Vec<_>>();
     lap("fluorescence init", &mut stats, log, format!("{} with remaining error", remaining(&state).len()));
 
     // Stage 3: neighbour propagation rounds.
@@ -1228,10 +1229,8 @@ pub fn generate_cube(settings: &CubeSettings, log: &mut dyn FnMut(&str)) -> Resu
         let prev = state.clone();
         let updates = par_map(&todo, threads, |&i| {
             let prob = problem(i);
-            let mut seeds: Vec<(f64, Params)> = std::iter::once(i)
-                .chain(neighbours(n, i))
-                .map(|k| (prob.cost(&prev[k].p), prev[k].p))
-                .collect();
+            let mut seeds: Vec<(f64, Params)> =
+                std::iter::once(i).chain(neighbours(n, i)).map(|k| (prob.cost(&prev[k].p), prev[k].p)).collect();
             seeds.sort_by(|a, b| a.0.total_cmp(&b.0));
             seeds.dedup_by(|a, b| a.1 == b.1);
             let mut best = prev[i];
@@ -1321,7 +1320,13 @@ pub enum Reconstruction {
 
 impl Cube {
     /// Reconstructed RGB of `rgb` under the cube's illuminant.
-    pub fn reconstruct(&self, sys: &ColourSystem, rgb: [f64; 3], how: Reconstruction, fluorescence: bool) -> Result<[f64; 3]> {
+    pub fn reconstruct(
+        &self,
+        sys: &ColourSystem,
+        rgb: [f64; 3],
+        how: Reconstruction,
+        fluorescence: bool,
+    ) -> Result<[f64; 3]> {
         check_colour(rgb)?;
         match how {
             Reconstruction::Coefficients(mode) => Ok(sys.rgb(&self.lookup(rgb, mode, fluorescence)?)),
@@ -1413,7 +1418,8 @@ mod tests {
         for i in 0..=n {
             let l = LAMBDA_MIN_NM + i as f64 * step;
             let w = if i == 0 || i == n { 0.5 } else { 1.0 } * step;
-            let refl = m.elastic_albedo(l) * illum(l) + p.quantum_yield * p.concentration * m.fluorescence.emission(l) * excitation;
+            let refl = m.elastic_albedo(l) * illum(l)
+                + p.quantum_yield * p.concentration * m.fluorescence.emission(l) * excitation;
             let bar = [cm.x().eval(l), cm.y().eval(l), cm.z().eval(l)];
             for k in 0..3 {
                 xyz[k] += w * refl * bar[k];
@@ -1440,8 +1446,18 @@ mod tests {
         let sys = ColourSystem::new(RgbSpace::AcesCg, "D65").unwrap();
         let cases = [
             Coefficients::reflectance_only([-2e-4, 0.22, -55.0]),
-            Coefficients { reflectance: [1e-4, -0.1, 20.0], emission_peak: 530.0, concentration: 0.8, stokes_shift: 60.0 },
-            Coefficients { reflectance: [0.0, 0.01, -5.0], emission_peak: 610.0, concentration: 1.0, stokes_shift: 95.0 },
+            Coefficients {
+                reflectance: [1e-4, -0.1, 20.0],
+                emission_peak: 530.0,
+                concentration: 0.8,
+                stokes_shift: 60.0,
+            },
+            Coefficients {
+                reflectance: [0.0, 0.01, -5.0],
+                emission_peak: 610.0,
+                concentration: 1.0,
+                stokes_shift: 95.0,
+            },
             // a narrow band: s = 5 nm (α ≈ 2.5 nm)
             Coefficients { reflectance: [0.0, 0.0, 0.0], emission_peak: 460.0, concentration: 1.0, stokes_shift: 5.0 },
         ];
@@ -1529,7 +1545,12 @@ mod tests {
     #[test]
     fn trilinear_rule_ignores_non_fluorescent_peaks() {
         let mk = |c: f64, le: f64| Entry {
-            coefficients: Coefficients { reflectance: [0.0, 0.0, 0.0], emission_peak: le, concentration: c, stokes_shift: 40.0 },
+            coefficients: Coefficients {
+                reflectance: [0.0, 0.0, 0.0],
+                emission_peak: le,
+                concentration: c,
+                stokes_shift: 40.0,
+            },
             error: 0.0,
             reflectance_only: [0.0; 3],
             reflectance_only_error: 0.0,
@@ -1538,7 +1559,12 @@ mod tests {
         entries[7] = mk(0.8, 600.0); // only corner (1,1,1) fluoresces
         entries[6] = mk(0.4, 500.0); // and (1,1,0)
         let cube = Cube {
-            header: CubeHeader { space: RgbSpace::AcesCg, illuminant: "D65".into(), resolution: 2, threshold: f64::INFINITY },
+            header: CubeHeader {
+                space: RgbSpace::AcesCg,
+                illuminant: "D65".into(),
+                resolution: 2,
+                threshold: f64::INFINITY,
+            },
             entries,
         };
         let c = cube.lookup([1.0, 1.0, 0.5], Lookup::Trilinear, true).unwrap();
@@ -1648,7 +1674,12 @@ mod shipped_cube_tests {
             dirs.iter().map(|w| phi.iter().map(|p| (w[0] * p[0] + w[1] * p[1] + w[2] * p[2]).max(0.0)).sum()).collect();
         colours
             .iter()
-            .map(|x| dirs.iter().zip(&h).map(|(w, hw)| hw - (w[0] * x[0] + w[1] * x[1] + w[2] * x[2])).fold(f64::INFINITY, f64::min))
+            .map(|x| {
+                dirs.iter()
+                    .zip(&h)
+                    .map(|(w, hw)| hw - (w[0] * x[0] + w[1] * x[1] + w[2] * x[2]))
+                    .fold(f64::INFINITY, f64::min)
+            })
             .collect()
     }
 
@@ -1684,7 +1715,11 @@ mod shipped_cube_tests {
             assert!(err_of(&Coefficients::reflectance_only(e.reflectance_only), i) < 5e-3, "entry {:?}", colours[i]);
             assert!(e.error < 5e-3);
         }
-        eprintln!("reachable (margin {REACHABLE_MARGIN}): {}, reproduced within 1e-3: {}", inside.len(), inside.len() - missed.len());
+        eprintln!(
+            "reachable (margin {REACHABLE_MARGIN}): {}, reproduced within 1e-3: {}",
+            inside.len(),
+            inside.len() - missed.len()
+        );
     }
 
     #[test]
@@ -1723,7 +1758,9 @@ mod shipped_cube_tests {
                 assert!(es.error < 1e-3 && es.coefficients.concentration == 0.0, "entry {:?}", small.entry_rgb(i));
             }
             // reflectance-only stage reaches the same error level
-            assert!((es.reflectance_only_error - eb.reflectance_only_error).abs() < 5e-3 + 0.1 * eb.reflectance_only_error);
+            assert!(
+                (es.reflectance_only_error - eb.reflectance_only_error).abs() < 5e-3 + 0.1 * eb.reflectance_only_error
+            );
             let rgb = sys.rgb(&es.coefficients);
             let err = (0..3).map(|k| (rgb[k] - small.entry_rgb(i)[k]).powi(2)).sum::<f64>().sqrt();
             assert!((err - es.error).abs() < 1e-4);

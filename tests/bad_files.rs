@@ -49,7 +49,10 @@ fn err(r: Result<impl std::fmt::Debug, fluo::Error>) -> String {
 fn bfc_header_claiming_a_huge_grid_is_refused_before_allocating() {
     // 100000 excitation wavelengths on line 12 (a ~690 kB file), 100000 emission rows
     // claimed: the old parser reserved 80 GB and aborted the process.
-    let rc: String = std::iter::once("r:c:".to_string()).chain((0..100_000).map(|i| format!("{}", 300 + i))).collect::<Vec<_>>().join(" ");
+    let rc: String = std::iter::once("r:c:".to_string())
+        .chain((0..100_000).map(|i| format!("{}", 300 + i)))
+        .collect::<Vec<_>>()
+        .join(" ");
     let s = Scratch::new("bfc");
     let p = s.file("huge.bfc", bfc("300 100299 1 100000 300 1", &rc, "300 0.5\n"));
     let e = err(load_matrix(&p));
@@ -107,7 +110,12 @@ fn absurd_values_are_refused_with_file_and_value() {
     let e = err(load_matrix(&p));
     assert!(e.contains("big.csv") && e.contains("1e300"), "{e}");
     // 3e38 is a finite float32: accepted before, it overflowed in the render.
-    let d = Donaldson { source: "t".into(), lambda_i: vec![400.0, 500.0], lambda_o: vec![400.0, 500.0], values: vec![0.5, 0.0, 3e38, 0.6] };
+    let d = Donaldson {
+        source: "t".into(),
+        lambda_i: vec![400.0, 500.0],
+        lambda_o: vec![400.0, 500.0],
+        values: vec![0.5, 0.0, 3e38, 0.6],
+    };
     write_exr(&d, &s.0.join("big.exr")).unwrap();
     let e = err(read_exr(&s.0.join("big.exr")));
     assert!(e.contains("big.exr") && e.contains("3e38"), "{e}");
@@ -118,7 +126,9 @@ fn absurd_values_are_refused_with_file_and_value() {
 }
 
 fn gmm_with(edit: impl Fn(&mut serde_json::Value)) -> Result<GmmModel, fluo::Error> {
-    let text = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("data/matrices/jung_orange.gmm.json")).unwrap();
+    let text =
+        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("data/matrices/jung_orange.gmm.json"))
+            .unwrap();
     let mut v: serde_json::Value = serde_json::from_str(&text).unwrap();
     edit(&mut v);
     GmmModel::new(serde_json::from_value::<GmmFile>(v).unwrap())

@@ -70,8 +70,20 @@ fn text_seeds(dir: &Path, ext: &str) -> Vec<String> {
 
 /// Values a hostile header or data field may hold.
 const HOSTILE: [&str; 14] = [
-    "100000", "99999999999", "1e300", "-1e300", "3e38", "NaN", "inf", "-1", "0", "1e-300", "4294967297", "",
-    "18446744073709551616", "2.5",
+    "100000",
+    "99999999999",
+    "1e300",
+    "-1e300",
+    "3e38",
+    "NaN",
+    "inf",
+    "-1",
+    "0",
+    "1e-300",
+    "4294967297",
+    "",
+    "18446744073709551616",
+    "2.5",
 ];
 
 /// Replace numeric-looking tokens of `text` (chosen by `picks`) with hostile values.

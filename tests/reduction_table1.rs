@@ -60,6 +60,9 @@ fn naive_rows_follow_eq_7_as_the_paper_computed_them() {
         eprintln!("naive-{basis}: ours {got:.2?} paper {paper:?}");
         let mean_got = got.iter().sum::<f64>() / 7.0;
         let mean_paper = paper.iter().sum::<f64>() / 7.0;
-        assert!((mean_got - mean_paper).abs() <= NAIVE_TOLERANCE, "naive-{basis}: mean {mean_got:.2} vs {mean_paper:.2}");
+        assert!(
+            (mean_got - mean_paper).abs() <= NAIVE_TOLERANCE,
+            "naive-{basis}: mean {mean_got:.2} vs {mean_paper:.2}"
+        );
     }
 }

@@ -137,8 +137,15 @@ mod qd {
         for &c in &cosines {
             for &l in &lambdas {
                 let (r, a) = (m.r_tot(c, l), m.a_tot(c, l));
-                prop_assert!(r.is_finite() && r >= 0.0 && a.is_finite() && a >= 0.0, "R_tot {r} A_tot {a} at cos {c} λ {l}");
-                prop_assert!(r + p.quantum_yield * a <= 1.0 + 1e-12, "energy at cos {c} λ {l}: {}", r + p.quantum_yield * a);
+                prop_assert!(
+                    r.is_finite() && r >= 0.0 && a.is_finite() && a >= 0.0,
+                    "R_tot {r} A_tot {a} at cos {c} λ {l}"
+                );
+                prop_assert!(
+                    r + p.quantum_yield * a <= 1.0 + 1e-12,
+                    "energy at cos {c} λ {l}: {}",
+                    r + p.quantum_yield * a
+                );
             }
         }
         let range = (300.0, 830.0);
@@ -156,7 +163,10 @@ mod qd {
             for xi in [0.0, 1e-9, 0.5, 1.0 - 1e-9, 1.0] {
                 for &lo in &lambdas {
                     if let Some((li, pdf)) = m.sample_excitation(wi, lo, xi, range) {
-                        prop_assert!(li >= 300.0 && li <= lo.min(830.0) && pdf.is_finite() && pdf > 0.0, "λi {li} pdf {pdf}");
+                        prop_assert!(
+                            li >= 300.0 && li <= lo.min(830.0) && pdf.is_finite() && pdf > 0.0,
+                            "λi {li} pdf {pdf}"
+                        );
                         let want = m.excitation_pdf(wi, lo, li, range);
                         prop_assert!((pdf - want).abs() <= 1e-9 * want, "pdf {pdf} vs {want}");
                     }
@@ -210,7 +220,14 @@ mod qd {
                 for (q, rho) in [(0.0, 0.0), (1.0, 1.0), (0.0, 1.0)] {
                     for alpha in [0.0, 1e-4, 1.0] {
                         for s in [Substrate::Constant { eta: 1e-3, k: 1e3 }, Substrate::Constant { eta: 1.5, k: 0.0 }] {
-                            let p = QdParams { radius_nm: r, width_nm: w, quantum_yield: q, density: rho, alpha, ..QdParams::default() };
+                            let p = QdParams {
+                                radius_nm: r,
+                                width_nm: w,
+                                quantum_yield: q,
+                                density: rho,
+                                alpha,
+                                ..QdParams::default()
+                            };
                             check(p, s).unwrap_or_else(|e| panic!("R={r} δ={w} Q={q} ρ={rho} α={alpha}: {e}"));
                         }
                     }

@@ -95,6 +95,7 @@ class Row:
     mean_de: float | None = None
     p95_de: float | None = None
     noise_de: float | None = None  # mean ΔE00 between two spectral renders (seeds differ)
+    noise_p95: float | None = None  # their 95th percentile
 
     @property
     def fluorescent(self) -> bool:
@@ -229,7 +230,9 @@ def run(scenes: list[Path], out: Path, spp: int, res: int | None = None, seed: i
             try:
                 other_seed = (seed + 1) % 2**32  # Mitsuba's seeds are unsigned 32-bit
                 noise, _, _ = _render(text, scene.parent, "scalar_spectral", spp, other_seed, None)
-                row.noise_de = float(delta_e_map(np.maximum(noise, 0), np.maximum(spectral, 0)).mean())
+                noise_map = delta_e_map(np.maximum(noise, 0), np.maximum(spectral, 0))
+                row.noise_de = float(noise_map.mean())
+                row.noise_p95 = float(np.percentile(noise_map, 95))
             except RuntimeError as err:
                 log(f"fluo demo: {scene.name}: noise-floor render failed: {err}")
         else:
@@ -250,7 +253,7 @@ def summary(rows: list[Row], spp: int, res: int | None) -> dict:
         "scenes": [{
             "scene": r.scene, "fluorescent_materials": r.materials,
             "mean_de00_spectral_vs_without": r.mean_de, "p95_de00_spectral_vs_without": r.p95_de,
-            "mean_de00_noise_floor": r.noise_de,
+            "mean_de00_noise_floor": r.noise_de, "p95_de00_noise_floor": r.noise_p95,
             "seconds": {k: p.seconds for k, p in r.panels.items() if p.seconds is not None},
             "notes": {k: p.note for k, p in r.panels.items() if p.note},
         } for r in rows],

@@ -9,15 +9,15 @@ use std::collections::BTreeMap;
 use std::process::ExitCode;
 
 use fluo::bispectral::patch_xyz;
+use fluo::colour::RgbSpace;
 use fluo::colour::{ciede2000, xyz_to_lab};
-use fluo::reduce::{reduce, reduced_patch_xyz, spectral_patch_xyz, Basis, BasisKind, Method};
 use fluo::gmm::{fit, FitOptions, Scaling};
 use fluo::gmm_report::{report, ACCEPTANCE_COMPONENTS, ACCEPTANCE_DELTA_E, COMPONENT_COUNTS};
-use fluo::matrix::{load_matrix, shared_bispectral_files, Filtered};
 use fluo::jung::{JungFluorescence, JungMaterial, JungParams, Reflectance};
 use fluo::material::load_material;
+use fluo::matrix::{load_matrix, shared_bispectral_files, Filtered};
+use fluo::reduce::{reduce, reduced_patch_xyz, spectral_patch_xyz, Basis, BasisKind, Method};
 use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
-use fluo::colour::RgbSpace;
 use fluo::upsample::{generate_cube, space_name, Cube, CubeSettings, Lookup, Reconstruction, REMAINING_ERROR};
 use serde_json::{json, Value};
 
@@ -450,8 +450,10 @@ fn cmd_patch(args: &Args) -> Result<Value, String> {
 
 fn cmd_reduce(args: &Args) -> Result<Value, String> {
     let material_arg = args.values.get("material").or(args.values.get("matrix")).ok_or("reduce needs --material")?;
-    let kind = BasisKind::from_name(args.values.get("basis").map_or("xyzu", String::as_str)).map_err(|e| e.to_string())?;
-    let method = Method::from_name(args.values.get("method").map_or("ours", String::as_str)).map_err(|e| e.to_string())?;
+    let kind =
+        BasisKind::from_name(args.values.get("basis").map_or("xyzu", String::as_str)).map_err(|e| e.to_string())?;
+    let method =
+        Method::from_name(args.values.get("method").map_or("ours", String::as_str)).map_err(|e| e.to_string())?;
     let (_, observer) = observer_arg(args)?;
     let material = load_material(material_arg).map_err(|e| e.to_string())?;
     let basis = Basis::new(kind, observer).map_err(|e| e.to_string())?;
@@ -603,7 +605,8 @@ fn cmd_upsample_cube(args: &Args) -> Result<Value, String> {
         threads: args.f64_or("threads", threads_default)?.max(1.0) as usize,
     };
     let start = std::time::Instant::now();
-    let (cube, stats) = generate_cube(&settings, &mut |line| eprintln!("upsample-cube: {line}")).map_err(|e| e.to_string())?;
+    let (cube, stats) =
+        generate_cube(&settings, &mut |line| eprintln!("upsample-cube: {line}")).map_err(|e| e.to_string())?;
     let seconds = start.elapsed().as_secs_f64();
     cube.save(std::path::Path::new(output)).map_err(|e| e.to_string())?;
     Ok(json!({
@@ -618,9 +621,8 @@ fn cmd_upsample_cube(args: &Args) -> Result<Value, String> {
 
 fn shipped_cubes() -> Vec<std::path::PathBuf> {
     let dir = fluo::upsample::shipped_cube_dir();
-    let mut v: Vec<_> = std::fs::read_dir(dir)
-        .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
-        .unwrap_or_default();
+    let mut v: Vec<_> =
+        std::fs::read_dir(dir).map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
     v.retain(|p: &std::path::PathBuf| p.extension().is_some_and(|e| e == "cube"));
     v.sort();
     v
@@ -651,7 +653,10 @@ fn cmd_upsample_report(args: &Args) -> Result<Value, String> {
         ] {
             let with = cube.card_rmse(&sys, size, how, true).map_err(|e| e.to_string())?;
             let without = cube.card_rmse(&sys, size, how, false).map_err(|e| e.to_string())?;
-            rmse.insert(name.into(), json!({"fluorescence": with, "reflectance_only": without, "ratio": without / with}));
+            rmse.insert(
+                name.into(),
+                json!({"fluorescence": with, "reflectance_only": without, "ratio": without / with}),
+            );
         }
         let n = cube.entries().len() as f64;
         let remaining = cube.entries().iter().filter(|e| e.error > REMAINING_ERROR).count();
@@ -690,7 +695,8 @@ fn cmd_upsample_lookup(args: &Args) -> Result<Value, String> {
         .map(|t| t.trim().parse::<f64>().map_err(|_| format!("--rgb \"{text}\": not three numbers")))
         .collect::<Result<_, _>>()?;
     let rgb: [f64; 3] = v.try_into().map_err(|_| format!("--rgb \"{text}\": not three numbers"))?;
-    let mode = Lookup::from_name(args.values.get("lookup").map_or("nearest", String::as_str)).map_err(|e| e.to_string())?;
+    let mode =
+        Lookup::from_name(args.values.get("lookup").map_or("nearest", String::as_str)).map_err(|e| e.to_string())?;
     let fl = args.values.get("fluorescence").map_or("true", String::as_str) != "false";
     let c = cube.lookup(rgb, mode, fl).map_err(|e| e.to_string())?;
     let sys = cube.colour_system().map_err(|e| e.to_string())?;
@@ -761,7 +767,9 @@ fn cmd_gmm_report(args: &Args) -> Result<Value, String> {
         None => COMPONENT_COUNTS.to_vec(),
         Some(list) => list
             .split(',')
-            .map(|x| x.trim().parse::<usize>().map_err(|_| format!("--components \"{list}\": expected e.g. 1,2,4,8,16")))
+            .map(|x| {
+                x.trim().parse::<usize>().map_err(|_| format!("--components \"{list}\": expected e.g. 1,2,4,8,16"))
+            })
             .collect::<Result<_, _>>()?,
     };
     let r = report(&files, &counts, &fit_options(args)?).map_err(|e| e.to_string())?;
@@ -770,20 +778,40 @@ fn cmd_gmm_report(args: &Args) -> Result<Value, String> {
                "threshold": ACCEPTANCE_DELTA_E, "pass": s.mean_delta_e_cie <= ACCEPTANCE_DELTA_E})
     });
     if !args.json {
-        eprintln!("{:<18} {:>3} {:>10} {:>9} {:>10} {:>9} {:>8} {:>7} {:>10}", "material", "K", "ΔE CIE", "max", "ΔE mono", "max", "fit s", "floats", "bytes");
+        eprintln!(
+            "{:<18} {:>3} {:>10} {:>9} {:>10} {:>9} {:>8} {:>7} {:>10}",
+            "material", "K", "ΔE CIE", "max", "ΔE mono", "max", "fit s", "floats", "bytes"
+        );
         for m in &r.materials {
             for f in &m.fits {
                 eprintln!(
                     "{:<18} {:>3} {:>10.4} {:>9.4} {:>10.4} {:>9.4} {:>8.3} {:>7} {:>10}",
-                    m.file, f.components, f.delta_e_cie.mean, f.delta_e_cie.max, f.delta_e_mono.mean,
-                    f.delta_e_mono.max, f.fit_seconds, f.floats_stored, f.bytes_at_render_time
+                    m.file,
+                    f.components,
+                    f.delta_e_cie.mean,
+                    f.delta_e_cie.max,
+                    f.delta_e_mono.mean,
+                    f.delta_e_mono.max,
+                    f.fit_seconds,
+                    f.floats_stored,
+                    f.bytes_at_render_time
                 );
             }
-            eprintln!("{:<18} matrix: {} floats stored, {} bytes at render time (with CDF tables)", m.file, m.matrix_floats_stored, m.matrix_bytes_at_render_time);
+            eprintln!(
+                "{:<18} matrix: {} floats stored, {} bytes at render time (with CDF tables)",
+                m.file, m.matrix_floats_stored, m.matrix_bytes_at_render_time
+            );
         }
         for s in &r.summary {
-            eprintln!("mean K = {:>2}: ΔE CIE {:.4}, ΔE mono {:.4}, fit {:.3} s, {:.0} bytes (matrix {:.0})",
-                s.components, s.mean_delta_e_cie, s.mean_delta_e_mono, s.mean_fit_seconds, s.mean_bytes_at_render_time, s.matrix_bytes_at_render_time);
+            eprintln!(
+                "mean K = {:>2}: ΔE CIE {:.4}, ΔE mono {:.4}, fit {:.3} s, {:.0} bytes (matrix {:.0})",
+                s.components,
+                s.mean_delta_e_cie,
+                s.mean_delta_e_mono,
+                s.mean_fit_seconds,
+                s.mean_bytes_at_render_time,
+                s.matrix_bytes_at_render_time
+            );
         }
     }
     let mut out = serde_json::to_value(&r).map_err(|e| e.to_string())?;
@@ -824,17 +852,15 @@ fn cmd_export_matrix(args: &Args) -> Result<Value, String> {
     for &o in &lo {
         text.push_str(&format!("{o}"));
         for &i in &li {
-            let v = if (i - o).abs() < 1e-9 {
-                m.elastic_albedo(o)
-            } else {
-                m.fluorescence.reradiation(i, o) * step
-            };
+            let v = if (i - o).abs() < 1e-9 { m.elastic_albedo(o) } else { m.fluorescence.reradiation(i, o) * step };
             text.push_str(&format!(",{v:.6e}"));
         }
         text.push('\n');
     }
     std::fs::write(output, text).map_err(|e| format!("{output}: {e}"))?;
-    Ok(json!({"output": output, "params": p, "reflectance": r, "lambda_i_nm": [300, 780], "lambda_o_nm": [380, 780], "step_nm": step}))
+    Ok(
+        json!({"output": output, "params": p, "reflectance": r, "lambda_i_nm": [300, 780], "lambda_o_nm": [380, 780], "step_nm": step}),
+    )
 }
 
 fn run(argv: &[String]) -> Result<(), String> {

@@ -11,8 +11,8 @@
 use std::panic::{catch_unwind, AssertUnwindSafe};
 
 use crate::bispectral::{Bispectral, Model, PatchMaterial};
-use crate::jung::{JungFluorescence, JungParams, Reflectance};
 use crate::colour::bounded_rgb_albedo;
+use crate::jung::{JungFluorescence, JungParams, Reflectance};
 use crate::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use crate::reduce::{Method, ReradiationOnly, Transport};
 use crate::sigmoid::SigmoidPolynomial;
@@ -223,7 +223,13 @@ mod bridge {
         /// Coating coefficients at the microfacet cosine for each λ: the film's R_spe and
         /// the two-pass transmission T_spe²(1 − A_tf)², so that
         /// R_tot = R_spe + pass·R / (1 − R·R_spe) for substrate reflectance R (eq. 23).
-        fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_spe: &mut [f32], pass: &mut [f32]);
+        fn qd_elastic_coefficients(
+            model: &QdModel,
+            cos_theta: f32,
+            lambdas: &[f32],
+            r_spe: &mut [f32],
+            pass: &mut [f32],
+        );
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
@@ -253,16 +259,26 @@ mod bridge {
         fn upsample_cube_describe(cube: &UpsampleCube) -> String;
         /// Coefficients of `rgb` (3 values in [0, 1]); `lookup` is "nearest" or
         /// "trilinear"; `fluorescence = false` uses the reflectance-only solutions.
-        fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool)
-            -> Result<UpsampleCoefficients>;
+        fn upsample_lookup(
+            cube: &UpsampleCube,
+            rgb: &[f64],
+            lookup: &str,
+            fluorescence: bool,
+        ) -> Result<UpsampleCoefficients>;
 
         /// Per-texel `fluo_jung` models of an RGB texture, built once at load.
         type JungTexture;
 
         /// `rgb`: width·height·3 floats, row-major from the top row (Mitsuba's texel
         /// order). Errors name the first NaN or out-of-range texel.
-        fn jung_texture_new(cube: &UpsampleCube, width: usize, height: usize, rgb: &[f32], lookup: &str,
-            fluorescence: bool) -> Result<Box<JungTexture>>;
+        fn jung_texture_new(
+            cube: &UpsampleCube,
+            width: usize,
+            height: usize,
+            rgb: &[f32],
+            lookup: &str,
+            fluorescence: bool,
+        ) -> Result<Box<JungTexture>>;
         /// The model of texel (x, y) (wrapped into range).
         fn jung_texture_model(tex: &JungTexture, x: i64, y: i64) -> &JungModel;
         /// RGB variant: the texel's albedo, sRGB of the reflected spectrum under E.
@@ -417,7 +433,13 @@ const UV_EDGE_NM: f64 = 400.0;
 
 fn illuminant_is_mostly_uv(s: &Illuminant) -> bool {
     let Range { lo, hi } = illuminant_range(s);
-    let power = |a: f64, b: f64| if b > a { s.spectrum.integrate_product(&|_: f64| 1.0, a, b, 1.0).unwrap_or(0.0) } else { 0.0 };
+    let power = |a: f64, b: f64| {
+        if b > a {
+            s.spectrum.integrate_product(&|_: f64| 1.0, a, b, 1.0).unwrap_or(0.0)
+        } else {
+            0.0
+        }
+    };
     let total = power(lo, hi);
     total > 0.0 && power(lo, hi.min(UV_EDGE_NM)) > 0.5 * total
 }
@@ -493,12 +515,14 @@ fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>
                 // channel from the substrate's own eta/k (a gold substrate stays gold).
                 ReducedModel { directional: Directional::Microfacet { micro: *m.microfacet(), tables }, full: false }
             }
-            (_, Some(r)) => {
-                ReducedModel { directional: Directional::Lambertian(t.0.reduce(&FullOperator(&f.model, r))), full: true }
-            }
-            (_, None) => {
-                ReducedModel { directional: Directional::Lambertian(t.0.reduce(&ReradiationOnly(&f.model))), full: false }
-            }
+            (_, Some(r)) => ReducedModel {
+                directional: Directional::Lambertian(t.0.reduce(&FullOperator(&f.model, r))),
+                full: true,
+            },
+            (_, None) => ReducedModel {
+                directional: Directional::Lambertian(t.0.reduce(&ReradiationOnly(&f.model))),
+                full: false,
+            },
         }))
     })
 }
@@ -627,11 +651,12 @@ fn jung_rgb_elastic_scale(model: &JungModel) -> Rgb {
 
 fn jung_to_string(model: &JungModel) -> String {
     match &model.reflectance {
-        Some(Reflectance::Sigmoid(s)) => format!("{} with sigmoid reflectance {:?}", model.fluorescence, s.coefficients),
+        Some(Reflectance::Sigmoid(s)) => {
+            format!("{} with sigmoid reflectance {:?}", model.fluorescence, s.coefficients)
+        }
         _ => model.fluorescence.to_string(),
     }
 }
-
 
 // ---------------------------------------------------------------- fluo_matrix, fluo_gmm
 
@@ -659,14 +684,18 @@ impl MeasuredModel {
 fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
     guarded(|| {
         let m = crate::matrix::MatrixModel::from_file(filename)?;
-        Ok(Box::new(MeasuredModel { generic: Fluorescence { model: Model::Matrix(m), elastic: Some(Reflectance::Constant(1.0)) } }))
+        Ok(Box::new(MeasuredModel {
+            generic: Fluorescence { model: Model::Matrix(m), elastic: Some(Reflectance::Constant(1.0)) },
+        }))
     })
 }
 
 fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
     guarded(|| {
         let m = crate::gmm::GmmModel::from_file(filename)?;
-        Ok(Box::new(MeasuredModel { generic: Fluorescence { model: Model::Gmm(m), elastic: Some(Reflectance::Constant(1.0)) } }))
+        Ok(Box::new(MeasuredModel {
+            generic: Fluorescence { model: Model::Gmm(m), elastic: Some(Reflectance::Constant(1.0)) },
+        }))
     })
 }
 
@@ -724,7 +753,14 @@ fn qd_fallback() -> &'static crate::qd::QdModel {
     use crate::qd::{QdIndex, QdModel as Qd, QdParams, Substrate};
     static FALLBACK: std::sync::OnceLock<Option<Qd>> = std::sync::OnceLock::new();
     FALLBACK
-        .get_or_init(|| Qd::new(QdParams { density: 0.0, ..QdParams::default() }, QdIndex::CdSe, Substrate::Constant { eta: 1.5, k: 0.0 }).ok())
+        .get_or_init(|| {
+            Qd::new(
+                QdParams { density: 0.0, ..QdParams::default() },
+                QdIndex::CdSe,
+                Substrate::Constant { eta: 1.5, k: 0.0 },
+            )
+            .ok()
+        })
         .as_ref()
         .unwrap_or_else(|| unreachable!("the default fluo_qd parameters are valid"))
 }
@@ -784,7 +820,10 @@ fn qd_new(
         let index = if qd_eta.is_empty() && qd_k.is_empty() {
             QdIndex::CdSe
         } else {
-            QdIndex::Tabulated { n: sampled("qd_eta", qd_wavelengths, qd_eta)?, k: sampled("qd_k", qd_wavelengths, qd_k)? }
+            QdIndex::Tabulated {
+                n: sampled("qd_eta", qd_wavelengths, qd_eta)?,
+                k: sampled("qd_k", qd_wavelengths, qd_k)?,
+            }
         };
         let model = crate::qd::QdModel::new(params, index, substrate)?;
         // The coating's elastic reflectance R_tot(θ, λ) lives in the Rust model (the
@@ -850,14 +889,14 @@ fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
 /// Opaque coefficient cube handed to C++.
 pub struct UpsampleCube(crate::upsample::Cube);
 
-
 fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
     guarded(|| {
         let space = crate::colour::RgbSpace::from_name(space).map_err(|_| {
             crate::Error::param("color_space", format!("\"{space}\""), "one of \"srgb\", \"rec2020\", \"acescg\"")
         })?;
         let path = if filename.is_empty() {
-            crate::upsample::shipped_cube_dir().join(format!("{}_d65_tinf_r33.cube", crate::upsample::space_name(space)))
+            crate::upsample::shipped_cube_dir()
+                .join(format!("{}_d65_tinf_r33.cube", crate::upsample::space_name(space)))
         } else {
             std::path::PathBuf::from(filename)
         };
@@ -889,7 +928,12 @@ fn bridge_coefficients(c: &crate::upsample::Coefficients) -> UpsampleCoefficient
     }
 }
 
-fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool) -> Result<UpsampleCoefficients, String> {
+fn upsample_lookup(
+    cube: &UpsampleCube,
+    rgb: &[f64],
+    lookup: &str,
+    fluorescence: bool,
+) -> Result<UpsampleCoefficients, String> {
     guarded(|| {
         let mode = crate::upsample::Lookup::from_name(lookup)?;
         let [r, g, b] = <[f64; 3]>::try_from(rgb)

@@ -144,7 +144,11 @@ fn d65_extended() -> Result<RegularSpectrum> {
     let values = (0..=n)
         .map(|i| {
             let l = table.start_nm() + i as f64 * step;
-            if l <= table.end_nm() { table.eval(l) } else { generated.eval(l) }
+            if l <= table.end_nm() {
+                table.eval(l)
+            } else {
+                generated.eval(l)
+            }
         })
         .collect();
     RegularSpectrum::new(table.start_nm(), step, values)

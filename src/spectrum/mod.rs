@@ -46,7 +46,9 @@ mod csv;
 mod illuminant;
 
 pub use cmf::{cmf, Cmf, Observer};
-pub use illuminant::{blackbody, blackbody_spectrum, check_lamp, daylight, illuminant, ILLUMINANT_NAMES, MAX_LAMP_VALUE};
+pub use illuminant::{
+    blackbody, blackbody_spectrum, check_lamp, daylight, illuminant, ILLUMINANT_NAMES, MAX_LAMP_VALUE,
+};
 
 use crate::{Error, Result};
 
