@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Run all tests: set up (scripts/setup.sh), pure-Rust tests (cargo test --release),
+# Run all tests: set up (scripts/setup.sh), the format check and clippy (warnings are
+# errors), pure-Rust tests (cargo test --release),
 # the Python/Mitsuba tests (pytest tests/python; extra args are passed to pytest), then
 # the user path: build the wheel and use it from a fresh venv (scripts/wheel_smoke.sh).
 # Every suite runs; the exit status is non-zero if any failed, or if pytest collected
@@ -12,6 +13,12 @@ bash scripts/setup.sh
 export FLUO_PYTHON="$PWD/.venv/bin/python"
 
 failed=()
+
+# Cheap checks first: formatting (rustfmt.toml), then lints as errors.
+echo "[test] cargo fmt --check"
+cargo fmt --check || failed+=("cargo fmt --check")
+echo "[test] cargo clippy --all-targets -- -D warnings"
+cargo clippy --release --features mitsuba --all-targets -- -D warnings || failed+=("cargo clippy")
 
 # Same features as the setup build: a featureless build would replace
 # target/release/libfluo.so with a library that has no plugins in it.

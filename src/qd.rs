@@ -1568,7 +1568,7 @@ mod tests {
     fn table_knobs_are_validated_and_converge() {
         for (rows, step) in [(1, 1.0), (2000, 1.0), (33, 0.0), (33, f64::NAN), (33, 100.0)] {
             let p = QdParams { cos_nodes: rows, table_step_nm: step, ..QdParams::default() };
-            let e = QdModel::new(p, QdIndex::CdSe, GOLD).err().expect("out of range");
+            let Err(e) = QdModel::new(p, QdIndex::CdSe, GOLD) else { panic!("out of range") };
             assert!(e.to_string().contains(if rows == 33 { "table_step" } else { "table_cos_nodes" }), "{e}");
         }
         let fine = model(QdParams { cos_nodes: 129, table_step_nm: 0.25, ..QdParams::default() });

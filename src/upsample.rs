@@ -146,8 +146,8 @@ pub const MAX_RESOLUTION: usize = 129;
 
 /// 8-point Gauss–Legendre nodes (positive half) and weights on [−1, 1].
 const GL8: [(f64, f64); 4] = [
-    (0.183_434_642_495_649_8, 0.362_683_783_378_362_0),
-    (0.525_532_409_916_329_0, 0.313_706_645_877_887_3),
+    (0.183_434_642_495_649_8, 0.362_683_783_378_362),
+    (0.525_532_409_916_329, 0.313_706_645_877_887_3),
     (0.796_666_477_413_626_7, 0.222_381_034_453_374_5),
     (0.960_289_856_497_536_3, 0.101_228_536_290_376_3),
 ];
@@ -679,8 +679,9 @@ fn solve_linear(m: &mut [[f64; 6]; 6], mut rhs: [f64; 6], n: usize) -> Option<[f
         rhs.swap(col, piv);
         for row in col + 1..n {
             let f = m[row][col] / m[col][col];
-            for k in col..n {
-                m[row][k] -= f * m[col][k];
+            let pivot_row = m[col];
+            for (target, pivot) in m[row][col..n].iter_mut().zip(&pivot_row[col..n]) {
+                *target -= f * pivot;
             }
             rhs[row] -= f * rhs[col];
         }
@@ -1050,9 +1051,13 @@ struct State {
 }
 
 /// Brute-force grid of the fluorescence initialisation (sec. 4).
+/// One brute-force model: λe, s, emission RGB per unit absorbed power, and its
+/// absorption nodes (λ, weight, RGB).
+type BruteForceModel = (f64, f64, [f64; 3], Vec<(f64, f64, [f64; 3])>);
+
 struct BruteForce {
     /// (λe, s) with precomputed emission RGB (per unit absorbed power) and nodes.
-    models: Vec<(f64, f64, [f64; 3], Vec<(f64, f64, [f64; 3])>)>,
+    models: Vec<BruteForceModel>,
 }
 
 impl BruteForce {

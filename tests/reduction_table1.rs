@@ -36,8 +36,8 @@ fn table1_matches_the_paper_on_the_measured_materials() {
     assert!(ours.overall <= paper_mean + 5e-3, "mean {:.3} vs paper {paper_mean:.3}", ours.overall);
     assert!(row("ours", "x7").overall < ours.overall, "x7 {} vs xyzu {}", row("ours", "x7").overall, ours.overall);
     for b in ["xyz", "xyzu", "x7"] {
-        for j in 0..7 {
-            assert!(row("ours", b).mean[j] < row("naive", b).mean[j], "{b} {}", TABLE1_ILLUMINANTS[j]);
+        for (j, light) in TABLE1_ILLUMINANTS.iter().enumerate() {
+            assert!(row("ours", b).mean[j] < row("naive", b).mean[j], "{b} {light}");
         }
     }
 }

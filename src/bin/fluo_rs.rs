@@ -153,7 +153,10 @@ const QD_CONSTANTS: [&str; 10] = [
 
 /// Every subcommand: name, summary, options (long name, kind), and the name of its
 /// positional file arguments (none: positionals are refused).
-fn subcommands() -> Vec<(&'static str, &'static str, Vec<(&'static str, Kind)>, Option<&'static str>)> {
+/// One subcommand: name, summary, options, positional files' name.
+type Subcommand = (&'static str, &'static str, Vec<(&'static str, Kind)>, Option<&'static str>);
+
+fn subcommands() -> Vec<Subcommand> {
     use Kind::*;
     let jung = vec![("emission-peak", Num), ("stokes-shift", Num), ("concentration", Num), ("quantum-yield", Num)];
     let mut qd = vec![("radius", Num), ("width", Num), ("table-cos-nodes", Count), ("table-step", Num)];
@@ -637,7 +640,7 @@ fn cmd_upsample_report(args: &Args) -> Result<Value, String> {
         return Err("upsample-report: no --cube given and no data/cubes/*.cube found".into());
     }
     let size = args.f64_or("card", 64.0)?;
-    if !(size.fract() == 0.0 && size >= 2.0 && size <= 4096.0) {
+    if !(size.fract() == 0.0 && (2.0..=4096.0).contains(&size)) {
         return Err(format!("--card {size}: must be a whole number in [2, 4096]"));
     }
     let size = size as usize;

@@ -1053,6 +1053,15 @@ fn jung_texture_distinct(tex: &JungTexture) -> usize {
     tex.models.len()
 }
 
+/// Present only in the plugin build (`--features mitsuba`): `import fluo` checks for it,
+/// so that a library rebuilt without the shims fails with an explanation instead of
+/// "plugin not found".
+#[cfg(feature = "mitsuba")]
+#[no_mangle]
+pub extern "C" fn fluo_plugins_built() -> u32 {
+    1
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -1142,13 +1151,4 @@ mod tests {
         assert!(r[0] >= 0.0 && p[0] > 0.0 && p[0] <= 1.0 && p[2] == 0.0);
         assert_eq!(fluo_name(qd_fluorescence(&m)), "qd");
     }
-}
-
-/// Present only in the plugin build (`--features mitsuba`): `import fluo` checks for it,
-/// so that a library rebuilt without the shims fails with an explanation instead of
-/// "plugin not found".
-#[cfg(feature = "mitsuba")]
-#[no_mangle]
-pub extern "C" fn fluo_plugins_built() -> u32 {
-    1
 }
