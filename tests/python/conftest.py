@@ -16,6 +16,8 @@ Fixtures:
     ``scene_xml(tmp_path, bsdf_xml, ...) -> Path``: a small XML test scene (a sphere
     with the given BSDF under a constant environment) written to a file; ``extra``
     goes first in ``<scene>`` (``<default>`` parameters, comments).
+``mitsuba_log``
+    The list of lines Mitsuba's logger writes while the test runs (warnings included).
 """
 
 from __future__ import annotations
@@ -101,3 +103,27 @@ def _scene_xml(directory: Path, bsdf: str, *, width: int = 16, height: int = 12,
 def scene_xml():
     """``scene_xml(directory, bsdf_xml, width=16, height=12, extra="", name=...)``."""
     return _scene_xml
+
+
+class _LogLines(mi.Appender):
+    """A Mitsuba log appender that keeps the lines."""
+
+    def __init__(self):
+        super().__init__()
+        self.lines: list[str] = []
+
+    def append(self, level, text):
+        self.lines.append(text)
+
+    def log_progress(self, *args):
+        pass
+
+
+@pytest.fixture
+def mitsuba_log():
+    catch = _LogLines()
+    mi.logger().add_appender(catch)
+    try:
+        yield catch.lines
+    finally:
+        mi.logger().remove_appender(catch)

@@ -106,20 +106,8 @@ def test04_unsupported_wrappers_are_refused(wrapper, variant):
         _render({**wrapper, "bsdf": JUNG}, variant, "d65", spp=1)
 
 
-class _Catch(mi.Appender):
-    def __init__(self):
-        super().__init__()
-        self.lines: list[str] = []
-
-    def append(self, level, text):
-        self.lines.append(text)
-
-    def log_progress(self, *args):
-        pass
-
-
 @pytest.mark.parametrize("variant", VARIANTS)
-def test05_other_integrators_warn_once_per_scene(variant):
+def test05_other_integrators_warn_once_per_scene(variant, mitsuba_log):
     def scene(integrator):
         shapes = {f"s{i}": {"type": "sphere", "center": [2.5 * i, 0, 0],
                             "bsdf": {"type": "twosided", "bsdf": {**JUNG, "emission_peak": 500.0 + 10 * i}}}
@@ -129,18 +117,12 @@ def test05_other_integrators_warn_once_per_scene(variant):
                              "emitter": {"type": "constant"}, **shapes})
 
     mi.set_variant(variant)
-    logger = mi.logger()
-    catch = _Catch()
-    logger.add_appender(catch)
-    try:
-        count = lambda: sum("fluo_path" in t and "once per scene" in t for t in catch.lines)  # noqa: E731
-        s = scene("path")
-        mi.render(s, spp=2)
-        mi.render(s, spp=2)
-        assert count() == 1  # three materials, two renders: one warning
-        mi.render(scene("fluo_path"), spp=2)
-        assert count() == 1  # fluo_path transports fluorescence: no warning
-        mi.render(scene("direct"), spp=2)
-        assert count() == 2  # a new scene under another integrator warns again
-    finally:
-        logger.remove_appender(catch)
+    count = lambda: sum("fluo_path" in t and "once per scene" in t for t in mitsuba_log)  # noqa: E731
+    s = scene("path")
+    mi.render(s, spp=2)
+    mi.render(s, spp=2)
+    assert count() == 1  # three materials, two renders: one warning
+    mi.render(scene("fluo_path"), spp=2)
+    assert count() == 1  # fluo_path transports fluorescence: no warning
+    mi.render(scene("direct"), spp=2)
+    assert count() == 2  # a new scene under another integrator warns again
