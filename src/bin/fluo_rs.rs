@@ -581,7 +581,7 @@ fn cmd_saturated_report(args: &Args) -> Result<Value, String> {
     Ok(json!({ "saturated": rows }))
 }
 
-// ------------------------------------------------------------------ upsampling (issue 6)
+// ------------------------------------------------------------------ upsampling
 
 fn parse_threshold(text: &str) -> Result<f64, String> {
     match text.trim().to_ascii_lowercase().as_str() {
@@ -713,7 +713,7 @@ fn cmd_upsample_lookup(args: &Args) -> Result<Value, String> {
     }))
 }
 
-// ------------------------------------------------------------ measured matrices (issue 5)
+// ------------------------------------------------------------ measured matrices
 
 fn usize_or(args: &Args, key: &str, default: usize) -> Result<usize, String> {
     match args.values.get(key) {

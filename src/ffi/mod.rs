@@ -235,7 +235,7 @@ mod bridge {
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
     }
 
-    // ---------------------------------------------------------------- upsampling (issue 6)
+    // ---------------------------------------------------------------- upsampling
     /// Coefficients of one colour from a coefficient cube (`src/upsample.rs`).
     struct UpsampleCoefficients {
         /// Sigmoid-polynomial coefficients for λ in nm.
@@ -884,7 +884,7 @@ fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
 }
 
-// ---------------------------------------------------------------- upsampling (issue 6)
+// ---------------------------------------------------------------- upsampling
 
 /// Opaque coefficient cube handed to C++.
 pub struct UpsampleCube(crate::upsample::Cube);

@@ -281,7 +281,7 @@ def test10_hard_cases_are_finite():
                             assert np.isfinite(v).all() and (v >= 0).all(), (le, s, c, q, lam, v)
 
 
-# ------------------------------------------------ wide-gamut upsampling (`color`, issue 6)
+# ------------------------------------------------------- wide-gamut upsampling (`color`)
 import json
 import subprocess
 import sys
