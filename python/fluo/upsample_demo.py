@@ -27,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
-SCENE = REPO / "scenes" / "upsample_acescg.xml"
-CARD = REPO / "scenes" / "textures" / "acescg_card.exr"
+from . import out_dir, scenes_dir
+from .colour import SRGB_TO_XYZ, ciede2000, xyz_to_lab
+
+SCENE = scenes_dir() / "upsample_acescg.xml"
+CARD = scenes_dir() / "textures" / "acescg_card.exr"
 #: Card layout: hues along x, these (saturation, value) rows along y (top first).
 CARD_ROWS = ((1.0, 1.0), (1.0, 0.9), (0.7, 1.0), (1.0, 0.5))
 CARD_HUES = 16
@@ -38,10 +40,6 @@ ACESCG_TO_XYZ = np.array([
     [0.6624541811085055, 0.13400420645643313, 0.15618768700490773],
     [0.2722287167809146, 0.6740817658111483, 0.05368951740793703],
     [-0.005574649490394109, 0.004060733528982825, 1.010339100312997]])
-SRGB_TO_XYZ = np.array([  # Mitsuba's film: linear sRGB from XYZ with this inverse
-    [0.412453, 0.357580, 0.180423],
-    [0.212671, 0.715160, 0.072169],
-    [0.019334, 0.119193, 0.950227]])
 BRADFORD = np.array([[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]])
 ACES_WHITE = np.array([0.32168 / 0.33767, 1.0, (1 - 0.32168 - 0.33767) / 0.33767])
 D65_WHITE = np.array([0.3127 / 0.3290, 1.0, (1 - 0.3127 - 0.3290) / 0.3290])
@@ -63,44 +61,6 @@ def card_colours() -> np.ndarray:
 def bradford(src_white, dst_white):
     s, d = BRADFORD @ src_white, BRADFORD @ dst_white
     return np.linalg.inv(BRADFORD) @ np.diag(d / s) @ BRADFORD
-
-
-def xyz_to_lab(xyz, white):
-    t = xyz / white
-    e = 216 / 24389
-    f = np.where(t > e, np.cbrt(np.maximum(t, e)), t * (841 / 108) + 4 / 29)
-    return np.stack([116 * f[..., 1] - 16, 500 * (f[..., 0] - f[..., 1]), 200 * (f[..., 1] - f[..., 2])], -1)
-
-
-def ciede2000(lab1, lab2):
-    """CIEDE2000 (Sharma, Wu & Dalal 2005), k_L = k_C = k_H = 1, vectorised."""
-    l1, a1, b1 = np.moveaxis(np.asarray(lab1, float), -1, 0)
-    l2, a2, b2 = np.moveaxis(np.asarray(lab2, float), -1, 0)
-    c_mean = 0.5 * (np.hypot(a1, b1) + np.hypot(a2, b2))
-    g = 0.5 * (1 - np.sqrt(c_mean**7 / (c_mean**7 + 25.0**7)))
-    a1p, a2p = (1 + g) * a1, (1 + g) * a2
-    c1p, c2p = np.hypot(a1p, b1), np.hypot(a2p, b2)
-    h1p = np.where((a1p == 0) & (b1 == 0), 0.0, np.degrees(np.arctan2(b1, a1p)) % 360)
-    h2p = np.where((a2p == 0) & (b2 == 0), 0.0, np.degrees(np.arctan2(b2, a2p)) % 360)
-    prod = c1p * c2p
-    dh = h2p - h1p
-    dh = np.where(dh > 180, dh - 360, np.where(dh < -180, dh + 360, dh))
-    dh = np.where(prod == 0, 0.0, dh)
-    dH = 2 * np.sqrt(prod) * np.sin(np.radians(dh / 2))
-    dL, dC = l2 - l1, c2p - c1p
-    lm, cm = 0.5 * (l1 + l2), 0.5 * (c1p + c2p)
-    hs = h1p + h2p
-    hm = np.where(prod == 0, hs, np.where(np.abs(h1p - h2p) <= 180, hs / 2,
-                                          np.where(hs < 360, (hs + 360) / 2, (hs - 360) / 2)))
-    t = (1 - 0.17 * np.cos(np.radians(hm - 30)) + 0.24 * np.cos(np.radians(2 * hm))
-         + 0.32 * np.cos(np.radians(3 * hm + 6)) - 0.20 * np.cos(np.radians(4 * hm - 63)))
-    d_theta = 30 * np.exp(-(((hm - 275) / 25) ** 2))
-    rc = 2 * np.sqrt(cm**7 / (cm**7 + 25.0**7))
-    sl = 1 + 0.015 * (lm - 50) ** 2 / np.sqrt(20 + (lm - 50) ** 2)
-    sc, sh = 1 + 0.045 * cm, 1 + 0.015 * cm * t
-    rt = -np.sin(np.radians(2 * d_theta)) * rc
-    x = (dL / sl) ** 2 + (dC / sc) ** 2 + (dH / sh) ** 2 + rt * (dC / sc) * (dH / sh)
-    return np.sqrt(np.maximum(x, 0))
 
 
 def write_card(path: Path = CARD) -> Path:
@@ -132,7 +92,7 @@ def de2000_map(image_srgb: np.ndarray) -> np.ndarray:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m fluo.upsample_demo", description=__doc__.split("\n")[0])
     parser.add_argument("--spp", type=int, default=64)
-    parser.add_argument("--out", type=Path, default=REPO / "out")
+    parser.add_argument("--out", type=Path, default=out_dir())
     parser.add_argument("--no-fluorescence", action="store_true")
     args = parser.parse_args(argv)
     import mitsuba as mi
