@@ -18,10 +18,16 @@ Fixtures:
     goes first in ``<scene>`` (``<default>`` parameters, comments).
 ``mitsuba_log``
     The list of lines Mitsuba's logger writes while the test runs (warnings included).
+``chi2_directions``
+    ``chi2_directions(bsdf, si, n, bins_u, bins_phi, seed) -> (stat, critical, dof)``:
+    Pearson chi-square of ``bsdf.sample``'s directions in (cos θo, φo) bins against
+    ``bsdf.pdf`` integrated over each bin, with the critical value at p = 1e-4; checks
+    on the way that each sample's pdf equals ``pdf()`` and its weight ``eval()/pdf()``.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
 
@@ -127,3 +133,51 @@ def mitsuba_log():
         yield catch.lines
     finally:
         mi.logger().remove_appender(catch)
+
+
+def _chi2_directions(b, si, n=30_000, bins_u=16, bins_phi=16, seed=3):
+    ctx = mi.BSDFContext()
+    rng = np.random.default_rng(seed)
+    counts = np.zeros((bins_u, bins_phi))
+    for s1, s2, s3 in rng.random((n, 3)):
+        bs, weight = b.sample(ctx, si, float(s1), mi.Point2f(float(s2), float(s3)))
+        if not bs.pdf > 0 or not np.any(np.array(weight) > 0):
+            continue  # a lost sample (reflected below the horizon): no mass in any bin
+        wo = bs.wo
+        pdf = b.pdf(ctx, si, wo)
+        assert abs(bs.pdf - pdf) <= 1e-4 * max(pdf, 1.0), (bs.pdf, pdf)
+        value = np.array(b.eval(ctx, si, wo))
+        assert np.allclose(np.array(weight), value / pdf, rtol=2e-4, atol=1e-7)
+        phi = (math.atan2(wo.y, wo.x) + 2 * math.pi) % (2 * math.pi)
+        counts[min(int(wo.z * bins_u), bins_u - 1), min(int(phi / (2 * math.pi) * bins_phi), bins_phi - 1)] += 1
+    # expected: midpoint rule on an 8x8 sub-grid of each bin, dω = d(cos θ) dφ
+    sub = 8
+    expected = np.zeros_like(counts)
+    du, dphi = 1 / (bins_u * sub), 2 * math.pi / (bins_phi * sub)
+    for i in range(bins_u * sub):
+        u = (i + 0.5) * du
+        st = math.sqrt(max(0.0, 1 - u * u))
+        for k in range(bins_phi * sub):
+            p = (k + 0.5) * dphi
+            pdf = b.pdf(ctx, si, mi.Vector3f(st * math.cos(p), st * math.sin(p), u))
+            expected[i // sub, k // sub] += pdf * du * dphi
+    expected *= n
+    # pool bins with expected < 5 (Mitsuba's chi2 does the same)
+    order = np.argsort(expected, axis=None)
+    e_flat, c_flat = expected.flatten()[order], counts.flatten()[order]
+    stat, dof, pe, pc = 0.0, 0, 0.0, 0.0
+    for e, c in zip(e_flat, c_flat):
+        pe += e
+        pc += c
+        if pe >= 5:
+            stat += (pc - pe) ** 2 / pe
+            dof += 1
+            pe = pc = 0.0
+    dof -= 1
+    critical = dof * (1 - 2 / (9 * dof) + 3.719 * math.sqrt(2 / (9 * dof))) ** 3  # p = 1e-4 (Wilson-Hilferty)
+    return stat, critical, dof
+
+
+@pytest.fixture
+def chi2_directions():
+    return _chi2_directions

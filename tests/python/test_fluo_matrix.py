@@ -140,26 +140,15 @@ def test02_eval_serves_the_measured_diagonal():
         assert b.pdf(mi.BSDFContext(), si, wo) == pytest.approx(0.8 / math.pi, rel=1e-5)
 
 
-def test03_chi2_directional_sampling():
-    """Pearson chi-square of sampled directions (cos²θ, φ bins: equal-probability under
-    the cosine pdf) and sample pdf = pdf()."""
+def test03_chi2_directional_sampling(chi2_directions):
+    """Pearson chi-square of sampled directions against the pdf (conftest)."""
     mi.set_variant("scalar_spectral")
     b = mi.load_dict({"type": "fluo_matrix", "filename": str(ORANGE)})
-    ctx = mi.BSDFContext()
     si = surface_interaction((400.0, 500.0, 600.0, 700.0))
     si.wi = mi.Vector3f(0.3, 0.0, math.sqrt(1 - 0.09))
-    rng = np.random.default_rng(5)
-    n, bu, bp = 20_000, 8, 10
-    counts = np.zeros((bu, bp))
-    for s1, s2, s3 in rng.random((n, 3)):
-        bs, _ = b.sample(ctx, si, float(s1), mi.Point2f(float(s2), float(s3)))
-        assert abs(bs.pdf - b.pdf(ctx, si, bs.wo)) < 1e-5 * max(bs.pdf, 1)
-        phi = (math.atan2(bs.wo.y, bs.wo.x) + 2 * math.pi) % (2 * math.pi)
-        counts[min(int(bs.wo.z**2 * bu), bu - 1), min(int(phi / (2 * math.pi) * bp), bp - 1)] += 1
-    expected = n / (bu * bp)
-    stat = ((counts - expected) ** 2 / expected).sum()
-    dof = bu * bp - 1
-    assert stat < dof * (1 - 2 / (9 * dof) + 3.719 * math.sqrt(2 / (9 * dof))) ** 3, stat
+    stat, critical, dof = chi2_directions(b, si, n=20_000, bins_u=8, bins_phi=10, seed=5)
+    assert dof > 40
+    assert stat < critical, (stat, critical, dof)
 
 
 @pytest.mark.parametrize("illuminant", ["D65", "A"])

@@ -146,60 +146,16 @@ def test04_band_grows_with_radius(fluo_cli):
     assert all(b[0] > a[0] and b[1] > a[1] for a, b in zip(peaks, peaks[1:])), peaks
 
 
-def _chi2_directions(b, si, n=30_000, bins_u=16, bins_phi=16, seed=3):
-    """Pearson chi-square of sampled ωo in (cos θo, φo) bins against ∫ pdf over each bin."""
-    ctx = mi.BSDFContext()
-    rng = np.random.default_rng(seed)
-    counts = np.zeros((bins_u, bins_phi))
-    for s1, s2, s3 in rng.random((n, 3)):
-        bs, weight = b.sample(ctx, si, float(s1), mi.Point2f(float(s2), float(s3)))
-        if not bs.pdf > 0 or not np.any(np.array(weight) > 0):
-            continue  # a lost sample (reflected below the horizon): no mass in any bin
-        wo = bs.wo
-        pdf = b.pdf(ctx, si, wo)
-        assert abs(bs.pdf - pdf) <= 1e-4 * max(pdf, 1.0), (bs.pdf, pdf)
-        value = np.array(b.eval(ctx, si, wo))
-        assert np.allclose(np.array(weight), value / pdf, rtol=2e-4, atol=1e-7)
-        phi = (math.atan2(wo.y, wo.x) + 2 * math.pi) % (2 * math.pi)
-        counts[min(int(wo.z * bins_u), bins_u - 1), min(int(phi / (2 * math.pi) * bins_phi), bins_phi - 1)] += 1
-    # expected: midpoint rule on an 8x8 sub-grid of each bin, dω = d(cos θ) dφ
-    sub = 8
-    expected = np.zeros_like(counts)
-    du, dphi = 1 / (bins_u * sub), 2 * math.pi / (bins_phi * sub)
-    for i in range(bins_u * sub):
-        u = (i + 0.5) * du
-        st = math.sqrt(max(0.0, 1 - u * u))
-        for k in range(bins_phi * sub):
-            p = (k + 0.5) * dphi
-            pdf = b.pdf(ctx, si, mi.Vector3f(st * math.cos(p), st * math.sin(p), u))
-            expected[i // sub, k // sub] += pdf * du * dphi
-    expected *= n
-    # pool bins with expected < 5 (Mitsuba's chi2 does the same)
-    order = np.argsort(expected, axis=None)
-    e_flat, c_flat = expected.flatten()[order], counts.flatten()[order]
-    stat, dof, pe, pc = 0.0, 0, 0.0, 0.0
-    for e, c in zip(e_flat, c_flat):
-        pe += e
-        pc += c
-        if pe >= 5:
-            stat += (pc - pe) ** 2 / pe
-            dof += 1
-            pe = pc = 0.0
-    dof -= 1
-    critical = dof * (1 - 2 / (9 * dof) + 3.719 * math.sqrt(2 / (9 * dof))) ** 3  # p = 1e-4
-    return stat, critical, dof
-
-
 @pytest.mark.parametrize("distribution, alpha, theta", [
     ("ggx", 0.3, 30.0), ("beckmann", 0.5, 70.0), ("ggx", 1.0, 85.0), ("beckmann", 0.15, 0.0),
 ])
-def test05_direction_sampling_chi2(distribution, alpha, theta):
+def test05_direction_sampling_chi2(distribution, alpha, theta, chi2_directions):
     """Acceptance (hard cases): sampled directions follow the pdf, weights = eval/pdf."""
     mi.set_variant("scalar_spectral")
     b = qd(material="Al", distribution=distribution, alpha=alpha, density=1.0, quantum_yield=1.0)
     t = math.radians(theta)
     si = surface_interaction((300.0, 420.0, 600.0, 830.0), wi=(math.sin(t), 0.0, math.cos(t)))
-    stat, critical, dof = _chi2_directions(b, si)
+    stat, critical, dof = chi2_directions(b, si)
     assert dof > 20
     assert stat < critical, (stat, critical, dof)
 
