@@ -1,4 +1,5 @@
-"""Tests of the fluo_path integrator (wavelength shifting) and fluo_illuminant.
+"""Tests of the fluo_path integrator (wavelength shifting); fluo_illuminant's own are in
+test_fluo_illuminant.py.
 
 References: Mitsuba's native ``path`` (non-fluorescent scenes), the single-bounce
 patch integral printed by ``fluo patch`` (computed by direct integration in Rust,
@@ -248,23 +249,6 @@ def test08_demo_scenes_render(name):
     img = render(scene)
     assert np.isfinite(img).all() and img.mean() > 0
     assert "fluorescent_bsdfs = 3" in str(scene.integrator())
-
-
-def test09_fluo_illuminant():
-    mi.set_variant("scalar_spectral")
-    tex = mi.load_dict({"type": "fluo_illuminant", "illuminant": "d65", "scale": 2.0})
-    lo, hi = tex.wavelength_range()
-    assert lo == 300 and hi == 830
-    si = mi.SurfaceInteraction3f()
-    si.wavelengths = mi.Spectrum(300.0, 560.0, 780.0, 830.0)
-    v = np.array(tex.eval(si))
-    assert np.all(v > 0)
-    # luminance-normalised: 560 nm, where D65 is 100, maps to 2 / (Y of D65 / 100) ~ 2
-    assert 1.5 < v[1] < 2.5
-    for bad, needle in [({"illuminant": "D99"}, "illuminant"), ({"illuminant": "A", "scale": -1.0}, "scale"),
-                        ({}, "exactly one"), ({"filename": "/no/such.csv"}, "no/such.csv")]:
-        with pytest.raises(Exception, match=needle):
-            mi.load_dict({"type": "fluo_illuminant", **bad})
 
 
 def test10_blackbody_defined_from_300nm_excites_uv_absorber():

@@ -1,0 +1,82 @@
+"""Tests of fluo_illuminant, the spectrally defined light (a CIE illuminant or a
+``nm,value`` CSV) that reaches below the camera's 360 nm and, in scalar_rgb, feeds
+fluo_path's reduced transport.
+
+References: the CSV file's own values, Mitsuba's CIE 1931 ȳ (the luminance
+normalisation), and Mitsuba's own spectrum → sRGB conversion of the same values.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+UV_LAMP = REPO / "scenes" / "spectra" / "uv_lamp_365.csv"
+
+
+def _eval(tex, wavelengths):
+    """The texture at the given wavelengths (four at a time, Mitsuba's spectrum size)."""
+    out = []
+    wl = list(wavelengths)
+    for i in range(0, len(wl), 4):
+        chunk = (wl[i:i + 4] + [wl[i]] * 4)[:4]
+        si = mi.SurfaceInteraction3f()
+        si.wavelengths = mi.Spectrum(*chunk)
+        out.extend(np.array(tex.eval(si))[:len(wl[i:i + 4])])
+    return np.array(out)
+
+
+def test01_cie_illuminant_is_luminance_normalised():
+    mi.set_variant("scalar_spectral")
+    tex = mi.load_dict({"type": "fluo_illuminant", "illuminant": "d65", "scale": 2.0})
+    lo, hi = tex.wavelength_range()
+    assert (lo, hi) == (300, 830)
+    lam = np.arange(360.0, 831.0, 1.0)
+    values = _eval(tex, lam)
+    ybar = np.array([mi.cie1931_y(float(x)) for x in lam])
+    # ∫ I ȳ / ∫ ȳ over the camera's range = scale (the normalisation fluo_illuminant promises)
+    assert np.sum(values * ybar) / np.sum(ybar) == pytest.approx(2.0, rel=2e-3)
+    assert np.all(_eval(tex, [300.0, 320.0]) > 0)  # the UV end is there for fluorescence
+
+
+def test02_file_lamp_follows_its_csv():
+    mi.set_variant("scalar_spectral")
+    tex = mi.load_dict({"type": "fluo_illuminant", "filename": str(UV_LAMP), "normalize": False})
+    data = np.loadtxt(UV_LAMP, delimiter=",", comments="#", skiprows=3)
+    lam, want = data[:, 0], data[:, 1]
+    np.testing.assert_allclose(_eval(tex, lam), want, rtol=1e-5)
+    mid = 0.5 * (lam[:-1] + lam[1:])
+    np.testing.assert_allclose(_eval(tex, mid), 0.5 * (want[:-1] + want[1:]), rtol=1e-5)
+    assert np.all(_eval(tex, [400.0, 600.0]) == 0)  # nothing outside the file's range
+
+
+def test03_rgb_value_is_mitsubas_conversion_clipped():
+    # In scalar_rgb the light is its linear sRGB (Mitsuba's conversion of the same
+    # spectrum); the violet lamp's negative green is clipped to 0.
+    mi.set_variant("scalar_spectral")
+    spectral = mi.load_dict({"type": "fluo_illuminant", "illuminant": "A"})
+    lam = np.arange(360.0, 831.0, 1.0)
+    values = _eval(spectral, lam)
+    want = np.array(mi.spectrum_list_to_srgb(list(lam), list(values), bounded=False))
+    mi.set_variant("scalar_rgb")
+    rgb = np.array(mi.load_dict({"type": "fluo_illuminant", "illuminant": "A"}).eval(mi.SurfaceInteraction3f()))
+    np.testing.assert_allclose(rgb, want, rtol=5e-3)
+    uv = np.array(mi.load_dict({"type": "fluo_illuminant", "filename": str(UV_LAMP), "normalize": False})
+                  .eval(mi.SurfaceInteraction3f()))
+    assert np.all(uv >= 0) and uv[2] > 0
+
+
+@pytest.mark.parametrize("bad, needle", [
+    ({"illuminant": "D99"}, "illuminant"),
+    ({"illuminant": "A", "scale": -1.0}, "scale"),
+    ({}, "exactly one"),
+    ({"filename": "/no/such.csv"}, "no/such.csv"),
+])
+def test04_bad_input_names_the_parameter(bad, needle):
+    mi.set_variant("scalar_spectral")
+    with pytest.raises(Exception, match=needle):
+        mi.load_dict({"type": "fluo_illuminant", **bad})
