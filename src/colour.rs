@@ -41,8 +41,9 @@
 
 use crate::{Error, Result};
 
-/// A 3×3 matrix, row-major: `out[i] = Σ_j m[i][j] · in[j]`.
-type Mat3 = [[f64; 3]; 3];
+/// A 3×3 matrix, row-major: `out[i] = Σ_j m[i][j] · in[j]`. The crate's one small-matrix
+/// type; products and inverses go through `nalgebra`.
+pub type Mat3 = [[f64; 3]; 3];
 
 /// Linear sRGB (BT.709 primaries, D65) → CIE XYZ.
 const SRGB_TO_XYZ: Mat3 = [
@@ -89,8 +90,26 @@ const D65_XY: (f64, f64) = (0.3127, 0.3290);
 const ACES_WHITE_XY: (f64, f64) = (0.32168, 0.33767);
 
 /// `m · v`.
-fn mul(m: &Mat3, v: [f64; 3]) -> [f64; 3] {
-    m.map(|row| row[0].mul_add(v[0], row[1].mul_add(v[1], row[2] * v[2])))
+pub fn mat_vec(m: &Mat3, v: [f64; 3]) -> [f64; 3] {
+    m.map(|row| row[0] * v[0] + row[1] * v[1] + row[2] * v[2])
+}
+
+fn to_nalgebra(m: &Mat3) -> nalgebra::Matrix3<f64> {
+    nalgebra::Matrix3::from_fn(|r, c| m[r][c])
+}
+
+fn from_nalgebra(m: &nalgebra::Matrix3<f64>) -> Mat3 {
+    std::array::from_fn(|r| std::array::from_fn(|c| m[(r, c)]))
+}
+
+/// `a · b`.
+pub fn mat_mul(a: &Mat3, b: &Mat3) -> Mat3 {
+    from_nalgebra(&(to_nalgebra(a) * to_nalgebra(b)))
+}
+
+/// `m⁻¹`, or None for a singular matrix.
+pub fn mat_inv(m: &Mat3) -> Option<Mat3> {
+    to_nalgebra(m).try_inverse().map(|i| from_nalgebra(&i))
 }
 
 /// XYZ (Y = 1) of a chromaticity `(x, y)`.
@@ -100,32 +119,32 @@ fn xy_to_xyz((x, y): (f64, f64)) -> [f64; 3] {
 
 /// CIE XYZ → linear sRGB (D65 white, no adaptation).
 pub fn xyz_to_linear_srgb(xyz: [f64; 3]) -> [f64; 3] {
-    mul(&XYZ_TO_SRGB, xyz)
+    mat_vec(&XYZ_TO_SRGB, xyz)
 }
 
 /// Linear sRGB → CIE XYZ (D65 white, no adaptation).
 pub fn linear_srgb_to_xyz(rgb: [f64; 3]) -> [f64; 3] {
-    mul(&SRGB_TO_XYZ, rgb)
+    mat_vec(&SRGB_TO_XYZ, rgb)
 }
 
 /// CIE XYZ → linear Rec. 2020 (D65 white, no adaptation).
 pub fn xyz_to_rec2020(xyz: [f64; 3]) -> [f64; 3] {
-    mul(&XYZ_TO_REC2020, xyz)
+    mat_vec(&XYZ_TO_REC2020, xyz)
 }
 
 /// Linear Rec. 2020 → CIE XYZ (D65 white, no adaptation).
 pub fn rec2020_to_xyz(rgb: [f64; 3]) -> [f64; 3] {
-    mul(&REC2020_TO_XYZ, rgb)
+    mat_vec(&REC2020_TO_XYZ, rgb)
 }
 
 /// CIE XYZ → ACEScg (AP1 primaries, ACES white ≈ D60, no adaptation).
 pub fn xyz_to_acescg(xyz: [f64; 3]) -> [f64; 3] {
-    mul(&XYZ_TO_ACESCG, xyz)
+    mat_vec(&XYZ_TO_ACESCG, xyz)
 }
 
 /// ACEScg → CIE XYZ (AP1 primaries, ACES white ≈ D60, no adaptation).
 pub fn acescg_to_xyz(rgb: [f64; 3]) -> [f64; 3] {
-    mul(&ACESCG_TO_XYZ, rgb)
+    mat_vec(&ACESCG_TO_XYZ, rgb)
 }
 
 /// A linear RGB working space (see the module table for primaries and whites).
@@ -326,16 +345,6 @@ mod tests {
 
     const SPACES: [RgbSpace; 3] = [RgbSpace::Srgb, RgbSpace::Rec2020, RgbSpace::AcesCg];
 
-    fn matmul(a: &Mat3, b: &Mat3) -> Mat3 {
-        let mut out = [[0.0; 3]; 3];
-        for i in 0..3 {
-            for j in 0..3 {
-                out[i][j] = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-            }
-        }
-        out
-    }
-
     fn matrices(space: RgbSpace) -> (Mat3, Mat3) {
         match space {
             RgbSpace::Srgb => (SRGB_TO_XYZ, XYZ_TO_SRGB),
@@ -383,7 +392,7 @@ mod tests {
         let id = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
         for space in SPACES {
             let (to_xyz, to_rgb) = matrices(space);
-            for prod in [matmul(&to_xyz, &to_rgb), matmul(&to_rgb, &to_xyz)] {
+            for prod in [mat_mul(&to_xyz, &to_rgb), mat_mul(&to_rgb, &to_xyz)] {
                 for i in 0..3 {
                     for j in 0..3 {
                         assert!((prod[i][j] - id[i][j]).abs() < MATRIX_TOLERANCE, "{space:?} [{i}][{j}]");

@@ -17,7 +17,7 @@ pub const CIE_MIN_NM: f64 = 360.0;
 pub const CIE_MAX_NM: f64 = 830.0;
 
 /// Mitsuba's `xyz_to_srgb` matrix (row major), linear sRGB / Rec. 709 primaries.
-pub const XYZ_TO_SRGB: [[f64; 3]; 3] =
+pub const XYZ_TO_SRGB: crate::colour::Mat3 =
     [[3.240479, -1.537150, -0.498535], [-0.969256, 1.875991, 0.041556], [0.055648, -0.204043, 1.057311]];
 
 /// Linear sRGB of a reflectance spectrum as Mitsuba's RGB variants compute it.

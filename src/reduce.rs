@@ -934,12 +934,8 @@ pub fn saturated_rows(
 ) -> Result<Vec<SaturatedRow>> {
     use crate::colour::{ciede2000, xyz_to_lab};
     use crate::mitsuba::{spectrum_to_srgb, XYZ_TO_SRGB};
-    let m = nalgebra::Matrix3::from_fn(|r, c| XYZ_TO_SRGB[r][c]);
-    let minv = m.try_inverse().ok_or_else(|| Error::data("XYZ→sRGB matrix is singular"))?;
-    let to_xyz = |rgb: [f64; 3]| {
-        let v = minv * nalgebra::Vector3::new(rgb[0], rgb[1], rgb[2]);
-        [v[0], v[1], v[2]]
-    };
+    let minv = crate::colour::mat_inv(&XYZ_TO_SRGB).ok_or_else(|| Error::data("XYZ→sRGB matrix is singular"))?;
+    let to_xyz = |rgb: [f64; 3]| crate::colour::mat_vec(&minv, rgb);
     let lambdas = grid();
     let weights: Vec<f64> = (0..lambdas.len())
         .map(|k| if k == 0 || k + 1 == lambdas.len() { 0.5 * GRID_STEP_NM } else { GRID_STEP_NM })

@@ -89,7 +89,7 @@
 use std::fmt;
 use std::path::Path;
 
-use crate::colour::RgbSpace;
+use crate::colour::{mat_inv, mat_mul, mat_vec, Mat3, RgbSpace};
 use crate::jung::bspline;
 use crate::sigmoid::{sigmoid, sigmoid_derivative};
 use crate::spectrum::{cmf, illuminant, Observer, Spectral};
@@ -153,40 +153,14 @@ const GL8: [(f64, f64); 4] = [
 ];
 
 /// Bradford cone response matrix (Lam 1985).
-const BRADFORD: [[f64; 3]; 3] = [[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]];
-
-type Mat3 = [[f64; 3]; 3];
-
-fn mat_vec(m: &Mat3, v: [f64; 3]) -> [f64; 3] {
-    m.map(|r| r[0] * v[0] + r[1] * v[1] + r[2] * v[2])
-}
-
-fn mat_mul(a: &Mat3, b: &Mat3) -> Mat3 {
-    let mut o = [[0.0; 3]; 3];
-    for (i, row) in o.iter_mut().enumerate() {
-        for (j, x) in row.iter_mut().enumerate() {
-            *x = (0..3).map(|k| a[i][k] * b[k][j]).sum();
-        }
-    }
-    o
-}
-
-fn mat_inv(m: &Mat3) -> Mat3 {
-    let [[a, b, c], [d, e, f], [g, h, i]] = *m;
-    let det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g);
-    let inv = 1.0 / det;
-    [
-        [(e * i - f * h) * inv, (c * h - b * i) * inv, (b * f - c * e) * inv],
-        [(f * g - d * i) * inv, (a * i - c * g) * inv, (c * d - a * f) * inv],
-        [(d * h - e * g) * inv, (b * g - a * h) * inv, (a * e - b * d) * inv],
-    ]
-}
+const BRADFORD: Mat3 = [[0.8951, 0.2664, -0.1614], [-0.7502, 1.7135, 0.0367], [0.0389, -0.0685, 1.0296]];
 
 /// Bradford adaptation matrix taking XYZ seen under `from` white to `to` white.
 fn bradford(from: [f64; 3], to: [f64; 3]) -> Mat3 {
     let (s, d) = (mat_vec(&BRADFORD, from), mat_vec(&BRADFORD, to));
     let scale = [[d[0] / s[0], 0.0, 0.0], [0.0, d[1] / s[1], 0.0], [0.0, 0.0, d[2] / s[2]]];
-    mat_mul(&mat_inv(&BRADFORD), &mat_mul(&scale, &BRADFORD))
+    let inverse = mat_inv(&BRADFORD).expect("the Bradford matrix is invertible (det ≈ 2.9)");
+    mat_mul(&inverse, &mat_mul(&scale, &BRADFORD))
 }
 
 /// Directory of the shipped cubes: `$FLUO_CUBE_DIR` (set by the Python package to its
