@@ -39,8 +39,9 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      Z, U). (Default: ``x7``: over the ``fluo bench`` scenes its mean ΔE00 against the
      spectral reference is the lowest on average and within noise of the best on each
      scene; README's generated bench table has the numbers. Its 7×7 matrices cost 392
-     bytes per material and no measurable time over ``xyzu``.) Which basis when (``fluo-rs saturated-report`` and the second
-     table of ``fluo bench`` measure it per basis): ``x7`` for saturated, narrow-band
+     bytes per material and no measurable time over ``xyzu``.) Which basis when
+     (``fluo-rs saturated-report`` and the second table of ``fluo bench`` measure it
+     per basis): ``x7`` for saturated, narrow-band
      emitters (a pure green dye keeps its luminance within 20 % under daylight and
      incandescent light, where ``rgb`` and ``xyzu`` lose a third or more) and for
      anything excited in the UV; ``xyzu`` when materials are broad and 4×4 matrices
@@ -135,8 +136,9 @@ else child 0; ``mask``: the nested BSDF with probability opacity(si), else a nul
 unwrapped material. The selections are unbiased: renders equal the wrapper's within
 noise. Any other BSDF around a fluorescent one (``bumpmap``, ``normalmap``, ...) is
 refused with an error at render start (the first access the integrator has to the
-scene) rather than rendered without its fluorescence. Mitsuba's own integrators (``path``, ...) render
-only the elastic part of fluorescent materials, and say so once per scene.
+scene) rather than rendered without its fluorescence. Mitsuba's own integrators
+(``path``, ...) render only the elastic part of fluorescent materials, and say so once
+per scene.
 
 .. tabs::
     .. code-tab:: xml

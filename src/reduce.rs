@@ -345,21 +345,6 @@ impl Reradiating for QdAtAngle<'_> {
     }
 }
 
-/// The coating's reradiation alone at incidence cosine `.1` (no elastic diagonal): what
-/// reduced RGB transport tabulates for `fluo_qd`, whose elastic part the plugin evaluates
-/// per hit and per RGB channel with the substrate's own (coloured, possibly textured)
-/// eta/k.
-pub struct QdReradiationAtAngle<'a>(pub &'a crate::qd::QdModel, pub f64);
-
-impl Reradiating for QdReradiationAtAngle<'_> {
-    fn diagonal(&self, _lambda: f64) -> f64 {
-        0.0
-    }
-    fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
-        self.0.reradiation_fresnel(self.1, lambda_i, lambda_o)
-    }
-}
-
 /// For patch colorimetry and single reductions, angle-dependent models are taken at
 /// normal incidence.
 impl Reradiating for crate::bispectral::Model {

@@ -61,6 +61,7 @@ import numpy as np
 
 from . import data_dir, out_dir, run_tool, scenes_dir
 from .colour import delta_e_map
+from .scenes import diffuse_bsdf, inline_includes
 
 BENCH_DIR = scenes_dir() / "bench"
 
@@ -75,12 +76,10 @@ def _to_path(text: str) -> str:
 
 def _matrix_to_diffuse(text: str) -> str:
     """fluo_matrix -> diffuse with the matrix's diagonal (its elastic reflectance)."""
-    from . import run_tool
 
     def repl(m: re.Match) -> str:
         d = run_tool(["diagonal", "--material", m.group(1)])
-        values = ", ".join(f"{l:g}:{min(max(v, 0.0), 1.0):.5f}" for l, v in zip(d["wavelengths_nm"], d["values"]))
-        return f'<bsdf type="diffuse"><spectrum name="reflectance" value="{values}"/></bsdf>'
+        return diffuse_bsdf(d["wavelengths_nm"], d["values"])
     return re.sub(r'<bsdf type="fluo_matrix"><string name="filename" value="([^"]*)"/></bsdf>', repl, text)
 
 
@@ -316,13 +315,8 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
 def _absolutise_includes(text: str, scene_dir: Path) -> str:
     """Inline includes and substitute file-valued defaults (``$name``) with
     absolute paths, using a ``<!-- fluo: fallback name=path -->`` when the file is missing."""
-    def inline(m: re.Match) -> str:
-        inc = (scene_dir / m.group(1)).resolve()
-        body = inc.read_text()
-        body = body[body.index(">", body.index("<scene")) + 1:body.rindex("</scene>")]
-        return _absolutise_includes(body, inc.parent)
     # inlined, so that rewrites reach the included integrator and materials
-    text = re.sub(r'<include filename="([^"]*)"/>', inline, text)
+    text = inline_includes(text, scene_dir)
     fallbacks = dict(re.findall(r"<!--\s*fluo:\s*fallback\s+(\w+)=(\S+)\s*-->", text))
     for name, value in re.findall(r'<default name="(\w+)" value="([^"]*[./][^"]*)"/>', text):
         path = (scene_dir / value).resolve()

@@ -41,7 +41,7 @@ FLUORESCENT_BSDFS = ("fluo_jung", "fluo_matrix", "fluo_gmm", "fluo_qd")
 _INCLUDE = re.compile(r'<include\s+filename="([^"]*)"\s*/>')
 _DEFAULT = re.compile(r'\s*<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
 _PARAM = re.compile(r"\$([A-Za-z_]\w*)")
-_BSDF = re.compile(r'<bsdf\s+type="(fluo_(?:jung|matrix|gmm|qd))"\s*>(.*?)</bsdf>', re.S)
+_BSDF = re.compile(r'<bsdf\s+type="(' + "|".join(FLUORESCENT_BSDFS) + r')"\s*>(.*?)</bsdf>', re.S)
 _FILENAME = re.compile(r'<string\s+name="filename"\s+value="([^"]*)"\s*/>')
 _QUANTUM_YIELD = re.compile(r'<float\s+name="quantum_yield"\s+value="[^"]*"\s*/>')
 _FLUORESCENCE = re.compile(r'<boolean\s+name="fluorescence"\s+value="[^"]*"\s*/>')
@@ -82,7 +82,7 @@ def fluorescent_materials(text: str) -> list[str]:
     return [m.group(1) for m in _BSDF.finditer(text)]
 
 
-def _diffuse(wavelengths, values) -> str:
+def diffuse_bsdf(wavelengths, values) -> str:
     """A ``diffuse`` BSDF with a tabulated reflectance, clamped to [0, 1]."""
     pairs = ", ".join(f"{l:g}:{min(max(float(v), 0.0), 1.0):.5f}" for l, v in zip(wavelengths, values))
     return f'<bsdf type="diffuse"><spectrum name="reflectance" value="{pairs}"/></bsdf>'
@@ -110,7 +110,7 @@ def without_fluorescence(text: str, scene_dir: Path) -> str:
                 diagonal = json.loads(path.read_text(encoding="utf-8"))["diagonal"]
             else:
                 diagonal = run_tool(["diagonal", "--material", str(path)])
-            return _diffuse(diagonal["wavelengths_nm"], diagonal["values"])
+            return diffuse_bsdf(diagonal["wavelengths_nm"], diagonal["values"])
         if kind == "fluo_jung" and _COLOR.search(body):
             body = _set_float(body, _FLUORESCENCE, '<boolean name="fluorescence" value="false"/>')
         else:

@@ -508,7 +508,7 @@ fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>
                 let tables = (0..REDUCED_COS_NODES)
                     .map(|j| {
                         let c = j as f64 / (REDUCED_COS_NODES - 1) as f64;
-                        t.0.reduce(&crate::reduce::QdReradiationAtAngle(m, c.max(1e-3)))
+                        t.0.reduce(&ReradiationOnly(&crate::reduce::QdAtAngle(m, c.max(1e-3))))
                     })
                     .collect();
                 // Reradiation only: the plugin serves the elastic part per hit and per RGB
