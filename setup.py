@@ -2,12 +2,12 @@
 
 ``pip wheel .`` (or ``python -m build``) builds a platform wheel with setuptools-rust:
 
-* ``fluo/libfluo.so`` — the Mitsuba plugin library (Rust core + C++ shims), built with
-  ``cargo --features mitsuba`` against the ``mitsuba``/``drjit``/``nanobind`` wheels of
+* ``fluo/libfluo_mitsuba.so`` — the Mitsuba plugin library (the ``fluo-mitsuba`` crate in
+  ``mitsuba/``: Rust core + bridge + C++ shims), built with cargo against the ``mitsuba``/``drjit``/``nanobind`` wheels of
   the isolated build environment (``FLUO_PYTHON`` = that environment's Python, see
   build.rs), with run paths relative to the installed package (``FLUO_RPATH=relative``:
   ``$ORIGIN/../mitsuba`` and ``$ORIGIN/../drjit``);
-* ``fluo-rs`` — the physics tool, installed into the environment's ``bin/``;
+* ``fluo-rs`` — the physics tool (the ``fluo`` crate in ``core/``), installed into the environment's ``bin/``;
 * ``fluo/data/{cubes,matrices,scenes}`` — the coefficient cubes, the example matrices and
   the demo scenes, found at run time through ``importlib.resources`` (``fluo.data_dir``).
 
@@ -51,9 +51,9 @@ def rust_targets() -> list:
     # not replace the developer build in target/release.
     env.setdefault("CARGO_TARGET_DIR", str(ROOT / "target" / "wheel"))
     return [
-        RustExtension("fluo.libfluo", binding=Binding.NoBinding, features=["mitsuba"], env=env,
+        RustExtension("fluo.libfluo_mitsuba", path="mitsuba/Cargo.toml", binding=Binding.NoBinding, env=env,
                       py_limited_api=False),
-        RustBin("fluo-rs", features=["mitsuba"], env=env),
+        RustBin("fluo-rs", path="core/Cargo.toml", env=env),
     ]
 
 

@@ -3,7 +3,7 @@
 # incremental when already done):
 #   1. .venv with Python >= 3.11,
 #   2. the pinned Python dependencies + pytest + this project (editable) into it,
-#   3. cargo build --release --features mitsuba -> target/release/libfluo.so, fluo-rs.
+#   3. cargo build --release (the workspace) -> target/release/libfluo_mitsuba.so, fluo-rs.
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -38,13 +38,13 @@ fi
 
 # 3. Rust core, C++ shims, plugin library and tool (build.rs finds the wheel's headers
 #    through FLUO_PYTHON).
-say "cargo build --release --features mitsuba"
-FLUO_PYTHON="$PWD/.venv/bin/python" cargo build --release --features mitsuba
+say "cargo build --release"
+FLUO_PYTHON="$PWD/.venv/bin/python" cargo build --release
 
-for artefact in target/release/libfluo.so target/release/fluo-rs; do
+for artefact in target/release/libfluo_mitsuba.so target/release/fluo-rs; do
     if [[ ! -e $artefact ]]; then
         say "error: the build did not produce $artefact" >&2
         exit 1
     fi
 done
-say "ready: $PWD/target/release/libfluo.so, $PWD/target/release/fluo-rs, $PWD/.venv/bin/fluo"
+say "ready: $PWD/target/release/libfluo_mitsuba.so, $PWD/target/release/fluo-rs, $PWD/.venv/bin/fluo"

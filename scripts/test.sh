@@ -15,15 +15,13 @@ export FLUO_PYTHON="$PWD/.venv/bin/python"
 failed=()
 
 # Cheap checks first: formatting (rustfmt.toml), then lints as errors.
-echo "[test] cargo fmt --check"
-cargo fmt --check || failed+=("cargo fmt --check")
-echo "[test] cargo clippy --all-targets -- -D warnings"
-cargo clippy --release --features mitsuba --all-targets -- -D warnings || failed+=("cargo clippy")
+echo "[test] cargo fmt --all --check"
+cargo fmt --all --check || failed+=("cargo fmt --all --check")
+echo "[test] cargo clippy --workspace --all-targets -- -D warnings"
+cargo clippy --release --workspace --all-targets -- -D warnings || failed+=("cargo clippy")
 
-# Same features as the setup build: a featureless build would replace
-# target/release/libfluo.so with a library that has no plugins in it.
-echo "[test] cargo test --release --features mitsuba"
-cargo test --release --features mitsuba || failed+=("cargo test")
+echo "[test] cargo test --release --workspace"
+cargo test --release --workspace || failed+=("cargo test")
 
 echo "[test] pytest tests/python"
 status=0

@@ -1,7 +1,7 @@
 """Fluorescent (bispectral) materials for Mitsuba 3.
 
-Importing this package loads the plugin library ``libfluo.so`` (Rust physics plus the
-C++ Mitsuba shims). Its static initialiser registers every plugin in :data:`PLUGINS`
+Importing this package loads the plugin library ``libfluo_mitsuba.so`` (Rust physics
+plus the C++ Mitsuba shims). Its static initialiser registers every plugin in :data:`PLUGINS`
 with Mitsuba's plugin manager for both ``scalar_rgb`` and ``scalar_spectral``, so
 ``mi.set_variant(...)`` may be called before or after ``import fluo``::
 
@@ -14,14 +14,14 @@ with Mitsuba's plugin manager for both ``scalar_rgb`` and ``scalar_spectral``, s
 Where things are found (environment variables win), from a wheel (``pip install``)
 and from a checkout (the editable developer install of scripts/setup.sh):
 
-============== ================== ============================ ================================
+============== ================== ============================ ==============================================
 what           variable           wheel                        checkout
-============== ================== ============================ ================================
-plugin library ``FLUO_LIBRARY``   ``fluo/libfluo*.so``          ``<repo>/target/release/libfluo.so``
-physics tool   ``FLUO_TOOL``      ``<env>/bin/fluo-rs``         ``<repo>/target/release/fluo-rs``
-cubes          ``FLUO_CUBE_DIR``  ``fluo/data/cubes``           ``<repo>/data/cubes``
-scenes                            ``fluo/data/scenes``          ``<repo>/scenes``
-============== ================== ============================ ================================
+============== ================== ============================ ==============================================
+plugin library ``FLUO_LIBRARY``   ``fluo/libfluo*.so``         ``<repo>/target/release/libfluo_mitsuba.so``
+physics tool   ``FLUO_TOOL``      ``<env>/bin/fluo-rs``        ``<repo>/target/release/fluo-rs``
+cubes          ``FLUO_CUBE_DIR``  ``fluo/data/cubes``          ``<repo>/data/cubes``
+scenes                            ``fluo/data/scenes``         ``<repo>/scenes``
+============== ================== ============================ ==============================================
 
 Importing against another Mitsuba than the one the library was built for raises an
 ``ImportError`` naming both versions (``BUILT_FOR``).
@@ -29,7 +29,7 @@ Importing against another Mitsuba than the one the library was built for raises 
 
 from __future__ import annotations
 
-# Must come first: libfluo.so resolves its Mitsuba symbols against the libmitsuba.so
+# Must come first: libfluo_mitsuba.so resolves its Mitsuba symbols against the libmitsuba.so
 # that the wheel loads on import.
 import mitsuba  # noqa: F401  (imported for its side effect)
 
@@ -56,7 +56,7 @@ __all__ = [
     "tool_path",
 ]
 
-#: Names of the Mitsuba plugins that ``libfluo.so`` registers (``type="..."`` in XML).
+#: Names of the Mitsuba plugins that ``libfluo_mitsuba.so`` registers (``type="..."`` in XML).
 PLUGINS: tuple[str, ...] = ("fluo_jung", "fluo_path", "fluo_illuminant", "fluo_qd", "fluo_matrix", "fluo_gmm")
 
 #: Environment variable overriding the plugin library location.
@@ -82,7 +82,7 @@ def _pins() -> dict[str, str]:
     return pins
 
 
-#: The Mitsuba and Dr.Jit versions the plugin library is built for (``libfluo.so`` is
+#: The Mitsuba and Dr.Jit versions the plugin library is built for (``libfluo_mitsuba.so`` is
 #: compiled against exactly these wheels' headers and ABI).
 BUILT_FOR: dict[str, str] = _pins()
 
@@ -128,14 +128,14 @@ def out_dir() -> Path:
 
 def library_path() -> Path:
     """Path of the plugin library: ``$FLUO_LIBRARY``, the wheel's ``fluo/libfluo*.so``, or
-    ``<repo>/target/release/libfluo.so``."""
+    ``<repo>/target/release/libfluo_mitsuba.so``."""
     override = os.environ.get(LIBRARY_ENV)
     if override:
         return Path(override).expanduser().resolve()
     packaged = sorted(_PACKAGE.glob("libfluo*.so"))
     if packaged:
         return packaged[0]
-    return repo_root() / "target" / "release" / "libfluo.so"
+    return repo_root() / "target" / "release" / "libfluo_mitsuba.so"
 
 
 def tool_path() -> Path:
@@ -199,7 +199,7 @@ def run_tool(args: list[str]) -> dict:
 
 
 def _load_library() -> ctypes.CDLL:
-    """Load ``libfluo.so`` globally; a second call (or a module reload) is a no-op."""
+    """Load ``libfluo_mitsuba.so`` globally; a second call (or a module reload) is a no-op."""
     handle = globals().get("_LIBRARY")
     if handle is not None:
         return handle
@@ -225,8 +225,7 @@ def _load_library() -> ctypes.CDLL:
         ) from err
     if not hasattr(lib, "fluo_plugins_built"):
         raise ImportError(
-            f"{path} contains no Mitsuba plugins: it was built without "
-            "`--features mitsuba` (a plain `cargo build --release` replaces it); "
+            f"{path} is not the fluo plugin library (no fluo_plugins_built symbol); "
             f"{_SETUP_HINT}",
             path=str(path),
         )

@@ -27,7 +27,7 @@ Columns (all measured):
 * ``material_bytes``: bytes the renderer holds per fluorescent material for the method
   at render time (model, tables, reduced matrices: the representation's memory).
 
-A second table, from ``fluo-rs saturated-report`` (Rust, ``src/reduce.rs``), reports
+A second table, from ``fluo-rs saturated-report`` (Rust, ``core/src/reduce/``), reports
 saturated fluorescence through reduced RGB transport per basis (``rgb``, ``xyzu``,
 ``x7``): a pure green and a pure red emitter and a UV optical brightener under D65, A
 and FL2, as the luminance ratio reduced/spectral of the patch and of its reradiated

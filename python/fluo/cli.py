@@ -278,7 +278,7 @@ def render_to_files(scene_path: Path, variant: str, spp: int, output: Path,
     Sets the Mitsuba variant, so call it once per process (as ``fluo render`` does).
     """
     mi.set_variant(variant)
-    import fluo  # noqa: F401  (loads libfluo.so: registers the fluo_* plugins)
+    import fluo  # noqa: F401  (loads libfluo_mitsuba.so: registers the fluo_* plugins)
 
     scene = mi.load_file(str(scene_path), **(params or {}))
     image = mi.render(scene, spp=spp, seed=seed)

@@ -1,6 +1,6 @@
 """Colour conversions for image comparisons (numpy, vectorised).
 
-The same definitions as the Rust core (``src/colour.rs``, ``src/mitsuba.rs``):
+The same definitions as the Rust core (``core/src/colour/``, ``core/src/colour/mitsuba.rs``):
 linear sRGB uses Mitsuba's ``xyz_to_srgb`` matrix (CIE 1931 based), CIELAB the CIE
 1976 formulae with the linear segment below (6/29)³, and CIEDE2000 Sharma, Wu & Dalal
 (2005) with kL = kC = kH = 1 (tests/python/test_colour.py checks all 34 of their pairs).

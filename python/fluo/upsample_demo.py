@@ -9,7 +9,7 @@
    a D65 environment normalised to white Y = 1, ``fluo_path``, direct light only) in
    ``scalar_spectral``;
 3. compares every pixel with its texel's input colour: input ACEScg -> XYZ (ACES white)
-   -> Bradford to D65 (the cube's convention, ``src/upsample.rs``) -> L*a*b* (D65),
+   -> Bradford to D65 (the cube's convention, ``core/src/upsample/``) -> L*a*b* (D65),
    against the rendered linear sRGB -> XYZ -> L*a*b*; writes the per-pixel ΔE2000 map
    beside the image (``<image>_de2000.exr`` and a ``.png`` with ΔE 10 = white) and
    prints mean / median / 95th percentile as JSON, plus the mean and max ΔE of each

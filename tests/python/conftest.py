@@ -1,6 +1,6 @@
 """Shared fixtures for the Python/Mitsuba tests.
 
-Nothing is skipped: if ``libfluo.so`` is missing or fails to load, every test errors
+Nothing is skipped: if ``libfluo_mitsuba.so`` is missing or fails to load, every test errors
 with the loader's message (run ``bash scripts/setup.sh``).
 
 Fixtures:
@@ -41,7 +41,7 @@ VARIANTS = ("scalar_spectral", "scalar_rgb")
 
 @pytest.fixture(scope="session", autouse=True)
 def fluo_module():
-    """Import ``fluo`` (loading libfluo.so) once; fail loudly if that is impossible."""
+    """Import ``fluo`` (loading libfluo_mitsuba.so) once; fail loudly if that is impossible."""
     try:
         import fluo
     except ImportError as err:

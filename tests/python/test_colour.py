@@ -7,7 +7,7 @@ import numpy as np
 from fluo.colour import SRGB_TO_XYZ, ciede2000, xyz_to_lab, xyz_to_srgb
 
 # Sharma, Wu & Dalal (2005), Table 1: L1, a1, b1, L2, a2, b2, ΔE00 (the file names its
-# source; src/colour.rs reads the same file).
+# source; core/src/colour/ reads the same file).
 SHARMA_2005 = np.loadtxt(Path(__file__).resolve().parents[1] / "data" / "ciede2000_sharma2005.csv",
                          delimiter=",", comments="#", skiprows=5)
 

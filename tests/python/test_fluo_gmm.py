@@ -4,7 +4,7 @@ References: the fit file's own diagonal (what the BSDF must serve), and the
 single-bounce patch integral of ``fluo patch`` of the same fit file (direct
 integration in Rust) that ``fluo_path`` renders must converge to within 1 %. The
 wavelength sampling's chi-square tests against its pdf (several λi and λo, λi near the
-top of the range) are Rust unit tests (``src/gmm.rs``), where the sampler is exposed.
+top of the range) are Rust unit tests (``core/src/models/gmm.rs``), where the sampler is exposed.
 """
 
 from __future__ import annotations

@@ -35,7 +35,7 @@ def test02_another_mitsuba_is_refused_naming_both_versions(monkeypatch):
 
 def test03_a_checkout_finds_its_own_build_and_data():
     assert fluo.in_checkout()
-    assert fluo.library_path() == REPO / "target" / "release" / "libfluo.so"
+    assert fluo.library_path() == REPO / "target" / "release" / "libfluo_mitsuba.so"
     assert fluo.tool_path() == REPO / "target" / "release" / "fluo-rs"
     assert fluo.data_dir("cubes") == REPO / "data" / "cubes"
     assert fluo.scenes_dir() == REPO / "scenes"

@@ -1,0 +1,143 @@
+// Shared helpers for the fluo Mitsuba plugin shims.
+//
+// The shims are thin: they parse Mitsuba Properties, hand the numbers to the Rust
+// core through the cxx bridge (fluo-mitsuba/src/bridge.rs.h), and evaluate Mitsuba textures.
+// They serve the scalar variants only (Dr.Jit cannot trace calls into Rust).
+#pragma once
+
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/spectrum.h>
+
+#include <array>
+#include <string>
+
+#include "fluo-mitsuba/src/bridge.rs.h"
+#include "rust/cxx.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// Call into Rust; a Rust error (cxx's rust::Error) becomes a Mitsuba exception
+/// that names the plugin and carries the Rust message.
+template <typename F> auto rust_call(const char *plugin, F &&f) -> decltype(f()) {
+    try {
+        return f();
+    } catch (const rust::Error &e) {
+        Throw("%s: %s", plugin, e.what());
+    }
+}
+
+/// Read a scalar float property with a default, rejecting non-numeric input with a
+/// message that names the parameter.
+inline double get_float(const char *plugin, const Properties &props, const char *name, double def) {
+    if (!props.has_property(name))
+        return def;
+    try {
+        return (double) props.get<float>(name);
+    } catch (const std::exception &e) {
+        Throw("%s: parameter \"%s\" must be a number (%s)", plugin, name, e.what());
+    }
+}
+
+/// A parameter update as a transaction: `apply()` copies the traversed values into
+/// `config` and `rebuild()` validates it in Rust and re-derives everything from it. If
+/// either throws, `config` is restored and rebuilt (which also resets the traversed
+/// values, so `mi.traverse` shows the old state) and the error propagates: a rejected
+/// update leaves the object exactly as it was, and later valid updates work.
+template <typename Config, typename Apply, typename Rebuild>
+void transactional_update(Config &config, Apply &&apply, Rebuild &&rebuild) {
+    const Config previous = config;
+    try {
+        apply();
+        rebuild();
+    } catch (...) {
+        config = previous;
+        rebuild();
+        throw;
+    }
+}
+
+/// Check that a reflectance-like texture stays within [lo, hi]: its mean and, where the
+/// texture reports one, its maximum (a constant, an <rgb>, a bitmap's largest texel).
+/// NaN, ±inf and out-of-range values are rejected naming the parameter, since Mitsuba
+/// itself accepts any float and a NaN reflectance renders an all-NaN image.
+template <typename Texture>
+void check_texture_range(const char *plugin, const char *name, const Texture *tex, double lo, double hi) {
+    if (!tex)
+        return;
+    auto check = [&](double v, const char *what) {
+        if (!(v >= lo && v <= hi))
+            Throw("%s: invalid parameter \"%s\" = %g (%s): valid range is [%g, %g]", plugin, name, v, what,
+                  lo, hi);
+    };
+    double mean = 0.0, max = 0.0;
+    bool has_mean = true, has_max = true;
+    try { mean = (double) dr::slice(tex->mean()); } catch (const std::exception &) { has_mean = false; }
+    try { max = (double) tex->max(); } catch (const std::exception &) { has_max = false; }
+    if (has_mean)
+        check(mean, "its mean");
+    if (has_max)
+        check(max, "its maximum");
+}
+
+/// Parse "a, b, c" (commas and/or spaces) into exactly N doubles.
+template <size_t N>
+std::array<double, N> parse_list(const char *plugin, const char *name, const std::string &text) {
+    std::array<double, N> out{};
+    std::string s = text;
+    for (char &c : s)
+        if (c == ',')
+            c = ' ';
+    const char *p = s.c_str();
+    size_t n = 0;
+    while (true) {
+        while (*p == ' ' || *p == '\t' || *p == '\n')
+            ++p;
+        if (*p == '\0')
+            break;
+        char *end = nullptr;
+        double v = std::strtod(p, &end);
+        if (end == p || n == N)
+            Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers", plugin, name,
+                  text, N);
+        out[n++] = v;
+        p = end;
+    }
+    if (n != N)
+        Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers (got %zu)", plugin, name,
+              text, N, n);
+    return out;
+}
+
+/// Wavelengths of a spectral-variant interaction as a float array.
+template <typename Wavelength> std::array<float, 4> wavelengths_of(const Wavelength &w) {
+    std::array<float, 4> out{};
+    for (size_t i = 0; i < 4; ++i)
+        out[i] = w[i];
+    return out;
+}
+
+inline rust::Slice<const float> slice(const std::array<float, 4> &a) {
+    return rust::Slice<const float>(a.data(), a.size());
+}
+inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
+    return rust::Slice<float>(a.data(), a.size());
+}
+
+/// Register plugin class template T for the two scalar variants.
+template <template <typename, typename> class T>
+void register_scalar_plugin(const char *name, ObjectType type) {
+    PluginManager *pm = PluginManager::instance();
+    pm->register_plugin(
+        name, "scalar_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "scalar_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Spectrum<float, 4>>(p); },
+        nullptr, nullptr);
+}
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)

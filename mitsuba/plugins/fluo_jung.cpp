@@ -1,0 +1,443 @@
+#include <mitsuba/core/fresolver.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/warp.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/texture.h>
+
+#include <optional>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+#include "fluo_lambertian.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _bsdf-fluo_jung:
+
+Diffuse fluorescent material (:monosp:`fluo_jung`)
+--------------------------------------------------
+
+.. pluginparameters::
+
+ * - reflectance
+   - |spectrum| or |texture|
+   - Reflectance r(λ) of the non-fluorescent (elastic) part. (Default: 0.5)
+     Mutually exclusive with ``coefficients``.
+ * - coefficients
+   - |string|
+   - Alternative to ``reflectance``: Jakob–Hanika sigmoid-polynomial coefficients
+     "c0, c1, c2" with r(λ) = S(c0 λ² + c1 λ + c2), λ in nm (Jung et al. 2019, eq. 2).
+ * - emission_peak
+   - |float|
+   - Emission peak wavelength λe in nm, in [200, 1200]. (Default: 520)
+ * - stokes_shift
+   - |float|
+   - Stokes shift s in nm (distance from absorption peak to emission peak), in
+     [0.001, s_max) where s_max keeps 2λe − s > 0 and the absorption band above 1 nm.
+     (Default: 60)
+ * - concentration
+   - |float|
+   - Fluorophore concentration (mixing factor) c in [0, 1]. c = 0 is exactly
+     Mitsuba's ``diffuse``. (Default: 0.5)
+ * - quantum_yield
+   - |float|
+   - Quantum yield Q in [0, 1]. (Default: 0.96, the paper's fixed value)
+ * - color
+   - |rgb| or |texture|
+   - Wide-gamut RGB upsampling (Jung et al. 2019, sec. 3-4): a colour in
+     ``color_space`` with components in [0, 1], given as ``<rgb name="color" .../>``, or a
+     ``bitmap`` texture with ``raw=true`` whose texels are linear RGB in ``color_space``
+     (an EXR; ``raw`` keeps Mitsuba from upsampling or gamma-decoding it). It is
+     converted to a smooth reflectance plus just enough fluorescence (λe, c, s; Q = 0.96)
+     through a coefficient cube: once for a constant colour, once per texel at load for
+     a texture (nearest texel at render time, ``wrap_mode`` repeat, ``to_uv`` ignored).
+     Mutually exclusive with ``reflectance``, ``coefficients``, ``emission_peak``,
+     ``stokes_shift``, ``concentration`` and ``quantum_yield`` (the cube sets them).
+ * - color_space
+   - |string|
+   - Space of ``color``: ``srgb`` (linear), ``rec2020`` or ``acescg``. (Default: acescg)
+ * - cube
+   - |string|
+   - Coefficient cube file (``fluo upsample-cube``). (Default: the shipped
+     ``data/cubes/<color_space>_d65_tinf_r33.cube``; ``$FLUO_CUBE_DIR`` overrides the directory)
+ * - lookup
+   - |string|
+   - ``nearest`` cube entry, or ``trilinear`` interpolation of coefficients (λe and s
+     only over corners with c > 0, the paper's rule). (Default: nearest, which the
+     paper finds less disruptive at the onset of fluorescence)
+ * - fluorescence
+   - |bool|
+   - ``false`` uses the cube's reflectance-only solutions (for comparisons). (Default: true)
+
+The diffuse fluorescent BBRRDF of Jung, Hanika & Dachsbacher (2018), as used by
+Jung et al., "Wide Gamut Spectral Upsampling with Fluorescence" (CGF 2019), eq. 1:
+
+.. math::
+
+    f(λ_i, ω_i, ω_o, λ_o) = \frac{δ(λ_i − λ_o)(1 − c\,a(λ_i))\,r(λ_i) + c\,a(λ_i)\,Q\,e(λ_o)}{π}
+
+with a b-spline emission spectrum e (unit integral, eq. 5) and an absorption spectrum
+a (peak 1, eq. 6) that mirrors it over wavenumber, touching but not overlapping it.
+The physics (equations, sampling, validation) lives in the Rust core, ``core/src/models/jung.rs``.
+
+What this plugin computes in each variant:
+
+- ``scalar_spectral``: the BSDF interface serves the elastic part
+  (1 − c a(λ)) r(λ) / π at each hero wavelength, like ``diffuse`` otherwise
+  (cosine-weighted sampling). The reradiation c a(λi) Q e(λo) / π is served through
+  fluo's bispectral interface (``include/fluo/fluo_bispectral.h``) to the wavelength-shifting
+  ``fluo_path`` integrator; under Mitsuba's ``path`` the absorbed light is simply lost.
+- ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
+  to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
+  sRGB[r (1 − c a)] + k sRGB[c Q e ∫a], where negative channels (a saturated emission
+  outside the sRGB gamut) are clipped at zero and k ≤ 1 is the largest factor keeping
+  every channel ≤ 1: under equal-energy light a fluorescent green can out-reflect white
+  in the green channel, but an RGB integrator cannot take that energy from the other
+  channels, and a channel above 1 would gain energy in a closed furnace. With a
+  textured ``reflectance`` the elastic part is approximated per channel as
+  texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r), bounded the same way per hit;
+  a ``color`` bitmap serves each texel's bounded albedo. Under ``fluo_path`` the RGB
+  variant instead transports fluorescence with reduced reradiation matrices.
+
+Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
+``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
+``color_space``, a malformed cube) raise an error naming the parameter, its value
+and the valid range.
+
+The cube's colours are those of the reflected light under CIE D65 (360–830 nm),
+Bradford-adapted to the space's white; see ``core/src/upsample/``. In ``scalar_rgb`` the
+upsampled material is shown as Mitsuba shows any reflectance spectrum (sRGB under E).
+
+.. tabs::
+    .. code-tab:: xml
+        :name: fluo-jung
+
+        <bsdf type="fluo_jung">
+            <rgb name="reflectance" value="0.6, 0.6, 0.6"/>
+            <float name="emission_peak" value="520"/>
+            <float name="stokes_shift" value="80"/>
+            <float name="concentration" value="0.8"/>
+        </bsdf>
+
+    .. code-tab:: xml
+        :name: fluo-jung-color
+
+        <bsdf type="fluo_jung">
+            <rgb name="color" value="0.9, 0, 0.9"/>
+            <string name="color_space" value="acescg"/>
+        </bsdf>
+
+    .. code-tab:: python
+
+        'type': 'fluo_jung',
+        'coefficients': '0.0, 0.0, 2.0',
+        'emission_peak': 610.0,
+        'stokes_shift': 90.0
+*/
+template <typename Float, typename Spectrum>
+class FluoJung final : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(BSDF, m_flags, m_components)
+    MI_IMPORT_TYPES(Texture)
+
+    static constexpr const char *Plugin = "fluo_jung";
+
+    FluoJung(const Properties &props) : Base(props) {
+        using namespace fluo_detail;
+        m_config.emission_peak = get_float(Plugin, props, "emission_peak", 520.0);
+        m_config.stokes_shift  = get_float(Plugin, props, "stokes_shift", 60.0);
+        m_config.concentration = get_float(Plugin, props, "concentration", 0.5);
+        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", 0.96);
+        m_config.has_coefficients = props.has_property("coefficients");
+        if (props.has_property("color")) {
+            init_color(props);
+        } else if (m_config.has_coefficients) {
+            if (props.has_property("reflectance"))
+                Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", Plugin);
+            auto c = parse_list<3>(Plugin, "coefficients",
+                                   std::string(props.get<std::string_view>("coefficients")));
+            m_config.c0 = c[0];
+            m_config.c1 = c[1];
+            m_config.c2 = c[2];
+        } else {
+            m_reflectance = props.get_texture<Texture>("reflectance", .5f);
+            check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
+        }
+        m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
+        m_components.push_back(m_flags);
+        rebuild();
+    }
+
+    void traverse(TraversalCallback *cb) override {
+        if (m_color_mode)
+            return; // everything derives from the colour and the cube
+        if (m_reflectance)
+            cb->put("reflectance", m_reflectance, ParamFlags::NonDifferentiable);
+        cb->put("emission_peak", m_emission_peak, ParamFlags::NonDifferentiable);
+        cb->put("stokes_shift", m_stokes_shift, ParamFlags::NonDifferentiable);
+        cb->put("concentration", m_concentration, ParamFlags::NonDifferentiable);
+        cb->put("quantum_yield", m_quantum_yield, ParamFlags::NonDifferentiable);
+    }
+
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        // Copy back only what changed, so untouched values keep their double precision.
+        auto changed = [&](const char *name) {
+            return keys.empty() || string::contains(keys, name);
+        };
+        fluo_detail::transactional_update(m_config, [&] {
+            if (changed("emission_peak")) m_config.emission_peak = m_emission_peak;
+            if (changed("stokes_shift"))  m_config.stokes_shift  = m_stokes_shift;
+            if (changed("concentration")) m_config.concentration = m_concentration;
+            if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
+        }, [&] { rebuild(); });
+    }
+
+    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                             Float /* sample1 */, const Point2f &sample2,
+                                             Mask active) const override {
+        this->warn_if_unmanaged(Plugin);
+        return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return albedo(si, active); });
+    }
+
+    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                  Mask active) const override {
+        return Lambertian<Float, Spectrum>::eval(ctx, si, wo, active, [&] { return albedo(si, active); });
+    }
+
+    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+              Mask active) const override {
+        return Lambertian<Float, Spectrum>::pdf(ctx, si, wo, active);
+    }
+
+    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                        const Vector3f &wo, Mask active) const override {
+        return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return albedo(si, active); });
+    }
+
+    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {
+        return depolarizer<Spectrum>(albedo(si, active));
+    }
+
+    const fluo::Fluorescence *fluorescence() const override {
+        if (m_texture_models) {
+            if (!fluo::jung_texture_is_fluorescent(**m_texture_models))
+                return nullptr;
+            return &fluo::jung_fluorescence(fluo::jung_texture_representative(**m_texture_models));
+        }
+        return fluo::jung_is_fluorescent(*m_model) ? &fluo::jung_fluorescence(*m_model) : nullptr;
+    }
+
+    const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
+        if (!m_texture_models)
+            return fluorescence();
+        const fluo::JungModel &m = texel_model(si);
+        return fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr;
+    }
+
+    bool fluorescence_varies() const override { return m_texture_models.has_value(); }
+
+    UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (!m_reflectance)
+                return m_rgb_elastic_albedo;
+            UnpolarizedSpectrum r = m_reflectance->eval(si, true);
+            return m_modifies_reflectance ? r * m_rgb_elastic_scale : r;
+        } else {
+            return albedo(si, true);
+        }
+    }
+
+    UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si, const Vector3f &wo) const override {
+        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
+        if (!(cos_i > 0.f && cos_o > 0.f))
+            return 0.f;
+        return elastic_albedo(si) * dr::InvPi<Float> * cos_o;
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "FluoJung[" << std::endl
+            << "  model = " << std::string(fluo::jung_to_string(*m_model)) << "," << std::endl;
+        if (m_reflectance)
+            oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
+        if (m_color_mode)
+            oss << "  color = " << m_color_text << "," << std::endl
+                << "  cube = " << std::string(fluo::upsample_cube_describe(**m_cube)) << std::endl;
+        oss << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(FluoJung)
+
+private:
+    /// Validate the configuration in Rust and precompute what each variant needs.
+    void rebuild() {
+        m_model = fluo_detail::rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
+        m_emission_peak = (ScalarFloat) m_config.emission_peak;
+        m_stokes_shift  = (ScalarFloat) m_config.stokes_shift;
+        m_concentration = (ScalarFloat) m_config.concentration;
+        m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
+        // c = 0 leaves the elastic part untouched: skip the Rust call per interaction.
+        m_modifies_reflectance = m_config.concentration > 0.0;
+        if constexpr (is_rgb_v<Spectrum>) {
+            auto to_color = [](const fluo::Rgb &c) {
+                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+            };
+            // Served albedo: elastic + reradiation, bounded to [0, 1] per channel
+            // (fluo::rgb_bounded_albedo; a channel above 1 gains energy in a furnace).
+            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
+            m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
+            m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
+            m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(*m_model)), 0.f, 1.f);
+        }
+    }
+
+    /// `color`: load the cube, then look up a constant colour once or every texel of
+    /// a (raw) bitmap texture once.
+    void init_color(const Properties &props) {
+        using namespace fluo_detail;
+        for (const char *other : { "reflectance", "coefficients", "emission_peak", "stokes_shift",
+                                   "concentration", "quantum_yield" })
+            if (props.has_property(other))
+                Throw("%s: \"color\" sets the reflectance and fluorescence through the cube; "
+                      "do not also specify \"%s\"", Plugin, other);
+        m_color_mode = true;
+        std::string space(props.get<std::string_view>("color_space", "acescg"));
+        std::string cube_file(props.get<std::string_view>("cube", ""));
+        if (!cube_file.empty())
+            cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
+        m_lookup = std::string(props.get<std::string_view>("lookup", "nearest"));
+        m_use_fluorescence = props.get<bool>("fluorescence", true);
+        m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
+        if (props.type("color") == Properties::Type::Color) {
+            ScalarColor3f c = props.get<ScalarColor3f>("color");
+            std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
+            m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
+            fluo::UpsampleCoefficients k = rust_call(Plugin, [&] {
+                return fluo::upsample_lookup(**m_cube, rust::Slice<const double>(rgb.data(), 3), m_lookup,
+                                             m_use_fluorescence);
+            });
+            m_config.has_coefficients = true;
+            m_config.c0 = k.c0;
+            m_config.c1 = k.c1;
+            m_config.c2 = k.c2;
+            m_config.emission_peak = k.emission_peak;
+            m_config.stokes_shift = k.stokes_shift;
+            m_config.concentration = k.concentration;
+            m_config.quantum_yield = k.quantum_yield;
+            return;
+        }
+        if (props.type("color") != Properties::Type::Object)
+            Throw("%s: \"color\" must be an <rgb> value or a bitmap texture", Plugin);
+        ref<Texture> tex = props.get_texture<Texture>("color");
+        if (!tex->is_spatially_varying())
+            Throw("%s: \"color\" is a constant texture; give it as <rgb name=\"color\" value=\"r, g, b\"/> "
+                  "(or as a raw bitmap texture)", Plugin);
+        ScalarVector2i res = tex->resolution();
+        if (!(res.x() > 0 && res.y() > 0))
+            Throw("%s: \"color\" texture has no texels", Plugin);
+        std::vector<float> texels((size_t) res.x() * (size_t) res.y() * 3);
+        SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+        try {
+            for (int y = 0; y < res.y(); ++y)
+                for (int x = 0; x < res.x(); ++x) {
+                    si.uv = Point2f((x + .5f) / res.x(), (y + .5f) / res.y());
+                    Color3f v = tex->eval_3(si, true);
+                    size_t o = 3 * ((size_t) y * res.x() + x);
+                    texels[o] = v[0]; texels[o + 1] = v[1]; texels[o + 2] = v[2];
+                }
+        } catch (const std::exception &e) {
+            Throw("%s: cannot read the \"color\" texture's RGB texels (it must be a 3-channel "
+                  "bitmap with <boolean name=\"raw\" value=\"true\"/>, holding linear %s): %s",
+                  Plugin, space, e.what());
+        }
+        m_texture_res = res;
+        m_color_text = tfm::format("texture %d x %d %s", res.x(), res.y(), space);
+        m_texture_models = rust_call(Plugin, [&] {
+            return fluo::jung_texture_new(**m_cube, (size_t) res.x(), (size_t) res.y(),
+                                          rust::Slice<const float>(texels.data(), texels.size()),
+                                          m_lookup, m_use_fluorescence);
+        });
+        m_color_text += tfm::format(", %zu distinct coefficient sets",
+                                    fluo::jung_texture_distinct(**m_texture_models));
+    }
+
+    /// Nearest texel (repeat wrap) of the colour texture at si.uv.
+    std::pair<int64_t, int64_t> texel_of(const SurfaceInteraction3f &si) const {
+        return { (int64_t) dr::floor(si.uv.x() * m_texture_res.x()),
+                 (int64_t) dr::floor(si.uv.y() * m_texture_res.y()) };
+    }
+
+    const fluo::JungModel &texel_model(const SurfaceInteraction3f &si) const {
+        auto [x, y] = texel_of(si);
+        return fluo::jung_texture_model(**m_texture_models, x, y);
+    }
+
+    /// Directional-hemispherical albedo served to Mitsuba (see the doc comment).
+    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_texture_models) {
+            if constexpr (is_rgb_v<Spectrum>) {
+                auto [x, y] = texel_of(si);
+                fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, x, y);
+                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+            } else {
+                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+                fluo::jung_elastic_albedo(texel_model(si), fluo_detail::slice(lambda),
+                                          fluo_detail::slice_mut(out));
+                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            }
+        }
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (!m_reflectance)
+                return m_rgb_albedo;
+            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
+            if (!m_modifies_reflectance)
+                return r;
+            Color3f e = r * m_rgb_elastic_scale;
+            fluo::Rgb b = fluo::rgb_bounded_albedo(fluo::Rgb{ e[0], e[1], e[2] },
+                                                   fluo::Rgb{ m_rgb_fluorescence[0], m_rgb_fluorescence[1],
+                                                              m_rgb_fluorescence[2] });
+            return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
+        } else {
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+            if (!m_reflectance) {
+                fluo::jung_elastic_albedo(*m_model, fluo_detail::slice(lambda),
+                                          fluo_detail::slice_mut(out));
+                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            }
+            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
+            if (!m_modifies_reflectance)
+                return r;
+            fluo::jung_elastic_factor(*m_model, fluo_detail::slice(lambda),
+                                      fluo_detail::slice_mut(out));
+            return r * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+        }
+    }
+
+    fluo::JungConfig m_config{};
+    rust::Box<fluo::JungModel> m_model = fluo_detail::rust_call(Plugin, [] {
+        fluo::JungConfig c{};
+        c.emission_peak = 520.0; c.stokes_shift = 60.0; c.quantum_yield = 0.96;
+        return fluo::jung_new(c);
+    });
+    ref<Texture> m_reflectance;
+    ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
+                m_quantum_yield = 0.f;
+    bool m_modifies_reflectance = false;
+    // `color` (wide-gamut upsampling through a coefficient cube)
+    bool m_color_mode = false, m_use_fluorescence = true;
+    std::string m_lookup, m_color_text;
+    std::optional<rust::Box<fluo::UpsampleCube>> m_cube;
+    std::optional<rust::Box<fluo::JungTexture>> m_texture_models; ///< per-texel models
+    ScalarVector2i m_texture_res = ScalarVector2i(0, 0);
+    Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f,
+            m_rgb_elastic_albedo = 0.f;
+};
+
+static const bool fluo_jung_registered =
+    (fluo_detail::register_scalar_plugin<FluoJung>("fluo_jung", ObjectType::BSDF), true);
+
+NAMESPACE_END(mitsuba)

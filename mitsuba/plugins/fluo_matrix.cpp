@@ -1,0 +1,69 @@
+#include "fluo_measured.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _bsdf-fluo_matrix:
+
+Measured reradiation matrix (:monosp:`fluo_matrix`)
+---------------------------------------------------
+
+.. pluginparameters::
+
+ * - filename
+   - |string|
+   - A measured reradiation (Donaldson) matrix: a Labsphere BFC text file (``.bfc``),
+     a CSV matrix (``.csv``, header ``lambda_o\lambda_i,300,...``) or a bispectral
+     Spectral OpenEXR file (``.exr``, channels ``T.<λ>nm`` and ``T.<λi>nm.<λo>nm``).
+     Resolved like other Mitsuba file parameters (relative to the scene). Required.
+
+A diffuse (Lambertian) fluorescent material that renders a measured matrix D(λo, λi)
+exactly as tabulated:
+
+.. math::
+
+    f(λ_i, ω_i, ω_o, λ_o) = \frac{δ(λ_i − λ_o)\,ρ(λ_i) + P(λ_i, λ_o)}{π}
+
+with ρ the matrix diagonal (linearly interpolated, held constant beyond its ends) and
+P the entries above the diagonal divided by the emission band width (energy per nm),
+interpolated bilinearly in λi and λo and zero for λi > λo. Before use, entries below
+the diagonal and negative entries are set to zero (measurement noise; Hua et al.
+2022, sec. 5.1). Wavelength shifts are importance sampled exactly from tabulated
+cumulative integrals of the rows (λi given λo) and columns (λo given λi). The
+physics lives in the Rust core, ``core/src/models/matrix.rs``.
+
+- ``scalar_spectral``: the BSDF interface serves the elastic part ρ(λ)/π; the
+  reradiation is served through fluo's bispectral interface to ``fluo_path``
+  (under Mitsuba's ``path`` the absorbed light is lost).
+- ``scalar_rgb``: the albedo under an equal-energy light, ρ(λ) + ∫ P(λi, λ) dλi over
+  360–830 nm, in Mitsuba's sRGB convention.
+
+A malformed file (truncated, a NaN, a wrong header, a wavelength off its grid) raises
+an error naming the file and the line and column.
+
+.. tabs::
+    .. code-tab:: xml
+        :name: fluo-matrix
+
+        <bsdf type="fluo_matrix">
+            <string name="filename" value="TEXTYELL.BFC"/>
+        </bsdf>
+
+    .. code-tab:: python
+
+        'type': 'fluo_matrix',
+        'filename': 'postit_yellow.csv'
+*/
+template <typename Float, typename Spectrum>
+class FluoMatrix final : public FluoMeasured<Float, Spectrum> {
+public:
+    using Base = FluoMeasured<Float, Spectrum>;
+    FluoMatrix(const Properties &props) : Base(props, "fluo_matrix", &fluo::matrix_new) {}
+    MI_DECLARE_CLASS(FluoMatrix)
+};
+
+static const bool fluo_matrix_registered =
+    (fluo_detail::register_scalar_plugin<FluoMatrix>("fluo_matrix", ObjectType::BSDF), true);
+
+NAMESPACE_END(mitsuba)

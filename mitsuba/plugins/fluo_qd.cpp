@@ -1,0 +1,548 @@
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/fresnel.h>
+#include <mitsuba/render/ior.h>
+#include <mitsuba/core/object.h>
+#include <mitsuba/render/microfacet.h>
+#include <mitsuba/render/texture.h>
+
+#include <algorithm>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+/**!
+
+.. _bsdf-fluo_qd:
+
+Quantum-dot coated rough surface (:monosp:`fluo_qd`)
+----------------------------------------------------
+
+.. pluginparameters::
+
+ * - radius
+   - |float|
+   - Quantum-dot radius R in nm, in [1, 5]. Sets the absorption threshold λQD (Brus
+     equation) and with it the emission colour. (Default: 2.2)
+ * - width
+   - |float|
+   - Width δλ of the Gaussian absorption peak and of the emission band, nm, in
+     [0.01, 100]. (Default: 15)
+ * - quantum_yield
+   - |float|
+   - Quantum yield Q in [0, 1]. (Default: 0.8)
+ * - density
+   - |float|
+   - Coating density ρ in [0, 1]. ρ = 0 is exactly ``roughconductor`` (or a rough
+     dielectric reflection with ``int_ior``). (Default: 0.5)
+ * - material
+   - |string|
+   - Conductor substrate by name, as ``roughconductor`` (Mitsuba's ``data/ior`` files).
+     Exclusive with ``eta``/``k`` and ``int_ior``.
+ * - eta, k
+   - |spectrum| or |texture|
+   - Conductor substrate's complex index relative to the environment. (Default:
+     ``roughconductor``'s 0 and 1 when neither ``material`` nor ``int_ior`` is given)
+ * - int_ior
+   - |float| or |string|
+   - Dielectric substrate (reflection only; transmitted light is absorbed).
+ * - ext_ior
+   - |float|
+   - Index n_env of the environment and of the medium around the dots, in [1, 3].
+     With ``int_ior`` the substrate's relative index is int_ior/ext_ior. (Default: 1.000277)
+ * - distribution
+   - |string|
+   - ``beckmann`` or ``ggx`` (Default: ``beckmann``, as ``roughconductor``). Directions
+     are sampled from the distribution of visible normals.
+ * - alpha
+   - |float|
+   - Roughness α in [0, 4]; 0 is clamped to 1e-4. (Default: 0.1)
+ * - qd_eta, qd_k
+   - |spectrum|
+   - Complex index n + ik of the dot material (both or neither). (Default: cubic
+     CdSe, the model dielectric function of Ninomiya & Adachi 1995)
+ * - lambda_min, lambda_max
+   - |float|
+   - Range over which the emission is normalised and excitation is tabulated, nm.
+     (Default: 300, 830)
+ * - table_cos_nodes
+   - |int|
+   - Rows of the excitation tables A_tot(θ, λ), uniform in cos θ, in [2, 1025]: an
+     accuracy/memory knob (memory and bake time grow linearly). (Default: 33)
+ * - table_step
+   - |float|
+   - Base λ step of the excitation tables in nm, in [0.05, 50]; the grid is refined to
+     δλ/8 near λQD regardless. An accuracy/memory knob. (Default: 1)
+ * - gap_energy, elementary_charge, planck, light_speed, boltzmann, electron_mass,
+     hole_mass, vacuum_permittivity, relative_permittivity, temperature
+   - |float|
+   - Constants of the Brus equation and Stokes shift in SI units. (Default: the
+     CdSe values of the paper's Table 1: 2.8e-19 J, 1.6e-19 C, 6.63e-34 J s,
+     3e8 m/s, 1.38e-23 J/K, 1.18e-31 kg, 4.09e-31 kg, 8.85e-12 F/m, 5.8, 293 K)
+
+The fluorescent specular microfacet model of Benamira & Pattanaik, "A Microfacet Model
+for Specular Fluorescent Surfaces and Fluorescent Volume Rendering using Quantum Dots"
+(EGSR 2023), sec. 3 and 4.2: a monolayer of quantum dots of density ρ on a rough
+substrate, treated as a thin film. Its bispectral Fresnel factor replaces the
+substrate's Fresnel term in the microfacet BRDF (eq. 28):
+
+.. math::
+
+    f(ω_i, ω_o, λ_i, λ_o) = \frac{D(h)\,G(ω_i, ω_o)\,[δ(λ_i − λ_o) R_{tot}(θ, λ_i)
+        + Q\,A_{tot}(θ, λ_i)\,L(λ_o)/I\;[λ_o > λ_i]]}{4 \cos θ_i \cos θ_o}
+
+with θ the angle to the microfacet normal, R_tot and A_tot the reflectance and
+absorption of the film over the substrate (multiple scattering, eqs. 23–24), and L a
+logistic emission band centred on λQD + Sλ (Brus equation and Stokes shift). The
+physics and our reading of each equation are in the Rust core, ``core/src/models/qd/``.
+
+What this plugin computes in each variant:
+
+- ``scalar_spectral``: the BSDF interface serves the elastic part, exactly
+  ``roughconductor`` with its Fresnel factor R replaced by
+  R_tot = R_spe + T²(1−A)²R/(1 − R R_spe) (coating coefficients from Rust). The
+  reradiation is served through fluo's bispectral interface to ``fluo_path``; under
+  Mitsuba's ``path`` the absorbed light is simply lost.
+- ``scalar_rgb``: the elastic part per hit and per RGB channel, from the substrate's
+  own (coloured) eta/k and the coating coefficients at 611, 549 and 464 nm for the
+  red, green and blue channels: a gold substrate stays gold, and with a negligible
+  coating the BSDF is ``roughconductor``'s in both variants. Under ``fluo_path`` the
+  reradiation is added through reduced transport; its absorption tables are built
+  from the substrate's spectral eta/k (a named ``material``'s data files) or, for
+  RGB-valued eta/k, from the piecewise-linear spectrum through the three channel
+  values at those wavelengths.
+- Spatially varying (textured) ``eta``/``k`` are evaluated per hit in the elastic
+  part, in every variant. The reradiation's absorption tables are baked for one
+  substrate, so a textured substrate under a fluorescent coating (``density`` and
+  ``quantum_yield`` > 0) is refused with an error rather than rendered with the
+  substrate of one texel.
+
+Invalid parameters raise an error naming the parameter, its value and the valid range.
+``alpha`` is a float (the Rust model needs one roughness), and directions are always
+sampled from the visible normals.
+
+.. tabs::
+    .. code-tab:: xml
+        :name: fluo-qd
+
+        <bsdf type="fluo_qd">
+            <string name="material" value="Al"/>
+            <string name="distribution" value="ggx"/>
+            <float name="alpha" value="0.15"/>
+            <float name="radius" value="3.3"/>
+            <float name="density" value="0.8"/>
+        </bsdf>
+
+    .. code-tab:: python
+
+        'type': 'fluo_qd',
+        'int_ior': 1.5,
+        'radius': 1.5,
+        'quantum_yield': 0.9
+*/
+template <typename Float, typename Spectrum>
+class FluoQd final : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(BSDF, m_flags, m_components)
+    MI_IMPORT_TYPES(Texture, MicrofacetDistribution)
+
+    static constexpr const char *Plugin = "fluo_qd";
+    /// Wavelengths standing for the RGB channels (dominant wavelengths of the sRGB primaries).
+    static constexpr float RgbWavelengths[3] = { 611.f, 549.f, 464.f };
+    /// Step of the grid on which spectral substrate and dot indices are sampled for Rust, nm.
+    static constexpr double SpectrumStepNm = 1.0;
+
+    FluoQd(const Properties &props) : Base(props) {
+        using namespace fluo_detail;
+        m_config = fluo::qd_default_config(); // the defaults live in Rust (core/src/models/qd/)
+        m_config.radius        = get_double(props, "radius", m_config.radius);
+        m_config.width         = get_double(props, "width", m_config.width);
+        m_config.quantum_yield = get_double(props, "quantum_yield", m_config.quantum_yield);
+        m_config.density       = get_double(props, "density", m_config.density);
+        m_config.ext_ior       = get_double(props, "ext_ior", m_config.ext_ior);
+        m_config.lambda_min    = get_double(props, "lambda_min", m_config.lambda_min);
+        m_config.lambda_max    = get_double(props, "lambda_max", m_config.lambda_max);
+        m_config.alpha         = get_double(props, "alpha", m_config.alpha);
+        m_config.table_step    = get_double(props, "table_step", m_config.table_step);
+        if (props.has_property("table_cos_nodes")) {
+            int64_t rows = props.get<int64_t>("table_cos_nodes");
+            if (rows < 2 || rows > 1025)
+                Throw("%s: invalid parameter \"table_cos_nodes\" = %d: valid range is [2, 1025]", Plugin, rows);
+            m_config.table_cos_nodes = (size_t) rows;
+        }
+        for (auto &[name, field] : constant_fields())
+            m_config.*field = get_double(props, name, m_config.*field);
+
+        std::string distr = string::to_lower(std::string(props.get<std::string_view>("distribution", "beckmann")));
+        if (distr == "ggx")
+            m_config.ggx = true;
+        else if (distr != "beckmann")
+            Throw("%s: invalid parameter \"distribution\" = \"%s\": valid values are \"beckmann\", \"ggx\"",
+                  Plugin, distr);
+        m_type = m_config.ggx ? MicrofacetType::GGX : MicrofacetType::Beckmann;
+
+        // Substrate: a named conductor, eta/k, or a dielectric int_ior (exactly one kind).
+        bool has_material = props.has_property("material"), has_eta = props.has_property("eta") || props.has_property("k"),
+             has_int = props.has_property("int_ior");
+        if ((int) has_material + (int) has_eta + (int) has_int > 1)
+            Throw("%s: specify one substrate: \"material\", \"eta\"/\"k\" or \"int_ior\"", Plugin);
+        if (has_int) {
+            double int_ior = lookup_ior(props, "int_ior", 1.5046f);
+            if (!(int_ior > 0.0) || !std::isfinite(int_ior))
+                Throw("%s: invalid parameter \"int_ior\" = %f: valid range is (0, inf)", Plugin, int_ior);
+            m_eta = constant_texture(int_ior / m_config.ext_ior);
+            m_k = constant_texture(0.0);
+        } else if (has_material) {
+            std::string material(props.get<std::string_view>("material"));
+            m_material = material;
+            try {
+                std::tie(m_eta, m_k) = conductor_textures(material);
+            } catch (const std::exception &e) {
+                Throw("%s: invalid parameter \"material\" = \"%s\": no conductor data for it (Mitsuba's "
+                      "data/ior/%s.eta.spd and .k.spd; give \"eta\"/\"k\" spectra instead): %s",
+                      Plugin, material, material, e.what());
+            }
+        } else {
+            m_eta = props.get_unbounded_texture<Texture>("eta", 0.f);
+            m_k   = props.get_unbounded_texture<Texture>("k", 1.f);
+        }
+        if (props.has_property("qd_eta") != props.has_property("qd_k"))
+            Throw("%s: specify both \"qd_eta\" and \"qd_k\" (the dot material's n and k) or neither", Plugin);
+        if (props.has_property("qd_eta")) {
+            m_qd_eta = props.get_unbounded_texture<Texture>("qd_eta");
+            m_qd_k   = props.get_unbounded_texture<Texture>("qd_k");
+        }
+
+        m_flags = BSDFFlags::GlossyReflection | BSDFFlags::FrontSide;
+        m_components.push_back(m_flags);
+        rebuild();
+    }
+
+    void traverse(TraversalCallback *cb) override {
+        cb->put("radius", m_radius, ParamFlags::NonDifferentiable);
+        cb->put("width", m_width, ParamFlags::NonDifferentiable);
+        cb->put("quantum_yield", m_quantum_yield, ParamFlags::NonDifferentiable);
+        cb->put("density", m_density, ParamFlags::NonDifferentiable);
+        cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
+        cb->put("eta", m_eta, ParamFlags::NonDifferentiable);
+        cb->put("k", m_k, ParamFlags::NonDifferentiable);
+    }
+
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        auto changed = [&](const char *name) { return keys.empty() || string::contains(keys, name); };
+        fluo_detail::transactional_update(m_config, [&] {
+            if (changed("radius"))        m_config.radius = m_radius;
+            if (changed("width"))         m_config.width = m_width;
+            if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
+            if (changed("density"))       m_config.density = m_density;
+            if (changed("alpha"))         m_config.alpha = m_alpha;
+        }, [&] { rebuild(); });
+    }
+
+    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                             Float /* sample1 */, const Point2f &sample2,
+                                             Mask active) const override {
+        this->warn_if_unmanaged(Plugin);
+        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
+        Float cos_theta_i = Frame3f::cos_theta(si.wi);
+        active &= cos_theta_i > 0.f;
+        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
+            return { bs, 0.f };
+
+        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Normal3f m;
+        std::tie(m, bs.pdf) = distr.sample(si.wi, sample2);
+        bs.wo = reflect(si.wi, m);
+        bs.eta = 1.f;
+        bs.sampled_component = 0;
+        bs.sampled_type = +BSDFFlags::GlossyReflection;
+        active &= (bs.pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
+        if (!active)
+            return { bs, 0.f };
+
+        UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m);
+        bs.pdf /= 4.f * dr::dot(bs.wo, m);
+        UnpolarizedSpectrum F = fresnel_value(si, dr::dot(si.wi, m), active);
+        return { bs, depolarizer<Spectrum>(F * weight) };
+    }
+
+    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                  Mask active) const override {
+        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
+        active &= cos_theta_i > 0.f && cos_theta_o > 0.f;
+        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
+            return 0.f;
+
+        Vector3f H = dr::normalize(wo + si.wi);
+        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float D = distr.eval(H);
+        if (D == 0.f)
+            return 0.f;
+        Float G = distr.G(si.wi, wo, H);
+        UnpolarizedSpectrum result = D * G / (4.f * cos_theta_i);
+        return depolarizer<Spectrum>(fresnel_value(si, dr::dot(si.wi, H), active) * result);
+    }
+
+    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+              Mask active) const override {
+        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
+        Vector3f m = dr::normalize(wo + si.wi);
+        active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, m) > 0.f && dr::dot(wo, m) > 0.f;
+        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
+            return 0.f;
+        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        return distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i);
+    }
+
+    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                        const Vector3f &wo, Mask active) const override {
+        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
+        Vector3f H = dr::normalize(wo + si.wi);
+        active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, H) > 0.f && dr::dot(wo, H) > 0.f;
+        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
+            return { 0.f, 0.f };
+        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float D = distr.eval(H);
+        if (D == 0.f)
+            return { 0.f, 0.f };
+        Float smith_g1_wi = distr.smith_g1(si.wi, H);
+        Float G = smith_g1_wi * distr.smith_g1(wo, H);
+        UnpolarizedSpectrum value = D * G / (4.f * cos_theta_i);
+        UnpolarizedSpectrum F = fresnel_value(si, dr::dot(si.wi, H), active);
+        return { depolarizer<Spectrum>(F * value), D * smith_g1_wi / (4.f * cos_theta_i) };
+    }
+
+    /// The coating's model, in both variants: fluo_path shifts wavelengths with it in
+    /// scalar_spectral and reduces it per incidence angle in scalar_rgb.
+    const fluo::Fluorescence *fluorescence() const override {
+        return fluo::qd_is_fluorescent(*m_model) ? &fluo::qd_fluorescence(*m_model) : nullptr;
+    }
+
+    /// The elastic lobe alone: eval() already serves only the elastic part.
+    UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si, const Vector3f &wo) const override {
+        return unpolarized_spectrum(eval(BSDFContext(), si, wo, true));
+    }
+
+    /// Smooth-surface value R_tot(θi, λ): positive wherever the elastic lobe is.
+    UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
+        return fresnel_value(si, dr::maximum(Frame3f::cos_theta(si.wi), 0.f), true);
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "FluoQd[" << std::endl
+            << "  model = " << std::string(fluo::qd_to_string(*m_model)) << "," << std::endl
+            << "  eta = " << string::indent(m_eta) << "," << std::endl
+            << "  k = " << string::indent(m_k) << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(FluoQd)
+
+private:
+    using ConstantField = double fluo::QdConfig::*;
+
+    /// The overridable Table 1 constants and their config fields.
+    static std::array<std::pair<const char *, ConstantField>, 10> constant_fields() {
+        return { { { "gap_energy", &fluo::QdConfig::gap_energy },
+                   { "elementary_charge", &fluo::QdConfig::elementary_charge },
+                   { "planck", &fluo::QdConfig::planck },
+                   { "light_speed", &fluo::QdConfig::light_speed },
+                   { "boltzmann", &fluo::QdConfig::boltzmann },
+                   { "electron_mass", &fluo::QdConfig::electron_mass },
+                   { "hole_mass", &fluo::QdConfig::hole_mass },
+                   { "vacuum_permittivity", &fluo::QdConfig::vacuum_permittivity },
+                   { "relative_permittivity", &fluo::QdConfig::relative_permittivity },
+                   { "temperature", &fluo::QdConfig::temperature } } };
+    }
+
+    /// A double property (the constants span 1e-34..1e8, beyond a float's comfort).
+    static double get_double(const Properties &props, const char *name, double def) {
+        if (!props.has_property(name))
+            return def;
+        try {
+            return props.get<double>(name);
+        } catch (const std::exception &e) {
+            Throw("%s: parameter \"%s\" must be a number (%s)", Plugin, name, e.what());
+        }
+    }
+
+    /// eta and k of a named conductor, taken from a native roughconductor built with the
+    /// same `material` (so both read Mitsuba's data identically in every variant).
+    static std::pair<ref<Texture>, ref<Texture>> conductor_textures(std::string_view material) {
+        Properties p("roughconductor");
+        p.set("material", std::string(material));
+        ref<Base> rc = PluginManager::instance()->create_object<Base>(p);
+        struct Grab : TraversalCallback {
+            ref<Texture> eta, k;
+            void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+            void put_object(std::string_view name, Object *o, uint32_t) override {
+                if (name == "eta")
+                    eta = dynamic_cast<Texture *>(o);
+                else if (name == "k")
+                    k = dynamic_cast<Texture *>(o);
+            }
+        } grab;
+        rc->traverse(&grab);
+        if (!grab.eta || !grab.k)
+            Throw("%s: could not read the conductor data of material \"%s\"", Plugin, material);
+        return { grab.eta, grab.k };
+    }
+
+    static ref<Texture> constant_texture(double value) {
+        Properties p("uniform");
+        p.set("value", value);
+        return PluginManager::instance()->create_object<Texture>(p);
+    }
+
+    /// The substrate's spectral eta and k on one wavelength grid, for the coating's
+    /// absorption tables: the eta/k textures in spectral variants; in RGB variants a named
+    /// material's data files, else the piecewise-linear spectrum through the channel values
+    /// at RgbWavelengths (what the per-channel elastic evaluation sees).
+    void sample_substrate(std::vector<double> &wavelengths, std::vector<double> &eta, std::vector<double> &k) const {
+        std::vector<double> tmp;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            if (!m_material.empty()) {
+                std::vector<double> kw, kv;
+                spectrum_from_file("data/ior/" + m_material + ".eta.spd", wavelengths, eta);
+                spectrum_from_file("data/ior/" + m_material + ".k.spd", kw, kv);
+                k.clear();
+                for (double l : wavelengths)
+                    k.push_back(interpolate(kw, kv, l));
+                return;
+            }
+            wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
+            for (auto [tex, out] : { std::pair{ m_eta.get(), &eta }, std::pair{ m_k.get(), &k } }) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                UnpolarizedSpectrum v = tex->eval(si, true);
+                *out = { (double) v[2], (double) v[1], (double) v[0] };
+            }
+            return;
+        }
+        sample_texture(m_eta.get(), wavelengths, eta);
+        sample_texture(m_k.get(), tmp, k);
+    }
+
+    /// Linear interpolation in a sorted table, clamped at its ends.
+    static double interpolate(const std::vector<double> &x, const std::vector<double> &y, double at) {
+        if (x.empty())
+            return 0.0;
+        if (at <= x.front())
+            return y.front();
+        if (at >= x.back())
+            return y.back();
+        size_t j = (size_t) (std::upper_bound(x.begin(), x.end(), at) - x.begin());
+        double t = (at - x[j - 1]) / (x[j] - x[j - 1]);
+        return (1.0 - t) * y[j - 1] + t * y[j];
+    }
+
+    /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
+    void sample_texture(const Texture *tex, std::vector<double> &wavelengths, std::vector<double> &values) const {
+        wavelengths.clear();
+        values.clear();
+        if constexpr (is_spectral_v<Spectrum>) {
+            size_t n = (size_t) std::ceil((m_config.lambda_max - m_config.lambda_min) / SpectrumStepNm) + 1;
+            if (!(m_config.lambda_max > m_config.lambda_min) || n > 100000)
+                n = 2; // invalid range: Rust rejects lambda_min/max with a proper message
+            for (size_t i = 0; i < n; i += 4) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                for (size_t j = 0; j < 4; ++j) {
+                    double l = m_config.lambda_min + (double) std::min(i + j, n - 1) * SpectrumStepNm;
+                    si.wavelengths[j] = (float) std::min(l, std::max(m_config.lambda_max, m_config.lambda_min + 1.0));
+                }
+                UnpolarizedSpectrum v = tex->eval(si, true);
+                for (size_t j = 0; j < 4 && i + j < n; ++j) {
+                    double l = si.wavelengths[j];
+                    if (!wavelengths.empty() && !(l > wavelengths.back()))
+                        continue;
+                    wavelengths.push_back(l);
+                    values.push_back(v[j]);
+                }
+            }
+            if (wavelengths.size() < 2) { // degenerate grid: a constant
+                values.resize(1);
+                wavelengths.resize(1);
+            }
+        } else {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+            UnpolarizedSpectrum v = tex->eval(si, true);
+            wavelengths.push_back(0.0);
+            values.push_back(dr::mean(v));
+        }
+    }
+
+    /// Validate the configuration in Rust and bake the model (tables included).
+    void rebuild() {
+        std::vector<double> sw, se, sk, qw, qe, qk, tmp;
+        sample_substrate(sw, se, sk);
+        if (m_qd_eta) {
+            sample_texture(m_qd_eta.get(), qw, qe);
+            sample_texture(m_qd_k.get(), tmp, qk);
+        }
+        auto sl = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
+        rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
+            return fluo::qd_new(m_config, sl(sw), sl(se), sl(sk), sl(qw), sl(qe), sl(qk));
+        });
+        if (fluo::qd_is_fluorescent(*model) &&
+            (m_eta->is_spatially_varying() || m_k->is_spatially_varying()))
+            Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
+                  "with a fluorescent coating: the coating's absorption tables are baked for one "
+                  "substrate (the elastic part alone is evaluated per hit); give constant "
+                  "\"eta\"/\"k\", or \"density\" = 0 or \"quantum_yield\" = 0",
+                  Plugin);
+        m_model = std::move(model);
+        m_radius = (ScalarFloat) m_config.radius;
+        m_width = (ScalarFloat) m_config.width;
+        m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
+        m_density = (ScalarFloat) m_config.density;
+        m_alpha = (ScalarFloat) m_config.alpha;
+        // Mitsuba's own clamp of a zero roughness.
+        m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
+        // ρ = 0: no coating, the elastic part is exactly roughconductor's.
+        m_coated = m_config.density > 0.0;
+    }
+
+    /// The substrate's Fresnel factor, times the coating's effect when coated (eq. 23).
+    UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, Float cos_m, Mask active) const {
+        dr::Complex<UnpolarizedSpectrum> eta_c(m_eta->eval(si, active), m_k->eval(si, active));
+        UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
+        if (!m_coated)
+            return F;
+        std::array<float, 4> lambda{}, r_spe{}, pass{};
+        if constexpr (is_spectral_v<Spectrum>)
+            lambda = fluo_detail::wavelengths_of(si.wavelengths);
+        else
+            lambda = { RgbWavelengths[0], RgbWavelengths[1], RgbWavelengths[2], RgbWavelengths[2] };
+        fluo::qd_elastic_coefficients(*m_model, (float) cos_m, fluo_detail::slice(lambda),
+                                      fluo_detail::slice_mut(r_spe), fluo_detail::slice_mut(pass));
+        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+            float den = dr::maximum(1.f - F[j] * r_spe[j], 1e-12f);
+            F[j] = r_spe[j] + pass[j] * F[j] / den;
+        }
+        return F;
+    }
+
+    fluo::QdConfig m_config{};
+    rust::Box<fluo::QdModel> m_model = fluo_detail::rust_call(Plugin, [] {
+        fluo::QdConfig c = fluo::qd_default_config();
+        double one[1] = { 1.5 }, zero[1] = { 0.0 };
+        rust::Slice<const double> e(one, 1), k(zero, 1), none;
+        return fluo::qd_new(c, e, e, k, none, none, none);
+    });
+    MicrofacetType m_type = MicrofacetType::Beckmann;
+    ref<Texture> m_eta, m_k, m_qd_eta, m_qd_k;
+    std::string m_material; ///< named conductor substrate, or empty
+    ScalarFloat m_radius = 0.f, m_width = 0.f, m_quantum_yield = 0.f, m_density = 0.f, m_alpha = 0.f;
+    ScalarFloat m_alpha_f = 0.1f;
+    bool m_coated = false;
+};
+
+static const bool fluo_qd_registered =
+    (fluo_detail::register_scalar_plugin<FluoQd>("fluo_qd", ObjectType::BSDF), true);
+
+NAMESPACE_END(mitsuba)
