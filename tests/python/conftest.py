@@ -13,9 +13,12 @@ Fixtures:
 ``fluo_cli``
     The ``fluo`` console script installed in this interpreter's environment.
 ``scene_xml``
-    ``scene_xml(tmp_path, bsdf_xml, ...) -> Path``: a small XML test scene (a sphere
-    with the given BSDF under a constant environment) written to a file; ``extra``
-    goes first in ``<scene>`` (``<default>`` parameters, comments).
+    ``scene_xml(tmp_path, bsdf_xml, name="scene.xml", **options) -> Path``: the one
+    test scene (``SCENE_TEMPLATE``: by default a sphere with the given BSDF under a
+    constant environment) written to a file. ``scene_text(bsdf_xml, **options)`` (import
+    it from conftest) gives the same XML as text for ``mi.load_string``; its options
+    choose the integrator, camera, film, filter, emitter, shape and an optional lit
+    floor. ``extra`` goes first in ``<scene>`` (``<default>`` parameters, comments).
 ``mitsuba_log``
     The list of lines Mitsuba's logger writes while the test runs (warnings included).
 ``chi2_directions``
@@ -78,36 +81,75 @@ def fluo_cli() -> Path:
 
 SCENE_TEMPLATE = """<scene version="3.0.0">
     {extra}
-    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
+    <integrator type="{integrator}"><integer name="max_depth" value="{max_depth}"/></integrator>
+    <sensor type="{camera}">
+        {fov}
         <transform name="to_world">
-            <lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/>
+            <lookat origin="{origin}" target="{target}" up="0, 1, 0"/>
         </transform>
+        <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>
         <film type="hdrfilm">
             <integer name="width" value="{width}"/>
             <integer name="height" value="{height}"/>
+            <string name="pixel_format" value="{pixel_format}"/>
+            <rfilter type="{rfilter}"/>
         </film>
     </sensor>
-    <emitter type="constant"><rgb name="radiance" value="1.0"/></emitter>
-    <shape type="sphere">
+    <emitter type="{emitter}">{direction}{light}</emitter>
+    <shape type="{shape}">
+        <transform name="to_world"><scale value="{size}"/><translate value="{center}"/></transform>
         {bsdf}
     </shape>
+    {ground}
 </scene>
 """
 
+#: The template's optional ``{ground}``: a floor under the shape (with its own BSDF) and
+#: an area light above it.
+GROUND = """<shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="5"/><translate y="-0.4"/></transform>
+        {bsdf}
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="90"/><translate y="3"/></transform>
+        <emitter type="area"><rgb name="radiance" value="6"/></emitter>
+    </shape>"""
 
-def _scene_xml(directory: Path, bsdf: str, *, width: int = 16, height: int = 12,
-               extra: str = "", name: str = "scene.xml") -> Path:
+
+def scene_text(bsdf: str, *, extra: str = "", integrator: str = "path", max_depth: int = 3,
+               camera: str = "perspective", fov: float = 40.0, origin: str = "0, 0, 4",
+               target: str = "0, 0, 0", spp: int = 4, width: int = 16, height: int = 12,
+               pixel_format: str = "rgb", rfilter: str = "gaussian", emitter: str = "constant",
+               light: str = '<rgb name="radiance" value="1.0"/>', shape: str = "sphere",
+               size: float = 1.0, center: str = "0, 0, 0", ground: str | None = None) -> str:
+    """The test scene (``SCENE_TEMPLATE``) as XML text; the defaults are Mitsuba's own
+    (independent sampler, rgb film, gaussian filter) where the template names them.
+
+    ``camera`` is ``perspective`` (with ``fov``) or ``orthographic`` (the [-1, 1]² square
+    around ``target``); ``emitter`` is ``constant`` (``light`` names ``radiance``) or
+    ``directional`` (straight down -z; ``light`` names ``irradiance``); the ``shape``
+    (``sphere`` or ``rectangle``) is scaled by ``size`` and moved to ``center``;
+    ``ground``, a BSDF, adds a floor and an area light above (``GROUND``).
+    """
+    return SCENE_TEMPLATE.format(
+        extra=extra, integrator=integrator, max_depth=max_depth, camera=camera,
+        fov=f'<float name="fov" value="{fov:g}"/>' if camera == "perspective" else "",
+        origin=origin, target=target, spp=spp, width=width, height=height,
+        pixel_format=pixel_format, rfilter=rfilter, emitter=emitter,
+        direction='<vector name="direction" value="0, 0, -1"/>' if emitter == "directional" else "",
+        light=light, shape=shape, size=f"{size:g}", center=center, bsdf=bsdf,
+        ground=GROUND.format(bsdf=ground) if ground is not None else "")
+
+
+def _scene_xml(directory: Path, bsdf: str, *, name: str = "scene.xml", **options) -> Path:
     path = Path(directory) / name
-    path.write_text(SCENE_TEMPLATE.format(bsdf=bsdf, width=width, height=height,
-                                          extra=extra), encoding="utf-8")
+    path.write_text(scene_text(bsdf, **options), encoding="utf-8")
     return path
 
 
 @pytest.fixture
 def scene_xml():
-    """``scene_xml(directory, bsdf_xml, width=16, height=12, extra="", name=...)``."""
+    """``scene_xml(directory, bsdf_xml, name="scene.xml", **options)`` -> the written path."""
     return _scene_xml
 
 

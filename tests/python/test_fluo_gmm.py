@@ -18,6 +18,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import scene_text
+
 import fluo
 
 REPO = Path(__file__).resolve().parents[2]
@@ -25,30 +27,20 @@ SHARED = Path(os.environ.get("FLUO_SHARED_DATA", REPO.parent / "shared" / "data"
 OWN_FIT = REPO / "data" / "matrices" / "jung_orange.gmm.json"
 
 
-def transform():
-    return mi.ScalarTransform4f()
-
-
-def plane_xyz(bsdf: dict, illuminant: str, spp=192):
+def plane_xyz(bsdf: str, illuminant: str, spp=192):
+    """π·mean XYZ of a plane seen from above under a distant light of unit luminance."""
     mi.set_variant("scalar_spectral")
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": transform().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "pixel_format": "xyz",
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "plane": {"type": "rectangle", "to_world": transform().scale(10), "bsdf": bsdf},
-        "light": {"type": "directional", "direction": [0, 0, -1],
-                  "irradiance": {"type": "fluo_illuminant", "illuminant": illuminant}},
-    })
+    light = f'<spectrum type="fluo_illuminant" name="irradiance"><string name="illuminant" value="{illuminant}"/></spectrum>'
+    scene = mi.load_string(scene_text(
+        bsdf, integrator="fluo_path", max_depth=2, camera="orthographic", origin="0, 0, 5",
+        spp=spp, width=32, height=32, pixel_format="xyz", rfilter="box", emitter="directional",
+        light=light, shape="rectangle", size=10))
     img = np.array(mi.render(scene, seed=1), dtype=np.float64)
     return img.reshape(-1, img.shape[-1])[:, :3].mean(axis=0) * math.pi
 
 
 def check_converges(fit_path: Path, illuminant: str):
-    xyz = plane_xyz({"type": "fluo_gmm", "filename": str(fit_path)}, illuminant)
+    xyz = plane_xyz(f'<bsdf type="fluo_gmm"><string name="filename" value="{fit_path}"/></bsdf>', illuminant)
     ref = fluo.run_tool(["patch", "--material", str(fit_path), "--illuminant", illuminant,
                          "--cmf", "cie1931"])
     want, elastic = np.array(ref["xyz"]), np.array(ref["elastic_xyz"])

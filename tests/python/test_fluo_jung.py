@@ -15,8 +15,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import VARIANTS
+
 REPO = Path(__file__).resolve().parents[2]
-VARIANTS = ("scalar_spectral", "scalar_rgb")
 
 
 # ---------------------------------------------------------------- reference model
@@ -144,58 +145,37 @@ def _rel_diff(a, b):
     return float(np.abs(a - b).mean() / np.abs(b).mean())
 
 
-CROSS_SCENE = """<scene version="3.0.0">
-    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 1.5, 4" target="0, 0.2, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="8"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="32"/></film>
-    </sensor>
-    <shape type="sphere"><float name="radius" value="0.7"/><point name="center" x="0" y="0.3" z="0"/>
-        {bsdf}
-    </shape>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="5"/><translate y="-0.4"/></transform>
-        {bsdf}
-    </shape>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="90"/><translate y="3"/></transform>
-        <emitter type="area"><rgb name="radiance" value="6"/></emitter>
-    </shape>
-    <emitter type="constant"><rgb name="radiance" value="0.2"/></emitter>
-</scene>"""
+#: The cross-validation scene: a sphere on a floor of the same BSDF, lit from above.
+CROSS = dict(max_depth=4, origin="0, 1.5, 4", target="0, 0.2, 0", spp=8, width=48, height=32,
+             light='<rgb name="radiance" value="0.2"/>', size=0.7, center="0, 0.3, 0")
 
 SPECTRUM = '<spectrum name="reflectance" value="360:0.1, 430:0.2, 480:0.7, 550:0.8, 600:0.3, 700:0.6, 830:0.5"/>'
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("reflectance", [SPECTRUM, '<rgb name="reflectance" value="0.7, 0.3, 0.2"/>'])
-def test05_zero_concentration_matches_native_diffuse(variant, reflectance, tmp_path, render):
+def test05_zero_concentration_matches_native_diffuse(variant, reflectance, tmp_path, render, scene_xml):
     """Cross-validation: c = 0 is Mitsuba's diffuse (same seed, same spp)."""
-    ours = tmp_path / "ours.xml"
-    native = tmp_path / "native.xml"
-    ours.write_text(CROSS_SCENE.format(bsdf=f'<bsdf type="fluo_jung">{reflectance}'
-                                             '<float name="concentration" value="0"/></bsdf>'))
-    native.write_text(CROSS_SCENE.format(bsdf=f'<bsdf type="diffuse">{reflectance}</bsdf>'))
+    jung_c0 = f'<bsdf type="fluo_jung">{reflectance}<float name="concentration" value="0"/></bsdf>'
+    diffuse = f'<bsdf type="diffuse">{reflectance}</bsdf>'
+    ours = scene_xml(tmp_path, jung_c0, ground=jung_c0, name="ours.xml", **CROSS)
+    native = scene_xml(tmp_path, diffuse, ground=diffuse, name="native.xml", **CROSS)
     a = render(ours, variant, spp=8, seed=5)
     b = render(native, variant, spp=8, seed=5)
     assert np.isfinite(a).all() and b.mean() > 0
     assert _rel_diff(a, b) < 5e-3
 
 
-def test06_sigmoid_reflectance_matches_tabulated_diffuse(tmp_path, render):
+def test06_sigmoid_reflectance_matches_tabulated_diffuse(tmp_path, render, scene_xml):
     """Spectral: the sigmoid branch (coefficients) equals diffuse with that spectrum tabulated."""
     coeffs = (-2e-4, 0.22, -55.0)
     lam = np.arange(360.0, 831.0, 2.0)
     values = ", ".join(f"{l:g}:{v:.6f}" for l, v in zip(lam, ref_sigmoid(lam, coeffs)))
-    ours = tmp_path / "ours.xml"
-    native = tmp_path / "native.xml"
-    ours.write_text(CROSS_SCENE.format(
-        bsdf='<bsdf type="fluo_jung"><string name="coefficients" value="%s"/>'
-             '<float name="concentration" value="0"/></bsdf>' % ", ".join(map(str, coeffs))))
-    native.write_text(CROSS_SCENE.format(
-        bsdf=f'<bsdf type="diffuse"><spectrum name="reflectance" value="{values}"/></bsdf>'))
+    sigmoid = ('<bsdf type="fluo_jung"><string name="coefficients" value="%s"/>'
+               '<float name="concentration" value="0"/></bsdf>' % ", ".join(map(str, coeffs)))
+    tabulated = f'<bsdf type="diffuse"><spectrum name="reflectance" value="{values}"/></bsdf>'
+    ours = scene_xml(tmp_path, sigmoid, ground=sigmoid, name="ours.xml", **CROSS)
+    native = scene_xml(tmp_path, tabulated, ground=tabulated, name="native.xml", **CROSS)
     a = render(ours, "scalar_spectral", spp=8, seed=2)
     b = render(native, "scalar_spectral", spp=8, seed=2)
     assert _rel_diff(a, b) < 5e-3

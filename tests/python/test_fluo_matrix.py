@@ -20,6 +20,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import scene_text
+
 import fluo
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,10 +35,6 @@ needs_shared = pytest.mark.skipif(not FILES, reason=f"shared data not found at {
 OWN = sorted((REPO / "data" / "matrices").glob("*.csv"))
 #: The strongest of them (absorbs blue-violet, emits at 610 nm).
 ORANGE = REPO / "data" / "matrices" / "jung_orange.csv"
-
-
-def transform():
-    return mi.ScalarTransform4f()
 
 
 def read_matrix(path: Path):
@@ -69,26 +67,21 @@ def surface_interaction(wavelengths):
     return si
 
 
-def ortho_down(spp):
-    return {
-        "type": "orthographic",
-        "to_world": transform().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-        "film": {"type": "hdrfilm", "width": 32, "height": 32, "pixel_format": "xyz",
-                 "rfilter": {"type": "box"}},
-        "sampler": {"type": "independent", "sample_count": spp},
-    }
+def illuminant_xml(name: str, key: str = "irradiance") -> str:
+    return f'<spectrum type="fluo_illuminant" name="{key}"><string name="illuminant" value="{name}"/></spectrum>'
 
 
-def plane_xyz(bsdf: dict, light, spp=192, seed=1):
+def matrix_xml(path: Path) -> str:
+    return f'<bsdf type="fluo_matrix"><string name="filename" value="{path}"/></bsdf>'
+
+
+def plane_xyz(bsdf: str, illuminant: str, spp=192, seed=1):
     """π·mean XYZ of a plane seen from above under a distant light of unit luminance."""
     mi.set_variant("scalar_spectral")
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": ortho_down(spp),
-        "plane": {"type": "rectangle", "to_world": transform().scale(10), "bsdf": bsdf},
-        "light": {"type": "directional", "direction": [0, 0, -1], "irradiance": light},
-    })
+    scene = mi.load_string(scene_text(
+        bsdf, integrator="fluo_path", max_depth=2, camera="orthographic", origin="0, 0, 5",
+        spp=spp, width=32, height=32, pixel_format="xyz", rfilter="box", emitter="directional",
+        light=illuminant_xml(illuminant), shape="rectangle", size=10))
     img = np.array(mi.render(scene, seed=seed), dtype=np.float64)
     return img.reshape(-1, img.shape[-1])[:, :3].mean(axis=0) * math.pi, scene
 
@@ -155,8 +148,7 @@ def test03_chi2_directional_sampling(chi2_directions):
 def test04_plane_converges_to_patch_integral(illuminant):
     """fluo_path on a plane of our own matrix = fluo patch of the same file, within 1 %."""
     path = ORANGE
-    xyz, _ = plane_xyz({"type": "fluo_matrix", "filename": str(path)},
-                       {"type": "fluo_illuminant", "illuminant": illuminant})
+    xyz, _ = plane_xyz(matrix_xml(path), illuminant)
     ref = patch(path, illuminant)
     want, elastic = np.array(ref["xyz"]), np.array(ref["elastic_xyz"])
     np.testing.assert_allclose(xyz, want, rtol=0.01)
@@ -167,8 +159,7 @@ def test04_plane_converges_to_patch_integral(illuminant):
 @pytest.mark.parametrize("name", ["TEXTYELL.BFC", "postit_yellow.csv"])
 def test05_measured_plane_converges_to_patch_integral(name):
     path = BISPECTRAL / name
-    xyz, scene = plane_xyz({"type": "fluo_matrix", "filename": str(path)},
-                           {"type": "fluo_illuminant", "illuminant": "D65"})
+    xyz, scene = plane_xyz(matrix_xml(path), "D65")
     assert "fluorescent_bsdfs = 1" in str(scene.integrator())
     ref = patch(path, "D65")
     want, elastic = np.array(ref["xyz"]), np.array(ref["elastic_xyz"])
@@ -185,21 +176,13 @@ def test06_every_measured_file_loads_fits_and_renders(tmp_path):
         assert info["components"] == 4 and out.is_file() and info["scale"] > 0
         fit = json.loads(out.read_text())
         assert len(fit["components"]) == 4 and all(len(c["mean"]) == 2 for c in fit["components"])
-        for bsdf in ({"type": "fluo_matrix", "filename": str(path)},
-                     {"type": "fluo_gmm", "filename": str(out)}):
+        for bsdf in (matrix_xml(path),
+                     f'<bsdf type="fluo_gmm"><string name="filename" value="{out}"/></bsdf>'):
             mi.set_variant("scalar_spectral")
-            scene = mi.load_dict({
-                "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 3},
-                "sensor": {"type": "perspective", "fov": 60,
-                           "film": {"type": "hdrfilm", "width": 8, "height": 8},
-                           "sampler": {"type": "independent", "sample_count": 4}},
-                "ball": {"type": "sphere", "bsdf": bsdf,
-                         "to_world": transform().translate([0, 0, 3])},
-                "emitter": {"type": "constant",
-                            "radiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
-            })
+            scene = mi.load_string(scene_text(bsdf, integrator="fluo_path", fov=60, width=8, height=8,
+                                              light=illuminant_xml("D65", "radiance")))
             img = np.array(mi.render(scene), dtype=np.float64)
-            assert np.isfinite(img).all() and img.mean() > 0, (path.name, bsdf["type"])
+            assert np.isfinite(img).all() and img.mean() > 0, (path.name, bsdf)
 
 
 @needs_shared
@@ -257,11 +240,10 @@ def test09_demo_scenes_render(name):
         assert "fluorescent_bsdfs = 3" in str(scene.integrator())
 
 
-def test10_demo_uses_fallbacks_only_for_missing_data(tmp_path):
+def test10_demo_uses_fallbacks_only_for_missing_data(tmp_path, scene_xml):
     from fluo.cli import scene_fallback_params
-    scene = tmp_path / "s.xml"
     (tmp_path / "here.csv").write_text("x")
-    scene.write_text('<!-- fluo: fallback a=fa.csv -->\n<!-- fluo: fallback b=fb.csv -->\n'
-                     '<scene version="3.0.0"><default name="a" value="here.csv"/>'
-                     '<default name="b" value="missing.csv"/></scene>')
+    scene = scene_xml(tmp_path, matrix_xml("$a"), name="s.xml", extra=(
+        '<!-- fluo: fallback a=fa.csv -->\n<!-- fluo: fallback b=fb.csv -->\n'
+        '<default name="a" value="here.csv"/><default name="b" value="missing.csv"/>'))
     assert scene_fallback_params(scene) == {"b": str(tmp_path / "fb.csv")}

@@ -19,6 +19,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import scene_text
+
 import fluo
 
 REPO = Path(__file__).resolve().parents[2]
@@ -38,10 +40,18 @@ def ortho_down(width=32, height=32, spp=64, pixel_format="xyz"):
     }
 
 
-def jung_dict(m):
-    return {"type": "fluo_jung", "reflectance": m["reflectance"], "emission_peak": m["emission_peak"],
-            "stokes_shift": m["stokes_shift"], "concentration": m["concentration"],
-            "quantum_yield": m["quantum_yield"]}
+def jung_xml(m):
+    floats = "".join(f'<float name="{k}" value="{m[k]}"/>' for k in
+                     ("reflectance", "emission_peak", "stokes_shift", "concentration", "quantum_yield"))
+    return f'<bsdf type="fluo_jung">{floats}</bsdf>'
+
+
+def plane_from_above(bsdf: str, irradiance: str, width=32, height=32, spp=192):
+    """A plane seen straight from above (orthographic, XYZ film) under a distant light."""
+    return mi.load_string(scene_text(
+        bsdf, integrator="fluo_path", max_depth=2, camera="orthographic", origin="0, 0, 5",
+        spp=spp, width=width, height=height, pixel_format="xyz", rfilter="box",
+        emitter="directional", light=irradiance, shape="rectangle", size=10))
 
 
 def render(scene, seed=1):
@@ -90,15 +100,9 @@ def patch(material, illuminant, cmf="cie1931"):
 def test03_plane_converges_to_patch_integral(illuminant, material):
     """Camera straight above a fluorescent plane under a distant light: π·XYZ/E = patch XYZ."""
     mi.set_variant("scalar_spectral")
-    scene = mi.load_dict({
-        "type": "scene",
-        "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": ortho_down(spp=192),
-        "plane": {"type": "rectangle", "to_world": transform().scale(10), "bsdf": jung_dict(material)},
-        # luminance-normalised irradiance: ∫E ȳ/∫ȳ = 1, so π·XYZ is the white-normalised colour
-        "light": {"type": "directional", "direction": [0, 0, -1],
-                  "irradiance": {"type": "fluo_illuminant", "illuminant": illuminant}},
-    })
+    # luminance-normalised irradiance: ∫E ȳ/∫ȳ = 1, so π·XYZ is the white-normalised colour
+    scene = plane_from_above(jung_xml(material), '<spectrum type="fluo_illuminant" name="irradiance">'
+                             f'<string name="illuminant" value="{illuminant}"/></spectrum>')
     img = render(scene)
     xyz = img.reshape(-1, img.shape[-1])[:, :3].mean(axis=0) * math.pi
     ref = patch(material, illuminant)
@@ -256,16 +260,12 @@ def test10_blackbody_defined_from_300nm_excites_uv_absorber():
     mi.set_variant("scalar_spectral")
 
     def green(wavelength_min):
-        scene = mi.load_dict({
-            "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
-            "sensor": ortho_down(width=8, height=8, spp=64, pixel_format="xyz"),
-            "plane": {"type": "rectangle", "to_world": transform().scale(10),
-                      "bsdf": {"type": "fluo_jung", "reflectance": 0.0, "emission_peak": 450.0,
-                               "stokes_shift": 110.0, "concentration": 1.0}},  # absorbs ~310-390 nm
-            "light": {"type": "directional", "direction": [0, 0, -1],
-                      "irradiance": {"type": "blackbody", "temperature": 6000.0,
-                                     "wavelength_min": wavelength_min}},
-        })
+        scene = plane_from_above(
+            '<bsdf type="fluo_jung"><float name="reflectance" value="0"/>'  # absorbs ~310-390 nm
+            '<float name="emission_peak" value="450"/><float name="stokes_shift" value="110"/>'
+            '<float name="concentration" value="1"/></bsdf>',
+            '<spectrum type="blackbody" name="irradiance"><float name="temperature" value="6000"/>'
+            f'<float name="wavelength_min" value="{wavelength_min}"/></spectrum>', width=8, height=8, spp=64)
         y = render(scene)[..., 1].mean()  # the integrator scans the scene when rendering
         assert f"excitation_range = [{wavelength_min:g}," in str(scene.integrator())
         return y

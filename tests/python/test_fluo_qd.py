@@ -18,8 +18,9 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import VARIANTS
+
 REPO = Path(__file__).resolve().parents[2]
-VARIANTS = ("scalar_spectral", "scalar_rgb")
 
 # ------------------------------------------------------------ paper reference values
 # Table 1 (CdSe), SI units.
@@ -71,27 +72,10 @@ def test01_create(variant):
         assert key in params
 
 
-CROSS_SCENE = """<scene version="3.0.0">
-    <integrator type="{integrator}"><integer name="max_depth" value="4"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 1.5, 4" target="0, 0.2, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="8"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="48"/><integer name="height" value="32"/></film>
-    </sensor>
-    <shape type="sphere"><float name="radius" value="0.7"/><point name="center" x="0" y="0.3" z="0"/>
-        {bsdf}
-    </shape>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="-90"/><scale value="5"/><translate y="-0.4"/></transform>
-        <bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf>
-    </shape>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="90"/><translate y="3"/></transform>
-        <emitter type="area"><rgb name="radiance" value="6"/></emitter>
-    </shape>
-    <emitter type="constant"><rgb name="radiance" value="0.3"/></emitter>
-</scene>"""
+#: The cross-validation scene: a sphere on a diffuse floor, lit from above.
+CROSS = dict(max_depth=4, origin="0, 1.5, 4", target="0, 0.2, 0", spp=8, width=48, height=32,
+             light='<rgb name="radiance" value="0.3"/>', size=0.7, center="0, 0.3, 0",
+             ground='<bsdf type="diffuse"><rgb name="reflectance" value="0.5"/></bsdf>')
 
 SUBSTRATES = {
     "Au": '<string name="material" value="Au"/>',
@@ -103,18 +87,17 @@ SUBSTRATES = {
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("distribution", ["ggx", "beckmann"])
 @pytest.mark.parametrize("substrate", sorted(SUBSTRATES))
-def test02_zero_density_matches_roughconductor(variant, distribution, substrate, tmp_path, render):
+def test02_zero_density_matches_roughconductor(variant, distribution, substrate, tmp_path, render,
+                                               scene_xml):
     """Acceptance: ρ = 0 renders as native roughconductor (same seed, same spp), < 0.5 %."""
     common = f'<string name="distribution" value="{distribution}"/><float name="alpha" value="0.2"/>'
     common += SUBSTRATES[substrate]
     integrators = ["path"] + (["fluo_path"] if variant == "scalar_spectral" else [])
     for integrator in integrators:
-        ours = tmp_path / f"ours_{integrator}.xml"
-        native = tmp_path / f"native_{integrator}.xml"
-        ours.write_text(CROSS_SCENE.format(integrator=integrator, bsdf=(
-            f'<bsdf type="fluo_qd">{common}<float name="density" value="0"/></bsdf>')))
-        native.write_text(CROSS_SCENE.format(integrator="path", bsdf=(
-            f'<bsdf type="roughconductor">{common}</bsdf>')))
+        ours = scene_xml(tmp_path, f'<bsdf type="fluo_qd">{common}<float name="density" value="0"/></bsdf>',
+                         integrator=integrator, name=f"ours_{integrator}.xml", **CROSS)
+        native = scene_xml(tmp_path, f'<bsdf type="roughconductor">{common}</bsdf>',
+                           name=f"native_{integrator}.xml", **CROSS)
         a = render(ours, variant, spp=8, seed=5)
         b = render(native, variant, spp=8, seed=5)
         assert np.isfinite(a).all() and b.mean() > 0
@@ -207,31 +190,21 @@ def test07_bad_input_raises_clear_error(variant, props, needle):
     assert needle in str(err.value), str(err.value)
 
 
-UV_SCENE = """<scene version="3.0.0">
-    <integrator type="{integrator}"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="30"/>
-        <transform name="to_world"><lookat origin="0, 0, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="24"/></film>
-    </sensor>
-    <shape type="sphere"><float name="radius" value="1"/>
-        <bsdf type="fluo_qd"><float name="int_ior" value="1.5"/><float name="alpha" value="0.4"/>
-            <float name="radius" value="{radius}"/><float name="density" value="1"/>
-            <float name="quantum_yield" value="1"/></bsdf>
-    </shape>
-    <emitter type="constant">
-        <spectrum name="radiance" value="355:0, 360:1, 370:1, 375:0"/>
-    </emitter>
-</scene>"""
+#: Quantum dots on a dielectric sphere: ``{radius}`` nm, full density, Q = 1.
+UV_DOTS = ('<bsdf type="fluo_qd"><float name="int_ior" value="1.5"/><float name="alpha" value="0.4"/>'
+           '<float name="radius" value="{radius}"/><float name="density" value="1"/>'
+           '<float name="quantum_yield" value="1"/></bsdf>')
+#: A UV-only sky: 355-375 nm, nothing the camera sees directly.
+UV_SKY = '<spectrum name="radiance" value="355:0, 360:1, 370:1, 375:0"/>'
 
 
-def test08_uv_light_makes_dots_glow_in_their_colour(tmp_path, render):
+def test08_uv_light_makes_dots_glow_in_their_colour(tmp_path, render, scene_xml):
     """Under UV only: path sees (almost) nothing, fluo_path the dots' emission colour."""
     colours = {}
     for radius in (1.5, 3.3):
         for integrator in ("path", "fluo_path"):
-            p = tmp_path / f"uv_{radius}_{integrator}.xml"
-            p.write_text(UV_SCENE.format(integrator=integrator, radius=radius))
+            p = scene_xml(tmp_path, UV_DOTS.format(radius=radius), integrator=integrator, fov=30,
+                          width=24, height=24, light=UV_SKY, name=f"uv_{radius}_{integrator}.xml")
             img = render(p, "scalar_spectral", spp=32, seed=1)[..., :3]
             colours[radius, integrator] = img.reshape(-1, 3).mean(axis=0)
     for radius in (1.5, 3.3):
@@ -241,25 +214,15 @@ def test08_uv_light_makes_dots_glow_in_their_colour(tmp_path, render):
     assert red[0] > red[2], red  # 662 nm emission: red
 
 
-FURNACE = """<scene version="3.0.0">
-    <integrator type="fluo_path"><integer name="max_depth" value="2"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="10"/>
-        <transform name="to_world"><lookat origin="0, 0, 10" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>
-    </sensor>
-    <shape type="sphere"><float name="radius" value="1"/>
-        <bsdf type="fluo_qd"><spectrum name="eta" value="0.001"/><spectrum name="k" value="1000"/>
-            <float name="alpha" value="{alpha}"/><string name="distribution" value="ggx"/>
-            <float name="radius" value="{radius}"/><float name="density" value="1"/>
-            <float name="quantum_yield" value="1"/></bsdf>
-    </shape>
-    <emitter type="constant"><spectrum name="radiance" value="1"/></emitter>
-</scene>"""
+#: Quantum dots over a perfect mirror (η → 0, k → ∞): GGX ``{alpha}``, ``{radius}`` nm.
+MIRROR_DOTS = ('<bsdf type="fluo_qd"><spectrum name="eta" value="0.001"/><spectrum name="k" value="1000"/>'
+               '<float name="alpha" value="{alpha}"/><string name="distribution" value="ggx"/>'
+               '<float name="radius" value="{radius}"/><float name="density" value="{density}"/>'
+               '<float name="quantum_yield" value="{q}"/></bsdf>')
 
 
 @pytest.mark.parametrize("alpha, radius", [(0.05, 1.5), (0.6, 5.0)])
-def test09_coating_only_removes_elastic_light(alpha, radius, tmp_path, render):
+def test09_coating_only_removes_elastic_light(alpha, radius, tmp_path, render, scene_xml):
     """In a white furnace over a perfect-mirror substrate, the coated elastic part (Q = 0)
     never returns more than the bare mirror (R_tot + A_tot ≤ 1 ⇒ R_tot ≤ R = 1), and with
     Q = 1 the re-emitted light adds back at most what was absorbed, seen here as a
@@ -268,10 +231,9 @@ def test09_coating_only_removes_elastic_light(alpha, radius, tmp_path, render):
     wavelengths (UV absorbed, visible re-emitted), so it cannot bound each λi."""
     images = {}
     for density, q in ((0.0, 1.0), (1.0, 0.0), (1.0, 1.0)):
-        p = tmp_path / f"furnace_{density}_{q}.xml"
-        p.write_text(FURNACE.format(alpha=alpha, radius=radius).replace(
-            '<float name="density" value="1"/>', f'<float name="density" value="{density}"/>').replace(
-            '<float name="quantum_yield" value="1"/>', f'<float name="quantum_yield" value="{q}"/>'))
+        p = scene_xml(tmp_path, MIRROR_DOTS.format(alpha=alpha, radius=radius, density=density, q=q),
+                      integrator="fluo_path", max_depth=2, fov=10, origin="0, 0, 10", width=8, height=8,
+                      light='<spectrum name="radiance" value="1"/>', name=f"furnace_{density}_{q}.xml")
         images[density, q] = render(p, "scalar_spectral", spp=64, seed=3)[..., :3]
     # luminance Y (linear sRGB weights = ȳ ≥ 0: a per-wavelength decrease lowers Y,
     # while single sRGB channels may rise through the matrix's negative entries)
