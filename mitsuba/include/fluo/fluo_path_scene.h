@@ -1,0 +1,175 @@
+// Scene scanning for the fluo_path integrator: walking the scene graph, and the BSDF
+// wrappers (twosided, blendbsdf, mask; nested too) that fluo_path sees through to the
+// fluorescent material acting at a vertex. Shared by both transports
+// (fluo_transport_spectral.h, fluo_transport_reduced.h); the path loop
+// (fluo_path_loop.h) resolves the wrappers at each vertex.
+#pragma once
+
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/interaction.h>
+#include <mitsuba/render/sampler.h>
+#include <mitsuba/render/texture.h>
+
+#include <string>
+#include <string_view>
+#include <unordered_set>
+#include <utility>
+#include <vector>
+
+#include "fluo_bispectral.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// Collects every object reachable from a root (each once).
+struct Collector : TraversalCallback {
+    std::vector<Object *> objects;
+    std::unordered_set<Object *> seen;
+    void visit(Object *o) {
+        if (!o || !seen.insert(o).second)
+            return;
+        objects.push_back(o);
+        o->traverse(this);
+    }
+    void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+    void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
+};
+
+/// Direct children of an object as (name, object), in traverse order.
+struct Children : TraversalCallback {
+    std::vector<std::pair<std::string, Object *>> list;
+    void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+    void put_object(std::string_view name, Object *o, uint32_t) override {
+        if (o)
+            list.emplace_back(std::string(name), o);
+    }
+};
+
+/// The supported wrappers around fluorescent materials found in a scene, and their
+/// resolution at a vertex to the child BSDF that acts there (see fluo_path's docs).
+template <typename Float, typename Spectrum> class FluoWrappers {
+public:
+    /// Errors and warnings read "[FluoPath] ...", as if raised by the integrator itself.
+    static constexpr const char *ClassName = "FluoPath";
+    MI_IMPORT_TYPES(BSDF, BSDFPtr, Sampler, Texture)
+
+    bool empty() const { return m_wrappers.empty(); }
+    void clear() { m_wrappers.clear(); }
+
+    /// Mark every bispectral material among `c`'s objects as transported by fluo_path,
+    /// and record the wrappers around fluorescent ones; refuse wrappers it cannot see
+    /// through (`plugin` names the integrator in the error).
+    void scan(const Collector &c, const char *plugin) {
+        m_wrappers.clear();
+        for (Object *o : c.objects) {
+            if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
+                b->set_managed(true);
+            auto *bsdf = dynamic_cast<BSDF *>(o);
+            if (!bsdf || dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
+                continue;
+            Children kids;
+            o->traverse(&kids);
+            bool wraps = false;
+            for (auto &[name, child] : kids.list) {
+                std::unordered_set<Object *> seen;
+                wraps |= dynamic_cast<BSDF *>(child) && holds_fluorescence(child, seen);
+            }
+            if (!wraps)
+                continue;
+            std::string_view cls = o->class_name();
+            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF" && cls != "MaskBSDF")
+                Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which fluo_path cannot "
+                      "see through (its fluorescence would be lost). Supported wrappers: twosided, "
+                      "blendbsdf, mask; use the fluorescent material directly or inside one of those.",
+                      plugin, std::string(cls));
+            Wrapper w{ bsdf, cls == "TwoSidedBRDF" ? Wrapper::TwoSided
+                             : cls == "BlendBSDF" ? Wrapper::Blend : Wrapper::Mask };
+            for (auto &[name, child] : kids.list) {
+                auto *cb = dynamic_cast<BSDF *>(child);
+                if (cb && (name == "brdf_0" || name == "bsdf_0" || name == "nested_bsdf"))
+                    w.child[0] = cb;
+                else if (cb && (name == "brdf_1" || name == "bsdf_1"))
+                    w.child[1] = cb;
+                else if (name == "weight" || name == "opacity")
+                    w.weight = dynamic_cast<Texture *>(child);
+            }
+            if (w.kind == Wrapper::TwoSided && !w.child[1])
+                w.child[1] = w.child[0]; // one child: used on both sides
+            if (w.kind == Wrapper::Mask)
+                w.child[1] = null_bsdf();
+            if (!w.child[0] || !w.child[1] || (w.kind != Wrapper::TwoSided && !w.weight))
+                Throw("%s: cannot read the children of the \"%s\" BSDF around a fluorescent material",
+                      plugin, std::string(cls));
+            m_wrappers.push_back(w);
+        }
+    }
+
+    /// The BSDF that acts at si: wrappers (twosided, blendbsdf, mask; nested) resolved
+    /// to the child acting at this hit. For a twosided back side the local frame is
+    /// mirrored (n -> -n), as twosided mirrors wi and wo.
+    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler) const {
+        for (size_t guard = 0; guard < 64; ++guard) {
+            const Wrapper *w = nullptr;
+            for (const Wrapper &x : m_wrappers)
+                if (x.bsdf == bsdf)
+                    w = &x;
+            if (!w)
+                return bsdf;
+            if (w->kind == Wrapper::TwoSided) {
+                bool back = Frame3f::cos_theta(si.wi) < 0.f;
+                if (back) {
+                    si.sh_frame.n = -si.sh_frame.n;
+                    si.wi.z() = -si.wi.z();
+                }
+                bsdf = w->child[back ? 1 : 0];
+            } else if (w->kind == Wrapper::Blend) {
+                Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
+                bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
+            } else {
+                Float opacity = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
+                bsdf = w->child[sampler->next_1d() < opacity ? 0 : 1];
+            }
+        }
+        return bsdf;
+    }
+
+private:
+    /// A supported BSDF wrapper around fluorescent materials.
+    struct Wrapper {
+        enum Kind { TwoSided, Blend, Mask };
+        const BSDF *bsdf;
+        Kind kind;
+        const BSDF *child[2]{};          // front/back, bsdf_0/bsdf_1, or nested/null
+        const Texture *weight = nullptr; // blend weight or mask opacity
+    };
+
+    /// Whether `o` is, or has below it, a material that fluoresces.
+    static bool holds_fluorescence(Object *o, std::unordered_set<Object *> &seen) {
+        if (!o || !seen.insert(o).second)
+            return false;
+        if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o); b && b->fluorescence())
+            return true;
+        Children c;
+        o->traverse(&c);
+        for (auto &[name, child] : c.list)
+            if (holds_fluorescence(child, seen))
+                return true;
+        return false;
+    }
+
+    /// Mitsuba's `null` BSDF (pass-through, sampled as a Null/Delta event), created
+    /// once: the transparent part of a `mask`.
+    const BSDF *null_bsdf() {
+        if (!m_null)
+            m_null = PluginManager::instance()->create_object<BSDF>(Properties("null"));
+        return m_null.get();
+    }
+
+    std::vector<Wrapper> m_wrappers;
+    ref<BSDF> m_null; ///< see null_bsdf()
+};
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)

@@ -1,0 +1,330 @@
+// fluo_path's reduced-RGB transport (scalar_rgb with fluorescent materials): matrix
+// throughput in a K-band transport basis (Fichet et al. 2024, sec. 5.1, adjoint
+// transport; fluo_path's docs describe it). A path carries Mitsuba's RGB throughput t
+// until its first fluorescent vertex, which turns it into the 3×K matrix
+// R = diag(t)·O·M; later vertices multiply R by K×K matrices. The basis and the
+// reduced operators come from the Rust core (core/src/reduce/) through the bridge. It
+// plugs into FluoPathLoop (fluo_path_loop.h) as its `Path`.
+#pragma once
+
+#include <mitsuba/core/logger.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/emitter.h>
+#include <mitsuba/render/scene.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+#include "fluo_path_loop.h"
+#include "fluo_path_scene.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+template <typename Float, typename Spectrum> class ReducedTransport {
+public:
+    /// Errors and warnings read "[FluoPath] ...", as if raised by the integrator itself.
+    static constexpr const char *ClassName = "FluoPath";
+    MI_IMPORT_TYPES(Scene, Sampler, Emitter, BSDF, Shape)
+    using EmitterSample = fluo_detail::EmitterSample<Float, Spectrum>;
+
+    /// Largest supported basis size K.
+    static constexpr size_t KMax = 7;
+    using Row3 = std::array<double, 3 * KMax>;      // 3×K, row major
+    using Square = std::array<double, KMax * KMax>; // K×K, row major
+    using Coeffs = std::array<double, KMax>;
+
+    /// The transport basis `basis` ("rgb", "xyzu", "x7") with reduction `method`
+    /// ("ours", "naive"); errors name `plugin`.
+    ReducedTransport(const char *plugin, const std::string &basis, const std::string &method)
+        : m_plugin(plugin),
+          m_transport(fluo_detail::rust_call(plugin, [&] { return fluo::transport_new(basis, method); })) {
+        m_k = fluo::transport_size(*m_transport);
+        if (m_k > KMax)
+            Throw("%s: basis \"%s\" has %zu bands, at most %zu are supported", plugin, basis, m_k, KMax);
+        fluo::transport_output(*m_transport, rust::Slice<double>(m_output.data(), 3 * m_k));
+        fluo::transport_from_rgb(*m_transport, rust::Slice<double>(m_from_rgb.data(), 3 * m_k));
+        fluo::transport_white(*m_transport, rust::Slice<double>(m_white.data(), m_k));
+    }
+
+    /// The basis's name and its number of bands K.
+    std::string basis_name() const { return std::string(fluo::transport_name(*m_transport)); }
+    size_t bands() const { return m_k; }
+
+    /// scalar_rgb: reduce every fluorescent BSDF for the transport basis (their
+    /// wrappers go to `wrappers`), and find the emitters whose radiance has a known
+    /// spectrum.
+    void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers) {
+        m_entries.clear();
+        m_reduced.clear();
+        m_sources.clear();
+        fluo_detail::Collector c;
+        for (const auto &shape : scene->shapes())
+            c.visit(const_cast<Shape *>(shape.get()));
+        wrappers.scan(c, m_plugin);
+        for (Object *o : c.objects) {
+            auto *bsdf = dynamic_cast<BSDF *>(o);
+            auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
+            // Spatially varying materials (fluo_jung with a colour texture) stay plain
+            // BSDFs here: their RGB value is the colour the upsampling cube reproduces.
+            if (!bsdf || !bisp || !bisp->fluorescence() || bisp->fluorescence_varies())
+                continue;
+            const fluo::Fluorescence *model = bisp->fluorescence();
+            m_reduced.push_back(fluo_detail::rust_call(
+                m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
+            m_entries.push_back(Entry{ bsdf, bisp, &*m_reduced.back() });
+        }
+        bool warned_uv = m_uv_warned == scene; // one warning per scene
+        for (const auto &emitter : scene->emitters()) {
+            fluo_detail::Collector ce;
+            ce.visit(const_cast<Emitter *>(emitter.get()));
+            for (Object *o : ce.objects)
+                if (auto *src = dynamic_cast<SpectralSource *>(o)) {
+                    EmitterSource es{ emitter.get(), {}, 0.0 };
+                    fluo::illuminant_coefficients(src->illuminant(), *m_transport,
+                                                  rust::Slice<double>(es.coeffs.data(), m_k));
+                    es.luminance = src->rgb_luminance();
+                    m_sources.push_back(es);
+                    if (!warned_uv && !m_entries.empty() && fluo::illuminant_is_mostly_uv(src->illuminant())) {
+                        warned_uv = true;
+                        m_uv_warned = scene;
+                        Log(Warn, "%s (scalar_rgb): emitter %s is mostly ultraviolet; reduced transport "
+                                  "carries it in one UV band, which can misstate UV-excited fluorescence "
+                                  "several times over (a narrow 365 nm lamp: ~5x too dark, see `fluo-rs "
+                                  "saturated-report`). Render UV-lit scenes in scalar_spectral where that "
+                                  "matters.", m_plugin,
+                            emitter->id().empty() ? std::string(emitter->class_name()) : emitter->id());
+                    }
+                    break;
+                }
+        }
+    }
+
+    /// Whether the scene has fluorescent materials to transport (else fluo_path runs
+    /// Mitsuba's path).
+    bool active() const { return !m_entries.empty(); }
+    /// Number of fluorescent BSDFs transported with reduced matrices.
+    size_t size() const { return m_entries.size(); }
+
+    /// A fluorescent BSDF of the scene and its reduced operator.
+    struct Entry {
+        const BSDF *bsdf;
+        const BispectralBSDF<Float, Spectrum> *bispectral;
+        const fluo::ReducedModel *reduced;
+    };
+
+    /// The material at a vertex: its entry, nullptr when it is not fluorescent.
+    using Vertex = const Entry *;
+
+    /// One camera path: RGB throughput t until its first fluorescent vertex, then the
+    /// 3×K matrix R (see FluoPathLoop for the interface).
+    class Path {
+    public:
+        explicit Path(const ReducedTransport &t) : m_t(t) {}
+
+        Vertex begin_vertex(const BSDF *bsdf, SurfaceInteraction3f & /* si */, Sampler * /* sampler */) const {
+            return m_t.find(bsdf);
+        }
+
+        void on_emission(const Emitter *emitter, const Spectrum &le, Float mis) {
+            if (m_reduced)
+                m_t.accumulate(m_result, m_R, m_t.emitter_coefficients(emitter, le), mis);
+            else
+                m_result = dr::fmadd(m_rgb, le * mis, m_result);
+        }
+
+        BSDFSample3f scatter(const Vertex &fl, const BSDF *bsdf, const SurfaceInteraction3f &si,
+                             const EmitterSample &em, Float sample_1, const Point2f &sample_2) {
+            BSDFContext bsdf_ctx;
+            // --------------- Emitter sampling contribution ----------------
+            if (em.active) {
+                if (fl) {
+                    m_t.fluorescent_matrix(*fl, si, em.wo, m_m);
+                    Float mis_em = dr::select(em.ds.delta, 1.f,
+                                              fluo_detail::mis_weight(em.ds.pdf, bsdf->pdf(bsdf_ctx, si, em.wo)));
+                    Row3 rm = m_reduced ? m_R : m_t.rows_scaled(m_rgb);
+                    m_t.multiply(rm, m_m, 1.0);
+                    m_t.accumulate(m_result, rm, m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
+                } else {
+                    auto [val, bsdf_pdf] = bsdf->eval_pdf(bsdf_ctx, si, em.wo);
+                    Float mis_em = dr::select(em.ds.delta, 1.f, fluo_detail::mis_weight(em.ds.pdf, bsdf_pdf));
+                    if (m_reduced) {
+                        m_t.diagonal_of(val, m_m);
+                        Row3 rm = m_R;
+                        m_t.multiply(rm, m_m, 1.0);
+                        m_t.accumulate(m_result, rm, m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
+                    } else {
+                        m_result = dr::fmadd(m_rgb, val * em.weight * mis_em, m_result);
+                    }
+                }
+            }
+
+            // ---------------------- BSDF sampling ----------------------
+            auto [bs, weight] = bsdf->sample(bsdf_ctx, si, sample_1, sample_2);
+            if (fl) {
+                if (!m_reduced)
+                    m_R = m_t.rows_scaled(m_rgb);
+                m_reduced = true;
+                if (bs.pdf > 0.f) {
+                    m_t.fluorescent_matrix(*fl, si, bs.wo, m_m);
+                    m_t.multiply(m_R, m_m, 1.0 / bs.pdf);
+                } else {
+                    m_t.multiply(m_R, Square{}, 0.0);
+                }
+            } else if (m_reduced) {
+                m_t.diagonal_of(weight, m_m);
+                m_t.multiply(m_R, m_m, 1.0);
+            } else {
+                m_rgb *= weight;
+            }
+            return bs;
+        }
+
+        double throughput_max() const {
+            double throughput_max = 0.0;
+            if (m_reduced) {
+                for (size_t i = 0; i < 3 * m_t.m_k; ++i)
+                    throughput_max = std::max(throughput_max, std::abs(m_R[i]));
+            } else {
+                throughput_max = (double) dr::max(m_rgb);
+            }
+            return throughput_max;
+        }
+
+        void roulette(Float rr_prob) {
+            for (size_t i = 0; i < 3 * m_t.m_k; ++i)
+                m_R[i] /= rr_prob;
+            m_rgb /= rr_prob;
+        }
+
+        /// Out-of-gamut colours (a saturated 520 nm emission has negative linear sRGB
+        /// red) are clipped here, per sample, as an sRGB film must store them; along
+        /// the path the coefficients stay signed.
+        Spectrum radiance() const { return Spectrum(dr::maximum(m_result, 0.f)); }
+
+    private:
+        const ReducedTransport &m_t;
+        Row3 m_R{};
+        Color3f m_rgb = 1.f;    // RGB throughput while no fluorescent vertex was met
+        bool m_reduced = false; // whether m_R (not m_rgb) carries the throughput
+        Color3f m_result = 0.f;
+        Square m_m{};           // scratch: the current vertex matrix
+    };
+
+private:
+    struct EmitterSource {
+        const Emitter *emitter;
+        Coeffs coeffs;    // basis coefficients of its spectrum (as the texture is defined)
+        double luminance; // luminance of the texture's RGB, to rescale by the emitter's
+    };
+
+    const Entry *find(const BSDF *bsdf) const {
+        for (const Entry &e : m_entries)
+            if (e.bsdf == bsdf)
+                return &e;
+        return nullptr;
+    }
+
+    static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
+
+    static double luminance_of(const Spectrum &v) {
+        if constexpr (is_rgb_v<Spectrum>)
+            return 0.212671 * v[0] + 0.715160 * v[1] + 0.072169 * v[2];
+        else
+            return 0.0;
+    }
+
+    /// Basis coefficients of an emitter's radiance: its spectrum's own coefficients
+    /// (rescaled to the radiance's luminance) for a fluo_illuminant, else F times its RGB.
+    Coeffs emitter_coefficients(const Emitter *e, const Spectrum &rgb) const {
+        Coeffs c{};
+        if constexpr (is_rgb_v<Spectrum>) {
+            for (const EmitterSource &src : m_sources)
+                if (src.emitter == e) {
+                    double s = src.luminance > 0.0 ? luminance_of(rgb) / src.luminance : 0.0;
+                    for (size_t k = 0; k < m_k; ++k)
+                        c[k] = src.coeffs[k] * s;
+                    return c;
+                }
+            for (size_t k = 0; k < m_k; ++k)
+                c[k] = m_from_rgb[k * 3] * rgb[0] + m_from_rgb[k * 3 + 1] * rgb[1] +
+                       m_from_rgb[k * 3 + 2] * rgb[2];
+        }
+        return c;
+    }
+
+    /// Per-band albedos of an RGB value as a diagonal matrix.
+    void diagonal_of(const Spectrum &v, Square &m) const {
+        m.fill(0.0);
+        if constexpr (is_rgb_v<Spectrum>) {
+            double mean = (v[0] + v[1] + v[2]) / 3.0;
+            for (size_t k = 0; k < m_k; ++k) {
+                double num = m_from_rgb[k * 3] * v[0] + m_from_rgb[k * 3 + 1] * v[1] +
+                             m_from_rgb[k * 3 + 2] * v[2];
+                m[k * m_k + k] = std::abs(m_white[k]) > 1e-12 ? num / m_white[k] : mean;
+            }
+        }
+    }
+
+    /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
+    void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
+                            Square &m) const {
+        if (fluo::reduced_includes_elastic(*e.reduced))
+            m.fill(0.0);
+        else
+            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        Square r{};
+        fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
+                                  rust::Slice<double>(r.data(), m_k * m_k));
+        for (size_t i = 0; i < m_k * m_k; ++i)
+            m[i] += r[i];
+    }
+
+    /// R ← R · M · s
+    void multiply(Row3 &r, const Square &m, double s) const {
+        Row3 out{};
+        for (size_t row = 0; row < 3; ++row)
+            for (size_t j = 0; j < m_k; ++j) {
+                double acc = 0.0;
+                for (size_t k = 0; k < m_k; ++k)
+                    acc += r[row * m_k + k] * m[k * m_k + j];
+                out[row * m_k + j] = acc * s;
+            }
+        r = out;
+    }
+
+    /// result += R · c · s
+    void accumulate(Color3f &result, const Row3 &r, const Coeffs &c, double s) const {
+        for (size_t row = 0; row < 3; ++row) {
+            double acc = 0.0;
+            for (size_t k = 0; k < m_k; ++k)
+                acc += r[row * m_k + k] * c[k];
+            result[row] += (float) (acc * s);
+        }
+    }
+
+    /// R = diag(t) · m_output: the 3×K throughput of an RGB throughput t.
+    Row3 rows_scaled(const Color3f &t) const {
+        Row3 r = m_output;
+        for (size_t row = 0; row < 3; ++row)
+            for (size_t k = 0; k < m_k; ++k)
+                r[row * m_k + k] *= (double) t[row];
+        return r;
+    }
+
+    const char *m_plugin;
+    rust::Box<fluo::TransportBasis> m_transport;
+    size_t m_k = 3;
+    Row3 m_output{}, m_from_rgb{};
+    Coeffs m_white{};
+    std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
+    std::vector<Entry> m_entries;
+    std::vector<EmitterSource> m_sources;
+    const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
+};
+
+NAMESPACE_END(mitsuba)
