@@ -1,0 +1,324 @@
+//! The quantum-dot band (sec. 3 of Benamira & Pattanaik 2023): Table 1 constants,
+//! the Brus equation and Stokes shift ([`QdBand`], eqs. 1–3 and 6), the Gaussian and
+//! logistic line shapes (eqs. 29–31), and the λ grid the tables and integrals use.
+
+use std::f64::consts::PI;
+
+use crate::error::check_range;
+use crate::{Error, Result};
+
+/// Base step of the λ grid of the tables, nm (default of `table_step`).
+pub const TABLE_STEP_NM: f64 = 1.0;
+/// Valid range of `table_step`, nm.
+pub const TABLE_STEP_RANGE_NM: (f64, f64) = (0.05, 50.0);
+/// Refinement of the λ grid near λQD: nodes every δλ / this.
+pub const TABLE_REFINE: f64 = 8.0;
+/// The quantum-absorption Gaussian is zero beyond this many δλ from λQD.
+pub const GAUSS_CUTOFF: f64 = 10.0;
+/// Valid range of the dot radius, nm.
+pub const RADIUS_RANGE_NM: (f64, f64) = (1.0, 5.0);
+/// Valid range of the Gaussian width δλ, nm.
+pub const WIDTH_RANGE_NM: (f64, f64) = (0.01, 100.0);
+/// Valid range of the integration limits λmin, λmax, nm.
+pub const LAMBDA_RANGE_NM: (f64, f64) = (200.0, 1200.0);
+/// Band edges λQD the constants may give, nm: wide around the visible (CdSe dots of
+/// 1–5 nm sit at 400–690 nm), so that only absurd constants are refused.
+pub const BAND_RANGE_NM: (f64, f64) = (100.0, 5000.0);
+/// Largest Stokes shift the constants may give, nm: far above the largest of the valid
+/// parameter box with the paper's constants (8.1e3 nm at radius 1 nm, width 100 nm).
+pub const MAX_STOKES_SHIFT_NM: f64 = 1e6;
+
+/// Physical constants of the Brus equation and Stokes shift (SI units), Table 1
+/// values (CdSe) by default. Each may be overridden.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct QdConstants {
+    /// Bulk band gap E_gap, J.
+    pub gap_energy: f64,
+    /// Elementary charge e, C.
+    pub elementary_charge: f64,
+    /// Planck constant h, J·s.
+    pub planck: f64,
+    /// Speed of light c, m/s.
+    pub light_speed: f64,
+    /// Boltzmann constant kB, J/K.
+    pub boltzmann: f64,
+    /// Effective electron mass me, kg.
+    pub electron_mass: f64,
+    /// Effective hole mass mh, kg.
+    pub hole_mass: f64,
+    /// Vacuum permittivity ε0, F/m.
+    pub vacuum_permittivity: f64,
+    /// Relative permittivity εr of the dot material.
+    pub relative_permittivity: f64,
+    /// Temperature T, K.
+    pub temperature: f64,
+}
+
+impl Default for QdConstants {
+    /// Table 1 of the paper (CdSe).
+    fn default() -> Self {
+        Self {
+            gap_energy: 2.8e-19,
+            elementary_charge: 1.6e-19,
+            planck: 6.63e-34,
+            light_speed: 3.0e8,
+            boltzmann: 1.38e-23,
+            electron_mass: 1.18e-31,
+            hole_mass: 4.09e-31,
+            vacuum_permittivity: 8.85e-12,
+            relative_permittivity: 5.8,
+            temperature: 293.0,
+        }
+    }
+}
+
+impl QdConstants {
+    /// The constants with their parameter names, for validation and display.
+    pub fn named(&self) -> [(&'static str, f64); 10] {
+        [
+            ("gap_energy", self.gap_energy),
+            ("elementary_charge", self.elementary_charge),
+            ("planck", self.planck),
+            ("light_speed", self.light_speed),
+            ("boltzmann", self.boltzmann),
+            ("electron_mass", self.electron_mass),
+            ("hole_mass", self.hole_mass),
+            ("vacuum_permittivity", self.vacuum_permittivity),
+            ("relative_permittivity", self.relative_permittivity),
+            ("temperature", self.temperature),
+        ]
+    }
+
+    /// `name = value` of those of `involved` that differ from the defaults (the ones
+    /// the user set), or of all of `involved` when none does: what an error blames.
+    fn blame(&self, involved: &[&str]) -> String {
+        let defaults = Self::default().named();
+        let pick = |changed_only: bool| -> Vec<String> {
+            self.named()
+                .iter()
+                .zip(defaults.iter())
+                .filter(|((n, v), (_, d))| involved.contains(n) && (!changed_only || v != d))
+                .map(|((n, v), _)| format!("\"{n}\" = {}", crate::num(*v)))
+                .collect()
+        };
+        let changed = pick(true);
+        if changed.is_empty() { pick(false) } else { changed }.join(", ")
+    }
+
+    /// Every constant must be finite and positive.
+    pub fn validate(&self) -> Result<()> {
+        for (name, v) in self.named() {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(Error::param(name, v, "(0, ∞), finite"));
+            }
+        }
+        Ok(())
+    }
+
+    /// Coulomb energy −1.8 e² / (4π ε0 εr R), J (eq. 2).
+    pub fn coulomb_energy(&self, radius_nm: f64) -> f64 {
+        let r = radius_nm * 1e-9;
+        -1.8 * self.elementary_charge * self.elementary_charge
+            / (4.0 * PI * self.vacuum_permittivity * self.relative_permittivity * r)
+    }
+
+    /// Confinement energy h² (me + mh) / (8 R² me mh), J (eq. 2).
+    pub fn confinement_energy(&self, radius_nm: f64) -> f64 {
+        let r = radius_nm * 1e-9;
+        self.planck * self.planck * (self.electron_mass + self.hole_mass)
+            / (8.0 * r * r * self.electron_mass * self.hole_mass)
+    }
+}
+
+/// Absorption threshold and emission peak of one dot size (sec. 3).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct QdBand {
+    /// Radius R, nm.
+    pub radius_nm: f64,
+    /// Gaussian width δλ, nm.
+    pub width_nm: f64,
+    /// E_abs = E_gap + E_coul + E_conf, J (eq. 1).
+    pub absorption_energy_j: f64,
+    /// Threshold wavelength λQD = hc / E_abs, nm (eq. 3).
+    pub lambda_qd_nm: f64,
+    /// Stokes shift Sλ, nm (eq. 6).
+    pub stokes_shift_nm: f64,
+    /// Emission peak λQD + Sλ, nm.
+    pub emission_peak_nm: f64,
+}
+
+impl QdBand {
+    /// Evaluate eqs. 1–3 and 6; errors name the offending parameter.
+    pub fn new(constants: &QdConstants, radius_nm: f64, width_nm: f64) -> Result<Self> {
+        constants.validate()?;
+        check_range("radius", radius_nm, RADIUS_RANGE_NM.0, RADIUS_RANGE_NM.1)?;
+        check_range("width", width_nm, WIDTH_RANGE_NM.0, WIDTH_RANGE_NM.1)?;
+        let e = constants.gap_energy + constants.coulomb_energy(radius_nm) + constants.confinement_energy(radius_nm);
+        if !(e.is_finite() && e > 0.0) {
+            return Err(Error::param(
+                "gap_energy",
+                constants.gap_energy,
+                format!("a value making E_abs = E_gap + E_coul + E_conf > 0 at radius {radius_nm} nm (got {e:e} J)"),
+            ));
+        }
+        let hc = constants.planck * constants.light_speed;
+        let lambda_qd_nm = hc / e * 1e9;
+        if !(lambda_qd_nm >= BAND_RANGE_NM.0 && lambda_qd_nm <= BAND_RANGE_NM.1) {
+            return Err(Error::data(format!(
+                "invalid constants {}: the band edge λQD = h c / E_abs = {} nm at radius {} nm; valid range is [{}, {}] nm",
+                constants.blame(&[
+                    "planck",
+                    "light_speed",
+                    "gap_energy",
+                    "elementary_charge",
+                    "electron_mass",
+                    "hole_mass",
+                    "vacuum_permittivity",
+                    "relative_permittivity"
+                ]),
+                crate::num(lambda_qd_nm),
+                crate::num(radius_nm),
+                BAND_RANGE_NM.0,
+                BAND_RANGE_NM.1
+            )));
+        }
+        let thermal_nm = hc / (constants.boltzmann * constants.temperature) * 1e9;
+        let stokes_shift_nm = thermal_nm * width_nm * width_nm / (lambda_qd_nm * lambda_qd_nm);
+        if !(stokes_shift_nm <= MAX_STOKES_SHIFT_NM) {
+            return Err(Error::data(format!(
+                "invalid constants {}: Stokes shift h c w² / (k T λQD²) = {} nm at λQD = {} nm; valid is at most {} nm",
+                constants.blame(&["boltzmann", "temperature", "planck", "light_speed"]),
+                crate::num(stokes_shift_nm),
+                crate::num(lambda_qd_nm),
+                crate::num(MAX_STOKES_SHIFT_NM)
+            )));
+        }
+        Ok(Self {
+            radius_nm,
+            width_nm,
+            absorption_energy_j: e,
+            lambda_qd_nm,
+            stokes_shift_nm,
+            emission_peak_nm: lambda_qd_nm + stokes_shift_nm,
+        })
+    }
+}
+
+/// G(λ, λm, δ) = exp(−(λ − λm)²/δ²) (eq. 29).
+pub fn gaussian(lambda: f64, mean: f64, delta: f64) -> f64 {
+    let x = (lambda - mean) / delta;
+    (-x * x).exp()
+}
+
+/// Logistic density L(λ, λm, s) (eq. 30), unit integral over ℝ; evaluated as
+/// e^{−|u|} / (s (1 + e^{−|u|})²) so that no exponential overflows.
+pub fn logistic(lambda: f64, mean: f64, scale: f64) -> f64 {
+    let e = (-((lambda - mean) / scale).abs()).exp();
+    e / (scale * (1.0 + e) * (1.0 + e))
+}
+
+/// Logistic CDF Λ(λ, λm, s) = 1 / (1 + exp(−(λ − λm)/s)) (eq. 31).
+pub fn logistic_cdf(lambda: f64, mean: f64, scale: f64) -> f64 {
+    let u = (lambda - mean) / scale;
+    if u >= 0.0 {
+        1.0 / (1.0 + (-u).exp())
+    } else {
+        let e = u.exp();
+        e / (1.0 + e)
+    }
+}
+
+/// 1 − Λ, accurate in the upper tail.
+pub(super) fn logistic_survival(lambda: f64, mean: f64, scale: f64) -> f64 {
+    logistic_cdf(-lambda, -mean, scale)
+}
+
+/// G(λ, λm, δ) cut to zero beyond ±[`GAUSS_CUTOFF`]·δ of λm.
+pub(super) fn cut_gaussian(lambda: f64, mean: f64, delta: f64) -> f64 {
+    if (lambda - mean).abs() > GAUSS_CUTOFF * delta {
+        0.0
+    } else {
+        gaussian(lambda, mean, delta)
+    }
+}
+
+/// λmin and λmax inside [`LAMBDA_RANGE_NM`], λmin < λmax.
+pub(super) fn check_lambda_range(r: (f64, f64)) -> Result<()> {
+    check_range("lambda_min", r.0, LAMBDA_RANGE_NM.0, LAMBDA_RANGE_NM.1)?;
+    check_range("lambda_max", r.1, LAMBDA_RANGE_NM.0, LAMBDA_RANGE_NM.1)?;
+    if !(r.1 > r.0) {
+        return Err(Error::param("lambda_max", r.1, format!("(lambda_min = {}, {}]", r.0, LAMBDA_RANGE_NM.1)));
+    }
+    Ok(())
+}
+
+/// The λ grid of the tables: 1 nm over the range, refined near λQD, sorted.
+pub(super) fn lambda_grid(range: (f64, f64), band: &QdBand, base_step: f64) -> Vec<f64> {
+    let (lo, hi) = range;
+    let n = ((hi - lo) / base_step).ceil().max(1.0) as usize;
+    let mut g: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
+    let (c, d) = (band.lambda_qd_nm, band.width_nm);
+    let step = d / TABLE_REFINE;
+    if step < base_step {
+        let m = (2.0 * GAUSS_CUTOFF * TABLE_REFINE).round() as usize;
+        for i in 0..=m {
+            let l = c - GAUSS_CUTOFF * d + i as f64 * step;
+            if l > lo && l < hi {
+                g.push(l);
+            }
+        }
+    }
+    for l in [c, c - GAUSS_CUTOFF * d, c + GAUSS_CUTOFF * d] {
+        if l > lo && l < hi {
+            g.push(l);
+        }
+    }
+    g.sort_by(f64::total_cmp);
+    g.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    g
+}
+
+/// Trapezoidal ∫ f over the nodes of `grid`.
+pub(super) fn trapezoid(grid: &[f64], f: impl Fn(f64) -> f64) -> f64 {
+    grid.windows(2).map(|w| 0.5 * (w[1] - w[0]) * (f(w[0]) + f(w[1]))).sum()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn brus_equation_by_hand() {
+        // R = 1.5 nm, Table 1 constants, evaluated by hand (see the module docs).
+        let c = QdConstants::default();
+        let r = 1.5e-9;
+        let conf = 6.63e-34f64.powi(2) * (1.18e-31 + 4.09e-31) / (8.0 * r * r * 1.18e-31 * 4.09e-31);
+        let coul = -1.8 * 1.6e-19f64.powi(2) / (4.0 * PI * 8.85e-12 * 5.8 * r);
+        let lam = 6.63e-34 * 3e8 / (2.8e-19 + conf + coul) * 1e9;
+        let b = QdBand::new(&c, 1.5, 15.0).unwrap();
+        assert!((b.lambda_qd_nm - lam).abs() < 1e-9, "{} vs {lam}", b.lambda_qd_nm);
+        assert!((b.lambda_qd_nm - 398.6).abs() < 0.5, "{}", b.lambda_qd_nm);
+        let s = 6.63e-34 * 3e8 / (1.38e-23 * 293.0) * 225e-18 / (lam * 1e-9).powi(2) * 1e9;
+        assert!((b.stokes_shift_nm - s).abs() < 1e-9);
+        assert!((b.emission_peak_nm - (lam + s)).abs() < 1e-9);
+    }
+
+    #[test]
+    fn band_grows_with_radius_and_shift_with_width() {
+        // Fig. 5: λQD and the emission peak grow with R; Fig. 6: Sλ grows with δλ.
+        let c = QdConstants::default();
+        let mut prev = (0.0, 0.0);
+        for r in [1.0, 1.5, 2.2, 3.3, 4.5, 5.0] {
+            let b = QdBand::new(&c, r, 15.0).unwrap();
+            assert!(b.lambda_qd_nm > prev.0 && b.emission_peak_nm > prev.1, "R = {r}");
+            prev = (b.lambda_qd_nm, b.emission_peak_nm);
+        }
+        let mut prev = 0.0;
+        for d in [10.0, 15.0, 20.0, 25.0, 30.0] {
+            let b = QdBand::new(&c, 1.8, d).unwrap();
+            assert!(b.stokes_shift_nm > prev);
+            prev = b.stokes_shift_nm;
+        }
+    }
+}
