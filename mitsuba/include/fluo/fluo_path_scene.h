@@ -14,8 +14,10 @@
 
 #include <string>
 #include <string_view>
+#include <unordered_map>
 #include <unordered_set>
 #include <utility>
+#include <vector>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -169,6 +171,34 @@ private:
 
     std::vector<Wrapper> m_wrappers;
     ref<BSDF> m_null; ///< see null_bsdf()
+};
+
+/// The fluorescent BSDFs a transport found at prepare time (`Entry` has a `bsdf`
+/// pointer), looked up per vertex by pointer in O(1): the cost of a vertex does not grow
+/// with the number of fluorescent materials, and a scene without any pays one branch.
+template <typename Entry> class EntryTable {
+public:
+    void clear() {
+        m_entries.clear();
+        m_index.clear();
+    }
+    /// Add an entry; a BSDF added twice keeps its first entry.
+    void add(const Entry &e) {
+        if (m_index.emplace(static_cast<const void *>(e.bsdf), m_entries.size()).second)
+            m_entries.push_back(e);
+    }
+    const Entry *find(const void *bsdf) const {
+        if (m_entries.empty())
+            return nullptr;
+        auto it = m_index.find(bsdf);
+        return it == m_index.end() ? nullptr : &m_entries[it->second];
+    }
+    size_t size() const { return m_entries.size(); }
+    bool empty() const { return m_entries.empty(); }
+
+private:
+    std::vector<Entry> m_entries;
+    std::unordered_map<const void *, size_t> m_index;
 };
 
 NAMESPACE_END(fluo_detail)

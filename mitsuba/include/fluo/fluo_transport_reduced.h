@@ -76,7 +76,7 @@ public:
             const fluo::Fluorescence *model = bisp->fluorescence();
             m_reduced.push_back(fluo_detail::rust_call(
                 m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
-            m_entries.push_back(Entry{ bsdf, bisp, &*m_reduced.back() });
+            m_entries.add(Entry{ bsdf, bisp, &*m_reduced.back() });
         }
         bool warned_uv = m_uv_warned == scene; // one warning per scene
         for (const auto &emitter : scene->emitters()) {
@@ -222,12 +222,7 @@ private:
         double luminance; // luminance of the texture's RGB, to rescale by the emitter's
     };
 
-    const Entry *find(const BSDF *bsdf) const {
-        for (const Entry &e : m_entries)
-            if (e.bsdf == bsdf)
-                return &e;
-        return nullptr;
-    }
+    const Entry *find(const BSDF *bsdf) const { return m_entries.find(bsdf); }
 
     static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
 
@@ -322,7 +317,7 @@ private:
     Row3 m_output{}, m_from_rgb{};
     Coeffs m_white{};
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
-    std::vector<Entry> m_entries;
+    fluo_detail::EntryTable<Entry> m_entries;
     std::vector<EmitterSource> m_sources;
     const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
 };

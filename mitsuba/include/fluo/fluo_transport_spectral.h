@@ -89,7 +89,7 @@ public:
             e.range = e.varies ? fluo::Range{ lo, hi }
                                : fluo::Range{ std::max(ex.lo, lo), std::min(ex.hi, hi) };
             if (e.range.lo < e.range.hi)
-                m_entries.push_back(e);
+                m_entries.add(e);
         }
     }
 
@@ -173,12 +173,7 @@ public:
 private:
     static constexpr size_t N = dr::size_v<Spectrum> == 4 ? 4 : 1;
 
-    const Entry *find(const BSDF *bsdf) const {
-        for (const Entry &e : m_entries)
-            if (e.bsdf == bsdf)
-                return &e;
-        return nullptr;
-    }
+    const Entry *find(const BSDF *bsdf) const { return m_entries.find(bsdf); }
 
     static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
 
@@ -248,7 +243,7 @@ private:
         }
     }
 
-    std::vector<Entry> m_entries;
+    fluo_detail::EntryTable<Entry> m_entries;
     fluo::Range m_range{ 0, 0 };
 };
 
