@@ -19,6 +19,9 @@
 //! [`crate::models::matrix`]) or a Gaussian-mixture fit (`*.gmm.json`: `fluo_gmm`,
 //! [`crate::models::gmm`]).
 
+use std::fmt;
+use std::sync::Arc;
+
 use serde_json::Value;
 
 use crate::interface::Bispectral;
@@ -30,17 +33,21 @@ use crate::sigmoid::SigmoidPolynomial;
 use crate::{Error, Result};
 
 /// The closed set of fluorescent models.
+///
+/// Each variant holds its model behind an [`Arc`], so that a handle that needs the
+/// concrete model (a plugin's) and this generic one share a single copy; cloning a
+/// `Model` is cheap.
 #[derive(Debug, Clone)]
 pub enum Model {
     /// Jung et al.'s diffuse parametric model (the dye; the base reflectance is the
     /// plugin's texture).
-    Jung(JungFluorescence),
-    /// Benamira & Pattanaik's quantum-dot coated microfacet model (boxed: it carries tables).
-    Qd(Box<QdModel>),
+    Jung(Arc<JungFluorescence>),
+    /// Benamira & Pattanaik's quantum-dot coated microfacet model.
+    Qd(Arc<QdModel>),
     /// A measured reradiation matrix, tabulated (`fluo_matrix`).
-    Matrix(MatrixModel),
+    Matrix(Arc<MatrixModel>),
     /// A Gaussian-mixture fit of a measured matrix (`fluo_gmm`).
-    Gmm(GmmModel),
+    Gmm(Arc<GmmModel>),
 }
 
 impl Model {
@@ -55,37 +62,48 @@ impl Model {
     }
 }
 
+impl fmt::Display for Model {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Model::Jung(m) => fmt::Display::fmt(&**m, f),
+            Model::Qd(m) => fmt::Display::fmt(&**m, f),
+            Model::Matrix(m) => fmt::Display::fmt(&**m, f),
+            Model::Gmm(m) => fmt::Display::fmt(&**m, f),
+        }
+    }
+}
+
 impl Bispectral for Model {
     fn excitation_range(&self) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.excitation_range(),
             Model::Qd(m) => m.excitation_range(),
-            Model::Matrix(m) => Bispectral::excitation_range(m),
-            Model::Gmm(m) => Bispectral::excitation_range(m),
+            Model::Matrix(m) => Bispectral::excitation_range(&**m),
+            Model::Gmm(m) => Bispectral::excitation_range(&**m),
         }
     }
     fn emission_range(&self) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.emission_range(),
             Model::Qd(m) => m.emission_range(),
-            Model::Matrix(m) => Bispectral::emission_range(m),
-            Model::Gmm(m) => Bispectral::emission_range(m),
+            Model::Matrix(m) => Bispectral::emission_range(&**m),
+            Model::Gmm(m) => Bispectral::emission_range(&**m),
         }
     }
     fn elastic_albedo(&self, cos_i: f64, lambda: f64) -> f64 {
         match self {
             Model::Jung(m) => m.elastic_albedo(cos_i, lambda),
             Model::Qd(m) => m.elastic_albedo(cos_i, lambda),
-            Model::Matrix(m) => Bispectral::elastic_albedo(m, cos_i, lambda),
-            Model::Gmm(m) => Bispectral::elastic_albedo(m, cos_i, lambda),
+            Model::Matrix(m) => Bispectral::elastic_albedo(&**m, cos_i, lambda),
+            Model::Gmm(m) => Bispectral::elastic_albedo(&**m, cos_i, lambda),
         }
     }
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
             Model::Jung(m) => m.density(cos_i, lambda_i, lambda_o),
             Model::Qd(m) => m.density(cos_i, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::density(m, cos_i, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::density(m, cos_i, lambda_i, lambda_o),
+            Model::Matrix(m) => Bispectral::density(&**m, cos_i, lambda_i, lambda_o),
+            Model::Gmm(m) => Bispectral::density(&**m, cos_i, lambda_i, lambda_o),
         }
     }
     fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
@@ -98,50 +116,50 @@ impl Bispectral for Model {
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
-            Model::Jung(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
+            Model::Jung(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
             Model::Qd(m) => m.reradiation(wi, wo, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::reradiation(m, wi, wo, lambda_i, lambda_o),
+            Model::Matrix(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
+            Model::Gmm(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
         }
     }
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.shift_albedo(wi, lambda_o, range),
             Model::Qd(m) => m.shift_albedo(wi, lambda_o, range),
-            Model::Matrix(m) => Bispectral::shift_albedo(m, wi, lambda_o, range),
-            Model::Gmm(m) => Bispectral::shift_albedo(m, wi, lambda_o, range),
+            Model::Matrix(m) => Bispectral::shift_albedo(&**m, wi, lambda_o, range),
+            Model::Gmm(m) => Bispectral::shift_albedo(&**m, wi, lambda_o, range),
         }
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.sample_excitation(wi, lambda_o, xi, range),
             Model::Qd(m) => m.sample_excitation(wi, lambda_o, xi, range),
-            Model::Matrix(m) => Bispectral::sample_excitation(m, wi, lambda_o, xi, range),
-            Model::Gmm(m) => Bispectral::sample_excitation(m, wi, lambda_o, xi, range),
+            Model::Matrix(m) => Bispectral::sample_excitation(&**m, wi, lambda_o, xi, range),
+            Model::Gmm(m) => Bispectral::sample_excitation(&**m, wi, lambda_o, xi, range),
         }
     }
     fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
         match self {
             Model::Jung(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
             Model::Qd(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
-            Model::Matrix(m) => Bispectral::excitation_pdf(m, wi, lambda_o, lambda_i, range),
-            Model::Gmm(m) => Bispectral::excitation_pdf(m, wi, lambda_o, lambda_i, range),
+            Model::Matrix(m) => Bispectral::excitation_pdf(&**m, wi, lambda_o, lambda_i, range),
+            Model::Gmm(m) => Bispectral::excitation_pdf(&**m, wi, lambda_o, lambda_i, range),
         }
     }
     fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
         match self {
-            Model::Jung(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
+            Model::Jung(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
             Model::Qd(m) => m.sample_emission(wi, lambda_i, xi),
-            Model::Matrix(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
-            Model::Gmm(m) => Bispectral::sample_emission(m, wi, lambda_i, xi),
+            Model::Matrix(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
+            Model::Gmm(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
         }
     }
     fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         match self {
-            Model::Jung(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
+            Model::Jung(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
             Model::Qd(m) => m.emission_pdf(wi, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::emission_pdf(m, wi, lambda_i, lambda_o),
+            Model::Matrix(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
+            Model::Gmm(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
         }
     }
 }

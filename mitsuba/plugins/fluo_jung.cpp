@@ -147,10 +147,10 @@ public:
 
     FluoJung(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        m_config.emission_peak = get_float(Plugin, props, "emission_peak", 520.0);
-        m_config.stokes_shift  = get_float(Plugin, props, "stokes_shift", 60.0);
-        m_config.concentration = get_float(Plugin, props, "concentration", 0.5);
-        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", 0.96);
+        m_config.emission_peak = get_float(Plugin, props, "emission_peak", m_config.emission_peak);
+        m_config.stokes_shift  = get_float(Plugin, props, "stokes_shift", m_config.stokes_shift);
+        m_config.concentration = get_float(Plugin, props, "concentration", m_config.concentration);
+        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", m_config.quantum_yield);
         m_config.has_coefficients = props.has_property("coefficients");
         if (props.has_property("color")) {
             init_color(props);
@@ -316,18 +316,10 @@ private:
             ScalarColor3f c = props.get<ScalarColor3f>("color");
             std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
             m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
-            fluo::UpsampleCoefficients k = rust_call(Plugin, [&] {
+            m_config = rust_call(Plugin, [&] {
                 return fluo::upsample_lookup(**m_cube, rust::Slice<const double>(rgb.data(), 3), m_lookup,
                                              m_use_fluorescence);
             });
-            m_config.has_coefficients = true;
-            m_config.c0 = k.c0;
-            m_config.c1 = k.c1;
-            m_config.c2 = k.c2;
-            m_config.emission_peak = k.emission_peak;
-            m_config.stokes_shift = k.stokes_shift;
-            m_config.concentration = k.concentration;
-            m_config.quantum_yield = k.quantum_yield;
             return;
         }
         if (props.type("color") != Properties::Type::Object)
@@ -417,12 +409,9 @@ private:
         }
     }
 
-    fluo::JungConfig m_config{};
-    rust::Box<fluo::JungModel> m_model = fluo_detail::rust_call(Plugin, [] {
-        fluo::JungConfig c{};
-        c.emission_peak = 520.0; c.stokes_shift = 60.0; c.quantum_yield = 0.96;
-        return fluo::jung_new(c);
-    });
+    fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
+    rust::Box<fluo::JungModel> m_model =
+        fluo_detail::rust_call(Plugin, [] { return fluo::jung_new(fluo::jung_default_config()); });
     ref<Texture> m_reflectance;
     ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
                 m_quantum_yield = 0.f;

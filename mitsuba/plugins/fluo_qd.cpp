@@ -8,6 +8,8 @@
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
+#include <initializer_list>
+#include <optional>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -158,24 +160,24 @@ public:
 
     FluoQd(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        m_config = fluo::qd_default_config(); // the defaults live in Rust (core/src/models/qd/)
-        m_config.radius        = get_double(props, "radius", m_config.radius);
-        m_config.width         = get_double(props, "width", m_config.width);
-        m_config.quantum_yield = get_double(props, "quantum_yield", m_config.quantum_yield);
-        m_config.density       = get_double(props, "density", m_config.density);
-        m_config.ext_ior       = get_double(props, "ext_ior", m_config.ext_ior);
-        m_config.lambda_min    = get_double(props, "lambda_min", m_config.lambda_min);
-        m_config.lambda_max    = get_double(props, "lambda_max", m_config.lambda_max);
-        m_config.alpha         = get_double(props, "alpha", m_config.alpha);
-        m_config.table_step    = get_double(props, "table_step", m_config.table_step);
+        fluo::QdConfig &c = m_config; // starts as fluo::qd_default_config(): the defaults live in Rust
+        fluo::QdConstants &k = c.constants;
+        for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
+                 { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
+                 { "density", &c.density }, { "ext_ior", &c.ext_ior }, { "lambda_min", &c.lambda_min },
+                 { "lambda_max", &c.lambda_max }, { "alpha", &c.alpha }, { "table_step", &c.table_step },
+                 { "gap_energy", &k.gap_energy }, { "elementary_charge", &k.elementary_charge },
+                 { "planck", &k.planck }, { "light_speed", &k.light_speed }, { "boltzmann", &k.boltzmann },
+                 { "electron_mass", &k.electron_mass }, { "hole_mass", &k.hole_mass },
+                 { "vacuum_permittivity", &k.vacuum_permittivity },
+                 { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
+            *field = get_double(props, name, *field);
         if (props.has_property("table_cos_nodes")) {
             int64_t rows = props.get<int64_t>("table_cos_nodes");
             if (rows < 2 || rows > 1025)
                 Throw("%s: invalid parameter \"table_cos_nodes\" = %d: valid range is [2, 1025]", Plugin, rows);
             m_config.table_cos_nodes = (size_t) rows;
         }
-        for (auto &[name, field] : constant_fields())
-            m_config.*field = get_double(props, name, m_config.*field);
 
         std::string distr = string::to_lower(std::string(props.get<std::string_view>("distribution", "beckmann")));
         if (distr == "ggx")
@@ -319,7 +321,7 @@ public:
     /// The coating's model, in both variants: fluo_path shifts wavelengths with it in
     /// scalar_spectral and reduces it per incidence angle in scalar_rgb.
     const fluo::Fluorescence *fluorescence() const override {
-        return fluo::qd_is_fluorescent(*m_model) ? &fluo::qd_fluorescence(*m_model) : nullptr;
+        return fluo::qd_is_fluorescent(**m_model) ? &fluo::qd_fluorescence(**m_model) : nullptr;
     }
 
     /// The elastic lobe alone: eval() already serves only the elastic part.
@@ -335,7 +337,7 @@ public:
     std::string to_string() const override {
         std::ostringstream oss;
         oss << "FluoQd[" << std::endl
-            << "  model = " << std::string(fluo::qd_to_string(*m_model)) << "," << std::endl
+            << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl
             << "  eta = " << string::indent(m_eta) << "," << std::endl
             << "  k = " << string::indent(m_k) << std::endl
             << "]";
@@ -345,21 +347,14 @@ public:
     MI_DECLARE_CLASS(FluoQd)
 
 private:
-    using ConstantField = double fluo::QdConfig::*;
-
-    /// The overridable Table 1 constants and their config fields.
-    static std::array<std::pair<const char *, ConstantField>, 10> constant_fields() {
-        return { { { "gap_energy", &fluo::QdConfig::gap_energy },
-                   { "elementary_charge", &fluo::QdConfig::elementary_charge },
-                   { "planck", &fluo::QdConfig::planck },
-                   { "light_speed", &fluo::QdConfig::light_speed },
-                   { "boltzmann", &fluo::QdConfig::boltzmann },
-                   { "electron_mass", &fluo::QdConfig::electron_mass },
-                   { "hole_mass", &fluo::QdConfig::hole_mass },
-                   { "vacuum_permittivity", &fluo::QdConfig::vacuum_permittivity },
-                   { "relative_permittivity", &fluo::QdConfig::relative_permittivity },
-                   { "temperature", &fluo::QdConfig::temperature } } };
-    }
+    /// A spectrum sampled for Rust: one value is a constant, several a table (nm, value).
+    struct Samples {
+        std::vector<double> wavelengths, values;
+        fluo::SampledSpectrum view() const {
+            return { rust::Slice<const double>(wavelengths.data(), wavelengths.size()),
+                     rust::Slice<const double>(values.data(), values.size()) };
+        }
+    };
 
     /// A double property (the constants span 1e-34..1e8, beyond a float's comfort).
     static double get_double(const Properties &props, const char *name, double def) {
@@ -400,49 +395,33 @@ private:
         return PluginManager::instance()->create_object<Texture>(p);
     }
 
-    /// The substrate's spectral eta and k on one wavelength grid, for the coating's
-    /// absorption tables: the eta/k textures in spectral variants; in RGB variants a named
-    /// material's data files, else the piecewise-linear spectrum through the channel values
-    /// at RgbWavelengths (what the per-channel elastic evaluation sees).
-    void sample_substrate(std::vector<double> &wavelengths, std::vector<double> &eta, std::vector<double> &k) const {
-        std::vector<double> tmp;
+    /// The substrate's spectral eta and k (each on its own grid, interpolated in Rust),
+    /// for the coating's absorption tables: the eta/k textures in spectral variants; in
+    /// RGB variants a named material's data files, else the piecewise-linear spectrum
+    /// through the channel values at RgbWavelengths (what the per-channel elastic
+    /// evaluation sees).
+    void sample_substrate(Samples &eta, Samples &k) const {
         if constexpr (!is_spectral_v<Spectrum>) {
             if (!m_material.empty()) {
-                std::vector<double> kw, kv;
-                spectrum_from_file("data/ior/" + m_material + ".eta.spd", wavelengths, eta);
-                spectrum_from_file("data/ior/" + m_material + ".k.spd", kw, kv);
-                k.clear();
-                for (double l : wavelengths)
-                    k.push_back(interpolate(kw, kv, l));
+                spectrum_from_file("data/ior/" + m_material + ".eta.spd", eta.wavelengths, eta.values);
+                spectrum_from_file("data/ior/" + m_material + ".k.spd", k.wavelengths, k.values);
                 return;
             }
-            wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
             for (auto [tex, out] : { std::pair{ m_eta.get(), &eta }, std::pair{ m_k.get(), &k } }) {
                 SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
                 UnpolarizedSpectrum v = tex->eval(si, true);
-                *out = { (double) v[2], (double) v[1], (double) v[0] };
+                out->wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
+                out->values = { (double) v[2], (double) v[1], (double) v[0] };
             }
             return;
         }
-        sample_texture(m_eta.get(), wavelengths, eta);
-        sample_texture(m_k.get(), tmp, k);
-    }
-
-    /// Linear interpolation in a sorted table, clamped at its ends.
-    static double interpolate(const std::vector<double> &x, const std::vector<double> &y, double at) {
-        if (x.empty())
-            return 0.0;
-        if (at <= x.front())
-            return y.front();
-        if (at >= x.back())
-            return y.back();
-        size_t j = (size_t) (std::upper_bound(x.begin(), x.end(), at) - x.begin());
-        double t = (at - x[j - 1]) / (x[j] - x[j - 1]);
-        return (1.0 - t) * y[j - 1] + t * y[j];
+        sample_texture(m_eta.get(), eta);
+        sample_texture(m_k.get(), k);
     }
 
     /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
-    void sample_texture(const Texture *tex, std::vector<double> &wavelengths, std::vector<double> &values) const {
+    void sample_texture(const Texture *tex, Samples &out) const {
+        std::vector<double> &wavelengths = out.wavelengths, &values = out.values;
         wavelengths.clear();
         values.clear();
         if constexpr (is_spectral_v<Spectrum>) {
@@ -478,15 +457,14 @@ private:
 
     /// Validate the configuration in Rust and bake the model (tables included).
     void rebuild() {
-        std::vector<double> sw, se, sk, qw, qe, qk, tmp;
-        sample_substrate(sw, se, sk);
+        Samples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
+        sample_substrate(eta, k);
         if (m_qd_eta) {
-            sample_texture(m_qd_eta.get(), qw, qe);
-            sample_texture(m_qd_k.get(), tmp, qk);
+            sample_texture(m_qd_eta.get(), qd_eta);
+            sample_texture(m_qd_k.get(), qd_k);
         }
-        auto sl = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
-            return fluo::qd_new(m_config, sl(sw), sl(se), sl(sk), sl(qw), sl(qe), sl(qk));
+            return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
         if (fluo::qd_is_fluorescent(*model) &&
             (m_eta->is_spatially_varying() || m_k->is_spatially_varying()))
@@ -518,7 +496,7 @@ private:
             lambda = fluo_detail::wavelengths_of(si.wavelengths);
         else
             lambda = { RgbWavelengths[0], RgbWavelengths[1], RgbWavelengths[2], RgbWavelengths[2] };
-        fluo::qd_elastic_coefficients(*m_model, (float) cos_m, fluo_detail::slice(lambda),
+        fluo::qd_elastic_coefficients(**m_model, (float) cos_m, fluo_detail::slice(lambda),
                                       fluo_detail::slice_mut(r_spe), fluo_detail::slice_mut(pass));
         for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
             float den = dr::maximum(1.f - F[j] * r_spe[j], 1e-12f);
@@ -527,13 +505,8 @@ private:
         return F;
     }
 
-    fluo::QdConfig m_config{};
-    rust::Box<fluo::QdModel> m_model = fluo_detail::rust_call(Plugin, [] {
-        fluo::QdConfig c = fluo::qd_default_config();
-        double one[1] = { 1.5 }, zero[1] = { 0.0 };
-        rust::Slice<const double> e(one, 1), k(zero, 1), none;
-        return fluo::qd_new(c, e, e, k, none, none, none);
-    });
+    fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
+    std::optional<rust::Box<fluo::QdModel>> m_model; ///< set by rebuild() in the constructor
     MicrofacetType m_type = MicrofacetType::Beckmann;
     ref<Texture> m_eta, m_k, m_qd_eta, m_qd_k;
     std::string m_material; ///< named conductor substrate, or empty

@@ -1,12 +1,34 @@
 //! The C++ bridge: the one `#[cxx::bridge]` module, and the only code that sees cxx.
 //!
-//! Direction: C++ (the Mitsuba plugin shims in `plugins/`, headers in `include/fluo/`) calls Rust; Rust never
-//! calls C++. Models cross as opaque `Box`es. Construction returns `Result`, which cxx
-//! turns into a C++ exception carrying the Rust message; the shims rethrow it through
-//! Mitsuba's `Throw`. No panic may cross: constructors run under `catch_unwind`, and
-//! hot-path functions are written without panicking operations (iterators, no indexing).
-//! Spectra cross as slices of `f32` wavelengths (nm) and values, one entry per hero
-//! wavelength.
+//! Direction: C++ (the Mitsuba plugin shims in `plugins/`, headers in `include/fluo/`)
+//! calls Rust; Rust never calls C++. Models cross as opaque `Box`es. Construction returns
+//! `Result`, which cxx turns into a C++ exception carrying the Rust message; the shims
+//! rethrow it through Mitsuba's `Throw`. No panic may cross: constructors run under
+//! `catch_unwind` ([`guarded`]), and hot-path functions are written without panicking
+//! operations (iterators, no indexing). Spectra cross as slices of `f32` wavelengths (nm)
+//! and values, one entry per hero wavelength.
+//!
+//! # Order
+//! One section per plugin, in the same order in the bridge declaration and in the
+//! implementations below it, each headed by a comment:
+//! 1. shared value types ([`Rgb`], [`Range`], [`Sample`], [`Vec3`]) and helpers;
+//! 2. `fluo_illuminant`: [`Illuminant`];
+//! 3. `fluo_jung`: [`JungModel`], its colour upsampling cube ([`UpsampleCube`]) and
+//!    per-texel models ([`JungTexture`]);
+//! 4. `fluo_qd`: [`QdModel`];
+//! 5. `fluo_matrix`, `fluo_gmm` (measured materials): [`MeasuredModel`];
+//! 6. what the `fluo_path` integrator needs: the generic [`Fluorescence`] handle and the
+//!    reduced (matrix-throughput) RGB transport, [`TransportBasis`] and [`ReducedModel`].
+//!
+//! # One home per model
+//! Each model is stored once. The integrator sees every material through the generic
+//! [`Fluorescence`] handle, a [`fluo::Model`] (static dispatch over the closed set)
+//! whose variants hold the concrete model behind an `Arc`. A plugin handle that needs
+//! the concrete model (`JungModel`, `QdModel`) keeps a second `Arc` to that same model
+//! next to its generic handle, so typed access needs no `match` and the generic handle
+//! is borrowed from the plugin handle (`jung_fluorescence`, `qd_fluorescence`). A
+//! measured material needs nothing beyond the interface, so its generic handle is its
+//! only field.
 
 // This crate is the foreign-function boundary: cxx generates unsafe glue, and the
 // registration marker below is an unmangled C symbol. The physics (`fluo`) forbids
@@ -14,31 +36,21 @@
 #![allow(unsafe_code, missing_docs)]
 
 use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::Arc;
 
 use fluo::colour::bounded_rgb_albedo;
 use fluo::colour::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use fluo::interface::Bispectral;
 use fluo::model::Model;
 use fluo::models::jung::{JungFluorescence, JungParams, Reflectance};
+use fluo::models::qd;
 use fluo::reduce::{Method, Operator, Transport};
 use fluo::sigmoid::SigmoidPolynomial;
 use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
 
 #[cxx::bridge(namespace = "fluo")]
 mod bridge {
-    /// `fluo_jung` parameters as parsed from Mitsuba `Properties` by the shim.
-    struct JungConfig {
-        emission_peak: f64,
-        stokes_shift: f64,
-        concentration: f64,
-        quantum_yield: f64,
-        /// True when the reflectance is given as sigmoid `coefficients`
-        /// (otherwise the shim evaluates a Mitsuba texture itself).
-        has_coefficients: bool,
-        c0: f64,
-        c1: f64,
-        c2: f64,
-    }
+    // ------------------------------------------------------------ shared value types
 
     /// A linear sRGB triple (Mitsuba's RGB variants' working space).
     struct Rgb {
@@ -66,27 +78,9 @@ mod bridge {
         z: f64,
     }
 
+    // -------------------------------------------------------------- fluo_illuminant
+
     extern "Rust" {
-        /// Any fluorescent model, seen through the bispectral interface
-        /// (`core/src/interface.rs`) that the `fluo_path` integrator uses.
-        type Fluorescence;
-
-        fn fluo_name(f: &Fluorescence) -> &'static str;
-        /// Excitation wavelengths at which the model re-emits (empty if never).
-        fn fluo_excitation_range(f: &Fluorescence) -> Range;
-        /// Wavelengths at which it re-emits (empty if never).
-        fn fluo_emission_range(f: &Fluorescence) -> Range;
-        /// f_fl(λi, ωi, ωo, λo)·cos θo, sr⁻¹ nm⁻¹.
-        fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
-        /// ∫_range ∫ f_fl cos θo dωo dλi (chooses elastic vs shifted events).
-        fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64;
-        /// λi given λo within `range` (camera paths).
-        fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample;
-        fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64;
-        /// λo given λi (light paths).
-        fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample;
-        fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
-
         /// An emission spectrum for `fluo_illuminant`: a CIE illuminant or a CSV file.
         type Illuminant;
 
@@ -106,36 +100,33 @@ mod bridge {
         /// RGB transport carries it in one UV band and misstates UV-excited fluorescence
         /// by up to ~5x, see `fluo-rs saturated-report`).
         fn illuminant_is_mostly_uv(s: &Illuminant) -> bool;
+    }
 
-        /// Reduced (matrix-throughput) transport for scalar_rgb (core/src/reduce/).
-        type TransportBasis;
-        /// `basis`: rgb, xyzu or x7; `method`: ours or naive.
-        fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>>;
-        /// Number of transported channels K.
-        fn transport_size(t: &TransportBasis) -> usize;
-        /// 3×K row major: linear sRGB = output · c.
-        fn transport_output(t: &TransportBasis, out: &mut [f64]);
-        /// K×3 row major: coefficients of light given in linear sRGB.
-        fn transport_from_rgb(t: &TransportBasis, out: &mut [f64]);
-        /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
-        fn transport_white(t: &TransportBasis, out: &mut [f64]);
-        fn transport_name(t: &TransportBasis) -> &'static str;
+    // --------------------------------------------------------------------- fluo_jung
 
-        /// A fluorescent model's reradiation reduced for a transport.
-        type ReducedModel;
-        fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>>;
-        /// True when the matrix covers the elastic part too (its reflectance is known
-        /// spectrally); otherwise the renderer adds the elastic part as a diagonal.
-        fn reduced_includes_elastic(r: &ReducedModel) -> bool;
-        /// K×K row major: the reduced reradiation times its directional factor (f·cos θo).
-        fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]);
-        /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
-        fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
+    /// `fluo_jung` parameters as parsed from Mitsuba `Properties` by the shim (or looked
+    /// up in a coefficient cube).
+    struct JungConfig {
+        emission_peak: f64,
+        stokes_shift: f64,
+        concentration: f64,
+        quantum_yield: f64,
+        /// True when the reflectance is given as sigmoid `coefficients`
+        /// (otherwise the shim evaluates a Mitsuba texture itself).
+        has_coefficients: bool,
+        /// Sigmoid-polynomial coefficients for λ in nm.
+        c0: f64,
+        c1: f64,
+        c2: f64,
+    }
 
+    extern "Rust" {
         /// A validated, baked `fluo_jung` material.
         type JungModel;
 
         fn jung_new(config: &JungConfig) -> Result<Box<JungModel>>;
+        /// The plugin defaults (those of `JungParams::default()`), reflectance from a texture.
+        fn jung_default_config() -> JungConfig;
         fn jung_is_fluorescent(model: &JungModel) -> bool;
         /// out[j] = 1 − c·a(λ_j).
         fn jung_elastic_factor(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
@@ -157,105 +148,7 @@ mod bridge {
         /// The model's fluorescent part, for the integrator.
         fn jung_fluorescence(model: &JungModel) -> &Fluorescence;
 
-        /// A measured material (`fluo_matrix`, `fluo_gmm`): the diagonal (reflectance)
-        /// plus reradiation, diffuse in direction.
-        type MeasuredModel;
-
-        /// `fluo_matrix`: a reradiation matrix file (.bfc, .csv, .exr), tabulated.
-        fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>>;
-        /// `fluo_gmm`: a Gaussian-mixture fit file (.gmm.json, written by `fluo fit-gmm`).
-        fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>>;
-        fn measured_is_fluorescent(model: &MeasuredModel) -> bool;
-        /// out[j] = ρ(λ_j), the diagonal (elastic albedo).
-        fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]);
-        /// RGB variant: sRGB of ρ(λ) + ∫ P(λi, λ) dλi under equal-energy light (360–830 nm),
-        /// bounded to [0, 1] per channel (`fluo::colour::bounded_rgb_albedo`).
-        fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb;
-        /// RGB variant: sRGB of the diagonal ρ(λ) alone (the elastic part).
-        fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb;
-        fn measured_to_string(model: &MeasuredModel) -> String;
-        /// The model's fluorescent part, for the integrator.
-        fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence;
-    }
-
-    // ------------------------------------------------------------------ fluo_qd
-    /// `fluo_qd` parameters as parsed from Mitsuba `Properties` by the shim.
-    struct QdConfig {
-        radius: f64,
-        width: f64,
-        quantum_yield: f64,
-        density: f64,
-        ext_ior: f64,
-        lambda_min: f64,
-        lambda_max: f64,
-        /// GGX if true, Beckmann otherwise.
-        ggx: bool,
-        alpha: f64,
-        gap_energy: f64,
-        elementary_charge: f64,
-        planck: f64,
-        light_speed: f64,
-        boltzmann: f64,
-        electron_mass: f64,
-        hole_mass: f64,
-        vacuum_permittivity: f64,
-        relative_permittivity: f64,
-        temperature: f64,
-        /// Rows of the excitation tables, uniform in cos θ.
-        table_cos_nodes: usize,
-        /// Base λ step of the excitation tables, nm.
-        table_step: f64,
-    }
-
-    extern "Rust" {
-        /// A validated, baked `fluo_qd` material.
-        type QdModel;
-
-        /// Substrate η, k (relative to the environment) sampled at `substrate_wavelengths`
-        /// (one entry: a constant). QD index n, k at `qd_wavelengths` (empty: built-in CdSe;
-        /// one entry: a constant).
-        fn qd_new(
-            config: &QdConfig,
-            substrate_wavelengths: &[f64],
-            substrate_eta: &[f64],
-            substrate_k: &[f64],
-            qd_wavelengths: &[f64],
-            qd_eta: &[f64],
-            qd_k: &[f64],
-        ) -> Result<Box<QdModel>>;
-        /// The plugin defaults (those of `QdParams::default()` and Table 1).
-        fn qd_default_config() -> QdConfig;
-        fn qd_is_fluorescent(model: &QdModel) -> bool;
-        /// Coating coefficients at the microfacet cosine for each λ: the film's R_spe and
-        /// the two-pass transmission T_spe²(1 − A_tf)², so that
-        /// R_tot = R_spe + pass·R / (1 − R·R_spe) for substrate reflectance R (eq. 23).
-        fn qd_elastic_coefficients(
-            model: &QdModel,
-            cos_theta: f32,
-            lambdas: &[f32],
-            r_spe: &mut [f32],
-            pass: &mut [f32],
-        );
-        fn qd_to_string(model: &QdModel) -> String;
-        /// The coating's bispectral part, for the integrator.
-        fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
-    }
-
-    // ---------------------------------------------------------------- upsampling
-    /// Coefficients of one colour from a coefficient cube (`core/src/upsample/`).
-    struct UpsampleCoefficients {
-        /// Sigmoid-polynomial coefficients for λ in nm.
-        c0: f64,
-        c1: f64,
-        c2: f64,
-        emission_peak: f64,
-        concentration: f64,
-        stokes_shift: f64,
-        quantum_yield: f64,
-    }
-
-    extern "Rust" {
-        /// An RGB -> (reflectance + fluorescence) coefficient cube.
+        /// An RGB -> (reflectance + fluorescence) coefficient cube (`core/src/upsample/`).
         type UpsampleCube;
 
         /// Load the cube for `space` ("srgb", "rec2020", "acescg"): `filename`, or the
@@ -263,14 +156,10 @@ mod bridge {
         /// unknown space, a malformed file, or a cube of another space.
         fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>>;
         fn upsample_cube_describe(cube: &UpsampleCube) -> String;
-        /// Coefficients of `rgb` (3 values in [0, 1]); `lookup` is "nearest" or
-        /// "trilinear"; `fluorescence = false` uses the reflectance-only solutions.
-        fn upsample_lookup(
-            cube: &UpsampleCube,
-            rgb: &[f64],
-            lookup: &str,
-            fluorescence: bool,
-        ) -> Result<UpsampleCoefficients>;
+        /// The `fluo_jung` configuration of `rgb` (3 values in [0, 1]): sigmoid
+        /// coefficients and dye; `lookup` is "nearest" or "trilinear"; `fluorescence =
+        /// false` uses the reflectance-only solutions.
+        fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool) -> Result<JungConfig>;
 
         /// Per-texel `fluo_jung` models of an RGB texture, built once at load.
         type JungTexture;
@@ -296,33 +185,167 @@ mod bridge {
         /// Distinct coefficient sets among the texels.
         fn jung_texture_distinct(tex: &JungTexture) -> usize;
     }
+
+    // ----------------------------------------------------------------------- fluo_qd
+
+    /// The Brus-equation and Stokes-shift constants of `fluo_qd` (the paper's Table 1),
+    /// SI units: `fluo::models::qd::QdConstants`.
+    struct QdConstants {
+        gap_energy: f64,
+        elementary_charge: f64,
+        planck: f64,
+        light_speed: f64,
+        boltzmann: f64,
+        electron_mass: f64,
+        hole_mass: f64,
+        vacuum_permittivity: f64,
+        relative_permittivity: f64,
+        temperature: f64,
+    }
+
+    /// `fluo_qd` parameters as parsed from Mitsuba `Properties` by the shim:
+    /// `fluo::models::qd::QdParams` under the plugin's parameter names.
+    struct QdConfig {
+        radius: f64,
+        width: f64,
+        quantum_yield: f64,
+        density: f64,
+        ext_ior: f64,
+        lambda_min: f64,
+        lambda_max: f64,
+        /// GGX if true, Beckmann otherwise.
+        ggx: bool,
+        alpha: f64,
+        constants: QdConstants,
+        /// Rows of the excitation tables, uniform in cos θ.
+        table_cos_nodes: usize,
+        /// Base λ step of the excitation tables, nm.
+        table_step: f64,
+    }
+
+    /// A spectrum sampled by the shim, borrowed for one call: one value is a constant
+    /// (its wavelength is ignored), several a table (nm, ascending) evaluated linearly
+    /// and constant beyond its ends.
+    struct SampledSpectrum<'a> {
+        wavelengths: &'a [f64],
+        values: &'a [f64],
+    }
+
+    extern "Rust" {
+        /// A validated, baked `fluo_qd` material.
+        type QdModel;
+
+        /// Substrate η and k relative to the environment, each on its own grid; QD index
+        /// n and k (both empty: built-in CdSe).
+        fn qd_new(
+            config: &QdConfig,
+            eta: &SampledSpectrum,
+            k: &SampledSpectrum,
+            qd_eta: &SampledSpectrum,
+            qd_k: &SampledSpectrum,
+        ) -> Result<Box<QdModel>>;
+        /// The plugin defaults (those of `QdParams::default()` and Table 1).
+        fn qd_default_config() -> QdConfig;
+        fn qd_is_fluorescent(model: &QdModel) -> bool;
+        /// Coating coefficients at the microfacet cosine for each λ: the film's R_spe and
+        /// the two-pass transmission T_spe²(1 − A_tf)², so that
+        /// R_tot = R_spe + pass·R / (1 − R·R_spe) for substrate reflectance R (eq. 23).
+        fn qd_elastic_coefficients(
+            model: &QdModel,
+            cos_theta: f32,
+            lambdas: &[f32],
+            r_spe: &mut [f32],
+            pass: &mut [f32],
+        );
+        fn qd_to_string(model: &QdModel) -> String;
+        /// The coating's bispectral part, for the integrator.
+        fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
+    }
+
+    // ----------------------------------------------------- fluo_matrix, fluo_gmm
+
+    extern "Rust" {
+        /// A measured material (`fluo_matrix`, `fluo_gmm`): the diagonal (reflectance)
+        /// plus reradiation, diffuse in direction.
+        type MeasuredModel;
+
+        /// `fluo_matrix`: a reradiation matrix file (.bfc, .csv, .exr), tabulated.
+        fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>>;
+        /// `fluo_gmm`: a Gaussian-mixture fit file (.gmm.json, written by `fluo fit-gmm`).
+        fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>>;
+        fn measured_is_fluorescent(model: &MeasuredModel) -> bool;
+        /// out[j] = ρ(λ_j), the diagonal (elastic albedo).
+        fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]);
+        /// RGB variant: sRGB of ρ(λ) + ∫ P(λi, λ) dλi under equal-energy light (360–830 nm),
+        /// bounded to [0, 1] per channel (`fluo::colour::bounded_rgb_albedo`).
+        fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb;
+        /// RGB variant: sRGB of the diagonal ρ(λ) alone (the elastic part).
+        fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb;
+        fn measured_to_string(model: &MeasuredModel) -> String;
+        /// The model's fluorescent part, for the integrator.
+        fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence;
+    }
+
+    // ------------------------------------------- fluo_path: generic handle, reduced RGB
+
+    extern "Rust" {
+        /// Any fluorescent model, seen through the bispectral interface
+        /// (`core/src/interface.rs`) that the `fluo_path` integrator uses.
+        type Fluorescence;
+
+        fn fluo_name(f: &Fluorescence) -> &'static str;
+        /// Excitation wavelengths at which the model re-emits (empty if never).
+        fn fluo_excitation_range(f: &Fluorescence) -> Range;
+        /// Wavelengths at which it re-emits (empty if never).
+        fn fluo_emission_range(f: &Fluorescence) -> Range;
+        /// f_fl(λi, ωi, ωo, λo)·cos θo, sr⁻¹ nm⁻¹.
+        fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
+        /// ∫_range ∫ f_fl cos θo dωo dλi (chooses elastic vs shifted events).
+        fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64;
+        /// λi given λo within `range` (camera paths).
+        fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64;
+        /// λo given λi (light paths).
+        fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample;
+        fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
+
+        /// Reduced (matrix-throughput) transport for scalar_rgb (core/src/reduce/).
+        type TransportBasis;
+        /// `basis`: rgb, xyzu or x7; `method`: ours or naive.
+        fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>>;
+        /// Number of transported channels K.
+        fn transport_size(t: &TransportBasis) -> usize;
+        /// 3×K row major: linear sRGB = output · c.
+        fn transport_output(t: &TransportBasis, out: &mut [f64]);
+        /// K×3 row major: coefficients of light given in linear sRGB.
+        fn transport_from_rgb(t: &TransportBasis, out: &mut [f64]);
+        /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
+        fn transport_white(t: &TransportBasis, out: &mut [f64]);
+        fn transport_name(t: &TransportBasis) -> &'static str;
+
+        /// A fluorescent model's reradiation reduced for a transport.
+        type ReducedModel;
+        fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>>;
+        /// True when the matrix covers the elastic part too (its reflectance is known
+        /// spectrally); otherwise the renderer adds the elastic part as a diagonal.
+        fn reduced_includes_elastic(r: &ReducedModel) -> bool;
+        /// K×K row major: the reduced reradiation times its directional factor (f·cos θo).
+        fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]);
+        /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
+        fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
+    }
 }
 
-pub use bridge::{JungConfig, QdConfig, Range, Rgb, Sample, UpsampleCoefficients, Vec3};
+pub use bridge::{JungConfig, QdConfig, QdConstants, Range, Rgb, Sample, SampledSpectrum, Vec3};
 
-/// Opaque fluorescent model handed to C++ (see [`fluo::bispectral`]).
-///
-/// `elastic` is the elastic reflectance when Rust knows it spectrally (sigmoid
-/// coefficients; measured diagonals), so that reductions can cover the whole operator
-/// ρ(λ)·diag + P as in Fichet et al.; `None` when it comes from a Mitsuba texture.
-pub struct Fluorescence {
-    model: Model,
-    elastic: Option<Reflectance>,
-}
+// ---------------------------------------------------------------- shared value types
 
-/// Opaque `fluo_jung` model handed to C++.
-pub struct JungModel {
-    fluorescence: JungFluorescence,
-    reflectance: Option<Reflectance>,
-    generic: Fluorescence,
+fn rgb(v: [f64; 3]) -> Rgb {
+    Rgb { r: v[0], g: v[1], b: v[2] }
 }
 
 fn range_of(r: Option<(f64, f64)>) -> Range {
     r.map_or(Range { lo: 0.0, hi: 0.0 }, |(lo, hi)| Range { lo, hi })
-}
-
-fn dir(v: &Vec3) -> [f64; 3] {
-    [v.x, v.y, v.z]
 }
 
 fn sample_of(s: Option<(f64, f64)>) -> Sample {
@@ -332,33 +355,27 @@ fn sample_of(s: Option<(f64, f64)>) -> Sample {
     }
 }
 
-fn fluo_name(f: &Fluorescence) -> &'static str {
-    f.model.name()
+fn dir(v: &Vec3) -> [f64; 3] {
+    [v.x, v.y, v.z]
 }
-fn fluo_excitation_range(f: &Fluorescence) -> Range {
-    range_of(f.model.excitation_range())
+
+fn copy_into(src: &[f64], out: &mut [f64]) {
+    for (o, v) in out.iter_mut().zip(src) {
+        *o = *v;
+    }
 }
-fn fluo_emission_range(f: &Fluorescence) -> Range {
-    range_of(f.model.emission_range())
+
+/// Run a constructor, turning its error and any panic into the message of a C++
+/// exception.
+fn guarded<T>(f: impl FnOnce() -> fluo::Result<T>) -> Result<T, String> {
+    match catch_unwind(AssertUnwindSafe(f)) {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(_) => Err("internal error (a panic was caught at the FFI boundary)".to_string()),
+    }
 }
-fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
-    f.model.reradiation(dir(wi), dir(wo), lambda_i, lambda_o)
-}
-fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64 {
-    f.model.shift_albedo(dir(wi), lambda_o, (range.lo, range.hi))
-}
-fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample {
-    sample_of(f.model.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
-}
-fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64 {
-    f.model.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
-}
-fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample {
-    sample_of(f.model.sample_emission(dir(wi), lambda_i, xi))
-}
-fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
-    f.model.emission_pdf(dir(wi), lambda_i, lambda_o)
-}
+
+// ------------------------------------------------------------------- fluo_illuminant
 
 /// Opaque emission spectrum for `fluo_illuminant`.
 pub struct Illuminant {
@@ -421,6 +438,18 @@ fn illuminant_mean(s: &Illuminant) -> f64 {
     s.spectrum.integrate_product(&|_: f64| 1.0, CIE_MIN_NM, CIE_MAX_NM, 1.0).unwrap_or(0.0) / (CIE_MAX_NM - CIE_MIN_NM)
 }
 
+fn illuminant_srgb(s: &Illuminant) -> Rgb {
+    // Out-of-gamut (negative) channels clipped, as an sRGB film must store them: a violet
+    // or UV lamp has negative linear-sRGB green, which Mitsuba reports per sample as an
+    // invalid value.
+    rgb(spectrum_to_srgb(|l| s.spectrum.eval(l)).map(|v| v.max(0.0)))
+}
+
+fn illuminant_to_string(s: &Illuminant) -> String {
+    let r = illuminant_range(s);
+    format!("{} ({}-{} nm)", s.label, r.lo, r.hi)
+}
+
 /// Wavelength below which light counts as ultraviolet for [`illuminant_is_mostly_uv`], nm.
 const UV_EDGE_NM: f64 = 400.0;
 
@@ -437,16 +466,493 @@ fn illuminant_is_mostly_uv(s: &Illuminant) -> bool {
     total > 0.0 && power(lo, hi.min(UV_EDGE_NM)) > 0.5 * total
 }
 
-fn illuminant_srgb(s: &Illuminant) -> Rgb {
-    // Out-of-gamut (negative) channels clipped, as an sRGB film must store them: a violet
-    // or UV lamp has negative linear-sRGB green, which Mitsuba reports per sample as an
-    // invalid value.
-    rgb(spectrum_to_srgb(|l| s.spectrum.eval(l)).map(|v| v.max(0.0)))
+// ------------------------------------------------------------------------- fluo_jung
+
+/// Opaque `fluo_jung` material handed to C++: the dye, shared with the generic handle,
+/// whose `elastic` is the base reflectance when it is given as sigmoid coefficients.
+pub struct JungModel {
+    dye: Arc<JungFluorescence>,
+    generic: Fluorescence,
 }
 
-fn illuminant_to_string(s: &Illuminant) -> String {
-    let r = illuminant_range(s);
-    format!("{} ({}-{} nm)", s.label, r.lo, r.hi)
+impl JungModel {
+    fn new(config: &JungConfig) -> fluo::Result<Self> {
+        let dye = Arc::new(JungFluorescence::new(JungParams {
+            emission_peak: config.emission_peak,
+            stokes_shift: config.stokes_shift,
+            concentration: config.concentration,
+            quantum_yield: config.quantum_yield,
+        })?);
+        let reflectance = if config.has_coefficients {
+            Some(Reflectance::Sigmoid(SigmoidPolynomial::new([config.c0, config.c1, config.c2])?))
+        } else {
+            None
+        };
+        Ok(JungModel { generic: Fluorescence { model: Model::Jung(Arc::clone(&dye)), elastic: reflectance }, dye })
+    }
+
+    /// The base reflectance r(λ) when given as coefficients, else 0.
+    fn reflectance(&self, lambda: f64) -> f64 {
+        self.generic.elastic.as_ref().map_or(0.0, |r| r.eval(lambda))
+    }
+}
+
+fn jung_new(config: &JungConfig) -> Result<Box<JungModel>, String> {
+    guarded(|| JungModel::new(config).map(Box::new))
+}
+
+fn jung_default_config() -> JungConfig {
+    let p = JungParams::default();
+    JungConfig {
+        emission_peak: p.emission_peak,
+        stokes_shift: p.stokes_shift,
+        concentration: p.concentration,
+        quantum_yield: p.quantum_yield,
+        has_coefficients: false,
+        c0: 0.0,
+        c1: 0.0,
+        c2: 0.0,
+    }
+}
+
+fn jung_is_fluorescent(model: &JungModel) -> bool {
+    model.dye.is_fluorescent()
+}
+
+fn jung_elastic_factor(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.dye.elastic_factor(f64::from(l)) as f32;
+    }
+}
+
+fn jung_elastic_albedo(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        let l = f64::from(l);
+        *o = (model.reflectance(l) * model.dye.elastic_factor(l)) as f32;
+    }
+}
+
+fn jung_rgb_albedo(model: &JungModel) -> Rgb {
+    rgb_bounded_albedo(jung_rgb_elastic(model), jung_rgb_fluorescence(model))
+}
+
+fn jung_rgb_elastic(model: &JungModel) -> Rgb {
+    rgb(spectrum_to_srgb(|l| model.reflectance(l) * model.dye.elastic_factor(l)))
+}
+
+fn rgb_bounded_albedo(elastic: Rgb, reradiated: Rgb) -> Rgb {
+    rgb(bounded_rgb_albedo([elastic.r, elastic.g, elastic.b], [reradiated.r, reradiated.g, reradiated.b]))
+}
+
+fn jung_rgb_elastic_scale(model: &JungModel) -> Rgb {
+    let num = spectrum_to_srgb(|l| model.dye.elastic_factor(l));
+    let den = spectrum_to_srgb(|_| 1.0);
+    let ratio = |k: usize| if den[k].abs() > 0.0 { (num[k] / den[k]).clamp(0.0, 1.0) } else { 1.0 };
+    rgb([ratio(0), ratio(1), ratio(2)])
+}
+
+fn jung_rgb_fluorescence(model: &JungModel) -> Rgb {
+    // c·Q·∫_{360}^{830} a(λ) dλ: reradiated energy per unit equal-energy irradiance.
+    let p = model.dye.params();
+    let w = p.concentration * p.quantum_yield * model.dye.absorption_integral_range(CIE_MIN_NM, CIE_MAX_NM);
+    if w <= 0.0 {
+        return rgb([0.0; 3]);
+    }
+    rgb(spectrum_to_srgb(|l| w * model.dye.emission(l)))
+}
+
+fn jung_to_string(model: &JungModel) -> String {
+    match &model.generic.elastic {
+        Some(Reflectance::Sigmoid(s)) => format!("{} with sigmoid reflectance {:?}", model.dye, s.coefficients),
+        _ => model.dye.to_string(),
+    }
+}
+
+fn jung_fluorescence(model: &JungModel) -> &Fluorescence {
+    &model.generic
+}
+
+/// Opaque coefficient cube handed to C++.
+pub struct UpsampleCube(fluo::upsample::Cube);
+
+fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
+    guarded(|| {
+        let space = fluo::colour::RgbSpace::from_name(space).map_err(|_| {
+            fluo::Error::param("color_space", format!("\"{space}\""), "one of \"srgb\", \"rec2020\", \"acescg\"")
+        })?;
+        let path = if filename.is_empty() {
+            fluo::upsample::shipped_cube_dir().join(format!("{}_d65_tinf_r33.cube", fluo::upsample::space_name(space)))
+        } else {
+            std::path::PathBuf::from(filename)
+        };
+        let cube = fluo::upsample::Cube::load(&path)?;
+        if cube.header.space != space {
+            return Err(fluo::Error::param(
+                "cube",
+                format!("\"{}\" (a {} cube)", path.display(), fluo::upsample::space_name(cube.header.space)),
+                format!("a cube generated for color_space \"{}\"", fluo::upsample::space_name(space)),
+            ));
+        }
+        Ok(Box::new(UpsampleCube(cube)))
+    })
+}
+
+fn upsample_cube_describe(cube: &UpsampleCube) -> String {
+    cube.0.header.to_string()
+}
+
+/// The `fluo_jung` configuration of one colour's cube coefficients.
+fn jung_config_of(c: &fluo::upsample::Coefficients) -> JungConfig {
+    JungConfig {
+        emission_peak: c.emission_peak,
+        stokes_shift: c.stokes_shift,
+        concentration: c.concentration,
+        quantum_yield: fluo::upsample::QUANTUM_YIELD,
+        has_coefficients: true,
+        c0: c.reflectance[0],
+        c1: c.reflectance[1],
+        c2: c.reflectance[2],
+    }
+}
+
+fn upsample_lookup(cube: &UpsampleCube, rgb: &[f64], lookup: &str, fluorescence: bool) -> Result<JungConfig, String> {
+    guarded(|| {
+        let mode = fluo::upsample::Lookup::from_name(lookup)?;
+        let [r, g, b] = <[f64; 3]>::try_from(rgb)
+            .map_err(|_| fluo::Error::param("color", format!("{} values", rgb.len()), "3 values (r, g, b)"))?;
+        Ok(jung_config_of(&cube.0.lookup([r, g, b], mode, fluorescence)?))
+    })
+}
+
+/// Opaque per-texel models of a `fluo_jung` colour texture.
+pub struct JungTexture {
+    width: usize,
+    height: usize,
+    /// Index into `models` per texel, row-major from the top row.
+    texel: Vec<u32>,
+    models: Vec<JungModel>,
+    /// sRGB albedo per model (RGB variant).
+    rgb: Vec<Rgb>,
+    representative: usize,
+}
+
+fn jung_texture_new(
+    cube: &UpsampleCube,
+    width: usize,
+    height: usize,
+    rgb: &[f32],
+    lookup: &str,
+    fluorescence: bool,
+) -> Result<Box<JungTexture>, String> {
+    guarded(|| {
+        let mode = fluo::upsample::Lookup::from_name(lookup)?;
+        if width == 0 || height == 0 || rgb.len() != width * height * 3 {
+            return Err(fluo::Error::data(format!(
+                "color texture: {} values for {width} x {height} texels (expected {})",
+                rgb.len(),
+                width * height * 3
+            )));
+        }
+        let mut index: std::collections::HashMap<[u64; 6], u32> = std::collections::HashMap::new();
+        let mut models = Vec::new();
+        let mut texel = Vec::with_capacity(width * height);
+        for (t, px) in rgb.chunks_exact(3).enumerate() {
+            let v = [f64::from(px[0]), f64::from(px[1]), f64::from(px[2])];
+            let c = cube.0.lookup(v, mode, fluorescence).map_err(|_| {
+                fluo::Error::param(
+                    "color",
+                    format!("texel (x = {}, y = {}) = ({}, {}, {})", t % width, t / width, v[0], v[1], v[2]),
+                    "finite values in [0, 1] per component (the coefficient cube spans the unit RGB cube)",
+                )
+            })?;
+            let key = [
+                c.reflectance[0].to_bits(),
+                c.reflectance[1].to_bits(),
+                c.reflectance[2].to_bits(),
+                c.emission_peak.to_bits(),
+                c.concentration.to_bits(),
+                c.stokes_shift.to_bits(),
+            ];
+            let id = match index.get(&key) {
+                Some(&id) => id,
+                None => {
+                    let id = models.len() as u32;
+                    models.push(JungModel::new(&jung_config_of(&c))?);
+                    index.insert(key, id);
+                    id
+                }
+            };
+            texel.push(id);
+        }
+        let rgb = models.iter().map(jung_rgb_albedo).collect();
+        let representative = models
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.dye.is_fluorescent())
+            .max_by(|a, b| a.1.dye.emission_support().1.total_cmp(&b.1.dye.emission_support().1))
+            .map_or(0, |(i, _)| i);
+        Ok(Box::new(JungTexture { width, height, texel, models, rgb, representative }))
+    })
+}
+
+fn texel_index(tex: &JungTexture, x: i64, y: i64) -> usize {
+    let (w, h) = (tex.width as i64, tex.height as i64);
+    let (x, y) = (x.rem_euclid(w), y.rem_euclid(h));
+    tex.texel.get((y * w + x) as usize).map_or(0, |&i| i as usize)
+}
+
+fn jung_texture_model(tex: &JungTexture, x: i64, y: i64) -> &JungModel {
+    &tex.models[texel_index(tex, x, y).min(tex.models.len() - 1)]
+}
+
+fn jung_texture_rgb(tex: &JungTexture, x: i64, y: i64) -> Rgb {
+    let i = texel_index(tex, x, y).min(tex.rgb.len() - 1);
+    let c = &tex.rgb[i];
+    Rgb { r: c.r, g: c.g, b: c.b }
+}
+
+fn jung_texture_representative(tex: &JungTexture) -> &JungModel {
+    &tex.models[tex.representative]
+}
+
+fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool {
+    tex.models.iter().any(|m| m.dye.is_fluorescent())
+}
+
+fn jung_texture_distinct(tex: &JungTexture) -> usize {
+    tex.models.len()
+}
+
+// --------------------------------------------------------------------------- fluo_qd
+
+/// Opaque `fluo_qd` material handed to C++: the coating, shared with the generic handle.
+pub struct QdModel {
+    coating: Arc<qd::QdModel>,
+    generic: Fluorescence,
+}
+
+/// `From` both ways between a bridge struct and its core twin with the same fields,
+/// each field named once.
+macro_rules! mirror {
+    ($bridge:ty, $core:ty { $($field:ident),* $(,)? }) => {
+        impl From<&$core> for $bridge {
+            fn from(c: &$core) -> Self {
+                Self { $($field: c.$field),* }
+            }
+        }
+        impl From<&$bridge> for $core {
+            fn from(b: &$bridge) -> Self {
+                Self { $($field: b.$field),* }
+            }
+        }
+    };
+}
+
+mirror!(
+    QdConstants,
+    qd::QdConstants {
+        gap_energy,
+        elementary_charge,
+        planck,
+        light_speed,
+        boltzmann,
+        electron_mass,
+        hole_mass,
+        vacuum_permittivity,
+        relative_permittivity,
+        temperature,
+    }
+);
+
+impl From<&QdConfig> for qd::QdParams {
+    fn from(c: &QdConfig) -> Self {
+        qd::QdParams {
+            radius_nm: c.radius,
+            width_nm: c.width,
+            quantum_yield: c.quantum_yield,
+            density: c.density,
+            ext_ior: c.ext_ior,
+            lambda_min_nm: c.lambda_min,
+            lambda_max_nm: c.lambda_max,
+            distribution: if c.ggx { qd::Distribution::Ggx } else { qd::Distribution::Beckmann },
+            alpha: c.alpha,
+            constants: (&c.constants).into(),
+            cos_nodes: c.table_cos_nodes,
+            table_step_nm: c.table_step,
+        }
+    }
+}
+
+impl From<&qd::QdParams> for QdConfig {
+    fn from(p: &qd::QdParams) -> Self {
+        QdConfig {
+            radius: p.radius_nm,
+            width: p.width_nm,
+            quantum_yield: p.quantum_yield,
+            density: p.density,
+            ext_ior: p.ext_ior,
+            lambda_min: p.lambda_min_nm,
+            lambda_max: p.lambda_max_nm,
+            ggx: p.distribution == qd::Distribution::Ggx,
+            alpha: p.alpha,
+            constants: (&p.constants).into(),
+            table_cos_nodes: p.cos_nodes,
+            table_step: p.table_step_nm,
+        }
+    }
+}
+
+/// A spectrum from shim samples: one value is a constant, several a table.
+fn spectrum_of(name: &str, s: &SampledSpectrum) -> fluo::Result<IrregularSpectrum> {
+    match s.values {
+        [v] => IrregularSpectrum::new(vec![0.0, 1e4], vec![*v, *v]),
+        _ => IrregularSpectrum::new(s.wavelengths.to_vec(), s.values.to_vec())
+            .map_err(|e| fluo::Error::data(format!("{name}: {e}"))),
+    }
+}
+
+fn qd_new(
+    config: &QdConfig,
+    eta: &SampledSpectrum,
+    k: &SampledSpectrum,
+    qd_eta: &SampledSpectrum,
+    qd_k: &SampledSpectrum,
+) -> Result<Box<QdModel>, String> {
+    guarded(|| {
+        let substrate = match (eta.values, k.values) {
+            ([eta], [k]) => qd::Substrate::Constant { eta: *eta, k: *k },
+            _ => qd::Substrate::Tabulated { eta: spectrum_of("eta", eta)?, k: spectrum_of("k", k)? },
+        };
+        let index = if qd_eta.values.is_empty() && qd_k.values.is_empty() {
+            qd::QdIndex::CdSe
+        } else {
+            qd::QdIndex::Tabulated { n: spectrum_of("qd_eta", qd_eta)?, k: spectrum_of("qd_k", qd_k)? }
+        };
+        let coating = Arc::new(qd::QdModel::new(config.into(), index, substrate)?);
+        // The coating's elastic reflectance R_tot(θ, λ) lives in the Rust model (the
+        // substrate's eta/k are passed in), so reductions cover the whole operator.
+        let generic =
+            Fluorescence { model: Model::Qd(Arc::clone(&coating)), elastic: Some(Reflectance::Constant(1.0)) };
+        Ok(Box::new(QdModel { coating, generic }))
+    })
+}
+
+fn qd_default_config() -> QdConfig {
+    (&qd::QdParams::default()).into()
+}
+
+fn qd_is_fluorescent(model: &QdModel) -> bool {
+    model.coating.is_fluorescent()
+}
+
+fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_spe: &mut [f32], pass: &mut [f32]) {
+    for ((&l, r), p) in lambdas.iter().zip(r_spe.iter_mut()).zip(pass.iter_mut()) {
+        let c = model.coating.coating(f64::from(cos_theta), f64::from(l));
+        let t = c.t_spe * (1.0 - c.a_tf);
+        *r = c.r_spe as f32;
+        *p = (t * t) as f32;
+    }
+}
+
+fn qd_to_string(model: &QdModel) -> String {
+    model.coating.to_string()
+}
+
+fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
+    &model.generic
+}
+
+// --------------------------------------------------------- fluo_matrix, fluo_gmm
+
+/// Opaque measured material (`fluo_matrix`, `fluo_gmm`) handed to C++: everything it
+/// serves goes through the bispectral interface, so the generic handle is its only
+/// field, with the measured diagonal as the model's elastic albedo.
+pub struct MeasuredModel(Fluorescence);
+
+impl MeasuredModel {
+    fn new(model: Model) -> Box<Self> {
+        Box::new(MeasuredModel(Fluorescence { model, elastic: Some(Reflectance::Constant(1.0)) }))
+    }
+
+    fn elastic_albedo(&self, lambda: f64) -> f64 {
+        self.0.model.elastic_albedo(1.0, lambda)
+    }
+}
+
+fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| Ok(MeasuredModel::new(Model::Matrix(Arc::new(fluo::models::matrix::MatrixModel::from_file(filename)?)))))
+}
+
+fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| Ok(MeasuredModel::new(Model::Gmm(Arc::new(fluo::models::gmm::GmmModel::from_file(filename)?)))))
+}
+
+fn measured_is_fluorescent(model: &MeasuredModel) -> bool {
+    model.0.model.excitation_range().is_some()
+}
+
+fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.elastic_albedo(f64::from(l)) as f32;
+    }
+}
+
+fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb {
+    const UP: [f64; 3] = [0.0, 0.0, 1.0];
+    let shifted = |l: f64| model.0.model.shift_albedo(UP, l, (CIE_MIN_NM, CIE_MAX_NM));
+    rgb(bounded_rgb_albedo(spectrum_to_srgb(|l| model.elastic_albedo(l)), spectrum_to_srgb(shifted)))
+}
+
+fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {
+    rgb(spectrum_to_srgb(|l| model.elastic_albedo(l)))
+}
+
+fn measured_to_string(model: &MeasuredModel) -> String {
+    model.0.model.to_string()
+}
+
+fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
+    &model.0
+}
+
+// ------------------------------------------- fluo_path: generic handle, reduced RGB
+
+/// Opaque fluorescent model handed to C++ (see [`fluo::interface`]).
+///
+/// `elastic` is the elastic reflectance when Rust knows it spectrally (sigmoid
+/// coefficients; measured diagonals), so that reductions can cover the whole operator
+/// ρ(λ)·diag + P as in Fichet et al.; `None` when it comes from a Mitsuba texture.
+pub struct Fluorescence {
+    model: Model,
+    elastic: Option<Reflectance>,
+}
+
+fn fluo_name(f: &Fluorescence) -> &'static str {
+    f.model.name()
+}
+fn fluo_excitation_range(f: &Fluorescence) -> Range {
+    range_of(f.model.excitation_range())
+}
+fn fluo_emission_range(f: &Fluorescence) -> Range {
+    range_of(f.model.emission_range())
+}
+fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
+    f.model.reradiation(dir(wi), dir(wo), lambda_i, lambda_o)
+}
+fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64 {
+    f.model.shift_albedo(dir(wi), lambda_o, (range.lo, range.hi))
+}
+fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample {
+    sample_of(f.model.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
+}
+fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64 {
+    f.model.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
+}
+fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample {
+    sample_of(f.model.sample_emission(dir(wi), lambda_i, xi))
+}
+fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
+    f.model.emission_pdf(dir(wi), lambda_i, lambda_o)
 }
 
 /// Opaque reduced transport.
@@ -457,11 +963,6 @@ fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>, Strin
 }
 fn transport_size(t: &TransportBasis) -> usize {
     t.0.len()
-}
-fn copy_into(src: &[f64], out: &mut [f64]) {
-    for (o, v) in out.iter_mut().zip(src) {
-        *o = *v;
-    }
 }
 fn transport_output(t: &TransportBasis, out: &mut [f64]) {
     copy_into(&t.0.output, out);
@@ -491,7 +992,7 @@ enum Directional {
     Lambertian(Vec<f64>),
     /// f = D G M(cos θ) / (4 cos θi cos θo), M tabulated at [`REDUCED_COS_NODES`]
     /// incidence cosines on the microfacet (cos θ = ωi·h).
-    Microfacet { micro: fluo::models::qd::Microfacet, tables: Vec<Vec<f64>> },
+    Microfacet { micro: qd::Microfacet, tables: Vec<Vec<f64>> },
 }
 
 fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>, String> {
@@ -556,488 +1057,6 @@ fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]) 
     copy_into(&t.0.coefficients(&|l| s.spectrum.eval(l)), out);
 }
 
-fn jung_fluorescence(model: &JungModel) -> &Fluorescence {
-    &model.generic
-}
-
-fn guarded<T>(f: impl FnOnce() -> fluo::Result<T>) -> Result<T, String> {
-    match catch_unwind(AssertUnwindSafe(f)) {
-        Ok(Ok(v)) => Ok(v),
-        Ok(Err(e)) => Err(e.to_string()),
-        Err(_) => Err("internal error (a panic was caught at the FFI boundary)".to_string()),
-    }
-}
-
-fn jung_new(config: &JungConfig) -> Result<Box<JungModel>, String> {
-    guarded(|| {
-        let params = JungParams {
-            emission_peak: config.emission_peak,
-            stokes_shift: config.stokes_shift,
-            concentration: config.concentration,
-            quantum_yield: config.quantum_yield,
-        };
-        let fluorescence = JungFluorescence::new(params)?;
-        let reflectance = if config.has_coefficients {
-            Some(Reflectance::Sigmoid(SigmoidPolynomial::new([config.c0, config.c1, config.c2])?))
-        } else {
-            None
-        };
-        let generic = Fluorescence { model: Model::Jung(fluorescence.clone()), elastic: reflectance.clone() };
-        Ok(Box::new(JungModel { fluorescence, reflectance, generic }))
-    })
-}
-
-fn jung_is_fluorescent(model: &JungModel) -> bool {
-    model.fluorescence.is_fluorescent()
-}
-
-fn jung_elastic_factor(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
-    for (o, &l) in out.iter_mut().zip(lambdas) {
-        *o = model.fluorescence.elastic_factor(f64::from(l)) as f32;
-    }
-}
-
-fn jung_elastic_albedo(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
-    for (o, &l) in out.iter_mut().zip(lambdas) {
-        let l = f64::from(l);
-        let r = model.reflectance.as_ref().map_or(0.0, |r| r.eval(l));
-        *o = (r * model.fluorescence.elastic_factor(l)) as f32;
-    }
-}
-
-fn rgb(v: [f64; 3]) -> Rgb {
-    Rgb { r: v[0], g: v[1], b: v[2] }
-}
-
-/// c·Q·∫_{360}^{830} a(λ) dλ: reradiated energy per unit equal-energy irradiance.
-fn fluorescent_weight(model: &JungModel) -> f64 {
-    let p = model.fluorescence.params();
-    p.concentration * p.quantum_yield * model.fluorescence.absorption_integral_range(CIE_MIN_NM, CIE_MAX_NM)
-}
-
-fn jung_rgb_fluorescence(model: &JungModel) -> Rgb {
-    let w = fluorescent_weight(model);
-    if w <= 0.0 {
-        return rgb([0.0; 3]);
-    }
-    rgb(spectrum_to_srgb(|l| w * model.fluorescence.emission(l)))
-}
-
-fn jung_rgb_elastic(model: &JungModel) -> Rgb {
-    rgb(spectrum_to_srgb(|l| {
-        model.reflectance.as_ref().map_or(0.0, |r| r.eval(l)) * model.fluorescence.elastic_factor(l)
-    }))
-}
-
-fn jung_rgb_albedo(model: &JungModel) -> Rgb {
-    let (e, f) = (jung_rgb_elastic(model), jung_rgb_fluorescence(model));
-    rgb_bounded_albedo(e, f)
-}
-
-fn rgb_bounded_albedo(elastic: Rgb, reradiated: Rgb) -> Rgb {
-    rgb(bounded_rgb_albedo([elastic.r, elastic.g, elastic.b], [reradiated.r, reradiated.g, reradiated.b]))
-}
-
-fn jung_rgb_elastic_scale(model: &JungModel) -> Rgb {
-    let num = spectrum_to_srgb(|l| model.fluorescence.elastic_factor(l));
-    let den = spectrum_to_srgb(|_| 1.0);
-    let ratio = |k: usize| if den[k].abs() > 0.0 { (num[k] / den[k]).clamp(0.0, 1.0) } else { 1.0 };
-    rgb([ratio(0), ratio(1), ratio(2)])
-}
-
-fn jung_to_string(model: &JungModel) -> String {
-    match &model.reflectance {
-        Some(Reflectance::Sigmoid(s)) => {
-            format!("{} with sigmoid reflectance {:?}", model.fluorescence, s.coefficients)
-        }
-        _ => model.fluorescence.to_string(),
-    }
-}
-
-// ---------------------------------------------------------------- fluo_matrix, fluo_gmm
-
-/// Opaque measured material (`fluo_matrix`, `fluo_gmm`) handed to C++.
-pub struct MeasuredModel {
-    generic: Fluorescence,
-}
-
-impl MeasuredModel {
-    fn elastic_albedo(&self, lambda: f64) -> f64 {
-        self.generic.model.elastic_albedo(1.0, lambda)
-    }
-}
-
-fn matrix_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
-    guarded(|| {
-        let m = fluo::models::matrix::MatrixModel::from_file(filename)?;
-        Ok(Box::new(MeasuredModel {
-            generic: Fluorescence { model: Model::Matrix(m), elastic: Some(Reflectance::Constant(1.0)) },
-        }))
-    })
-}
-
-fn gmm_new(filename: &str) -> Result<Box<MeasuredModel>, String> {
-    guarded(|| {
-        let m = fluo::models::gmm::GmmModel::from_file(filename)?;
-        Ok(Box::new(MeasuredModel {
-            generic: Fluorescence { model: Model::Gmm(m), elastic: Some(Reflectance::Constant(1.0)) },
-        }))
-    })
-}
-
-fn measured_is_fluorescent(model: &MeasuredModel) -> bool {
-    model.generic.model.excitation_range().is_some()
-}
-
-fn measured_elastic_albedo(model: &MeasuredModel, lambdas: &[f32], out: &mut [f32]) {
-    for (o, &l) in out.iter_mut().zip(lambdas) {
-        *o = model.elastic_albedo(f64::from(l)) as f32;
-    }
-}
-
-fn measured_rgb_albedo(model: &MeasuredModel) -> Rgb {
-    const UP: [f64; 3] = [0.0, 0.0, 1.0];
-    let shifted = |l: f64| model.generic.model.shift_albedo(UP, l, (CIE_MIN_NM, CIE_MAX_NM));
-    rgb(bounded_rgb_albedo(spectrum_to_srgb(|l| model.elastic_albedo(l)), spectrum_to_srgb(shifted)))
-}
-
-fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {
-    rgb(spectrum_to_srgb(|l| model.elastic_albedo(l)))
-}
-
-fn measured_to_string(model: &MeasuredModel) -> String {
-    match &model.generic.model {
-        Model::Matrix(m) => m.to_string(),
-        Model::Gmm(m) => m.to_string(),
-        Model::Jung(m) => m.to_string(),
-        Model::Qd(m) => m.to_string(),
-    }
-}
-
-fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
-    &model.generic
-}
-
-// ---------------------------------------------------------------------- fluo_qd
-
-/// Opaque `fluo_qd` model handed to C++.
-pub struct QdModel {
-    generic: Fluorescence,
-}
-
-impl QdModel {
-    fn model(&self) -> &fluo::models::qd::QdModel {
-        match &self.generic.model {
-            Model::Qd(m) => m,
-            // qd_new only ever stores a Qd model; an unreachable default keeps this panic-free.
-            _ => qd_fallback(),
-        }
-    }
-}
-
-fn qd_fallback() -> &'static fluo::models::qd::QdModel {
-    use fluo::models::qd::{QdIndex, QdModel as Qd, QdParams, Substrate};
-    static FALLBACK: std::sync::OnceLock<Option<Qd>> = std::sync::OnceLock::new();
-    FALLBACK
-        .get_or_init(|| {
-            Qd::new(
-                QdParams { density: 0.0, ..QdParams::default() },
-                QdIndex::CdSe,
-                Substrate::Constant { eta: 1.5, k: 0.0 },
-            )
-            .ok()
-        })
-        .as_ref()
-        .unwrap_or_else(|| unreachable!("the default fluo_qd parameters are valid"))
-}
-
-/// A spectrum from shim samples: one entry is a constant, several a table.
-fn sampled(name: &str, wavelengths: &[f64], values: &[f64]) -> fluo::Result<IrregularSpectrum> {
-    match values {
-        [v] => IrregularSpectrum::new(vec![0.0, 1e4], vec![*v, *v]),
-        _ => IrregularSpectrum::new(wavelengths.to_vec(), values.to_vec())
-            .map_err(|e| fluo::Error::data(format!("{name}: {e}"))),
-    }
-}
-
-fn qd_new(
-    config: &QdConfig,
-    substrate_wavelengths: &[f64],
-    substrate_eta: &[f64],
-    substrate_k: &[f64],
-    qd_wavelengths: &[f64],
-    qd_eta: &[f64],
-    qd_k: &[f64],
-) -> Result<Box<QdModel>, String> {
-    use fluo::models::qd::{Distribution, QdConstants, QdIndex, QdParams, Substrate};
-    guarded(|| {
-        let params = QdParams {
-            radius_nm: config.radius,
-            width_nm: config.width,
-            quantum_yield: config.quantum_yield,
-            density: config.density,
-            ext_ior: config.ext_ior,
-            lambda_min_nm: config.lambda_min,
-            lambda_max_nm: config.lambda_max,
-            distribution: if config.ggx { Distribution::Ggx } else { Distribution::Beckmann },
-            alpha: config.alpha,
-            constants: QdConstants {
-                gap_energy: config.gap_energy,
-                elementary_charge: config.elementary_charge,
-                planck: config.planck,
-                light_speed: config.light_speed,
-                boltzmann: config.boltzmann,
-                electron_mass: config.electron_mass,
-                hole_mass: config.hole_mass,
-                vacuum_permittivity: config.vacuum_permittivity,
-                relative_permittivity: config.relative_permittivity,
-                temperature: config.temperature,
-            },
-            cos_nodes: config.table_cos_nodes,
-            table_step_nm: config.table_step,
-        };
-        let substrate = match (substrate_eta, substrate_k) {
-            ([eta], [k]) => Substrate::Constant { eta: *eta, k: *k },
-            _ => Substrate::Tabulated {
-                eta: sampled("eta", substrate_wavelengths, substrate_eta)?,
-                k: sampled("k", substrate_wavelengths, substrate_k)?,
-            },
-        };
-        let index = if qd_eta.is_empty() && qd_k.is_empty() {
-            QdIndex::CdSe
-        } else {
-            QdIndex::Tabulated {
-                n: sampled("qd_eta", qd_wavelengths, qd_eta)?,
-                k: sampled("qd_k", qd_wavelengths, qd_k)?,
-            }
-        };
-        let model = fluo::models::qd::QdModel::new(params, index, substrate)?;
-        // The coating's elastic reflectance R_tot(θ, λ) lives in the Rust model (the
-        // substrate's eta/k are passed in), so reductions cover the whole operator.
-        Ok(Box::new(QdModel {
-            generic: Fluorescence { model: Model::Qd(Box::new(model)), elastic: Some(Reflectance::Constant(1.0)) },
-        }))
-    })
-}
-
-fn qd_default_config() -> QdConfig {
-    let p = fluo::models::qd::QdParams::default();
-    let c = p.constants;
-    QdConfig {
-        radius: p.radius_nm,
-        width: p.width_nm,
-        quantum_yield: p.quantum_yield,
-        density: p.density,
-        ext_ior: p.ext_ior,
-        lambda_min: p.lambda_min_nm,
-        lambda_max: p.lambda_max_nm,
-        ggx: p.distribution == fluo::models::qd::Distribution::Ggx,
-        alpha: p.alpha,
-        gap_energy: c.gap_energy,
-        elementary_charge: c.elementary_charge,
-        planck: c.planck,
-        light_speed: c.light_speed,
-        boltzmann: c.boltzmann,
-        electron_mass: c.electron_mass,
-        hole_mass: c.hole_mass,
-        vacuum_permittivity: c.vacuum_permittivity,
-        relative_permittivity: c.relative_permittivity,
-        temperature: c.temperature,
-        table_cos_nodes: p.cos_nodes,
-        table_step: p.table_step_nm,
-    }
-}
-
-fn qd_is_fluorescent(model: &QdModel) -> bool {
-    model.model().is_fluorescent()
-}
-
-fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_spe: &mut [f32], pass: &mut [f32]) {
-    let m = model.model();
-    for ((&l, r), p) in lambdas.iter().zip(r_spe.iter_mut()).zip(pass.iter_mut()) {
-        let c = m.coating(f64::from(cos_theta), f64::from(l));
-        let t = c.t_spe * (1.0 - c.a_tf);
-        *r = c.r_spe as f32;
-        *p = (t * t) as f32;
-    }
-}
-
-fn qd_to_string(model: &QdModel) -> String {
-    model.model().to_string()
-}
-
-fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
-    &model.generic
-}
-
-// ---------------------------------------------------------------- upsampling
-
-/// Opaque coefficient cube handed to C++.
-pub struct UpsampleCube(fluo::upsample::Cube);
-
-fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
-    guarded(|| {
-        let space = fluo::colour::RgbSpace::from_name(space).map_err(|_| {
-            fluo::Error::param("color_space", format!("\"{space}\""), "one of \"srgb\", \"rec2020\", \"acescg\"")
-        })?;
-        let path = if filename.is_empty() {
-            fluo::upsample::shipped_cube_dir().join(format!("{}_d65_tinf_r33.cube", fluo::upsample::space_name(space)))
-        } else {
-            std::path::PathBuf::from(filename)
-        };
-        let cube = fluo::upsample::Cube::load(&path)?;
-        if cube.header.space != space {
-            return Err(fluo::Error::param(
-                "cube",
-                format!("\"{}\" (a {} cube)", path.display(), fluo::upsample::space_name(cube.header.space)),
-                format!("a cube generated for color_space \"{}\"", fluo::upsample::space_name(space)),
-            ));
-        }
-        Ok(Box::new(UpsampleCube(cube)))
-    })
-}
-
-fn upsample_cube_describe(cube: &UpsampleCube) -> String {
-    cube.0.header.to_string()
-}
-
-fn bridge_coefficients(c: &fluo::upsample::Coefficients) -> UpsampleCoefficients {
-    UpsampleCoefficients {
-        c0: c.reflectance[0],
-        c1: c.reflectance[1],
-        c2: c.reflectance[2],
-        emission_peak: c.emission_peak,
-        concentration: c.concentration,
-        stokes_shift: c.stokes_shift,
-        quantum_yield: fluo::upsample::QUANTUM_YIELD,
-    }
-}
-
-fn upsample_lookup(
-    cube: &UpsampleCube,
-    rgb: &[f64],
-    lookup: &str,
-    fluorescence: bool,
-) -> Result<UpsampleCoefficients, String> {
-    guarded(|| {
-        let mode = fluo::upsample::Lookup::from_name(lookup)?;
-        let [r, g, b] = <[f64; 3]>::try_from(rgb)
-            .map_err(|_| fluo::Error::param("color", format!("{} values", rgb.len()), "3 values (r, g, b)"))?;
-        Ok(bridge_coefficients(&cube.0.lookup([r, g, b], mode, fluorescence)?))
-    })
-}
-
-/// Opaque per-texel models of a `fluo_jung` colour texture.
-pub struct JungTexture {
-    width: usize,
-    height: usize,
-    /// Index into `models` per texel, row-major from the top row.
-    texel: Vec<u32>,
-    models: Vec<JungModel>,
-    /// sRGB albedo per model (RGB variant).
-    rgb: Vec<Rgb>,
-    representative: usize,
-}
-
-fn model_of(c: &fluo::upsample::Coefficients) -> fluo::Result<JungModel> {
-    let fluorescence = JungFluorescence::new(JungParams {
-        emission_peak: c.emission_peak,
-        stokes_shift: c.stokes_shift,
-        concentration: c.concentration,
-        quantum_yield: fluo::upsample::QUANTUM_YIELD,
-    })?;
-    let reflectance = Some(Reflectance::Sigmoid(SigmoidPolynomial::new(c.reflectance)?));
-    let generic = Fluorescence { model: Model::Jung(fluorescence.clone()), elastic: reflectance.clone() };
-    Ok(JungModel { fluorescence, reflectance, generic })
-}
-
-fn jung_texture_new(
-    cube: &UpsampleCube,
-    width: usize,
-    height: usize,
-    rgb: &[f32],
-    lookup: &str,
-    fluorescence: bool,
-) -> Result<Box<JungTexture>, String> {
-    guarded(|| {
-        let mode = fluo::upsample::Lookup::from_name(lookup)?;
-        if width == 0 || height == 0 || rgb.len() != width * height * 3 {
-            return Err(fluo::Error::data(format!(
-                "color texture: {} values for {width} x {height} texels (expected {})",
-                rgb.len(),
-                width * height * 3
-            )));
-        }
-        let mut index: std::collections::HashMap<[u64; 6], u32> = std::collections::HashMap::new();
-        let mut models = Vec::new();
-        let mut texel = Vec::with_capacity(width * height);
-        for (t, px) in rgb.chunks_exact(3).enumerate() {
-            let v = [f64::from(px[0]), f64::from(px[1]), f64::from(px[2])];
-            let c = cube.0.lookup(v, mode, fluorescence).map_err(|_| {
-                fluo::Error::param(
-                    "color",
-                    format!("texel (x = {}, y = {}) = ({}, {}, {})", t % width, t / width, v[0], v[1], v[2]),
-                    "finite values in [0, 1] per component (the coefficient cube spans the unit RGB cube)",
-                )
-            })?;
-            let key = [
-                c.reflectance[0].to_bits(),
-                c.reflectance[1].to_bits(),
-                c.reflectance[2].to_bits(),
-                c.emission_peak.to_bits(),
-                c.concentration.to_bits(),
-                c.stokes_shift.to_bits(),
-            ];
-            let id = match index.get(&key) {
-                Some(&id) => id,
-                None => {
-                    let id = models.len() as u32;
-                    models.push(model_of(&c)?);
-                    index.insert(key, id);
-                    id
-                }
-            };
-            texel.push(id);
-        }
-        let rgb = models.iter().map(jung_rgb_albedo).collect();
-        let representative = models
-            .iter()
-            .enumerate()
-            .filter(|(_, m)| m.fluorescence.is_fluorescent())
-            .max_by(|a, b| a.1.fluorescence.emission_support().1.total_cmp(&b.1.fluorescence.emission_support().1))
-            .map_or(0, |(i, _)| i);
-        Ok(Box::new(JungTexture { width, height, texel, models, rgb, representative }))
-    })
-}
-
-fn texel_index(tex: &JungTexture, x: i64, y: i64) -> usize {
-    let (w, h) = (tex.width as i64, tex.height as i64);
-    let (x, y) = (x.rem_euclid(w), y.rem_euclid(h));
-    tex.texel.get((y * w + x) as usize).map_or(0, |&i| i as usize)
-}
-
-fn jung_texture_model(tex: &JungTexture, x: i64, y: i64) -> &JungModel {
-    &tex.models[texel_index(tex, x, y).min(tex.models.len() - 1)]
-}
-
-fn jung_texture_rgb(tex: &JungTexture, x: i64, y: i64) -> Rgb {
-    let i = texel_index(tex, x, y).min(tex.rgb.len() - 1);
-    let c = &tex.rgb[i];
-    Rgb { r: c.r, g: c.g, b: c.b }
-}
-
-fn jung_texture_representative(tex: &JungTexture) -> &JungModel {
-    &tex.models[tex.representative]
-}
-
-fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool {
-    tex.models.iter().any(|m| m.fluorescence.is_fluorescent())
-}
-
-fn jung_texture_distinct(tex: &JungTexture) -> usize {
-    tex.models.len()
-}
-
 /// Marks the plugin library: `import fluo` checks for it, so that `FLUO_LIBRARY` naming
 /// another shared library fails with an explanation instead of "plugin not found".
 #[no_mangle]
@@ -1050,16 +1069,7 @@ mod tests {
     use super::*;
 
     fn config() -> JungConfig {
-        JungConfig {
-            emission_peak: 520.0,
-            stokes_shift: 60.0,
-            concentration: 0.0,
-            quantum_yield: 0.96,
-            has_coefficients: true,
-            c0: 0.0,
-            c1: 0.0,
-            c2: 0.0,
-        }
+        JungConfig { concentration: 0.0, has_coefficients: true, ..jung_default_config() }
     }
 
     #[test]
@@ -1093,45 +1103,52 @@ mod tests {
         jung_elastic_factor(&m, &[], &mut out);
     }
 
-    fn qd_config() -> QdConfig {
-        let c = fluo::models::qd::QdConstants::default();
-        QdConfig {
-            radius: 2.2,
-            width: 15.0,
-            quantum_yield: 0.8,
-            density: 0.5,
-            ext_ior: 1.0,
-            lambda_min: 300.0,
-            lambda_max: 830.0,
-            ggx: true,
-            alpha: 0.1,
-            gap_energy: c.gap_energy,
-            elementary_charge: c.elementary_charge,
-            planck: c.planck,
-            light_speed: c.light_speed,
-            boltzmann: c.boltzmann,
-            electron_mass: c.electron_mass,
-            hole_mass: c.hole_mass,
-            vacuum_permittivity: c.vacuum_permittivity,
-            relative_permittivity: c.relative_permittivity,
-            temperature: c.temperature,
-            table_cos_nodes: fluo::models::qd::COS_NODES,
-            table_step: fluo::models::qd::TABLE_STEP_NM,
-        }
+    #[test]
+    fn jung_shares_one_model_with_its_generic_handle() {
+        let m = jung_new(&JungConfig { concentration: 0.5, ..config() }).unwrap();
+        assert_eq!(Arc::strong_count(&m.dye), 2);
+        assert_eq!(fluo_name(jung_fluorescence(&m)), "jung");
+    }
+
+    fn spectrum<'a>(wavelengths: &'a [f64], values: &'a [f64]) -> SampledSpectrum<'a> {
+        SampledSpectrum { wavelengths, values }
+    }
+
+    #[test]
+    fn qd_config_round_trips_through_the_core_params() {
+        let c = QdConfig { radius: 3.0, ggx: true, ..qd_default_config() };
+        let back = QdConfig::from(&qd::QdParams::from(&c));
+        assert!(back.radius == 3.0 && back.ggx && back.constants.temperature == c.constants.temperature);
     }
 
     #[test]
     fn qd_errors_cross_as_messages_and_slices_are_safe() {
-        let e = qd_new(&QdConfig { density: 2.0, ..qd_config() }, &[0.0], &[1.5], &[0.0], &[], &[], &[]).err().unwrap();
+        let (eta, k, none) = (spectrum(&[0.0], &[1.5]), spectrum(&[0.0], &[0.0]), spectrum(&[], &[]));
+        let e = qd_new(&QdConfig { density: 2.0, ..qd_default_config() }, &eta, &k, &none, &none).err().unwrap();
         assert!(e.contains("density") && e.contains("[0, 1]"), "{e}");
-        let e = qd_new(&qd_config(), &[400.0, 300.0], &[1.0, 1.0], &[1.0, 1.0], &[], &[], &[]).err().unwrap();
+        let unsorted = spectrum(&[400.0, 300.0], &[1.0, 1.0]);
+        let e = qd_new(&qd_default_config(), &unsorted, &unsorted, &none, &none).err().unwrap();
         assert!(e.contains("eta"), "{e}");
-        let e = qd_new(&qd_config(), &[0.0], &[1.5], &[0.0], &[400.0, 500.0], &[2.0, -1.0], &[0.1, 0.1]).err().unwrap();
+        let (qd_eta, qd_k) = (spectrum(&[400.0, 500.0], &[2.0, -1.0]), spectrum(&[400.0, 500.0], &[0.1, 0.1]));
+        let e = qd_new(&qd_default_config(), &eta, &k, &qd_eta, &qd_k).err().unwrap();
         assert!(e.contains("qd_eta"), "{e}");
-        let m = qd_new(&qd_config(), &[0.0], &[1.5], &[0.0], &[], &[], &[]).unwrap();
+        let m = qd_new(&qd_default_config(), &eta, &k, &none, &none).unwrap();
         let (mut r, mut p) = ([0.0f32; 2], [0.0f32; 4]);
         qd_elastic_coefficients(&m, 0.5, &[400.0, 500.0, 600.0], &mut r, &mut p);
         assert!(r[0] >= 0.0 && p[0] > 0.0 && p[0] <= 1.0 && p[2] == 0.0);
         assert_eq!(fluo_name(qd_fluorescence(&m)), "qd");
+        assert_eq!(Arc::strong_count(&m.coating), 2);
+    }
+
+    #[test]
+    fn substrate_eta_and_k_keep_their_own_grids() {
+        // k on a coarser grid than eta: Rust interpolates each on its own grid.
+        let eta = spectrum(&[300.0, 500.0, 700.0, 900.0], &[1.5, 1.2, 0.9, 0.6]);
+        let k = spectrum(&[300.0, 900.0], &[2.0, 8.0]);
+        let none = spectrum(&[], &[]);
+        let m = qd_new(&qd_default_config(), &eta, &k, &none, &none).unwrap();
+        let (mut r, mut p) = ([0.0f32; 1], [0.0f32; 1]);
+        qd_elastic_coefficients(&m, 0.8, &[600.0], &mut r, &mut p);
+        assert!(r[0].is_finite() && p[0] > 0.0 && p[0] <= 1.0);
     }
 }
