@@ -1,0 +1,203 @@
+"""Benchmark: what each fluorescent feature costs over its native counterpart, every
+row measured side by side in one run.
+
+Each row renders (or loads) two scenes A and B in the same process, interleaved in
+paired rounds (A then B, then B then A, ...), and reports the median of the per-round
+ratios A/B with their spread (min-max): on a shared 2-core machine a paired ratio is
+stable where absolute times are not. Rows and targets:
+
+====================================================  ==========================================  ======
+row                                                   A / B                                       target
+====================================================  ==========================================  ======
+fluorescent Cornell box, ``scalar_spectral``          ``fluo_path`` / ``path`` (``fluo_jung``)    1.10
+measured material, same box                           ``fluo_matrix`` / ``diffuse``               1.25
+Gaussian mixture (8)                                  ``fluo_gmm`` / ``fluo_matrix``              1.15
+quantum-dot coating (density 0.8)                     ``fluo_qd`` / ``roughconductor``           1.15
+reduced RGB ``x7``, ``scalar_rgb``                    ``fluo_path`` / ``path`` (dyes removed)     1.20
+spectral light on a plain box                         ``fluo_illuminant`` D65 / native ``d65``    1.01
+plain box + 1000 hidden fluorescent spheres           ``fluo_path`` (N = 1000) / ``path`` (N = 0)  1.15
+load of K coloured ``fluo_jung`` (``color``)          ms and MB per material (B: K = 0)           0.2 ms
+====================================================  ==========================================  ======
+
+The materials of the box rows replace the box's walls and blocks; the light is the
+box's area light with a D65 spectrum from 300 nm (``fluo_illuminant``), except in the
+``fluo_illuminant`` row. The measured material is ``data/matrices/jung_orange.csv`` and its
+8-component fit ``jung_orange.gmm.json``. Hidden spheres sit behind the back wall, each
+with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
+``fluo_path`` knows 1000 fluorescent BSDFs.
+
+Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from pathlib import Path
+
+import mitsuba as mi
+
+mi.set_variant("scalar_spectral")  # the scene dictionaries need a variant's types
+
+REPO = Path(__file__).resolve().parents[1]
+MATRICES = REPO / "data" / "matrices"
+D65 = {"type": "fluo_illuminant", "illuminant": "D65", "scale": 15.0}
+DYE = {"emission_peak": 560.0, "stokes_shift": 90.0, "concentration": 0.8}
+ROUGH = {"material": "Au", "distribution": "ggx", "alpha": 0.2}
+HIDDEN = 1000
+COLOURED = 16
+
+
+def box(res: int, integrator: str = "fluo_path", bsdf=None, light=D65, **integrator_props) -> dict:
+    """Mitsuba's Cornell box; ``bsdf(reflectance)`` gives the walls' and blocks' BSDF."""
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = res
+    d["sensor"]["film"]["rfilter"] = {"type": "box"}
+    d["integrator"] = {"type": integrator, "max_depth": 8, **integrator_props}
+    if bsdf is not None:
+        for key in ("white", "red", "green"):
+            d[key] = bsdf(d[key]["reflectance"])
+    if light is not None:
+        d["light"]["emitter"]["radiance"] = light
+    return d
+
+
+def jung(refl: dict) -> dict:
+    return {"type": "fluo_jung", "reflectance": refl, **DYE}
+
+
+def diffuse(refl: dict) -> dict:
+    return {"type": "diffuse", "reflectance": refl}
+
+
+def with_hidden_spheres(d: dict, n: int) -> dict:
+    for i in range(n):
+        d[f"hidden_{i}"] = {
+            "type": "sphere", "center": [-0.9 + 1.8 * (i % 32) / 31, -0.9 + 1.8 * (i // 32) / 31, -3.0],
+            "radius": 0.01,
+            "bsdf": {"type": "fluo_jung", "emission_peak": 500.0 + 0.1 * i, "concentration": 0.5}}
+    return d
+
+
+def paired(a, b, rounds: int) -> dict:
+    """Median and spread of t(a)/t(b) over interleaved rounds (a, b: callables)."""
+    a(), b()  # warm up (scene preparation, caches)
+    ratios, ta, tb = [], [], []
+    for r in range(rounds):
+        order = (a, b) if r % 2 == 0 else (b, a)
+        times = {}
+        for f in order:
+            t0 = time.perf_counter()
+            f()
+            times[f] = time.perf_counter() - t0
+        ta.append(times[a])
+        tb.append(times[b])
+        ratios.append(times[a] / times[b])
+    return {"ratio": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "a_s": statistics.median(ta), "b_s": statistics.median(tb)}
+
+
+def render_pair(variant: str, da: dict, db: dict, spp: int, rounds: int) -> dict:
+    mi.set_variant(variant)
+    import fluo  # noqa: F401  (registers the plugins)
+
+    sa, sb = mi.load_dict(da), mi.load_dict(db)
+    return paired(lambda: mi.render(sa, spp=spp, seed=1), lambda: mi.render(sb, spp=spp, seed=1), rounds)
+
+
+def rss_mb() -> float:
+    pages = int(Path("/proc/self/statm").read_text().split()[1])
+    return pages * 4096 / 2**20
+
+
+def load_row(res: int, rounds: int) -> dict:
+    """Per coloured fluo_jung: load time and resident memory over a box without them."""
+    mi.set_variant("scalar_spectral")
+    import fluo  # noqa: F401
+
+    def scene(k: int) -> dict:
+        d = box(res, bsdf=diffuse)
+        for i in range(k):  # distinct colours: one material each
+            d[f"ball_{i}"] = {"type": "sphere", "center": [0.0, 0.0, -5.0 - i], "radius": 0.1,
+                              "bsdf": {"type": "fluo_jung",
+                                       "color": {"type": "rgb", "value": [0.2 + 0.04 * i, 0.6, 0.3]}}}
+        return d
+
+    dk, d0 = scene(COLOURED), scene(0)
+    r = paired(lambda: mi.load_dict(dk), lambda: mi.load_dict(d0), rounds)
+    before = rss_mb()
+    kept = mi.load_dict(scene(COLOURED))
+    grown = rss_mb() - before
+    del kept
+    per_ms = (r["a_s"] - r["b_s"]) * 1e3 / COLOURED
+    return {**r, "per_material_ms": per_ms, "per_material_mb": grown / COLOURED}
+
+
+ROWS = {
+    "jung": ("fluorescent box: fluo_path / path (fluo_jung, spectral)", 1.10,
+             lambda a: render_pair("scalar_spectral", box(a.res, bsdf=jung), box(a.res, "path", bsdf=jung),
+                                   a.spp, a.rounds)),
+    "matrix": ("fluo_matrix / diffuse, same box", 1.25,
+               lambda a: render_pair("scalar_spectral",
+                                     box(a.res, bsdf=lambda r: {"type": "fluo_matrix",
+                                                                "filename": str(MATRICES / "jung_orange.csv")}),
+                                     box(a.res, bsdf=diffuse), a.spp, a.rounds)),
+    "gmm": ("fluo_gmm (8) / fluo_matrix", 1.15,
+            lambda a: render_pair("scalar_spectral",
+                                  box(a.res, bsdf=lambda r: {"type": "fluo_gmm",
+                                                             "filename": str(MATRICES / "jung_orange.gmm.json")}),
+                                  box(a.res, bsdf=lambda r: {"type": "fluo_matrix",
+                                                             "filename": str(MATRICES / "jung_orange.csv")}),
+                                  a.spp, a.rounds)),
+    "qd": ("fluo_qd (density 0.8) / roughconductor, fluo_path", 1.15,
+           lambda a: render_pair("scalar_spectral",
+                                 box(a.res, bsdf=lambda r: {"type": "fluo_qd", "density": 0.8, **ROUGH}),
+                                 box(a.res, bsdf=lambda r: {"type": "roughconductor", **ROUGH}),
+                                 a.spp, a.rounds)),
+    "reduced": ("reduced RGB x7 / path (dyes removed), fluorescent box", 1.20,
+                lambda a: render_pair("scalar_rgb", box(a.res, bsdf=jung, basis="x7"),
+                                      box(a.res, "path", bsdf=diffuse), a.spp, a.rounds)),
+    "illuminant": ("fluo_illuminant D65 / native d65, plain box (path)", 1.01,
+                   lambda a: render_pair("scalar_spectral",
+                                         box(a.res, "path", light={"type": "fluo_illuminant", "illuminant": "D65"}),
+                                         box(a.res, "path", light={"type": "d65"}), a.spp, a.rounds)),
+    "hidden": (f"plain box + {HIDDEN} hidden fluorescent spheres: fluo_path / path at N = 0", 1.15,
+               lambda a: render_pair("scalar_spectral", with_hidden_spheres(box(a.res, bsdf=diffuse), HIDDEN),
+                                     box(a.res, "path", bsdf=diffuse), a.spp, a.rounds)),
+    "load": (f"load: {COLOURED} coloured fluo_jung / none (ms, MB per material)", 0.2,
+             lambda a: load_row(a.res, a.rounds)),
+}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--res", type=int, default=96)
+    ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated subset of {', '.join(ROWS)}")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args()
+    if a.rounds < 5:
+        ap.error("--rounds must be at least 5 (median of paired rounds)")
+    results = []
+    for key in a.rows.split(","):
+        label, target, run = ROWS[key]
+        r = run(a)
+        results.append({"row": key, "label": label, "target": target, **r})
+        if not a.json:
+            if key == "load":
+                print(f"{label:70s} +{r['per_material_ms']:.2f} ms, +{r['per_material_mb']:.2f} MB "
+                      f"(target <= {target} ms; load ratio {r['ratio']:.2f})", flush=True)
+            else:
+                print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] (target <= {target:.2f})",
+                      flush=True)
+    if a.json:
+        print(json.dumps({"machine": platform.machine(), "spp": a.spp, "res": a.res, "rounds": a.rounds,
+                          "results": results}))
+
+
+if __name__ == "__main__":
+    main()
