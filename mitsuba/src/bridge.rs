@@ -78,6 +78,12 @@ mod bridge {
         z: f64,
     }
 
+    extern "Rust" {
+        /// Record a plugin the library registers with Mitsuba (`kind`: `bsdf`,
+        /// `integrator`, `texture`), for `fluo_plugin_list`.
+        fn note_plugin(name: &str, kind: &str);
+    }
+
     // -------------------------------------------------------------- fluo_illuminant
 
     extern "Rust" {
@@ -1062,6 +1068,29 @@ fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]) 
 #[no_mangle]
 pub extern "C" fn fluo_plugins_built() -> u32 {
     1
+}
+
+/// The plugins registered so far, as `name:kind` pairs (the shims register themselves
+/// when the library is loaded).
+static PLUGINS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+static PLUGIN_LIST: std::sync::OnceLock<std::ffi::CString> = std::sync::OnceLock::new();
+
+fn note_plugin(name: &str, kind: &str) {
+    if let Ok(mut list) = PLUGINS.lock() {
+        list.push(format!("{name}:{kind}"));
+    }
+}
+
+/// Every plugin the library registered, one `name:kind` per line (read once, after
+/// loading, by `fluo.PLUGINS`): the names are written once, in the shims.
+#[no_mangle]
+pub extern "C" fn fluo_plugin_list() -> *const std::ffi::c_char {
+    PLUGIN_LIST
+        .get_or_init(|| {
+            let text = PLUGINS.lock().map(|l| l.join("\n")).unwrap_or_default();
+            std::ffi::CString::new(text).unwrap_or_default()
+        })
+        .as_ptr()
 }
 
 #[cfg(test)]

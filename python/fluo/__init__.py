@@ -46,6 +46,7 @@ from pathlib import Path
 __all__ = [
     "BUILT_FOR",
     "PLUGINS",
+    "PLUGIN_KINDS",
     "data_dir",
     "in_checkout",
     "library_path",
@@ -55,9 +56,6 @@ __all__ = [
     "scenes_dir",
     "tool_path",
 ]
-
-#: Names of the Mitsuba plugins that ``libfluo_mitsuba.so`` registers (``type="..."`` in XML).
-PLUGINS: tuple[str, ...] = ("fluo_jung", "fluo_path", "fluo_illuminant", "fluo_qd", "fluo_matrix", "fluo_gmm")
 
 #: Environment variable overriding the plugin library location.
 LIBRARY_ENV = "FLUO_LIBRARY"
@@ -235,3 +233,18 @@ def _load_library() -> ctypes.CDLL:
 # Survives importlib.reload(): the module dict is reused, so the handle is kept.
 _LIBRARY: ctypes.CDLL | None = globals().get("_LIBRARY")
 _LIBRARY = _load_library()
+
+
+def _registered() -> dict[str, str]:
+    """name -> kind (``bsdf``, ``integrator``, ``texture``) of every plugin the library
+    registered, as its shims recorded them when it was loaded."""
+    listing = _LIBRARY.fluo_plugin_list
+    listing.restype = ctypes.c_char_p
+    pairs = (line.split(":", 1) for line in (listing() or b"").decode().split())
+    return dict(sorted((name, kind) for name, kind in pairs))
+
+
+#: Kind of each Mitsuba plugin ``libfluo_mitsuba.so`` registers, by ``type="..."`` name.
+PLUGIN_KINDS: dict[str, str] = _registered()
+#: Names of the Mitsuba plugins ``libfluo_mitsuba.so`` registers (``type="..."`` in XML).
+PLUGINS: tuple[str, ...] = tuple(PLUGIN_KINDS)

@@ -35,8 +35,11 @@ import json
 import re
 from pathlib import Path
 
-#: Names of fluo's fluorescent BSDF plugins (``type="..."`` in XML).
-FLUORESCENT_BSDFS = ("fluo_jung", "fluo_matrix", "fluo_gmm", "fluo_qd")
+from . import PLUGIN_KINDS
+
+#: Names of fluo's fluorescent BSDF plugins (``type="..."`` in XML): every BSDF the
+#: plugin library registers.
+FLUORESCENT_BSDFS = tuple(name for name, kind in PLUGIN_KINDS.items() if kind == "bsdf")
 
 _INCLUDE = re.compile(r'<include\s+filename="([^"]*)"\s*/>')
 _DEFAULT = re.compile(r'\s*<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')

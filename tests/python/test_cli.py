@@ -171,6 +171,17 @@ def test10_plugins_registered_in_any_import_order(variant_first):
     assert proc.returncode == 0 and proc.stdout.strip() == "ok", proc.stdout + proc.stderr
 
 
+def test11_plugin_list_comes_from_the_library(fluo_module):
+    """fluo.PLUGINS and the fluorescent BSDFs are what the shims registered, once each."""
+    from fluo.scenes import FLUORESCENT_BSDFS
+
+    assert fluo_module.PLUGIN_KINDS == {
+        "fluo_gmm": "bsdf", "fluo_illuminant": "texture", "fluo_jung": "bsdf", "fluo_matrix": "bsdf",
+        "fluo_path": "integrator", "fluo_qd": "bsdf"}
+    assert fluo_module.PLUGINS == tuple(sorted(fluo_module.PLUGIN_KINDS))
+    assert set(FLUORESCENT_BSDFS) == {"fluo_gmm", "fluo_jung", "fluo_matrix", "fluo_qd"}
+
+
 # ------------------------------------------------------------- user errors: one line
 
 

@@ -128,6 +128,9 @@ inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
 /// Register plugin class template T for the two scalar variants.
 template <template <typename, typename> class T>
 void register_scalar_plugin(const char *name, ObjectType type) {
+    fluo::note_plugin(name, type == ObjectType::BSDF ? "bsdf"
+                            : type == ObjectType::Integrator ? "integrator"
+                                                             : "texture");
     PluginManager *pm = PluginManager::instance();
     pm->register_plugin(
         name, "scalar_rgb", type,
