@@ -56,12 +56,19 @@
 //! and b exchanged, on [max(lo, λi_min), min(hi, λo, λi_max)].
 //!
 //! # Numerical notes
-//! All weights and masses are kept as logarithms: when λi is near the top of the range
+//! Weights and masses are scaled in logarithms: when λi is near the top of the range
 //! and almost no mass of any component lies above it (M_k ≈ 1e-40 or far smaller), the
-//! conditional is still normalised exactly. The truncated-normal CDF uses log Q(z) (Q the
-//! upper tail), computed from erfc by its series below [`ERF_SERIES_MAX`] and from the
-//! continued fraction of the scaled erfcx above (relative accuracy ~1e-11 at all z);
-//! its inversion is a safeguarded Newton iteration, bounded by [`MAX_NEWTON_ITERATIONS`].
+//! conditional is still normalised exactly. Each π_k N M_k is e^{l_k} f_k with l_k the
+//! log of the nearer tail and f_k ∈ [0, 1] (by expm1), so the weights cost one exp each
+//! and no log. The truncated-normal CDF uses log Q(z) (Q the upper tail), computed from
+//! erfc by its series below [`ERF_SERIES_MAX`] and from the continued fraction of the
+//! scaled erfcx above (relative accuracy ~1e-11 at all z), tabulated on the hot path; its
+//! inversion (central intervals too, in the smaller tail) is a safeguarded Newton
+//! iteration from Acklam's quantile approximation, bounded by [`MAX_NEWTON_ITERATIONS`].
+//! A conditional lives in fixed-size arrays ([`MAX_COMPONENTS`]): nothing is allocated
+//! at render time. A conditional mass whose value underflows is reported as
+//! [`f64::MIN_POSITIVE`] where the interval is not empty, so that it is positive exactly
+//! where the integral is (what a path tracer choosing the shifted event needs).
 //!
 //! # References
 //! Q. Hua, V. Tázlar, A. Fichet, A. Wilkie, "Efficient Storage and Importance Sampling
@@ -112,6 +119,9 @@ const LOG_Q_TABLE_STEP: f64 = 1.0 / 64.0;
 const TAIL_NEGLIGIBLE: f64 = 40.0;
 /// Components whose conditional weight is below e^−this of the largest are skipped.
 const LN_NEGLIGIBLE: f64 = 45.0;
+/// Smallest conditional mass reported where the exact one is positive (where the
+/// interval is not empty): a path tracer needs shift_albedo > 0 exactly there.
+const MIN_POSITIVE_MASS: f64 = f64::MIN_POSITIVE;
 /// `format` field of a fit file.
 pub const FORMAT: &str = "fluo-gmm";
 
@@ -183,8 +193,8 @@ pub fn log_q(z: f64) -> f64 {
         return log_q_direct(z);
     }
     let t = log_q_table();
-    let u = (z + LOG_Q_TABLE_MAX) / LOG_Q_TABLE_STEP;
-    let i = (u.floor() as usize).min(t.len() - 2);
+    let u = (z + LOG_Q_TABLE_MAX) / LOG_Q_TABLE_STEP; // > 0: truncation is floor
+    let i = (u as usize).min(t.len() - 2);
     let s = u - i as f64;
     let (y0, d0) = t[i];
     let (y1, d1) = t[i + 1];
@@ -220,11 +230,6 @@ pub fn log_q_direct(z: f64) -> f64 {
     }
 }
 
-/// Φ(z), the standard normal CDF.
-fn norm_cdf(z: f64) -> f64 {
-    0.5 * erfc(-z * std::f64::consts::FRAC_1_SQRT_2)
-}
-
 /// ln φ(z).
 fn log_phi(z: f64) -> f64 {
     -0.5 * z * z - LN_SQRT_2PI
@@ -235,22 +240,30 @@ pub fn log_std_mass(a: f64, b: f64) -> f64 {
     if !(b > a) {
         return f64::NEG_INFINITY;
     }
+    let (ln_tail, fraction) = std_mass_parts(a, b);
+    ln_tail + fraction.ln()
+}
+
+/// ∫_a^b φ = e^l · f for a < b, as (l, f) with f ∈ [0, 1]: l = ln Q(a) and
+/// f = 1 − Q(b)/Q(a) (by expm1, accurate for short intervals) when 0 ≤ a, mirrored when
+/// b ≤ 0, and l = 0, f = 1 − Q(b) − Q(−a) for a central interval. Kept apart so that a
+/// mixture can weight its components with one exp each and without a log.
+fn std_mass_parts(a: f64, b: f64) -> (f64, f64) {
     // Tails beyond e^−TAIL_NEGLIGIBLE are below f64 resolution and need no erfc:
     // Q(b)/Q(a) ≤ e^{−(b²−a²)/2} for 0 ≤ a < b (erfcx decreases), Q(z) ≤ e^{−z²/2}/2.
     let far = |e: f64| e > TAIL_NEGLIGIBLE;
     if a >= 0.0 {
         let la = log_q(a);
         if far(0.5 * (b - a) * (b + a)) {
-            return la;
+            return (la, 1.0);
         }
-        let lb = log_q(b);
-        la + (-(lb - la).exp()).ln_1p()
+        (la, -(log_q(b) - la).exp_m1())
     } else if b <= 0.0 {
-        log_std_mass(-b, -a)
+        std_mass_parts(-b, -a)
     } else {
         // 1 − Q(b) − Q(−a), both tails < 1/2.
         let tail = |z: f64| if far(0.5 * z * z) { 0.0 } else { log_q(z).exp() };
-        (-(tail(b) + tail(-a))).ln_1p()
+        (0.0, 1.0 - (tail(b) + tail(-a)))
     }
 }
 
@@ -262,34 +275,84 @@ pub fn sample_std_truncated(a: f64, b: f64, u: f64) -> f64 {
     } else if b <= 0.0 {
         -sample_upper_tail(-b, -a, 1.0 - u)
     } else {
-        // Central interval: solve Φ(x) = Φ(a) + u (Φ(b) − Φ(a)).
-        let (fa, fb) = (norm_cdf(a), norm_cdf(b));
-        let target = fa + u * (fb - fa);
-        newton_bracketed(a, b, |x| (norm_cdf(x) - target, log_phi(x).exp()))
+        // Central interval: Φ(x) = Φ(a) + u m with m = 1 − Q(−a) − Q(b) (both tails < 1/2,
+        // no cancellation). Solved in the smaller tail: Q(−x) = Φ(x) when x ≤ 0, else
+        // Q(x) = Q(b) + (1 − u) m, with the same ln Q as the tails and the masses.
+        let (qa, qb) = (log_q(-a).exp(), log_q(b).exp());
+        let m = 1.0 - qa - qb;
+        let (below, above) = (qa + u * m, qb + (1.0 - u) * m);
+        if below <= above {
+            -solve_log_q(0.0, -a, below.ln())
+        } else {
+            solve_log_q(0.0, b, above.ln())
+        }
     }
 }
 
 /// Sample on [a, b] ⊂ [0, ∞) by solving ln Q(x) = ln[Q(a) − u (Q(a) − Q(b))] in logs.
 fn sample_upper_tail(a: f64, b: f64, u: f64) -> f64 {
     let (la, lb) = (log_q(a), log_q(b));
-    let r = (lb - la).exp(); // Q(b)/Q(a) ∈ [0, 1)
-    let target = la + (-u * (1.0 - r)).ln_1p();
-    // g(x) = ln Q(x) − target, decreasing; g' = −φ(x)/Q(x).
-    newton_bracketed(a, b, |x| {
+    // Q(b)/Q(a) − 1 = expm1(lb − la) ∈ (−1, 0]
+    solve_log_q(a, b, la + (u * (lb - la).exp_m1()).ln_1p())
+}
+
+/// The x in [a, b] ⊂ [0, ∞) with ln Q(x) = `target` (clamped to [a, b] when outside).
+fn solve_log_q(a: f64, b: f64, target: f64) -> f64 {
+    // g(x) = target − ln Q(x), increasing; g' = φ(x)/Q(x).
+    newton_bracketed(a, b, upper_quantile_guess(target), |x| {
         let lq = log_q(x);
         (target - lq, (log_phi(x) - lq).exp())
     })
 }
 
-/// Safeguarded Newton for an increasing f on [a, b] with f(a) ≤ 0 ≤ f(b); `fd` returns
-/// (f(x), f'(x)). Bounded by [`MAX_NEWTON_ITERATIONS`]; falls back to bisection.
-fn newton_bracketed(a: f64, b: f64, fd: impl Fn(f64) -> (f64, f64)) -> f64 {
-    let (mut lo, mut hi) = (a, b);
-    let mut x = 0.5 * (a + b);
-    // Start from the tail end when the interval is long: the mass sits near it.
-    if a >= 0.0 && b - a > 1.0 {
-        x = a + 0.5 / a.max(1.0);
+/// x with Q(x) ≈ e^`ln_p`, by P. J. Acklam's rational approximation of the normal
+/// quantile (relative error below 1.2e-9): the start of Newton's iteration, which then
+/// needs about two steps.
+fn upper_quantile_guess(ln_p: f64) -> f64 {
+    const A: [f64; 6] = [
+        -39.696_830_286_653_76,
+        220.946_098_424_520_5,
+        -275.928_510_446_968_7,
+        138.357_751_867_269,
+        -30.664_798_066_147_16,
+        2.506_628_277_459_239,
+    ];
+    const B: [f64; 5] = [
+        -54.476_098_798_224_06,
+        161.585_836_858_040_9,
+        -155.698_979_859_886_6,
+        66.801_311_887_719_72,
+        -13.280_681_552_885_72,
+    ];
+    const C: [f64; 6] = [
+        -7.784_894_002_430_293e-3,
+        -0.322_396_458_041_136_5,
+        -2.400_758_277_161_838,
+        -2.549_732_539_343_734,
+        4.374_664_141_464_968,
+        2.938_163_982_698_783,
+    ];
+    const D: [f64; 4] =
+        [7.784_695_709_041_462e-3, 0.322_467_129_070_039_8, 2.445_134_137_142_996, 3.754_408_661_907_416];
+    /// Below this p the tail form is used.
+    const P_LOW: f64 = 0.024_25;
+    let poly = |c: &[f64], x: f64| c.iter().fold(0.0, |acc, &k| acc * x + k);
+    if ln_p < P_LOW.ln() {
+        let q = (-2.0 * ln_p).sqrt();
+        -poly(&C, q) / (poly(&D, q) * q + 1.0)
+    } else {
+        let q = ln_p.exp() - 0.5;
+        let r = q * q;
+        -poly(&A, r) * q / (poly(&B, r) * r + 1.0)
     }
+}
+
+/// Safeguarded Newton for an increasing f on [a, b] with f(a) ≤ 0 ≤ f(b), from `start`
+/// (the midpoint when it is not in [a, b]); `fd` returns (f(x), f'(x)). Bounded by
+/// [`MAX_NEWTON_ITERATIONS`]; falls back to bisection.
+fn newton_bracketed(a: f64, b: f64, start: f64, fd: impl Fn(f64) -> (f64, f64)) -> f64 {
+    let (mut lo, mut hi) = (a, b);
+    let mut x = if start >= a && start <= b { start } else { 0.5 * (a + b) };
     for _ in 0..MAX_NEWTON_ITERATIONS {
         let (f, d) = fd(x);
         if f > 0.0 {
@@ -306,12 +369,6 @@ fn newton_bracketed(a: f64, b: f64, fd: impl Fn(f64) -> (f64, f64)) -> f64 {
         x = next;
     }
     x.clamp(a, b)
-}
-
-/// ln N(x | μ, v) (v a variance).
-fn log_normal(x: f64, mu: f64, var: f64) -> f64 {
-    let d = x - mu;
-    -0.5 * d * d / var - 0.5 * var.ln() - LN_SQRT_2PI
 }
 
 /// ln Σ exp(v).
@@ -440,21 +497,43 @@ impl GmmFile {
 
 // ------------------------------------------------------------------ the model
 
-/// A component with its derived ("baked") conditional parameters.
+/// A component with its derived ("baked") conditional parameters. Pairs are indexed by
+/// the given axis g (0: λi given, 1: λo given); f is the other one.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct Baked {
     ln_w: f64,
     mu: [f64; 2],
-    /// σaa, σbb.
-    var: [f64; 2],
-    /// σab/σaa (b given a) and σab/σbb (a given b).
+    /// ln π − ½ ln σgg − ln √(2π): ln π N(x | μg, σgg) = this − ½ (x − μg)²/σgg.
+    ln_marginal: [f64; 2],
+    /// 1/σgg.
+    inv_var: [f64; 2],
+    /// σab/σgg: the conditional mean is μf + slope (x − μg) (eq. 9).
     slope: [f64; 2],
-    /// v_{b|a}, v_{a|b}.
-    cond_var: [f64; 2],
+    /// √v_{f|g}, the conditional's standard deviation.
+    cond_sd: [f64; 2],
+    /// 1/√v_{f|g}.
+    inv_cond_sd: [f64; 2],
+    /// −ln √v_{f|g} − ln √(2π), the conditional's log normaliser.
+    ln_cond_norm: [f64; 2],
     /// ln of the 2-D normaliser: −ln(2π √det).
     ln_norm2: f64,
     /// Σ⁻¹ entries (τaa, τab, τbb).
     inv: [f64; 3],
+}
+
+/// The conditional mixture at one value x of the given wavelength, on an interval
+/// [a, b] of the other, in fixed-size arrays (no allocation): per component k its
+/// ln π_k N(x | μg, σgg), conditional mean, and weight w_k = π_k N(x | μg, σgg) M_k
+/// relative to a common scale near the largest (so that they do not underflow together).
+struct Slice {
+    n: usize,
+    ln_marginal: [f64; MAX_COMPONENTS],
+    mean: [f64; MAX_COMPONENTS],
+    w: [f64; MAX_COMPONENTS],
+    /// Σ_k w_k.
+    sum: f64,
+    /// ln Σ_k π_k N(x | μg, σgg) M_k; −∞ when no mass is left.
+    ln_total: f64,
 }
 
 /// The baked `fluo_gmm` model (see the module docs).
@@ -560,12 +639,17 @@ impl GmmModel {
                     "symmetric positive definite",
                 ));
             }
+            let ln_w = if c.weight > 0.0 { c.weight.ln() } else { f64::NEG_INFINITY };
+            let cond_sd = [(det / aa).sqrt(), (det / bb).sqrt()];
             comps.push(Baked {
-                ln_w: if c.weight > 0.0 { c.weight.ln() } else { f64::NEG_INFINITY },
+                ln_w,
                 mu: c.mean,
-                var: [aa, bb],
+                ln_marginal: [aa, bb].map(|v| ln_w - 0.5 * v.ln() - LN_SQRT_2PI),
+                inv_var: [1.0 / aa, 1.0 / bb],
                 slope: [ab / aa, ab / bb],
-                cond_var: [det / aa, det / bb],
+                cond_sd,
+                inv_cond_sd: cond_sd.map(|sd| 1.0 / sd),
+                ln_cond_norm: cond_sd.map(|sd| -sd.ln() - LN_SQRT_2PI),
                 ln_norm2: -(2.0 * LN_SQRT_2PI) - 0.5 * det.ln(),
                 inv: [bb / det, -ab / det, aa / det],
             });
@@ -620,12 +704,13 @@ impl GmmModel {
 
     /// The mixture density p(λi, λo) (eq. 1), untruncated, nm⁻².
     pub fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
-        log_sum_exp(self.comps.iter().map(|c| {
+        let mut ln_p = [f64::NEG_INFINITY; MAX_COMPONENTS];
+        for (l, c) in ln_p.iter_mut().zip(&self.comps) {
             let (da, db) = (lambda_i - c.mu[0], lambda_o - c.mu[1]);
             let q = c.inv[0] * da * da + 2.0 * c.inv[1] * da * db + c.inv[2] * db * db;
-            c.ln_w + c.ln_norm2 - 0.5 * q
-        }))
-        .exp()
+            *l = c.ln_w + c.ln_norm2 - 0.5 * q;
+        }
+        log_sum_exp(ln_p[..self.comps.len()].iter().copied()).exp()
     }
 
     fn in_domain(&self, lambda_i: f64, lambda_o: f64) -> bool {
@@ -652,34 +737,59 @@ impl GmmModel {
         }
     }
 
-    /// Per component: (ln[π N(x | μ_g, σ_gg) M_k], conditional mean, conditional sd) on [lo, hi].
+    /// The conditional mixture given x on [a, b] (see [`Slice`]).
     ///
-    /// M_k needs two erfc evaluations, so components are visited by decreasing marginal
-    /// weight and M_k is skipped (the entry set to −∞) once ln π N < (best so far) −
-    /// [`LN_NEGLIGIBLE`]: since M_k ≤ 1, such a component changes the total by less than
-    /// e^−45 relative, below f64 resolution.
-    fn conditional(&self, given: Given, x: f64, lo: f64, hi: f64) -> Vec<(f64, f64, f64)> {
+    /// M_k needs two ln Q evaluations, so it is computed first for the component of
+    /// largest ln π N(x | μg, σgg), and skipped for any other (its weight set to 0) when
+    /// ln π N < ln(π N M of that first one) − [`LN_NEGLIGIBLE`]: since M_k ≤ 1, such a
+    /// component changes the total by less than e^−45 relative, below f64 resolution.
+    /// The weights then cost one exp each: w_k = f_k e^{ln π N + l_k − scale}, with
+    /// (l_k, f_k) from `std_mass_parts` and scale the largest ln π N + l_k.
+    fn slice(&self, given: Given, x: f64, a: f64, b: f64) -> Slice {
         let (g, f) = (given as usize, 1 - given as usize);
-        let mut out: Vec<(f64, f64, f64)> = self
-            .comps
-            .iter()
-            .map(|c| {
-                (c.ln_w + log_normal(x, c.mu[g], c.var[g]), c.mu[f] + c.slope[g] * (x - c.mu[g]), c.cond_var[g].sqrt())
-            })
-            .collect();
-        let mut order: Vec<usize> = (0..out.len()).collect();
-        order.sort_unstable_by(|&a, &b| out[b].0.total_cmp(&out[a].0));
-        let mut best = f64::NEG_INFINITY;
-        for k in order {
-            let (lw, m, sd) = out[k];
-            if !(lw >= best - LN_NEGLIGIBLE) {
-                out[k].0 = f64::NEG_INFINITY;
-                continue;
+        let n = self.comps.len();
+        let mut s = Slice {
+            n,
+            ln_marginal: [0.0; MAX_COMPONENTS],
+            mean: [0.0; MAX_COMPONENTS],
+            w: [0.0; MAX_COMPONENTS],
+            sum: 0.0,
+            ln_total: f64::NEG_INFINITY,
+        };
+        let mut top = 0;
+        for (k, c) in self.comps.iter().enumerate() {
+            let d = x - c.mu[g];
+            s.ln_marginal[k] = c.ln_marginal[g] - 0.5 * d * d * c.inv_var[g];
+            s.mean[k] = c.mu[f] + c.slope[g] * d;
+            if s.ln_marginal[k] > s.ln_marginal[top] {
+                top = k;
             }
-            out[k].0 = lw + log_std_mass((lo - m) / sd, (hi - m) / sd);
-            best = best.max(out[k].0);
         }
-        out
+        // π N M = e^{ln π N + l} f (see `std_mass_parts`).
+        let mut ln_part = [f64::NEG_INFINITY; MAX_COMPONENTS];
+        let parts = |k: usize| {
+            let (m, r) = (s.mean[k], self.comps[k].inv_cond_sd[g]);
+            let (l, fraction) = std_mass_parts((a - m) * r, (b - m) * r);
+            (s.ln_marginal[k] + l, fraction)
+        };
+        let mut fraction = [0.0; MAX_COMPONENTS];
+        (ln_part[top], fraction[top]) = parts(top);
+        let best = ln_part[top] + fraction[top].ln();
+        for k in (0..n).filter(|&k| k != top) {
+            if s.ln_marginal[k] >= best - LN_NEGLIGIBLE {
+                (ln_part[k], fraction[k]) = parts(k);
+            }
+        }
+        let scale = ln_part[..n].iter().fold(f64::NEG_INFINITY, |m, &l| m.max(l));
+        if !scale.is_finite() {
+            return s;
+        }
+        for ((w, l), f) in s.w[..n].iter_mut().zip(&ln_part).zip(&fraction) {
+            *w = f * (l - scale).exp();
+            s.sum += *w;
+        }
+        s.ln_total = scale + s.sum.ln();
+        s
     }
 
     fn given_ok(&self, given: Given, x: f64) -> bool {
@@ -687,7 +797,9 @@ impl GmmModel {
         self.is_fluorescent() && x >= r[0] && x <= r[1]
     }
 
-    /// ∫ P over the free wavelength in [lo, hi] ∩ its domain.
+    /// ∫ P over the free wavelength in [lo, hi] ∩ its domain; at least
+    /// [`MIN_POSITIVE_MASS`] wherever that interval is not empty (where the exact
+    /// integral is positive), even when the value itself underflows.
     fn conditional_mass(&self, given: Given, x: f64, lo: f64, hi: f64) -> f64 {
         if !self.given_ok(given, x) {
             return 0.0;
@@ -696,8 +808,11 @@ impl GmmModel {
         if !(b > a) {
             return 0.0;
         }
-        let c = self.conditional(given, x, a, b);
-        self.file.scale * log_sum_exp(c.iter().map(|t| t.0)).exp()
+        let ln_total = self.slice(given, x, a, b).ln_total;
+        if !ln_total.is_finite() {
+            return 0.0;
+        }
+        (self.file.scale * ln_total.exp()).max(MIN_POSITIVE_MASS)
     }
 
     fn sample(&self, given: Given, x: f64, xi: f64, lo: f64, hi: f64) -> Option<(f64, f64)> {
@@ -708,18 +823,19 @@ impl GmmModel {
         if !(b > a) {
             return None;
         }
-        let c = self.conditional(given, x, a, b);
-        let total = log_sum_exp(c.iter().map(|t| t.0));
-        if !total.is_finite() {
+        let s = self.slice(given, x, a, b);
+        if !s.ln_total.is_finite() {
             return None;
         }
         // Component choice (Algorithm 1, corrected): first k with ξ < Σ_{≤k} w.
+        let g = given as usize;
         let xi = xi.clamp(0.0, 1.0);
+        let inv_sum = 1.0 / s.sum;
         let mut acc = 0.0;
         let mut pick = None;
-        for (k, t) in c.iter().enumerate() {
-            let w = (t.0 - total).exp();
-            if w > 0.0 && (xi < acc + w || k == c.len() - 1) {
+        for (k, &w) in s.w[..s.n].iter().enumerate() {
+            let w = w * inv_sum;
+            if w > 0.0 && (xi < acc + w || k == s.n - 1) {
                 pick = Some((k, ((xi - acc) / w).clamp(0.0, 1.0)));
                 break;
             }
@@ -728,24 +844,27 @@ impl GmmModel {
         let (k, u) = match pick {
             Some(p) => p,
             // Rounding left ξ above the last positive weight: take that component.
-            None => c.iter().enumerate().rev().find(|(_, t)| t.0.is_finite()).map(|(k, _)| (k, 1.0))?,
+            None => (s.w[..s.n].iter().rposition(|&w| w > 0.0)?, 1.0),
         };
-        let (_, m, sd) = c[k];
-        let z = sample_std_truncated((a - m) / sd, (b - m) / sd, u);
-        let v = (m + sd * z).clamp(a, b);
-        let pdf = self.conditional_pdf_with(given, x, v, &c, total);
+        let (m, c) = (s.mean[k], &self.comps[k]);
+        let z = sample_std_truncated((a - m) * c.inv_cond_sd[g], (b - m) * c.inv_cond_sd[g], u);
+        let v = (m + c.cond_sd[g] * z).clamp(a, b);
+        let pdf = self.slice_pdf(given, &s, v);
         (pdf > 0.0 && pdf.is_finite()).then_some((v, pdf))
     }
 
-    fn conditional_pdf_with(&self, given: Given, x: f64, v: f64, c: &[(f64, f64, f64)], total: f64) -> f64 {
+    /// pdf(v | x) = Σ_k π_k N(x | μg, σgg) N(v | mean_k, v_{f|g}) / Σ_k π_k N(x | μg, σgg) M_k.
+    fn slice_pdf(&self, given: Given, s: &Slice, v: f64) -> f64 {
         let g = given as usize;
-        let num = log_sum_exp(
-            self.comps
-                .iter()
-                .zip(c)
-                .map(|(k, t)| k.ln_w + log_normal(x, k.mu[g], k.var[g]) + log_normal(v, t.1, t.2 * t.2)),
-        );
-        (num - total).exp()
+        self.comps
+            .iter()
+            .zip(&s.ln_marginal[..s.n])
+            .zip(&s.mean[..s.n])
+            .map(|((c, lm), m)| {
+                let z = (v - m) * c.inv_cond_sd[g];
+                (lm + c.ln_cond_norm[g] - 0.5 * z * z - s.ln_total).exp()
+            })
+            .sum()
     }
 
     fn pdf(&self, given: Given, x: f64, v: f64, lo: f64, hi: f64) -> f64 {
@@ -756,12 +875,11 @@ impl GmmModel {
         if !(b > a && v >= a && v <= b) {
             return 0.0;
         }
-        let c = self.conditional(given, x, a, b);
-        let total = log_sum_exp(c.iter().map(|t| t.0));
-        if !total.is_finite() {
+        let s = self.slice(given, x, a, b);
+        if !s.ln_total.is_finite() {
             return 0.0;
         }
-        self.conditional_pdf_with(given, x, v, &c, total)
+        self.slice_pdf(given, &s, v)
     }
 
     /// ∫ P(λi, λo) dλo over the domain: the reradiated albedo at λi.
@@ -801,16 +919,16 @@ impl GmmModel {
             if !(b > a) {
                 return 0.0;
             }
-            let c = self.conditional(Given::LambdaI, li, a, b);
-            log_sum_exp(c.iter().map(|t| t.0)).exp()
+            self.slice(Given::LambdaI, li, a, b).ln_total.exp()
         })
     }
 
     /// Floats held at render time: the diagonal, S, the domain, and per component the
     /// 7 stored numbers plus the baked conditionals.
     pub fn floats_at_render_time(&self) -> usize {
-        // Baked: ln w, μ (2), var (2), slope (2), cond var (2), ln norm, inverse (3) = 13.
-        2 * self.file.diagonal.values.len() + 1 + 4 + 13 * self.comps.len()
+        // Baked: ln w, μ (2), and per axis ln marginal, 1/var, slope, sd, 1/sd, ln norm
+        // (2 each), ln norm, inverse (3) = 19.
+        2 * self.file.diagonal.values.len() + 1 + 4 + 19 * self.comps.len()
     }
 }
 
@@ -1358,6 +1476,11 @@ mod tests {
         let rate = (li - 450.0) / 100.0; // per nm
         let want = li + (2.0f64).ln() / rate;
         assert!((x_med - want).abs() < 1e-3, "{x_med} vs {want}");
+        // λi | λo on [770, 780]: ~e^-1200, below f64, yet positive, and it samples.
+        let mass = m.absorbed_into(780.0, 770.0, 830.0);
+        assert!(mass > 0.0 && mass <= f64::MIN_POSITIVE, "{mass}");
+        assert!(m.sample_excitation(780.0, 0.5, 770.0, 830.0).is_some());
+        assert_eq!(m.absorbed_into(780.0, 785.0, 830.0), 0.0);
     }
 
     #[test]
