@@ -58,7 +58,9 @@
 //! # Numerical notes
 //! Tables are f64; the cell quadratic is solved in the cancellation-free form
 //! u = 2Δ / (f0 + √(f0² + 2mΔ)). Grids must be strictly increasing with at least
-//! [`MIN_GRID_POINTS`] points and two common (diagonal) wavelengths.
+//! [`MIN_GRID_POINTS`] points and two common (diagonal) wavelengths. Uniform grids (BFC
+//! files are 10 nm) are detected at load and their cells indexed directly; irregular
+//! ones are bisected (the same cell either way).
 //!
 //! # References
 //! R. Donaldson, "Spectrophotometry of fluorescent pigments", Br. J. Appl. Phys. 5, 1954.
@@ -69,6 +71,7 @@
 use std::fmt;
 use std::path::{Path, PathBuf};
 
+use crate::spectrum::GridIndex;
 use crate::{Error, Result};
 
 /// Fewest grid points along either wavelength axis.
@@ -604,14 +607,14 @@ pub fn write_exr(d: &Donaldson, path: &Path) -> Result<()> {
     Image::from_layer(layer).write().to_file(path).map_err(|e| Error::Io(format!("{}: {e}", path.display())))
 }
 
-/// Locate `x` on a strictly increasing grid: (cell index, fraction in [0, 1]); `None`
-/// outside `[g_0, g_last]`.
-fn locate(g: &[f64], x: f64) -> Option<(usize, f64)> {
+/// Locate `x` on a strictly increasing grid with its [`GridIndex`]: (cell index,
+/// fraction in [0, 1]); `None` outside `[g_0, g_last]`.
+fn locate(g: &[f64], index: GridIndex, x: f64) -> Option<(usize, f64)> {
     let n = g.len();
     if !(x >= g[0] && x <= g[n - 1]) {
         return None;
     }
-    let j = g.partition_point(|&y| y <= x).clamp(1, n - 1) - 1;
+    let j = index.cell(g, x);
     Some((j, ((x - g[j]) / (g[j + 1] - g[j])).clamp(0.0, 1.0)))
 }
 
@@ -637,6 +640,7 @@ impl Tab<'_> {
 /// (1 − s)·A + s·B on grid `x`: the slice of the bilinear interpolant, with its exact CDF.
 struct Slice<'a> {
     x: &'a [f64],
+    index: GridIndex,
     a: Tab<'a>,
     b: Tab<'a>,
     s: f64,
@@ -650,7 +654,7 @@ impl Slice<'_> {
         (1.0 - self.s) * self.a.c(j) + self.s * self.b.c(j)
     }
     fn value(&self, x: f64) -> f64 {
-        locate(self.x, x).map_or(0.0, |(j, t)| (1.0 - t) * self.v(j) + t * self.v(j + 1))
+        locate(self.x, self.index, x).map_or(0.0, |(j, t)| (1.0 - t) * self.v(j) + t * self.v(j + 1))
     }
     /// ∫_{x_0}^{x} of the slice (x clamped to the grid).
     fn cdf(&self, x: f64) -> f64 {
@@ -661,7 +665,7 @@ impl Slice<'_> {
         if x >= self.x[n - 1] {
             return self.c(n - 1);
         }
-        let (j, t) = locate(self.x, x).unwrap_or((0, 0.0));
+        let (j, t) = locate(self.x, self.index, x).unwrap_or((0, 0.0));
         let f0 = self.v(j);
         let fx = (1.0 - t) * f0 + t * self.v(j + 1);
         self.c(j) + 0.5 * (x - self.x[j]) * (f0 + fx)
@@ -687,8 +691,8 @@ impl Slice<'_> {
         }
         let target = c_lo + xi.clamp(0.0, 1.0) * mass;
         // Cell: the last node at or below `target` among those spanning [lo, hi].
-        let j_lo = locate(self.x, lo).map_or(0, |p| p.0);
-        let j_hi = locate(self.x, hi).map_or(n - 2, |p| p.0);
+        let j_lo = locate(self.x, self.index, lo).map_or(0, |p| p.0);
+        let j_hi = locate(self.x, self.index, hi).map_or(n - 2, |p| p.0);
         let (mut a, mut b) = (j_lo, j_hi); // invariant: answer in [a, b]
         while a < b {
             let m = (a + b).div_ceil(2);
@@ -732,6 +736,10 @@ pub struct MatrixModel {
     lambda_o: Vec<f64>,
     diagonal_nm: Vec<f64>,
     diagonal: Vec<f64>,
+    /// Cell lookup on `lambda_i`, `lambda_o` and `diagonal_nm` (direct on uniform grids).
+    index_i: GridIndex,
+    index_o: GridIndex,
+    index_diagonal: GridIndex,
     /// P at the nodes, nm⁻¹: `p[j * n_i + k]` = D_off(λo_j, λi_k) / Δλo_j.
     p: Vec<f64>,
     /// Column cumulative integrals over λo, same layout as `p` (stride n_i down a column).
@@ -785,6 +793,9 @@ impl MatrixModel {
             lambda_o: f.lambda_o.clone(),
             diagonal_nm: f.diagonal_nm.clone(),
             diagonal: f.diagonal.clone(),
+            index_i: GridIndex::new(&f.lambda_i),
+            index_o: GridIndex::new(&f.lambda_o),
+            index_diagonal: GridIndex::new(&f.diagonal_nm),
             p,
             col_cdf,
             row_cdf,
@@ -824,7 +835,15 @@ impl MatrixModel {
 
     /// Elastic albedo ρ(λ): the interpolated diagonal, constant beyond its ends.
     pub fn reflectance(&self, lambda: f64) -> f64 {
-        interp_clamped(&self.diagonal_nm, &self.diagonal, lambda)
+        interp_indexed(&self.diagonal_nm, self.index_diagonal, &self.diagonal, lambda)
+    }
+
+    fn locate_i(&self, lambda_i: f64) -> Option<(usize, f64)> {
+        locate(&self.lambda_i, self.index_i, lambda_i)
+    }
+
+    fn locate_o(&self, lambda_o: f64) -> Option<(usize, f64)> {
+        locate(&self.lambda_o, self.index_o, lambda_o)
     }
 
     /// P(λi, λo), nm⁻¹ (zero for λi > λo and outside the grids).
@@ -832,7 +851,7 @@ impl MatrixModel {
         if lambda_i > lambda_o {
             return 0.0;
         }
-        let (Some((k, s)), Some((j, t))) = (locate(&self.lambda_i, lambda_i), locate(&self.lambda_o, lambda_o)) else {
+        let (Some((k, s)), Some((j, t))) = (self.locate_i(lambda_i), self.locate_o(lambda_o)) else {
             return 0.0;
         };
         let ni = self.lambda_i.len();
@@ -842,18 +861,18 @@ impl MatrixModel {
 
     /// The slice P(λi, ·) over λo (unmasked; callers bound it below by λi).
     fn column_slice(&self, lambda_i: f64) -> Option<Slice<'_>> {
-        let (k, s) = locate(&self.lambda_i, lambda_i)?;
+        let (k, s) = self.locate_i(lambda_i)?;
         let ni = self.lambda_i.len();
         let tab = |k| Tab { values: &self.p, cumul: &self.col_cdf, offset: k, stride: ni };
-        Some(Slice { x: &self.lambda_o, a: tab(k), b: tab(k + 1), s })
+        Some(Slice { x: &self.lambda_o, index: self.index_o, a: tab(k), b: tab(k + 1), s })
     }
 
     /// The slice P(·, λo) over λi (unmasked; callers bound it above by λo).
     fn row_slice(&self, lambda_o: f64) -> Option<Slice<'_>> {
-        let (j, t) = locate(&self.lambda_o, lambda_o)?;
+        let (j, t) = self.locate_o(lambda_o)?;
         let ni = self.lambda_i.len();
         let tab = |j: usize| Tab { values: &self.p, cumul: &self.row_cdf, offset: j * ni, stride: 1 };
-        Some(Slice { x: &self.lambda_i, a: tab(j), b: tab(j + 1), s: t })
+        Some(Slice { x: &self.lambda_i, index: self.index_i, a: tab(j), b: tab(j + 1), s: t })
     }
 
     /// ∫_{lo}^{min(hi, λo)} P(λi, λo) dλi: reradiated albedo at λo from unit excitation over [lo, hi].
@@ -932,6 +951,11 @@ const TOTAL_STEP_NM: f64 = 0.25;
 
 /// Piecewise-linear interpolation held constant beyond the ends.
 pub(crate) fn interp_clamped(x: &[f64], y: &[f64], at: f64) -> f64 {
+    interp_indexed(x, GridIndex::IRREGULAR, y, at)
+}
+
+/// [`interp_clamped`] with the grid's [`GridIndex`] (built once for `x`).
+fn interp_indexed(x: &[f64], index: GridIndex, y: &[f64], at: f64) -> f64 {
     let n = x.len();
     if n == 0 || !at.is_finite() {
         return 0.0;
@@ -942,7 +966,7 @@ pub(crate) fn interp_clamped(x: &[f64], y: &[f64], at: f64) -> f64 {
     if at >= x[n - 1] {
         return y[n - 1];
     }
-    locate(x, at).map_or(0.0, |(j, t)| (1.0 - t) * y[j] + t * y[j + 1])
+    locate(x, index, at).map_or(0.0, |(j, t)| (1.0 - t) * y[j] + t * y[j + 1])
 }
 
 impl fmt::Display for MatrixModel {
@@ -1150,6 +1174,8 @@ pub(crate) mod tests {
             assert_eq!(m.lambda_i().len(), 49, "{}", f.display());
             assert_eq!(m.lambda_o().len(), 41);
             assert_eq!(m.diagonal().0.len(), 41);
+            // 10 nm grids: indexed directly
+            assert!(m.index_i.is_uniform() && m.index_o.is_uniform() && m.index_diagonal.is_uniform());
             assert!(m.is_fluorescent(), "{}", f.display());
             // the reradiated albedo never exceeds one (per excitation wavelength)
             for li in (300..=780).step_by(5) {

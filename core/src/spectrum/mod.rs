@@ -12,6 +12,9 @@
 //! S(λ) = (1 − t)·v_i + t·v_{i+1},   t = (λ − λ_i) / (λ_{i+1} − λ_i),   λ_i ≤ λ ≤ λ_{i+1}
 //! ```
 //!
+//! An irregular spectrum whose wavelengths are in fact evenly spaced (a CIE table
+//! converted for a renderer) is detected as such once and indexed directly.
+//!
 //! Integrals use the trapezoid rule, which is exact for such piecewise-linear data
 //! on its own samples:
 //!
@@ -131,6 +134,70 @@ fn grid_len(start_nm: f64, end_nm: f64, step_nm: f64) -> Result<usize> {
     Ok(rounded as usize + 1)
 }
 
+/// Largest deviation of a node from its ideal position, in steps, for a grid to count
+/// as uniform in [`GridIndex::new`]: the direct index is then off by at most one cell
+/// and one comparison with the neighbouring node corrects it.
+const UNIFORM_GRID_TOLERANCE: f64 = 1e-6;
+
+/// Cell lookup on a strictly increasing grid: direct indexing where the grid is uniform
+/// (detected once, at load), bisection otherwise. Both give the same cell.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct GridIndex {
+    /// (first node, 1 / step) of a uniform grid; `None` for an irregular one.
+    uniform: Option<(f64, f64)>,
+}
+
+impl GridIndex {
+    /// Bisection always (a grid not checked for uniformity).
+    pub(crate) const IRREGULAR: Self = Self { uniform: None };
+
+    /// Detect whether `grid` (strictly increasing) is uniform within
+    /// [`UNIFORM_GRID_TOLERANCE`] of a step.
+    pub(crate) fn new(grid: &[f64]) -> Self {
+        let n = grid.len();
+        let uniform = match (grid.first(), grid.last()) {
+            (Some(&a), Some(&b)) if n >= 2 && b > a => {
+                let step = (b - a) / (n - 1) as f64;
+                let on_grid = grid
+                    .iter()
+                    .enumerate()
+                    .all(|(i, &x)| (x - step.mul_add(i as f64, a)).abs() <= UNIFORM_GRID_TOLERANCE * step);
+                (on_grid && step.is_finite()).then_some((a, 1.0 / step))
+            }
+            _ => None,
+        };
+        Self { uniform }
+    }
+
+    /// Whether the grid was found uniform.
+    #[cfg(test)]
+    pub(crate) fn is_uniform(&self) -> bool {
+        self.uniform.is_some()
+    }
+
+    /// The cell i ∈ [0, n − 2] with grid[i] ≤ x < grid[i + 1] (i = 0 below the grid,
+    /// n − 2 at or above its last node): exactly the bisection
+    /// `partition_point(|g| g <= x).clamp(1, n − 1) − 1`. `grid` has ≥ 2 nodes and is the
+    /// grid this index was built for; x is not NaN.
+    pub(crate) fn cell(&self, grid: &[f64], x: f64) -> usize {
+        let last = grid.len() - 2;
+        match self.uniform {
+            Some((start, inv_step)) => {
+                // Off by at most one cell (see UNIFORM_GRID_TOLERANCE); `as` saturates.
+                let i = (((x - start) * inv_step).floor().max(0.0) as usize).min(last);
+                if i > 0 && grid[i] > x {
+                    i - 1
+                } else if i < last && grid[i + 1] <= x {
+                    i + 1
+                } else {
+                    i
+                }
+            }
+            None => grid.partition_point(|&g| g <= x).clamp(1, last + 1) - 1,
+        }
+    }
+}
+
 /// Check sample values: at least two, all finite.
 fn check_values(values: &[f64]) -> Result<()> {
     if values.len() < 2 {
@@ -238,6 +305,8 @@ impl Spectral for RegularSpectrum {
 pub struct IrregularSpectrum {
     wavelengths_nm: Vec<f64>,
     values: Vec<f64>,
+    /// Direct indexing when the wavelengths happen to be evenly spaced.
+    index: GridIndex,
 }
 
 impl IrregularSpectrum {
@@ -264,7 +333,8 @@ impl IrregularSpectrum {
                 format!("strictly increasing wavelengths (> wavelengths_nm[{}] = {})", i - 1, wavelengths_nm[i - 1]),
             ));
         }
-        Ok(Self { wavelengths_nm, values })
+        let index = GridIndex::new(&wavelengths_nm);
+        Ok(Self { wavelengths_nm, values, index })
     }
 
     /// Parse two-column CSV text: `nm,value` per line.
@@ -313,8 +383,8 @@ impl Spectral for IrregularSpectrum {
         if !(lambda_nm >= w[0] && lambda_nm <= w[last]) {
             return 0.0;
         }
-        // First index with w[i] > lambda, minus one: w[i] <= lambda < w[i+1].
-        let i = (w.partition_point(|&x| x <= lambda_nm) - 1).min(last - 1);
+        // w[i] <= lambda < w[i+1] (i = last - 1 at the last node).
+        let i = self.index.cell(w, lambda_nm);
         let f = (lambda_nm - w[i]) / (w[i + 1] - w[i]);
         (1.0 - f) * self.values[i] + f * self.values[i + 1]
     }
@@ -322,8 +392,9 @@ impl Spectral for IrregularSpectrum {
 
 impl From<RegularSpectrum> for IrregularSpectrum {
     fn from(s: RegularSpectrum) -> Self {
-        let wavelengths_nm = (0..s.values.len()).map(|i| s.wavelength_nm(i)).collect();
-        Self { wavelengths_nm, values: s.values }
+        let wavelengths_nm: Vec<f64> = (0..s.values.len()).map(|i| s.wavelength_nm(i)).collect();
+        let index = GridIndex::new(&wavelengths_nm);
+        Self { wavelengths_nm, values: s.values, index }
     }
 }
 
@@ -360,6 +431,40 @@ mod tests {
         for x in [399.0, 700.5, f64::NAN, f64::NEG_INFINITY] {
             assert_eq!(s.eval(x), 0.0, "at {x}");
         }
+    }
+
+    #[test]
+    fn direct_index_is_the_bisection() {
+        let bisect = |g: &[f64], x: f64| g.partition_point(|&v| v <= x).clamp(1, g.len() - 1) - 1;
+        // 10 nm, 5 nm, accumulated 0.1 nm steps (rounding in every node), and irregular grids.
+        let mut acc = vec![380.0];
+        for _ in 0..4500 {
+            acc.push(acc[acc.len() - 1] + 0.1);
+        }
+        let grids: [Vec<f64>; 4] = [
+            (0..=53).map(|i| 300.0 + 10.0 * i as f64).collect(),
+            (0..=106).map(|i| 300.0 + 5.0 * i as f64).collect(),
+            acc,
+            vec![400.0, 410.0, 450.0, 700.0],
+        ];
+        for (g, uniform) in grids.iter().zip([true, true, true, false]) {
+            let index = GridIndex::new(g);
+            assert_eq!(index.is_uniform(), uniform);
+            let (a, b) = (g[0], g[g.len() - 1]);
+            let mut xs = vec![a - 1.0, b + 1.0, f64::INFINITY, f64::NEG_INFINITY];
+            for &x in g {
+                // the neighbouring floats (positive grids)
+                xs.extend([x, f64::from_bits(x.to_bits() - 1), f64::from_bits(x.to_bits() + 1)]);
+            }
+            xs.extend(uniforms_in(10_000, a, b));
+            for x in xs {
+                assert_eq!(index.cell(g, x), bisect(g, x), "x = {x}");
+            }
+        }
+    }
+
+    fn uniforms_in(n: usize, a: f64, b: f64) -> Vec<f64> {
+        crate::testutil::uniforms(n, 11).into_iter().map(|u| a + (b - a) * u).collect()
     }
 
     #[test]

@@ -279,6 +279,62 @@ pub(super) fn lambda_grid(range: (f64, f64), band: &QdBand, base_step: f64) -> V
     g
 }
 
+/// Buckets per node of a [`LambdaIndex`].
+const BUCKETS_PER_NODE: usize = 2;
+
+/// Cell lookup on the (piecewise-uniform, not uniform) λ grid of the tables: equal
+/// buckets over the grid, each holding the cells it overlaps, so that a lookup is one
+/// division and, in the rare bucket spanning several nodes (the refinement near λQD
+/// for δλ < 8 nm), a bisection over those few. The result is the plain bisection's.
+#[derive(Debug, Clone, PartialEq)]
+pub(super) struct LambdaIndex {
+    start: f64,
+    /// Buckets per nm.
+    inv_width: f64,
+    /// Cell at the start of bucket b, for b = 0..=buckets.
+    first: Vec<u32>,
+}
+
+impl LambdaIndex {
+    /// Index `grid` (strictly increasing, ≥ 2 nodes).
+    pub(super) fn new(grid: &[f64]) -> Self {
+        let n = grid.len();
+        let (start, end) = (grid[0], grid[n - 1]);
+        let buckets = BUCKETS_PER_NODE * n;
+        let inv_width = buckets as f64 / (end - start);
+        let first =
+            (0..=buckets).map(|b| bisect(grid, start + (end - start) * (b as f64 / buckets as f64)) as u32).collect();
+        Self { start, inv_width, first }
+    }
+
+    /// Number of bucket entries held.
+    pub(super) fn len(&self) -> usize {
+        self.first.len()
+    }
+
+    /// The cell i ∈ [0, n − 2] with grid[i] ≤ x < grid[i + 1] (clamped at the ends),
+    /// as `bisect`; x is not NaN.
+    pub(super) fn cell(&self, grid: &[f64], x: f64) -> usize {
+        let buckets = self.first.len() - 1;
+        let b = (((x - self.start) * self.inv_width).max(0.0) as usize).min(buckets - 1);
+        let (lo, hi) = (self.first[b] as usize, self.first[b + 1] as usize);
+        let i = lo + grid[lo + 1..=hi].partition_point(|&g| g <= x);
+        // Guard against a bucket edge rounded across a node: then bisect the whole grid.
+        let last = grid.len() - 2;
+        let ok = (i == 0 || grid[i] <= x) && (i == last || x < grid[i + 1]);
+        if ok {
+            i
+        } else {
+            bisect(grid, x)
+        }
+    }
+}
+
+/// Bisection: the last cell i ≤ n − 2 with grid[i] ≤ x (0 below the grid).
+pub(super) fn bisect(grid: &[f64], x: f64) -> usize {
+    grid.partition_point(|&g| g <= x).clamp(1, grid.len() - 1) - 1
+}
+
 /// Trapezoidal ∫ f over the nodes of `grid`.
 pub(super) fn trapezoid(grid: &[f64], f: impl Fn(f64) -> f64) -> f64 {
     grid.windows(2).map(|w| 0.5 * (w[1] - w[0]) * (f(w[0]) + f(w[1]))).sum()
@@ -287,6 +343,22 @@ pub(super) fn trapezoid(grid: &[f64], f: impl Fn(f64) -> f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lambda_index_is_the_bisection() {
+        for (radius, width, step) in [(2.2, 15.0, 1.0), (3.3, 0.05, 1.0), (1.5, 2.0, 0.05), (5.0, 100.0, 50.0)] {
+            let band = QdBand::new(&QdConstants::default(), radius, width).unwrap();
+            let grid = lambda_grid((300.0, 830.0), &band, step);
+            let index = LambdaIndex::new(&grid);
+            let mut xs: Vec<f64> = (0..=200_000).map(|i| 290.0 + 550.0 * i as f64 / 200_000.0).collect();
+            for &g in &grid {
+                xs.extend([g, f64::from_bits(g.to_bits() - 1), f64::from_bits(g.to_bits() + 1)]);
+            }
+            for x in xs {
+                assert_eq!(index.cell(&grid, x), bisect(&grid, x), "x = {x}");
+            }
+        }
+    }
 
     #[test]
     fn brus_equation_by_hand() {
