@@ -16,7 +16,7 @@ quantum-dot coating (density 0.8)                     ``fluo_qd`` / ``roughcondu
 reduced RGB ``x7``, ``scalar_rgb``                    ``fluo_path`` / ``path`` (dyes removed)     1.20
 spectral light on a plain box                         ``fluo_illuminant`` D65 / native ``d65``    1.01
 plain box + 1000 hidden fluorescent spheres           ``fluo_path`` (N = 1000) / ``path`` (N = 0)  1.15
-load of K coloured ``fluo_jung`` (``color``)          ms and MB per material (B: K = 0)           0.2 ms
+load of K coloured ``fluo_jung`` (``color``)          ms and MB per material (B: ``diffuse``)     0.2 ms
 ====================================================  ==========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -48,7 +48,7 @@ D65 = {"type": "fluo_illuminant", "illuminant": "D65", "scale": 15.0}
 DYE = {"emission_peak": 560.0, "stokes_shift": 90.0, "concentration": 0.8}
 ROUGH = {"material": "Au", "distribution": "ggx", "alpha": 0.2}
 HIDDEN = 1000
-COLOURED = 16
+COLOURED = 100
 
 
 def box(res: int, integrator: str = "fluo_path", bsdf=None, light=D65, **integrator_props) -> dict:
@@ -118,20 +118,21 @@ def load_row(res: int, rounds: int) -> dict:
     mi.set_variant("scalar_spectral")
     import fluo  # noqa: F401
 
-    def scene(k: int) -> dict:
+    def scene(fluorescent: bool) -> dict:
         d = box(res, bsdf=diffuse)
-        for i in range(k):  # distinct colours: one material each
-            d[f"ball_{i}"] = {"type": "sphere", "center": [0.0, 0.0, -5.0 - i], "radius": 0.1,
-                              "bsdf": {"type": "fluo_jung",
-                                       "color": {"type": "rgb", "value": [0.2 + 0.04 * i, 0.6, 0.3]}}}
+        for i in range(COLOURED):  # distinct colours: one material each
+            rgb = {"type": "rgb", "value": [0.2 + 0.04 * i, 0.6, 0.3]}
+            bsdf = {"type": "fluo_jung", "color": rgb} if fluorescent else {"type": "diffuse", "reflectance": rgb}
+            d[f"ball_{i}"] = {"type": "sphere", "center": [0.0, 0.0, -5.0 - i], "radius": 0.1, "bsdf": bsdf}
         return d
 
-    dk, d0 = scene(COLOURED), scene(0)
+    dk, d0 = scene(True), scene(False)
     r = paired(lambda: mi.load_dict(dk), lambda: mi.load_dict(d0), rounds)
+    plain = mi.load_dict(d0)
     before = rss_mb()
-    kept = mi.load_dict(scene(COLOURED))
+    kept = mi.load_dict(dk)
     grown = rss_mb() - before
-    del kept
+    del kept, plain
     per_ms = (r["a_s"] - r["b_s"]) * 1e3 / COLOURED
     return {**r, "per_material_ms": per_ms, "per_material_mb": grown / COLOURED}
 
@@ -167,7 +168,7 @@ ROWS = {
     "hidden": (f"plain box + {HIDDEN} hidden fluorescent spheres: fluo_path / path at N = 0", 1.15,
                lambda a: render_pair("scalar_spectral", with_hidden_spheres(box(a.res, bsdf=diffuse), HIDDEN),
                                      box(a.res, "path", bsdf=diffuse), a.spp, a.rounds)),
-    "load": (f"load: {COLOURED} coloured fluo_jung / none (ms, MB per material)", 0.2,
+    "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
 }
 

@@ -11,8 +11,9 @@
 //! * [`models`]: one module per model (Jung, quantum dots, measured matrices, their
 //!   Gaussian mixtures), each with its implementation of the interface.
 //! * [`model`]: the closed set of models ([`Model`]) and the only code naming every one.
-//! * [`patch`], [`reduce`], [`upsample`]: what is computed from any material (patch
-//!   colorimetry, Fichet et al.'s reduced matrices, RGB -> fluorescent upsampling).
+//! * [`patch`], [`reduce`], [`upsample`], [`shift`]: what is computed from any material
+//!   (patch colorimetry, Fichet et al.'s reduced matrices, RGB -> fluorescent
+//!   upsampling, the shift albedo tabulated for the integrator).
 //! * [`spectrum`], [`colour`], [`sigmoid`], [`fileio`]: data and numerics they share.
 //!
 //! Units: wavelengths in nm; `lambda_i` is the excitation (incident) wavelength,
@@ -31,6 +32,7 @@ pub mod models;
 pub mod patch;
 pub mod reduce;
 pub mod reports;
+pub mod shift;
 pub mod sigmoid;
 pub mod spectrum;
 pub mod upsample;

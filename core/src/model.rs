@@ -130,6 +130,14 @@ impl Bispectral for Model {
             Model::Gmm(m) => Bispectral::shift_albedo(&**m, wi, lambda_o, range),
         }
     }
+    fn shift_albedo_is_isotropic(&self) -> bool {
+        match self {
+            Model::Jung(m) => m.shift_albedo_is_isotropic(),
+            Model::Qd(m) => m.shift_albedo_is_isotropic(),
+            Model::Matrix(m) => m.shift_albedo_is_isotropic(),
+            Model::Gmm(m) => m.shift_albedo_is_isotropic(),
+        }
+    }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         match self {
             Model::Jung(m) => m.sample_excitation(wi, lambda_o, xi, range),

@@ -227,7 +227,7 @@ public:
                 return nullptr;
             return &fluo::jung_fluorescence(fluo::jung_texture_representative(**m_texture_models));
         }
-        return fluo::jung_is_fluorescent(*m_model) ? &fluo::jung_fluorescence(*m_model) : nullptr;
+        return fluo::jung_is_fluorescent(**m_model) ? &fluo::jung_fluorescence(**m_model) : nullptr;
     }
 
     const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
@@ -260,7 +260,7 @@ public:
     std::string to_string() const override {
         std::ostringstream oss;
         oss << "FluoJung[" << std::endl
-            << "  model = " << std::string(fluo::jung_to_string(*m_model)) << "," << std::endl;
+            << "  model = " << std::string(fluo::jung_to_string(**m_model)) << "," << std::endl;
         if (m_reflectance)
             oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
         if (m_color_mode)
@@ -288,10 +288,10 @@ private:
             };
             // Served albedo: elastic + reradiation, bounded to [0, 1] per channel
             // (fluo::rgb_bounded_albedo; a channel above 1 gains energy in a furnace).
-            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(*m_model));
-            m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(*m_model));
-            m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(*m_model));
-            m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(*m_model)), 0.f, 1.f);
+            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(**m_model));
+            m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(**m_model));
+            m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(**m_model));
+            m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(**m_model)), 0.f, 1.f);
         }
     }
 
@@ -396,22 +396,21 @@ private:
         } else {
             std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
             if (!m_reflectance) {
-                fluo::jung_elastic_albedo(*m_model, fluo_detail::slice(lambda),
+                fluo::jung_elastic_albedo(**m_model, fluo_detail::slice(lambda),
                                           fluo_detail::slice_mut(out));
                 return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
             }
             UnpolarizedSpectrum r = m_reflectance->eval(si, active);
             if (!m_modifies_reflectance)
                 return r;
-            fluo::jung_elastic_factor(*m_model, fluo_detail::slice(lambda),
+            fluo::jung_elastic_factor(**m_model, fluo_detail::slice(lambda),
                                       fluo_detail::slice_mut(out));
             return r * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
         }
     }
 
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
-    rust::Box<fluo::JungModel> m_model =
-        fluo_detail::rust_call(Plugin, [] { return fluo::jung_new(fluo::jung_default_config()); });
+    std::optional<rust::Box<fluo::JungModel>> m_model; ///< set by rebuild() in the constructor
     ref<Texture> m_reflectance;
     ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
                 m_quantum_yield = 0.f;

@@ -308,6 +308,13 @@ mod bridge {
         fn fluo_reradiation(f: &Fluorescence, wi: &Vec3, wo: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
         /// ∫_range ∫ f_fl cos θo dωo dλi (chooses elastic vs shifted events).
         fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) -> f64;
+        /// The shift albedo for one excitation range, tabulated over λo from
+        /// `lambda_o_min` to Mitsuba's 830 nm when the model allows it (built once per
+        /// scene; `fluo::shift` says why it stays unbiased).
+        type ShiftTable;
+        fn shift_table_new(f: &Fluorescence, range: &Range, lambda_o_min: f64) -> Box<ShiftTable>;
+        /// [`fluo_shift_albedo`] for the table's range, through the table where it has one.
+        fn shift_table_albedo(t: &ShiftTable, f: &Fluorescence, wi: &Vec3, lambda_o: f64) -> f64;
         /// λi given λo within `range` (camera paths).
         fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample;
         fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64;
@@ -578,8 +585,34 @@ fn jung_fluorescence(model: &JungModel) -> &Fluorescence {
     &model.generic
 }
 
-/// Opaque coefficient cube handed to C++.
-pub struct UpsampleCube(fluo::upsample::Cube);
+/// Opaque coefficient cube handed to C++: shared by every material that loads the same
+/// file (see [`shared_cube`]).
+pub struct UpsampleCube(std::sync::Arc<fluo::upsample::Cube>);
+
+/// Cubes loaded so far, by file and its modification time and length (a rewritten file
+/// is loaded again); weak, so a cube no scene uses is freed.
+type CubeKey = (std::path::PathBuf, Option<std::time::SystemTime>, u64);
+static CUBES: std::sync::Mutex<Vec<(CubeKey, std::sync::Weak<fluo::upsample::Cube>)>> =
+    std::sync::Mutex::new(Vec::new());
+
+/// The cube in `path`, loaded once per file and shared: a scene with many coloured
+/// materials holds one copy (1.6 MB for a shipped cube) and reads it once.
+fn shared_cube(path: &std::path::Path) -> fluo::Result<std::sync::Arc<fluo::upsample::Cube>> {
+    let meta = std::fs::metadata(path).ok();
+    let key: CubeKey = (
+        std::fs::canonicalize(path).unwrap_or_else(|_| path.to_path_buf()),
+        meta.as_ref().and_then(|m| m.modified().ok()),
+        meta.as_ref().map_or(0, |m| m.len()),
+    );
+    let mut cache = CUBES.lock().unwrap_or_else(|e| e.into_inner());
+    cache.retain(|(_, weak)| weak.strong_count() > 0);
+    if let Some(cube) = cache.iter().find(|(k, _)| *k == key).and_then(|(_, weak)| weak.upgrade()) {
+        return Ok(cube);
+    }
+    let cube = std::sync::Arc::new(fluo::upsample::Cube::load(path)?);
+    cache.push((key, std::sync::Arc::downgrade(&cube)));
+    Ok(cube)
+}
 
 fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, String> {
     guarded(|| {
@@ -591,7 +624,7 @@ fn upsample_cube_load(space: &str, filename: &str) -> Result<Box<UpsampleCube>, 
         } else {
             std::path::PathBuf::from(filename)
         };
-        let cube = fluo::upsample::Cube::load(&path)?;
+        let cube = shared_cube(&path)?;
         if cube.header.space != space {
             return Err(fluo::Error::param(
                 "cube",
@@ -931,6 +964,29 @@ fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
 pub struct Fluorescence {
     model: Model,
     elastic: Option<Reflectance>,
+}
+
+/// Opaque [`fluo::shift::ShiftTable`] (none for direction-dependent models) and its range.
+pub struct ShiftTable {
+    table: Option<fluo::shift::ShiftTable>,
+    range: (f64, f64),
+}
+
+fn shift_table_new(f: &Fluorescence, range: &Range, lambda_o_min: f64) -> Box<ShiftTable> {
+    let r = (range.lo, range.hi);
+    let table = catch_unwind(AssertUnwindSafe(|| {
+        fluo::shift::ShiftTable::new(&f.model, r, (lambda_o_min.min(CIE_MIN_NM), CIE_MAX_NM.max(range.hi)))
+    }))
+    .ok()
+    .flatten();
+    Box::new(ShiftTable { table, range: r })
+}
+
+fn shift_table_albedo(t: &ShiftTable, f: &Fluorescence, wi: &Vec3, lambda_o: f64) -> f64 {
+    match &t.table {
+        Some(table) => table.eval(&f.model, dir(wi), lambda_o),
+        None => f.model.shift_albedo(dir(wi), lambda_o, t.range),
+    }
 }
 
 fn fluo_name(f: &Fluorescence) -> &'static str {

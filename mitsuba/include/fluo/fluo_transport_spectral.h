@@ -35,6 +35,8 @@ public:
         fluo::Range range;
         /// Spatially varying: the model and its range are looked up per vertex.
         bool varies = false;
+        /// Its shift albedo over `range`, tabulated at prepare time (not when varying).
+        const fluo::ShiftTable *shift = nullptr;
     };
 
     /// scalar_spectral: scan the scene once per render (the emitters' spectral range
@@ -43,6 +45,7 @@ public:
     void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers, double lambda_min,
                  const char *plugin) {
         m_entries.clear();
+        m_shift_tables.clear();
         // Where can light exist? The union of the emitters' radiance spectra.
         double lo = 1e30, hi = -1e30;
         for (const auto &emitter : scene->emitters()) {
@@ -88,8 +91,13 @@ public:
             // with its own model's excitation range.
             e.range = e.varies ? fluo::Range{ lo, hi }
                                : fluo::Range{ std::max(ex.lo, lo), std::min(ex.hi, hi) };
-            if (e.range.lo < e.range.hi)
-                m_entries.add(e);
+            if (!(e.range.lo < e.range.hi))
+                continue;
+            if (!e.varies) {
+                m_shift_tables.push_back(fluo::shift_table_new(*e.model, e.range, e.range.lo));
+                e.shift = &*m_shift_tables.back();
+            }
+            m_entries.add(e);
         }
     }
 
@@ -202,7 +210,8 @@ private:
                 double lo = si.wavelengths[j];
                 tr.lambda_o[j] = tr.lambda_i[j] = lo;
                 double we = std::max(0.0, (double) albedo[j]);
-                double wf = std::max(0.0, fluo::fluo_shift_albedo(*tr.model, wi, lo, range));
+                double wf = std::max(0.0, e.shift ? fluo::shift_table_albedo(*e.shift, *tr.model, wi, lo)
+                                                  : fluo::fluo_shift_albedo(*tr.model, wi, lo, range));
                 Point2f u = sampler->next_2d();
                 double total = we + wf;
                 if (!(total > 0.0) || !std::isfinite(total)) {
@@ -244,6 +253,7 @@ private:
     }
 
     fluo_detail::EntryTable<Entry> m_entries;
+    std::vector<rust::Box<fluo::ShiftTable>> m_shift_tables;
     fluo::Range m_range{ 0, 0 };
 };
 
