@@ -9,10 +9,17 @@ say() { printf '[wheel] %s\n' "$*"; }
 
 wheels=out/wheel
 rm -f "$wheels"/fluo-*.whl
+# setuptools' build/ folder outlives builds: a stale library left there would be packaged.
+rm -rf build
 say "pip wheel . (setuptools-rust; cargo target folder target/wheel)"
 .venv/bin/python -m pip wheel . -w "$wheels" --no-deps --quiet --disable-pip-version-check
 wheel=$(ls "$wheels"/fluo-*.whl)
 say "built $wheel ($(du -h "$wheel" | cut -f1))"
+.venv/bin/python - "$wheel" <<'PY'
+import sys, zipfile
+libs = [n for n in zipfile.ZipFile(sys.argv[1]).namelist() if n.startswith("fluo/lib") and n.endswith(".so")]
+assert len(libs) == 1 and libs[0].startswith("fluo/libfluo_mitsuba"), f"the wheel's plugin libraries: {libs}"
+PY
 
 work=$(mktemp -d /tmp/fluo-wheel-XXXXXX)
 trap 'rm -rf "$work"' EXIT

@@ -17,7 +17,7 @@ and from a checkout (the editable developer install of scripts/setup.sh):
 ============== ================== ============================ ==============================================
 what           variable           wheel                        checkout
 ============== ================== ============================ ==============================================
-plugin library ``FLUO_LIBRARY``   ``fluo/libfluo*.so``         ``<repo>/target/release/libfluo_mitsuba.so``
+plugin library ``FLUO_LIBRARY``   ``fluo/libfluo_mitsuba*.so`` ``<repo>/target/release/libfluo_mitsuba.so``
 physics tool   ``FLUO_TOOL``      ``<env>/bin/fluo-rs``        ``<repo>/target/release/fluo-rs``
 cubes          ``FLUO_CUBE_DIR``  ``fluo/data/cubes``          ``<repo>/data/cubes``
 scenes                            ``fluo/data/scenes``         ``<repo>/scenes``
@@ -88,7 +88,7 @@ BUILT_FOR: dict[str, str] = _pins()
 def in_checkout() -> bool:
     """Whether this package runs from a source checkout (editable developer install)
     rather than from an installed wheel."""
-    return (_PACKAGE.parents[1] / "Cargo.toml").is_file() and not any(_PACKAGE.glob("libfluo*.so"))
+    return (_PACKAGE.parents[1] / "Cargo.toml").is_file() and not any(_PACKAGE.glob("libfluo_mitsuba*.so"))
 
 
 def repo_root() -> Path:
@@ -125,12 +125,12 @@ def out_dir() -> Path:
 
 
 def library_path() -> Path:
-    """Path of the plugin library: ``$FLUO_LIBRARY``, the wheel's ``fluo/libfluo*.so``, or
+    """Path of the plugin library: ``$FLUO_LIBRARY``, the wheel's ``fluo/libfluo_mitsuba*.so``, or
     ``<repo>/target/release/libfluo_mitsuba.so``."""
     override = os.environ.get(LIBRARY_ENV)
     if override:
         return Path(override).expanduser().resolve()
-    packaged = sorted(_PACKAGE.glob("libfluo*.so"))
+    packaged = sorted(_PACKAGE.glob("libfluo_mitsuba*.so"))
     if packaged:
         return packaged[0]
     return repo_root() / "target" / "release" / "libfluo_mitsuba.so"
