@@ -183,8 +183,9 @@ impl GridIndex {
         let last = grid.len() - 2;
         match self.uniform {
             Some((start, inv_step)) => {
-                // Off by at most one cell (see UNIFORM_GRID_TOLERANCE); `as` saturates.
-                let i = (((x - start) * inv_step).floor().max(0.0) as usize).min(last);
+                // Off by at most one cell (see UNIFORM_GRID_TOLERANCE); `as` saturates and,
+                // on the non-negative value, truncates like floor (without a libm call).
+                let i = (((x - start) * inv_step).max(0.0) as usize).min(last);
                 if i > 0 && grid[i] > x {
                     i - 1
                 } else if i < last && grid[i + 1] <= x {
@@ -293,7 +294,7 @@ impl Spectral for RegularSpectrum {
         if !(t >= 0.0 && t <= last as f64) {
             return 0.0;
         }
-        let i = (t.floor() as usize).min(last - 1);
+        let i = (t as usize).min(last - 1); // t ≥ 0: truncation is floor
         let f = t - i as f64;
         (1.0 - f) * self.values[i] + f * self.values[i + 1]
     }

@@ -146,16 +146,15 @@ public:
                     m_t.fluorescent_matrix(*fl, si, em.wo, m_m);
                     Float mis_em = dr::select(em.ds.delta, 1.f,
                                               fluo_detail::mis_weight(em.ds.pdf, bsdf->pdf(bsdf_ctx, si, em.wo)));
-                    Row3 rm = m_reduced ? m_R : m_t.rows_scaled(m_rgb);
-                    m_t.multiply(rm, m_m, 1.0);
-                    m_t.accumulate(m_result, rm, m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
+                    // R·(M·c): a K×K matrix-vector product instead of the 3K×K product R·M.
+                    Coeffs mc = m_t.apply(m_m, m_t.emitter_coefficients(em.ds.emitter, em.weight));
+                    m_t.accumulate(m_result, m_reduced ? m_R : m_t.rows_scaled(m_rgb), mc, mis_em);
                 } else {
                     auto [val, bsdf_pdf] = bsdf->eval_pdf(bsdf_ctx, si, em.wo);
                     Float mis_em = dr::select(em.ds.delta, 1.f, fluo_detail::mis_weight(em.ds.pdf, bsdf_pdf));
                     if (m_reduced) {
-                        m_t.diagonal_of(val, m_m);
                         Row3 rm = m_R;
-                        m_t.multiply(rm, m_m, 1.0);
+                        m_t.scale_columns(rm, m_t.band_albedo(val));
                         m_t.accumulate(m_result, rm, m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
                     } else {
                         m_result = dr::fmadd(m_rgb, val * em.weight * mis_em, m_result);
@@ -176,8 +175,7 @@ public:
                     m_t.multiply(m_R, Square{}, 0.0);
                 }
             } else if (m_reduced) {
-                m_t.diagonal_of(weight, m_m);
-                m_t.multiply(m_R, m_m, 1.0);
+                m_t.scale_columns(m_R, m_t.band_albedo(weight));
             } else {
                 m_rgb *= weight;
             }
@@ -253,16 +251,43 @@ private:
     }
 
     /// Per-band albedos of an RGB value as a diagonal matrix.
-    void diagonal_of(const Spectrum &v, Square &m) const {
-        m.fill(0.0);
+    /// Per-band albedo a_k = (from_rgb · v)_k / (from_rgb · 1)_k of an RGB value: how a
+    /// native (wavelength-preserving) BSDF acts on the K coefficients.
+    Coeffs band_albedo(const Spectrum &v) const {
+        Coeffs d{};
         if constexpr (is_rgb_v<Spectrum>) {
             double mean = (v[0] + v[1] + v[2]) / 3.0;
             for (size_t k = 0; k < m_k; ++k) {
                 double num = m_from_rgb[k * 3] * v[0] + m_from_rgb[k * 3 + 1] * v[1] +
                              m_from_rgb[k * 3 + 2] * v[2];
-                m[k * m_k + k] = std::abs(m_white[k]) > 1e-12 ? num / m_white[k] : mean;
+                d[k] = std::abs(m_white[k]) > 1e-12 ? num / m_white[k] : mean;
             }
         }
+        return d;
+    }
+    /// The diagonal K×K matrix of band_albedo(v).
+    void diagonal_of(const Spectrum &v, Square &m) const {
+        m.fill(0.0);
+        Coeffs d = band_albedo(v);
+        for (size_t k = 0; k < m_k; ++k)
+            m[k * m_k + k] = d[k];
+    }
+    /// M · c.
+    Coeffs apply(const Square &m, const Coeffs &c) const {
+        Coeffs out{};
+        for (size_t i = 0; i < m_k; ++i) {
+            double acc = 0.0;
+            for (size_t k = 0; k < m_k; ++k)
+                acc += m[i * m_k + k] * c[k];
+            out[i] = acc;
+        }
+        return out;
+    }
+    /// R ← R · diag(d): native vertices cost 3K products, not a dense 3K×K product.
+    void scale_columns(Row3 &r, const Coeffs &d) const {
+        for (size_t row = 0; row < 3; ++row)
+            for (size_t j = 0; j < m_k; ++j)
+                r[row * m_k + j] *= d[j];
     }
 
     /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
