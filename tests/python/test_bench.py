@@ -185,3 +185,20 @@ def test09_qd_table_knobs_are_validated(name, value, tmp_path):
         mi.load_dict({"type": "fluo_qd", name: int(value) if kind == "integer" else float(value)})
     ok = mi.load_dict({"type": "fluo_qd", "table_cos_nodes": 5, "table_step": 4.0})
     assert "FluoQd" in ok.class_name()
+
+
+def test10_readme_costs_table_is_the_saved_cost_benchmark():
+    """README's cost table is benches/bench_costs.py's output for docs/bench/costs.json."""
+    import importlib.util
+    import json
+    import fluo
+    root = fluo.repo_root()
+    spec = importlib.util.spec_from_file_location("bench_costs", root / "benches" / "bench_costs.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    saved = root / "docs" / "bench" / "costs.json"
+    run = json.loads(saved.read_text())
+    assert {r["row"] for r in run["results"]} == set(mod.ROWS) and run["rounds"] >= 5
+    region = mod.readme_region(run, "docs/bench/costs.json")
+    assert region in (root / "README.md").read_text(), \
+        "README's costs table is stale: run benches/bench_costs.py --readme docs/bench/costs.json"
