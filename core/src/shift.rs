@@ -84,18 +84,9 @@ impl ShiftTable {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::models::jung::{JungFluorescence, JungParams};
     use crate::models::matrix::MatrixModel;
 
-    fn dye() -> JungFluorescence {
-        JungFluorescence::new(JungParams {
-            emission_peak: 520.0,
-            stokes_shift: 60.0,
-            concentration: 0.8,
-            quantum_yield: 0.9,
-        })
-        .unwrap()
-    }
+    use crate::testutil::green_dye as dye;
 
     /// The table is positive wherever the exact value is (never zero where fluorescence
     /// reaches λo); returns its largest error relative to the largest value, on a fine

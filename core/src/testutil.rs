@@ -57,3 +57,14 @@ pub fn chi2_critical(dof: usize) -> f64 {
     let k = dof.max(1) as f64;
     k * (1.0 - 2.0 / (9.0 * k) + 3.719 * (2.0 / (9.0 * k)).sqrt()).powi(3)
 }
+
+/// A green `fluo_jung` dye (520 nm, 60 nm Stokes shift, c = 0.8, Q = 0.9).
+pub fn green_dye() -> crate::models::jung::JungFluorescence {
+    crate::models::jung::JungFluorescence::new(crate::models::jung::JungParams {
+        emission_peak: 520.0,
+        stokes_shift: 60.0,
+        concentration: 0.8,
+        quantum_yield: 0.9,
+    })
+    .expect("valid parameters")
+}

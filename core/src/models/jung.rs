@@ -726,13 +726,7 @@ mod tests {
     const UP: [f64; 3] = [0.0, 0.0, 1.0];
 
     fn jung() -> JungFluorescence {
-        JungFluorescence::new(JungParams {
-            emission_peak: 520.0,
-            stokes_shift: 60.0,
-            concentration: 0.8,
-            quantum_yield: 0.9,
-        })
-        .unwrap()
+        crate::testutil::green_dye()
     }
 
     #[test]
