@@ -118,8 +118,13 @@ material). We pick the elastic event with probability ``p_e = w_e / (w_e + w_f)`
 and weight it by ``1/p_e``, or the shift with probability ``1 − p_e``, sampling λi
 with density ``p(λi)`` over R and weighting by ``1/((1 − p_e) p(λi))``. The expectation
 of either branch's weighted integrand is its term above, and their sum is the whole.
-``p_e`` is positive exactly where ``f_e`` is and ``1 − p_e`` exactly where the shift
-integrand is, so no contribution is skipped. After the choice the vertex is an
+``p_e`` is positive exactly where ``f_e`` is and ``1 − p_e`` wherever the shift
+integrand is, so no contribution is skipped. (``w_f`` may be positive where the shift
+integrand is zero: the shift then samples nothing and the elastic branch's ``1/p_e``
+weight makes up for it, so only the variance changes. That is why ``w_f`` may come
+from a table: for materials whose ``w_f`` does not depend on ωi, it is tabulated over
+λo once per scene, exact at 1 nm nodes, interpolated between two positive nodes and
+exact elsewhere; ``fluo::shift``.) After the choice the vertex is an
 ordinary (wavelength-changing) BSDF: next-event estimation and BSDF sampling estimate
 the incident radiance L(λi, ω) with the usual MIS weights, which do not depend on
 wavelength. Each hero wavelength is an independent estimator of its camera
