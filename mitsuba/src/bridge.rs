@@ -344,6 +344,10 @@ mod bridge {
         fn reduced_includes_elastic(r: &ReducedModel) -> bool;
         /// K×K row major: the reduced reradiation times its directional factor (f·cos θo).
         fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]);
+        /// A Lambertian model's K×K matrix M (f = M/π): copied into `out` once, so that
+        /// the integrator scales it by cos θo/π itself; false (nothing copied) for a
+        /// direction-dependent model.
+        fn reduced_lambertian(r: &ReducedModel, out: &mut [f64]) -> bool;
         /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
         fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
     }
@@ -1088,6 +1092,15 @@ fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>
 
 fn reduced_includes_elastic(r: &ReducedModel) -> bool {
     r.full
+}
+fn reduced_lambertian(r: &ReducedModel, out: &mut [f64]) -> bool {
+    match &r.directional {
+        Directional::Lambertian(m) if out.len() == m.len() => {
+            out.copy_from_slice(m);
+            true
+        }
+        _ => false,
+    }
 }
 fn reduced_reradiation(r: &ReducedModel, wi: &Vec3, wo: &Vec3, out: &mut [f64]) {
     match &r.directional {

@@ -76,7 +76,9 @@ public:
             const fluo::Fluorescence *model = bisp->fluorescence();
             m_reduced.push_back(fluo_detail::rust_call(
                 m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
-            m_entries.add(Entry{ bsdf, bisp, &*m_reduced.back() });
+            Entry e{ bsdf, bisp, &*m_reduced.back() };
+            e.lambertian = fluo::reduced_lambertian(*e.reduced, rust::Slice<double>(e.m.data(), m_k * m_k));
+            m_entries.add(e);
         }
         bool warned_uv = m_uv_warned == scene; // one warning per scene
         for (const auto &emitter : scene->emitters()) {
@@ -115,6 +117,9 @@ public:
         const BSDF *bsdf;
         const BispectralBSDF<Float, Spectrum> *bispectral;
         const fluo::ReducedModel *reduced;
+        /// A Lambertian model's M (f = M/π), read once at prepare time.
+        bool lambertian = false;
+        Square m{};
     };
 
     /// The material at a vertex: its entry, nullptr when it is not fluorescent.
@@ -297,6 +302,13 @@ private:
             m.fill(0.0);
         else
             diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        if (e.lambertian) { // f = M/π, times cos θo: no bridge call per direction
+            double ci = (double) Frame3f::cos_theta(si.wi), co = (double) Frame3f::cos_theta(wo);
+            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 : 0.0; // 1/π, as Rust
+            for (size_t i = 0; i < m_k * m_k; ++i)
+                m[i] += e.m[i] * factor;
+            return;
+        }
         Square r{};
         fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
                                   rust::Slice<double>(r.data(), m_k * m_k));
