@@ -6,22 +6,23 @@ paired rounds (A then B, then B then A, ...), and reports the median of the per-
 ratios A/B with their spread (min-max): on a shared 2-core machine a paired ratio is
 stable where absolute times are not. Rows and targets:
 
-====================================================  ==========================================  ======
-row                                                   A / B                                       target
-====================================================  ==========================================  ======
-fluorescent Cornell box, ``scalar_spectral``          ``fluo_path`` / ``path`` (``fluo_jung``)    1.10
-measured material, same box                           ``fluo_matrix`` / ``diffuse``               1.25
-Gaussian mixture (8)                                  ``fluo_gmm`` / ``fluo_matrix``              1.15
-quantum-dot coating (density 0.8)                     ``fluo_qd`` / ``roughconductor``           1.15
-reduced RGB ``x7``, ``scalar_rgb``                    ``fluo_path`` / ``path`` (dyes removed)     1.20
-spectral light on a plain box                         ``fluo_illuminant`` D65 / native ``d65``    1.01
-plain box + 1000 hidden fluorescent spheres           ``fluo_path`` (N = 1000) / ``path`` (N = 0)  1.15
-load of K coloured ``fluo_jung`` (``color``)          ms and MB per material (B: ``diffuse``)     0.2 ms
-====================================================  ==========================================  ======
+================================================  ===========================================  ======
+row                                               A / B                                        target
+================================================  ===========================================  ======
+Cornell box without fluorescence (both variants)  ``fluo_path`` / ``path``                     1.05
+fluorescent Cornell box, ``scalar_spectral``      ``fluo_path`` / ``path`` (``fluo_jung``)     1.10
+measured material, same box                       ``fluo_matrix`` / ``diffuse``                1.25
+Gaussian mixture (8)                              ``fluo_gmm`` / ``fluo_matrix``               1.15
+quantum-dot coating (density 0.8)                 ``fluo_qd`` / ``roughconductor``             1.15
+reduced RGB ``x7``, ``scalar_rgb``                ``fluo_path`` / ``path`` (dyes removed)      1.20
+spectral light on a plain box                     ``fluo_illuminant`` D65 / native ``d65``     1.01
+plain box + 1000 hidden fluorescent spheres       ``fluo_path`` (N = 1000) / ``path`` (N = 0)  1.15
+load of K coloured ``fluo_jung`` (``color``)      ms and MB per material (B: ``diffuse``)      0.2 ms
+================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
 box's area light with a D65 spectrum from 300 nm (``fluo_illuminant``), except in the
-``fluo_illuminant`` row. The measured material is ``data/matrices/jung_orange.csv`` and its
+rows without fluorescence (Mitsuba's own light) and the ``fluo_illuminant`` row. The measured material is ``data/matrices/jung_orange.csv`` and its
 8-component fit ``jung_orange.gmm.json``. Hidden spheres sit behind the back wall, each
 with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
 ``fluo_path`` knows 1000 fluorescent BSDFs.
@@ -144,6 +145,12 @@ def load_row(res: int, rounds: int) -> dict:
 
 
 ROWS = {
+    "plain": ("no fluorescence: fluo_path / path, plain box (spectral)", 1.05,
+              lambda a: render_pair("scalar_spectral", box(a.res, bsdf=diffuse, light=None),
+                                    box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds)),
+    "plain_rgb": ("no fluorescence: fluo_path / path, plain box (RGB)", 1.05,
+                  lambda a: render_pair("scalar_rgb", box(a.res, bsdf=diffuse, light=None),
+                                        box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds)),
     "jung": ("fluorescent box: fluo_path / path (fluo_jung, spectral)", 1.10,
              lambda a: render_pair("scalar_spectral", box(a.res, bsdf=jung), box(a.res, "path", bsdf=jung),
                                    a.spp, a.rounds)),

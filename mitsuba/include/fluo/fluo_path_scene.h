@@ -18,7 +18,6 @@
 #include <unordered_set>
 #include <utility>
 #include <vector>
-#include <vector>
 
 #include "fluo_bispectral.h"
 
