@@ -265,6 +265,27 @@ def test10_traverse_update_revalidates(variant):
         params.update()
 
 
+@pytest.mark.parametrize("material", ["Au", "Cu", "Al", "AlSb"])
+def test10b_vanishing_coating_matches_native(material):
+    """A coated fluo_qd (spectral) multiplies the substrate's Fresnel factor by the film's
+    (eq. 23). With a vanishing film (ρ = 1e-9: R_spe, A_tf ~ 1e-9) R_tot is the
+    substrate's Fresnel factor, so eval must equal native roughconductor's at random
+    (wi, wo, λ) to float rounding: the coated path reads the same η, k (AlSb's data end
+    at 590 nm, where Mitsuba's spectrum drops to zero)."""
+    mi.set_variant("scalar_spectral")
+    b = qd(material=material, alpha=0.2, density=1e-9)
+    native = mi.load_dict({"type": "roughconductor", "material": material, "alpha": 0.2})
+    ctx, rng = mi.BSDFContext(), np.random.default_rng(7)
+    worst = 0.0
+    for _ in range(400):
+        wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(*rng.random(2)))
+        wo = mi.warp.square_to_cosine_hemisphere(mi.Point2f(*rng.random(2)))
+        si = surface_interaction(tuple(rng.uniform(360.0, 830.0, 4)), wi=tuple(wi))
+        a, ref = np.array(b.eval(ctx, si, wo)), np.array(native.eval(ctx, si, wo))
+        worst = max(worst, float((np.abs(a - ref) / np.maximum(ref, 1e-6)).max()))
+    assert worst < 1e-4, worst
+
+
 def test11_demo_scenes_render(render):
     for name in ("fluo_qd_spheres.xml", "fluo_qd_spheres_uv.xml"):
         img = render(REPO / "scenes" / name, "scalar_spectral", spp=1, res=32)

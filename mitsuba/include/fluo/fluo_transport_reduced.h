@@ -16,6 +16,7 @@
 #include <array>
 #include <cmath>
 #include <string>
+#include <type_traits>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -44,8 +45,9 @@ public:
         : m_plugin(plugin),
           m_transport(fluo_detail::rust_call(plugin, [&] { return fluo::transport_new(basis, method); })) {
         m_k = fluo::transport_size(*m_transport);
-        if (m_k > KMax)
-            Throw("%s: basis \"%s\" has %zu bands, at most %zu are supported", plugin, basis, m_k, KMax);
+        if (m_k != 3 && m_k != 4 && m_k != KMax)
+            Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4 and %zu",
+                  plugin, basis, m_k, KMax);
         fluo::transport_output(*m_transport, rust::Slice<double>(m_output.data(), 3 * m_k));
         fluo::transport_from_rgb(*m_transport, rust::Slice<double>(m_from_rgb.data(), 3 * m_k));
         fluo::transport_white(*m_transport, rust::Slice<double>(m_white.data(), m_k));
@@ -77,6 +79,7 @@ public:
             m_reduced.push_back(fluo_detail::rust_call(
                 m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
             Entry e{ bsdf, bisp, &*m_reduced.back() };
+            e.full = fluo::reduced_includes_elastic(*e.reduced);
             e.lambertian = fluo::reduced_lambertian(*e.reduced, rust::Slice<double>(e.m.data(), m_k * m_k));
             m_entries.add(e);
         }
@@ -117,6 +120,8 @@ public:
         const BSDF *bsdf;
         const BispectralBSDF<Float, Spectrum> *bispectral;
         const fluo::ReducedModel *reduced;
+        /// Whether the reduced operator includes the elastic part (else eval_elastic adds it).
+        bool full = false;
         /// A Lambertian model's M (f = M/π), read once at prepare time.
         bool lambertian = false;
         Square m{};
@@ -148,11 +153,11 @@ public:
             // --------------- Emitter sampling contribution ----------------
             if (em.active) {
                 if (fl) {
-                    m_t.fluorescent_matrix(*fl, si, em.wo, m_m);
                     Float mis_em = dr::select(em.ds.delta, 1.f,
                                               fluo_detail::mis_weight(em.ds.pdf, bsdf->pdf(bsdf_ctx, si, em.wo)));
                     // R·(M·c): a K×K matrix-vector product instead of the 3K×K product R·M.
-                    Coeffs mc = m_t.apply(m_m, m_t.emitter_coefficients(em.ds.emitter, em.weight));
+                    Coeffs mc = m_t.vertex_apply(*fl, si, em.wo, m_t.emitter_coefficients(em.ds.emitter, em.weight),
+                                                 m_m);
                     m_t.accumulate(m_result, m_reduced ? m_R : m_t.rows_scaled(m_rgb), mc, mis_em);
                 } else {
                     auto [val, bsdf_pdf] = bsdf->eval_pdf(bsdf_ctx, si, em.wo);
@@ -174,10 +179,9 @@ public:
                     m_R = m_t.rows_scaled(m_rgb);
                 m_reduced = true;
                 if (bs.pdf > 0.f) {
-                    m_t.fluorescent_matrix(*fl, si, bs.wo, m_m);
-                    m_t.multiply(m_R, m_m, 1.0 / bs.pdf);
+                    m_t.vertex_multiply(*fl, si, bs.wo, m_R, 1.0 / bs.pdf, m_m);
                 } else {
-                    m_t.multiply(m_R, Square{}, 0.0);
+                    m_R.fill(0.0);
                 }
             } else if (m_reduced) {
                 m_t.scale_columns(m_R, m_t.band_albedo(weight));
@@ -255,7 +259,18 @@ private:
         return c;
     }
 
-    /// Per-band albedos of an RGB value as a diagonal matrix.
+    /// Calls f(std::integral_constant<size_t, K>{}) with the transport's K, so that the
+    /// matrix loops below have compile-time bounds (unrolled, vectorised, no reloads of
+    /// m_k through the aliasing the build flags allow). The constructor admits only
+    /// these three sizes.
+    template <typename F> void with_k(F &&f) const {
+        switch (m_k) {
+            case 3: f(std::integral_constant<size_t, 3>{}); break;
+            case 4: f(std::integral_constant<size_t, 4>{}); break;
+            default: f(std::integral_constant<size_t, KMax>{}); break;
+        }
+    }
+
     /// Per-band albedo a_k = (from_rgb · v)_k / (from_rgb · 1)_k of an RGB value: how a
     /// native (wavelength-preserving) BSDF acts on the K coefficients.
     Coeffs band_albedo(const Spectrum &v) const {
@@ -270,73 +285,121 @@ private:
         }
         return d;
     }
-    /// The diagonal K×K matrix of band_albedo(v).
-    void diagonal_of(const Spectrum &v, Square &m) const {
-        m.fill(0.0);
-        Coeffs d = band_albedo(v);
-        for (size_t k = 0; k < m_k; ++k)
-            m[k * m_k + k] = d[k];
-    }
     /// M · c.
     Coeffs apply(const Square &m, const Coeffs &c) const {
         Coeffs out{};
-        for (size_t i = 0; i < m_k; ++i) {
-            double acc = 0.0;
-            for (size_t k = 0; k < m_k; ++k)
-                acc += m[i * m_k + k] * c[k];
-            out[i] = acc;
-        }
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            for (size_t i = 0; i < K; ++i) {
+                double acc = 0.0;
+                for (size_t k = 0; k < K; ++k)
+                    acc += m[i * K + k] * c[k];
+                out[i] = acc;
+            }
+        });
         return out;
     }
     /// R ← R · diag(d): native vertices cost 3K products, not a dense 3K×K product.
     void scale_columns(Row3 &r, const Coeffs &d) const {
-        for (size_t row = 0; row < 3; ++row)
-            for (size_t j = 0; j < m_k; ++j)
-                r[row * m_k + j] *= d[j];
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            for (size_t row = 0; row < 3; ++row)
+                for (size_t j = 0; j < K; ++j)
+                    r[row * K + j] *= d[j];
+        });
     }
 
-    /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
+    /// Factor of a Lambertian entry's M for directions (wi, wo): cos θo/π on the upper
+    /// hemisphere (f = M/π times cos θo), else 0.
+    static double lambertian_factor(const SurfaceInteraction3f &si, const Vector3f &wo) {
+        double ci = (double) Frame3f::cos_theta(si.wi), co = (double) Frame3f::cos_theta(wo);
+        return ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 : 0.0; // 1/π, as Rust
+    }
+    /// Per-band elastic albedo at the vertex, zero when the reduced operator includes it.
+    Coeffs elastic_diagonal(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo) const {
+        return e.full ? Coeffs{} : band_albedo(Spectrum(e.bispectral->eval_elastic(si, wo)));
+    }
+
+    /// The K×K vertex matrix of a direction-dependent fluorescent BSDF for direction wo
+    /// (value · cos): the reduced reradiation, plus the elastic diagonal d.
     void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
-                            Square &m) const {
-        if (fluo::reduced_includes_elastic(*e.reduced))
-            m.fill(0.0);
-        else
-            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
-        if (e.lambertian) { // f = M/π, times cos θo: no bridge call per direction
-            double ci = (double) Frame3f::cos_theta(si.wi), co = (double) Frame3f::cos_theta(wo);
-            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 : 0.0; // 1/π, as Rust
-            for (size_t i = 0; i < m_k * m_k; ++i)
-                m[i] += e.m[i] * factor;
+                            const Coeffs &d, Square &m) const {
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo), rust::Slice<double>(m.data(), K * K));
+            for (size_t k = 0; k < K; ++k)
+                m[k * K + k] += d[k];
+        });
+    }
+
+    /// M(wo) · c for the vertex matrix M of a fluorescent BSDF (`scratch`: workspace).
+    /// A Lambertian entry is applied as (cos θo/π)·(M·c) + d∘c, without forming M.
+    Coeffs vertex_apply(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo, const Coeffs &c,
+                        Square &scratch) const {
+        Coeffs d = elastic_diagonal(e, si, wo);
+        if (!e.lambertian) {
+            fluorescent_matrix(e, si, wo, d, scratch);
+            return apply(scratch, c);
+        }
+        Coeffs out = apply(e.m, c);
+        double f = lambertian_factor(si, wo);
+        for (size_t k = 0; k < m_k; ++k)
+            out[k] = out[k] * f + d[k] * c[k];
+        return out;
+    }
+
+    /// R ← R · M(wo) · s for the vertex matrix M of a fluorescent BSDF. A Lambertian
+    /// entry is applied as (R·M)·(cos θo/π)·s + R·diag(d)·s, without forming M.
+    void vertex_multiply(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo, Row3 &r, double s,
+                         Square &scratch) const {
+        Coeffs d = elastic_diagonal(e, si, wo);
+        if (!e.lambertian) {
+            fluorescent_matrix(e, si, wo, d, scratch);
+            multiply(r, scratch, s);
             return;
         }
-        Square r{};
-        fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
-                                  rust::Slice<double>(r.data(), m_k * m_k));
-        for (size_t i = 0; i < m_k * m_k; ++i)
-            m[i] += r[i];
+        double f = lambertian_factor(si, wo) * s;
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            std::array<double, 3 * K> out;
+            for (size_t row = 0; row < 3; ++row)
+                for (size_t j = 0; j < K; ++j) {
+                    double acc = 0.0;
+                    for (size_t k = 0; k < K; ++k)
+                        acc += r[row * K + k] * e.m[k * K + j];
+                    out[row * K + j] = acc * f + r[row * K + j] * d[j] * s;
+                }
+            std::copy(out.begin(), out.end(), r.begin());
+        });
     }
 
     /// R ← R · M · s
     void multiply(Row3 &r, const Square &m, double s) const {
-        Row3 out{};
-        for (size_t row = 0; row < 3; ++row)
-            for (size_t j = 0; j < m_k; ++j) {
-                double acc = 0.0;
-                for (size_t k = 0; k < m_k; ++k)
-                    acc += r[row * m_k + k] * m[k * m_k + j];
-                out[row * m_k + j] = acc * s;
-            }
-        r = out;
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            std::array<double, 3 * K> out;
+            for (size_t row = 0; row < 3; ++row)
+                for (size_t j = 0; j < K; ++j) {
+                    double acc = 0.0;
+                    for (size_t k = 0; k < K; ++k)
+                        acc += r[row * K + k] * m[k * K + j];
+                    out[row * K + j] = acc * s;
+                }
+            std::copy(out.begin(), out.end(), r.begin());
+        });
     }
 
     /// result += R · c · s
     void accumulate(Color3f &result, const Row3 &r, const Coeffs &c, double s) const {
-        for (size_t row = 0; row < 3; ++row) {
-            double acc = 0.0;
-            for (size_t k = 0; k < m_k; ++k)
-                acc += r[row * m_k + k] * c[k];
-            result[row] += (float) (acc * s);
-        }
+        with_k([&](auto kc) {
+            constexpr size_t K = decltype(kc)::value;
+            for (size_t row = 0; row < 3; ++row) {
+                double acc = 0.0;
+                for (size_t k = 0; k < K; ++k)
+                    acc += r[row * K + k] * c[k];
+                result[row] += (float) (acc * s);
+            }
+        });
     }
 
     /// R = diag(t) · m_output: the 3×K throughput of an RGB throughput t.
