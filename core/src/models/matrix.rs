@@ -609,6 +609,7 @@ pub fn write_exr(d: &Donaldson, path: &Path) -> Result<()> {
 
 /// Locate `x` on a strictly increasing grid with its [`GridIndex`]: (cell index,
 /// fraction in [0, 1]); `None` outside `[g_0, g_last]`.
+#[inline]
 fn locate(g: &[f64], index: GridIndex, x: f64) -> Option<(usize, f64)> {
     let n = g.len();
     if !(x >= g[0] && x <= g[n - 1]) {
@@ -653,22 +654,23 @@ impl Slice<'_> {
     fn c(&self, j: usize) -> f64 {
         (1.0 - self.s) * self.a.c(j) + self.s * self.b.c(j)
     }
-    fn value(&self, x: f64) -> f64 {
-        locate(self.x, self.index, x).map_or(0.0, |(j, t)| (1.0 - t) * self.v(j) + t * self.v(j + 1))
-    }
     /// ∫_{x_0}^{x} of the slice (x clamped to the grid).
     fn cdf(&self, x: f64) -> f64 {
+        self.cdf_cell(x).0
+    }
+    /// [`Self::cdf`] and the cell of x (clamped to the grid), from one lookup.
+    fn cdf_cell(&self, x: f64) -> (f64, usize) {
         let n = self.x.len();
         if !(x > self.x[0]) {
-            return 0.0;
+            return (0.0, 0);
         }
         if x >= self.x[n - 1] {
-            return self.c(n - 1);
+            return (self.c(n - 1), n - 2);
         }
         let (j, t) = locate(self.x, self.index, x).unwrap_or((0, 0.0));
         let f0 = self.v(j);
         let fx = (1.0 - t) * f0 + t * self.v(j + 1);
-        self.c(j) + 0.5 * (x - self.x[j]) * (f0 + fx)
+        (self.c(j) + 0.5 * (x - self.x[j]) * (f0 + fx), j)
     }
     /// ∫_{lo}^{hi} of the slice.
     fn mass(&self, lo: f64, hi: f64) -> f64 {
@@ -684,15 +686,13 @@ impl Slice<'_> {
         if !(hi > lo) {
             return None;
         }
-        let (c_lo, c_hi) = (self.cdf(lo), self.cdf(hi));
+        let ((c_lo, j_lo), (c_hi, j_hi)) = (self.cdf_cell(lo), self.cdf_cell(hi));
         let mass = c_hi - c_lo;
         if !(mass > 0.0) {
             return None;
         }
         let target = c_lo + xi.clamp(0.0, 1.0) * mass;
         // Cell: the last node at or below `target` among those spanning [lo, hi].
-        let j_lo = locate(self.x, self.index, lo).map_or(0, |p| p.0);
-        let j_hi = locate(self.x, self.index, hi).map_or(n - 2, |p| p.0);
         let (mut a, mut b) = (j_lo, j_hi); // invariant: answer in [a, b]
         while a < b {
             let m = (a + b).div_ceil(2);
@@ -711,7 +711,9 @@ impl Slice<'_> {
         let denom = f0 + disc.sqrt();
         let u = if denom > 0.0 { 2.0 * delta / denom } else { 0.0 };
         let x = (self.x[j] + u).clamp(lo.max(self.x[j]), hi.min(self.x[j + 1]));
-        let pdf = self.value(x) / mass;
+        // The slice at x, in its cell j (continuous at the nodes: no second lookup).
+        let t = ((x - self.x[j]) / h).clamp(0.0, 1.0);
+        let pdf = ((1.0 - t) * f0 + t * f1) / mass;
         (pdf > 0.0 && pdf.is_finite()).then_some((x, pdf))
     }
 }

@@ -179,6 +179,7 @@ impl GridIndex {
     /// n − 2 at or above its last node): exactly the bisection
     /// `partition_point(|g| g <= x).clamp(1, n − 1) − 1`. `grid` has ≥ 2 nodes and is the
     /// grid this index was built for; x is not NaN.
+    #[inline]
     pub(crate) fn cell(&self, grid: &[f64], x: f64) -> usize {
         let last = grid.len() - 2;
         match self.uniform {

@@ -314,6 +314,7 @@ impl LambdaIndex {
 
     /// The cell i ∈ [0, n − 2] with grid[i] ≤ x < grid[i + 1] (clamped at the ends),
     /// as `bisect`; x is not NaN.
+    #[inline]
     pub(super) fn cell(&self, grid: &[f64], x: f64) -> usize {
         let buckets = self.first.len() - 1;
         let b = (((x - self.start) * self.inv_width).max(0.0) as usize).min(buckets - 1);
