@@ -2,6 +2,9 @@
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/texture.h>
 
+#include <cmath>
+#include <sstream>
+
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
 
@@ -65,17 +68,9 @@ public:
 
     static constexpr const char *Plugin = "fluo_illuminant";
 
-    FluoIlluminant(const Properties &props) : Texture(props) {
-        std::string name = props.has_property("illuminant")
-                               ? std::string(props.get<std::string_view>("illuminant")) : "";
-        std::string file;
-        if (props.has_property("filename")) {
-            FileResolver *fr = mitsuba::file_resolver();
-            file = fr->resolve(fs::path(std::string(props.get<std::string_view>("filename")))).string();
-        }
-        double scale = fluo_detail::get_float(Plugin, props, "scale", 1.0);
-        bool normalize = props.get<bool>("normalize", true);
-        m_spectrum = fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale, normalize); });
+    FluoIlluminant(const Properties &props) : Texture(props), m_spectrum(create(props)) {
+        if constexpr (is_spectral_v<Spectrum>)
+            m_table = native_table(*m_spectrum);
         fluo::Range r = fluo::illuminant_range(*m_spectrum);
         m_range = ScalarVector2f((ScalarFloat) r.lo, (ScalarFloat) r.hi);
         m_mean = (ScalarFloat) fluo::illuminant_mean(*m_spectrum);
@@ -90,8 +85,10 @@ public:
     /// RGB reported for spectra without visible energy (negligible, see above).
     static constexpr ScalarFloat InvisibleRgb = 1e-12f;
 
-    UnpolarizedSpectrum eval(const SurfaceInteraction3f &si, Mask /* active */) const override {
+    UnpolarizedSpectrum eval(const SurfaceInteraction3f &si, Mask active) const override {
         if constexpr (is_spectral_v<Spectrum>) {
+            if (m_table)
+                return m_table->eval(si, active);
             std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
             fluo::illuminant_eval(*m_spectrum, fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
             return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
@@ -125,8 +122,59 @@ public:
     MI_DECLARE_CLASS(FluoIlluminant)
 
 private:
-    rust::Box<fluo::Illuminant> m_spectrum = fluo_detail::rust_call(
-        Plugin, [] { return fluo::illuminant_new("E", "", 1.0, true); });
+    static rust::Box<fluo::Illuminant> create(const Properties &props) {
+        std::string name = props.has_property("illuminant")
+                               ? std::string(props.get<std::string_view>("illuminant")) : "";
+        std::string file;
+        if (props.has_property("filename")) {
+            FileResolver *fr = mitsuba::file_resolver();
+            file = fr->resolve(fs::path(std::string(props.get<std::string_view>("filename")))).string();
+        }
+        double scale = fluo_detail::get_float(Plugin, props, "scale", 1.0);
+        bool normalize = props.get<bool>("normalize", true);
+        return fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale, normalize); });
+    }
+
+    /// The spectrum's nodes and values (from Rust, scale applied) as Mitsuba's own
+    /// `regular` spectrum (a uniform grid, as the CIE tables) or `irregular` one: both
+    /// interpolate linearly and are zero outside, as the Rust spectrum, so per-sample
+    /// evaluation costs what a native spectrum costs (the values agree to float
+    /// rounding; test_fluo_illuminant.py). nullptr (Rust evaluates) if Mitsuba refuses
+    /// the table.
+    static ref<Texture> native_table(const fluo::Illuminant &s) {
+        rust::Vec<double> wavelengths, values;
+        fluo::illuminant_nodes(s, wavelengths, values);
+        size_t n = wavelengths.size();
+        if (n < 2 || values.size() != n)
+            return nullptr;
+        auto join = [](const rust::Vec<double> &v) {
+            std::ostringstream oss;
+            oss.precision(9); // a float, exactly
+            for (size_t i = 0; i < v.size(); ++i)
+                oss << (i ? ", " : "") << (float) v[i];
+            return oss.str();
+        };
+        double step = (wavelengths[n - 1] - wavelengths[0]) / (double) (n - 1);
+        bool uniform = true;
+        for (size_t i = 0; i < n; ++i)
+            uniform &= std::abs(wavelengths[i] - (wavelengths[0] + step * (double) i)) <= 1e-6 * step;
+        Properties p(uniform ? "regular" : "irregular");
+        if (uniform) {
+            p.set("wavelength_min", wavelengths[0]);
+            p.set("wavelength_max", wavelengths[n - 1]);
+        } else {
+            p.set("wavelengths", join(wavelengths));
+        }
+        p.set("values", join(values));
+        try {
+            return PluginManager::instance()->create_object<Texture>(p);
+        } catch (const std::exception &) {
+            return nullptr;
+        }
+    }
+
+    rust::Box<fluo::Illuminant> m_spectrum;
+    ref<Texture> m_table; ///< spectral variants: the same spectrum as a native texture
     ScalarVector2f m_range;
     ScalarFloat m_mean;
     Color3f m_rgb;

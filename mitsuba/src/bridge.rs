@@ -95,6 +95,10 @@ mod bridge {
         /// (CIE 1931) is `scale`, otherwise multiplied by `scale`.
         fn illuminant_new(name: &str, filename: &str, scale: f64, normalize: bool) -> Result<Box<Illuminant>>;
         fn illuminant_eval(s: &Illuminant, lambdas: &[f32], out: &mut [f32]);
+        /// Its nodes (nm) and values, scale applied: linearly interpolated and zero
+        /// outside, they are the spectrum, so the shim can hand them to Mitsuba's own
+        /// `regular`/`irregular` spectrum for per-sample evaluation.
+        fn illuminant_nodes(s: &Illuminant, wavelengths: &mut Vec<f64>, values: &mut Vec<f64>);
         /// The wavelengths where it is defined, nm.
         fn illuminant_range(s: &Illuminant) -> Range;
         /// Mean value over Mitsuba's 360–830 nm.
@@ -444,6 +448,13 @@ fn illuminant_eval(s: &Illuminant, lambdas: &[f32], out: &mut [f32]) {
     for (o, &l) in out.iter_mut().zip(lambdas) {
         *o = s.spectrum.eval(f64::from(l)) as f32;
     }
+}
+
+fn illuminant_nodes(s: &Illuminant, wavelengths: &mut Vec<f64>, values: &mut Vec<f64>) {
+    wavelengths.clear();
+    wavelengths.extend_from_slice(s.spectrum.wavelengths_nm());
+    values.clear();
+    values.extend_from_slice(s.spectrum.values());
 }
 
 fn illuminant_range(s: &Illuminant) -> Range {

@@ -80,3 +80,20 @@ def test04_bad_input_names_the_parameter(bad, needle):
     mi.set_variant("scalar_spectral")
     with pytest.raises(Exception, match=needle):
         mi.load_dict({"type": "fluo_illuminant", **bad})
+
+
+@pytest.mark.parametrize("grid", ["uniform", "irregular"])
+def test05_spectral_evaluation_is_the_tabulated_spectrum(tmp_path, grid):
+    """In scalar_spectral the light is evaluated per sample by Mitsuba's own regular or
+    irregular spectrum built from the Rust nodes: the file's values at its nodes, the
+    linear interpolant between them, zero outside, on either kind of grid."""
+    mi.set_variant("scalar_spectral")
+    lam = np.linspace(320.0, 700.0, 39) if grid == "uniform" else np.array([320.0, 321.5, 340.0, 410.25, 555.0, 700.0])
+    val = 1.0 + np.sin(lam / 37.0) ** 2
+    f = tmp_path / "lamp.csv"
+    f.write_text("nm,value\n" + "\n".join(f"{float(a)!r},{float(b)!r}" for a, b in zip(lam, val)))
+    tex = mi.load_dict({"type": "fluo_illuminant", "filename": str(f), "normalize": False, "scale": 3.0})
+    np.testing.assert_allclose(_eval(tex, lam), 3.0 * val, rtol=1e-6)
+    mid = 0.5 * (lam[:-1] + lam[1:])
+    np.testing.assert_allclose(_eval(tex, mid), 1.5 * (val[:-1] + val[1:]), rtol=1e-6)
+    assert np.all(_eval(tex, [319.9, 700.1, 830.0]) == 0)
