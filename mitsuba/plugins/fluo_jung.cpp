@@ -276,6 +276,7 @@ private:
     /// Validate the configuration in Rust and precompute what each variant needs.
     void rebuild() {
         m_model = fluo_detail::rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
+        m_build = fluo_detail::WavelengthMemo::next_build();
         m_emission_peak = (ScalarFloat) m_config.emission_peak;
         m_stokes_shift  = (ScalarFloat) m_config.stokes_shift;
         m_concentration = (ScalarFloat) m_config.concentration;
@@ -394,23 +395,29 @@ private:
                                                               m_rgb_fluorescence[2] });
             return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
         } else {
-            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths);
             if (!m_reflectance) {
-                fluo::jung_elastic_albedo(**m_model, fluo_detail::slice(lambda),
-                                          fluo_detail::slice_mut(out));
+                const std::array<float, 4> &out = fluo_detail::WavelengthMemo::get(m_build, lambda, [&](std::array<float, 4> &v) {
+                    fluo::jung_elastic_albedo(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(v));
+                });
                 return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
             }
             UnpolarizedSpectrum r = m_reflectance->eval(si, active);
             if (!m_modifies_reflectance)
                 return r;
-            fluo::jung_elastic_factor(**m_model, fluo_detail::slice(lambda),
-                                      fluo_detail::slice_mut(out));
+            const std::array<float, 4> &out = fluo_detail::WavelengthMemo::get(m_build, lambda, [&](std::array<float, 4> &v) {
+                fluo::jung_elastic_factor(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(v));
+            });
             return r * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
         }
     }
 
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
     std::optional<rust::Box<fluo::JungModel>> m_model; ///< set by rebuild() in the constructor
+    /// This model's key in the per-thread memo of its elastic albedo/factor: a vertex
+    /// asks for it up to three times (eval_pdf, sample, fluo_path's elastic/shift
+    /// choice), and a path keeps its wavelengths until a shift.
+    uint64_t m_build = 0;
     ref<Texture> m_reflectance;
     ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
                 m_quantum_yield = 0.f;

@@ -10,6 +10,8 @@
 #include <mitsuba/core/spectrum.h>
 
 #include <array>
+#include <atomic>
+#include <cstring>
 #include <string>
 
 #include "fluo-mitsuba/src/bridge.rs.h"
@@ -117,6 +119,36 @@ template <typename Wavelength> std::array<float, 4> wavelengths_of(const Wavelen
         out[i] = w[i];
     return out;
 }
+
+/// A per-thread memo of a pure function of four wavelengths, for a BSDF asked the same
+/// value several times at a vertex. One entry per thread and call site (each `compute`
+/// lambda has its own type, hence its own entry), keyed by a model build number
+/// (next_build(), never reused: a rebuilt or reallocated model cannot hit a stale
+/// entry) and the wavelengths, bitwise; a miss calls `compute(values)`.
+class WavelengthMemo {
+public:
+    static uint64_t next_build() {
+        static std::atomic<uint64_t> counter{ 0 };
+        return ++counter;
+    }
+    template <typename F>
+    static const std::array<float, 4> &get(uint64_t build, const std::array<float, 4> &lambda, F &&compute) {
+        thread_local Entry entry;
+        if (entry.build != build || std::memcmp(entry.lambda.data(), lambda.data(), sizeof(lambda)) != 0) {
+            entry.build = 0; // invalid until computed (compute may throw)
+            compute(entry.values);
+            entry.lambda = lambda;
+            entry.build = build;
+        }
+        return entry.values;
+    }
+
+private:
+    struct Entry {
+        uint64_t build = 0;
+        std::array<float, 4> lambda{}, values{};
+    };
+};
 
 inline rust::Slice<const float> slice(const std::array<float, 4> &a) {
     return rust::Slice<const float>(a.data(), a.size());

@@ -179,16 +179,24 @@ template <typename Entry> class EntryTable {
 public:
     void clear() {
         m_entries.clear();
+        m_keys.clear();
         m_index.clear();
     }
     /// Add an entry; a BSDF added twice keeps its first entry.
     void add(const Entry &e) {
-        if (m_index.emplace(static_cast<const void *>(e.bsdf), m_entries.size()).second)
+        if (m_index.emplace(static_cast<const void *>(e.bsdf), m_entries.size()).second) {
             m_entries.push_back(e);
+            m_keys.push_back(e.bsdf);
+        }
     }
     const Entry *find(const void *bsdf) const {
-        if (m_entries.empty())
+        size_t n = m_keys.size();
+        if (n <= LinearScanMax) { // a few materials: a scan beats hashing
+            for (size_t i = 0; i < n; ++i)
+                if (m_keys[i] == bsdf)
+                    return &m_entries[i];
             return nullptr;
+        }
         auto it = m_index.find(bsdf);
         return it == m_index.end() ? nullptr : &m_entries[it->second];
     }
@@ -196,7 +204,10 @@ public:
     bool empty() const { return m_entries.empty(); }
 
 private:
+    /// Up to this many entries, find() scans m_keys.
+    static constexpr size_t LinearScanMax = 8;
     std::vector<Entry> m_entries;
+    std::vector<const void *> m_keys; ///< m_entries[i].bsdf
     std::unordered_map<const void *, size_t> m_index;
 };
 
