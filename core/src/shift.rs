@@ -13,8 +13,9 @@
 //! [`ShiftTable`] stores the exact value at the nodes of a uniform λo grid for one R
 //! (built once, when a scene is prepared) and interpolates linearly inside a cell
 //! whose two nodes are positive (positive there, whatever the true value in between);
-//! any other cell, and λo outside the grid, calls the material's exact
-//! `shift_albedo`. Only materials whose shift albedo does not depend on ωi
+//! outside the material's emission range it is zero (nothing is re-emitted there, so
+//! the true value is zero); any other cell, and λo outside the grid, calls the
+//! material's exact `shift_albedo`. Only materials whose shift albedo does not depend on ωi
 //! ([`Bispectral::shift_albedo_is_isotropic`]) are tabulated.
 
 use crate::interface::Bispectral;
@@ -31,6 +32,8 @@ pub struct ShiftTable {
     range: (f64, f64),
     lo: f64,
     values: Vec<f64>,
+    /// The material's emission range: outside it the shift albedo is exactly zero.
+    emission: Option<(f64, f64)>,
 }
 
 impl ShiftTable {
@@ -52,7 +55,7 @@ impl ShiftTable {
                 }
             })
             .collect();
-        Some(Self { range, lo: lambda_o.0, values })
+        Some(Self { range, lo: lambda_o.0, values, emission: material.emission_range() })
     }
 
     /// The excitation range the table was built for.
@@ -66,6 +69,12 @@ impl ShiftTable {
     pub fn eval(&self, material: &dyn Bispectral, wi: [f64; 3], lambda_o: f64) -> f64 {
         if !(wi[2] > 0.0) {
             return 0.0;
+        }
+        // Nothing re-emitted at λo (the interface's emission range): zero, exactly,
+        // without asking the material.
+        match self.emission {
+            Some((a, b)) if lambda_o >= a && lambda_o <= b => {}
+            _ => return 0.0,
         }
         let x = (lambda_o - self.lo) / SHIFT_TABLE_STEP_NM;
         if x >= 0.0 {
@@ -121,6 +130,21 @@ mod tests {
         let m = MatrixModel::from_file(&path).unwrap();
         let worst = check(&m, (380.0, 830.0));
         assert!(worst < 0.05, "{worst}");
+    }
+
+    #[test]
+    fn measured_tables_are_zero_only_where_the_integral_is() {
+        // Every shipped matrix and Gaussian-mixture fit: the table (with its zero outside
+        // the emission range) is positive wherever the exact value is.
+        use crate::models::gmm::GmmModel;
+        let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/matrices");
+        for name in ["jung_brightener.csv", "jung_yellow.csv", "jung_orange.csv"] {
+            let m = MatrixModel::from_file(dir.join(name)).unwrap();
+            check(&m, (300.0, 830.0));
+        }
+        let g = GmmModel::from_file(dir.join("jung_orange.gmm.json")).unwrap();
+        check(&g, (300.0, 830.0));
+        check(&g, (380.0, 830.0));
     }
 
     #[test]
