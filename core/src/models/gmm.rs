@@ -81,8 +81,9 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use crate::models::matrix::{
-    interp_clamped, Filtered, MatrixModel, MAX_MATRIX_VALUE, MAX_WAVELENGTH_NM, WAVELENGTH_TOLERANCE_NM,
+    interp_indexed, Filtered, MatrixModel, MAX_MATRIX_VALUE, MAX_WAVELENGTH_NM, WAVELENGTH_TOLERANCE_NM,
 };
+use crate::spectrum::GridIndex;
 use crate::{Error, Result};
 
 /// Below this |x| erf uses its Taylor series; above, erfcx its continued fraction.
@@ -542,6 +543,8 @@ pub struct GmmModel {
     file: GmmFile,
     comps: Vec<Baked>,
     range: [[f64; 2]; 2],
+    /// Cell lookup on the diagonal's wavelengths (direct where uniform).
+    diagonal_index: GridIndex,
 }
 
 /// Conditioning axis: 0 = given λi (sample λo), 1 = given λo (sample λi).
@@ -668,7 +671,8 @@ impl GmmModel {
             ));
         }
         let range = [file.lambda_i_range_nm, file.lambda_o_range_nm];
-        Ok(Self { file, comps, range })
+        let diagonal_index = GridIndex::new(&file.diagonal.wavelengths_nm);
+        Ok(Self { file, comps, range, diagonal_index })
     }
 
     /// Load and validate a `*.gmm.json` file.
@@ -684,7 +688,7 @@ impl GmmModel {
 
     /// Elastic albedo ρ(λ) (the stored diagonal, interpolated, constant beyond its ends).
     pub fn reflectance(&self, lambda: f64) -> f64 {
-        interp_clamped(&self.file.diagonal.wavelengths_nm, &self.file.diagonal.values, lambda)
+        interp_indexed(&self.file.diagonal.wavelengths_nm, self.diagonal_index, &self.file.diagonal.values, lambda)
     }
 
     /// Whether anything is reradiated.

@@ -957,7 +957,7 @@ pub(crate) fn interp_clamped(x: &[f64], y: &[f64], at: f64) -> f64 {
 }
 
 /// [`interp_clamped`] with the grid's [`GridIndex`] (built once for `x`).
-fn interp_indexed(x: &[f64], index: GridIndex, y: &[f64], at: f64) -> f64 {
+pub(crate) fn interp_indexed(x: &[f64], index: GridIndex, y: &[f64], at: f64) -> f64 {
     let n = x.len();
     if n == 0 || !at.is_finite() {
         return 0.0;
