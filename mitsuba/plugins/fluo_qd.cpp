@@ -483,11 +483,30 @@ private:
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
         // ρ = 0: no coating, the elastic part is exactly roughconductor's.
         m_coated = m_config.density > 0.0;
+        m_uniform_substrate = !m_eta->is_spatially_varying() && !m_k->is_spatially_varying();
+        m_build = fluo_detail::WavelengthMemo::next_build();
     }
 
     /// The substrate's Fresnel factor, times the coating's effect when coated (eq. 23).
     UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, Float cos_m, Mask active) const {
-        dr::Complex<UnpolarizedSpectrum> eta_c(m_eta->eval(si, active), m_k->eval(si, active));
+        dr::Complex<UnpolarizedSpectrum> eta_c;
+        if constexpr (is_spectral_v<Spectrum>) {
+            if (m_uniform_substrate) {
+                // η(λ), k(λ) of a substrate uniform over the surface: per thread, asked
+                // once for the wavelengths a vertex evaluates up to three times.
+                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths);
+                const std::array<float, 4> &eta = fluo_detail::WavelengthMemo::get(
+                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_eta->eval(si, active), v); });
+                const std::array<float, 4> &k = fluo_detail::WavelengthMemo::get(
+                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_k->eval(si, active), v); });
+                eta_c = dr::Complex<UnpolarizedSpectrum>(UnpolarizedSpectrum(eta[0], eta[1], eta[2], eta[3]),
+                                                         UnpolarizedSpectrum(k[0], k[1], k[2], k[3]));
+            } else {
+                eta_c = dr::Complex<UnpolarizedSpectrum>(m_eta->eval(si, active), m_k->eval(si, active));
+            }
+        } else {
+            eta_c = dr::Complex<UnpolarizedSpectrum>(m_eta->eval(si, active), m_k->eval(si, active));
+        }
         UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
         if (!m_coated)
             return F;
@@ -513,6 +532,13 @@ private:
     ScalarFloat m_radius = 0.f, m_width = 0.f, m_quantum_yield = 0.f, m_density = 0.f, m_alpha = 0.f;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;
+    bool m_uniform_substrate = true; ///< η and k do not vary over the surface
+    uint64_t m_build = 0;            ///< this build's key in the per-thread η, k memo
+
+    static void store(const UnpolarizedSpectrum &s, std::array<float, 4> &out) {
+        for (size_t j = 0; j < 4; ++j)
+            out[j] = s[j];
+    }
 };
 
 static const bool fluo_qd_registered =
