@@ -53,3 +53,24 @@ def test04_the_wheel_carries_every_data_folder_the_package_looks_up():
     for name, folder in data.items():
         assert (REPO / folder).is_dir() and (REPO / folder) == fluo.data_dir(name)
     assert any((REPO / data["cubes"]).glob("*_d65_tinf_r33.cube"))
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral", "scalar_spectral_polarized"])
+def test05_other_variants_name_the_plugin_and_the_variant(variant):
+    """Every plugin in a variant it does not serve raises an error naming itself, the
+    variant and the variants it runs in (not Mitsuba's 'plugin not found')."""
+    import mitsuba as mi
+
+    if variant not in mi.variants():
+        pytest.fail(f"the mitsuba wheel lacks variant {variant}")
+    mi.set_variant(variant)
+    try:
+        for name, kind in fluo.PLUGIN_KINDS.items():
+            scene = {"type": name} if kind != "texture" else {"type": "diffuse", "reflectance": {"type": name}}
+            with pytest.raises(Exception) as err:
+                mi.load_dict(scene)
+            msg = str(err.value)
+            assert f'{name}: not available in variant "{variant}"' in msg, msg
+            assert "scalar_rgb" in msg and "scalar_spectral" in msg
+    finally:
+        mi.set_variant("scalar_spectral")

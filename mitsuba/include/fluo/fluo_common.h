@@ -12,7 +12,9 @@
 #include <array>
 #include <atomic>
 #include <cstring>
+#include <deque>
 #include <string>
+#include <string_view>
 
 #include "fluo-mitsuba/src/bridge.rs.h"
 #include "rust/cxx.h"
@@ -157,6 +159,39 @@ inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
     return rust::Slice<float>(a.data(), a.size());
 }
 
+/// Variants the fluo plugins serve; every other variant of the wheel gets a stub.
+inline bool served_variant(std::string_view variant) {
+    return variant == "scalar_rgb" || variant == "scalar_spectral";
+}
+
+/// Register, for every variant of the wheel (MI_VARIANTS) that the plugins do not
+/// serve, a factory that raises a clear error naming the plugin and the variant:
+/// without it Mitsuba reports a plugin "not found", as if fluo were not loaded.
+inline void register_unavailable(const char *name, ObjectType type) {
+    struct Unavailable {
+        std::string name, variant;
+    };
+    static std::deque<Unavailable> entries; // stable addresses: the factories' payloads
+    std::string_view all = MI_VARIANTS;
+    while (!all.empty()) {
+        size_t end = all.find('\n');
+        std::string_view variant = all.substr(0, end);
+        all = end == std::string_view::npos ? std::string_view() : all.substr(end + 1);
+        if (variant.empty() || served_variant(variant))
+            continue;
+        entries.push_back({ name, std::string(variant) });
+        PluginManager::instance()->register_plugin(
+            name, variant, type,
+            [](void *payload, const Properties &) -> ref<Object> {
+                auto *u = static_cast<const Unavailable *>(payload);
+                Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb and "
+                      "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\")",
+                      u->name, u->variant);
+            },
+            nullptr, &entries.back());
+    }
+}
+
 /// Register plugin class template T for the two scalar variants.
 template <template <typename, typename> class T>
 void register_scalar_plugin(const char *name, ObjectType type) {
@@ -164,6 +199,7 @@ void register_scalar_plugin(const char *name, ObjectType type) {
                             : type == ObjectType::Integrator ? "integrator"
                                                              : "texture");
     PluginManager *pm = PluginManager::instance();
+    register_unavailable(name, type);
     pm->register_plugin(
         name, "scalar_rgb", type,
         [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); },
