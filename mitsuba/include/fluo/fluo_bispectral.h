@@ -71,6 +71,28 @@ public:
     /// Whether fluorescence_at() depends on si.
     virtual bool fluorescence_varies() const { return false; }
 
+    /// A varying material's fluorescence at si as one of a finite set of models
+    /// (fluorescence_model(index)) scaled by `weight`: f_fl(si) = weight · f_fl[model].
+    /// fluo_jung with textured parameters keeps one dye shape per (λe, s) pair and
+    /// scales it by the hit's c·Q (the reradiation is linear in both).
+    struct Local {
+        const fluo::Fluorescence *model = nullptr; ///< nullptr: no re-emission at si
+        size_t index = NoIndex; ///< < fluorescence_models(), or NoIndex
+        double weight = 1.0;
+    };
+    static constexpr size_t NoIndex = (size_t) -1;
+
+    /// The fluorescence at si (default: fluorescence_at(si) with weight 1, no index).
+    virtual Local fluorescence_local(const SurfaceInteraction3f &si) const {
+        return Local{ fluorescence_at(si), NoIndex, 1.0 };
+    }
+
+    /// Number of models fluorescence_local() indexes (0: it gives no index, and reduced
+    /// RGB transport serves the material as a plain BSDF).
+    virtual size_t fluorescence_models() const { return 0; }
+    /// Model i < fluorescence_models().
+    virtual const fluo::Fluorescence *fluorescence_model(size_t /* i */) const { return nullptr; }
+
 protected:
     /// The once-per-scene warning of set_managed(); an atomic load when managed.
     void warn_if_unmanaged(const char *plugin) const {

@@ -60,6 +60,7 @@ public:
     /// spectrum.
     void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers) {
         m_entries.clear();
+        m_varying.clear();
         m_reduced.clear();
         m_sources.clear();
         fluo_detail::Collector c;
@@ -69,10 +70,34 @@ public:
         for (Object *o : c.objects) {
             auto *bsdf = dynamic_cast<BSDF *>(o);
             auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
-            // Spatially varying materials (fluo_jung with a colour texture) stay plain
-            // BSDFs here: their RGB value is the colour the upsampling cube reproduces.
-            if (!bsdf || !bisp || !bisp->fluorescence() || bisp->fluorescence_varies())
+            if (!bsdf || !bisp || !bisp->fluorescence())
                 continue;
+            if (bisp->fluorescence_varies()) {
+                // A varying material with a finite set of models (fluo_jung's textured
+                // parameters: one dye shape per (λe, s) pair) has each reduced once here and
+                // scaled per vertex. Without such a set (fluo_jung's colour texture) it stays
+                // a plain BSDF: its RGB value is the colour the upsampling cube reproduces.
+                size_t n = bisp->fluorescence_models();
+                if (n == 0)
+                    continue;
+                Entry e{ bsdf, bisp, nullptr };
+                e.varies = true;
+                e.first = m_varying.size();
+                e.count = n;
+                for (size_t i = 0; i < n; ++i) {
+                    const fluo::Fluorescence *shape = bisp->fluorescence_model(i);
+                    m_reduced.push_back(fluo_detail::rust_call(
+                        m_plugin, [&] { return fluo::reduced_new(*shape, *m_transport); }));
+                    if (fluo::reduced_includes_elastic(*m_reduced.back()))
+                        Throw("%s: a varying material's model includes its elastic part, which cannot be "
+                              "scaled per vertex", m_plugin);
+                    VaryingModel sh{ &*m_reduced.back() };
+                    sh.lambertian = fluo::reduced_lambertian(*sh.reduced, rust::Slice<double>(sh.m.data(), m_k * m_k));
+                    m_varying.push_back(sh);
+                }
+                m_entries.add(e);
+                continue;
+            }
             const fluo::Fluorescence *model = bisp->fluorescence();
             m_reduced.push_back(fluo_detail::rust_call(
                 m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
@@ -118,6 +143,17 @@ public:
         const BispectralBSDF<Float, Spectrum> *bispectral;
         const fluo::ReducedModel *reduced;
         /// A Lambertian model's M (f = M/π), read once at prepare time.
+        bool lambertian = false;
+        Square m{};
+        /// Spatially varying (BispectralBSDF::fluorescence_local): its models are
+        /// m_varying[first, first + count), `reduced` is unused.
+        bool varies = false;
+        size_t first = 0, count = 0;
+    };
+
+    /// One model of a varying material, reduced at prepare time.
+    struct VaryingModel {
+        const fluo::ReducedModel *reduced;
         bool lambertian = false;
         Square m{};
     };
@@ -296,24 +332,39 @@ private:
     }
 
     /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
+    /// A varying material's reduced model at si scales by `weight`.
     void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
                             Square &m) const {
-        if (fluo::reduced_includes_elastic(*e.reduced))
-            m.fill(0.0);
-        else
+        const fluo::ReducedModel *reduced = e.reduced;
+        bool lambertian = e.lambertian;
+        const Square *lm = &e.m;
+        double weight = 1.0;
+        if (e.varies) {
+            auto local = e.bispectral->fluorescence_local(si);
             diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
-        if (e.lambertian) { // f = M/π, times cos θo: no bridge call per direction
+            if (!local.model || local.index >= e.count || !(local.weight > 0.0))
+                return; // no re-emission at this vertex: the elastic part alone
+            const VaryingModel &sh = m_varying[e.first + local.index];
+            reduced = sh.reduced;
+            lambertian = sh.lambertian;
+            lm = &sh.m;
+            weight = local.weight;
+        } else if (fluo::reduced_includes_elastic(*e.reduced)) {
+            m.fill(0.0);
+        } else {
+            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        }
+        if (lambertian) { // f = M/π, times cos θo: no bridge call per direction
             double ci = (double) Frame3f::cos_theta(si.wi), co = (double) Frame3f::cos_theta(wo);
-            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 : 0.0; // 1/π, as Rust
+            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 * weight : 0.0; // 1/π, as Rust
             for (size_t i = 0; i < m_k * m_k; ++i)
-                m[i] += e.m[i] * factor;
+                m[i] += (*lm)[i] * factor;
             return;
         }
         Square r{};
-        fluo::reduced_reradiation(*e.reduced, vec(si.wi), vec(wo),
-                                  rust::Slice<double>(r.data(), m_k * m_k));
+        fluo::reduced_reradiation(*reduced, vec(si.wi), vec(wo), rust::Slice<double>(r.data(), m_k * m_k));
         for (size_t i = 0; i < m_k * m_k; ++i)
-            m[i] += r[i];
+            m[i] += r[i] * weight;
     }
 
     /// R ← R · M · s
@@ -354,6 +405,7 @@ private:
     Row3 m_output{}, m_from_rgb{};
     Coeffs m_white{};
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
+    std::vector<VaryingModel> m_varying; ///< the models of varying materials (Entry::first)
     fluo_detail::EntryTable<Entry> m_entries;
     std::vector<EmitterSource> m_sources;
     const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
