@@ -293,8 +293,11 @@ public:
     }
 
     const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
-        if (m_shapes)
-            return fluorescence_local(si).model;
+        if (m_shapes) {
+            typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+            fluorescence_local(si, mix);
+            return mix[0].model;
+        }
         if (!m_texture_models)
             return fluorescence();
         const fluo::JungModel &m = texel_model(si);
@@ -304,12 +307,14 @@ public:
     bool fluorescence_varies() const override { return m_texture_models.has_value() || m_shapes.has_value(); }
 
     /// Textured parameters: the dye shape of the hit's (λe, s), scaled by its c·Q.
-    typename BispectralBSDF<Float, Spectrum>::Local fluorescence_local(const SurfaceInteraction3f &si) const override {
+    size_t fluorescence_local(const SurfaceInteraction3f &si,
+                              typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
         if (!m_shapes)
-            return { fluorescence_at(si), BispectralBSDF<Float, Spectrum>::NoIndex, 1.0 };
+            return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
         Hit h = hit_params(si, true);
         double w = (double) h.c * (double) h.q;
-        return { w > 0.0 ? &fluo::jung_fluorescence(shape(h.shape)) : nullptr, h.shape, w };
+        out[0] = { w > 0.0 ? &fluo::jung_fluorescence(shape(h.shape)) : nullptr, h.shape, w, 1.0 };
+        return 1;
     }
 
     size_t fluorescence_models() const override { return m_shapes ? fluo::jung_shapes_len(**m_shapes) : 0; }

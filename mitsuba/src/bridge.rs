@@ -310,6 +310,13 @@ mod bridge {
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
+        /// Check every value of a `radius`, `density` or `quantum_yield` texture on its own
+        /// (`fluo::models::qd::check_param_value`; `width` as for `jung_check_values`).
+        fn qd_check_values(name: &str, values: &[f32], width: usize) -> Result<()>;
+        /// `fluo::models::qd::TEXTURE_GRID_NODES`: density nodes of a textured coating.
+        fn qd_texture_grid_nodes() -> usize;
+        /// `fluo::models::qd::TEXTURE_MAX_RADII`: most radii a radius texture may hold.
+        fn qd_texture_max_radii() -> usize;
     }
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
@@ -811,9 +818,20 @@ fn jung_texture_distinct(tex: &JungTexture) -> usize {
 }
 
 fn jung_check_values(name: &str, values: &[f32], width: usize) -> Result<(), String> {
+    check_texture_values(name, values, width, fluo::models::jung::check_param_value)
+}
+
+/// Check each value of a parameter texture with `check`, naming the first failing one by
+/// its texel (`width` > 0) or its position.
+fn check_texture_values(
+    name: &str,
+    values: &[f32],
+    width: usize,
+    check: fn(&str, f64) -> fluo::Result<()>,
+) -> Result<(), String> {
     guarded(|| {
         for (i, &v) in values.iter().enumerate() {
-            if let Err(e) = fluo::models::jung::check_param_value(name, f64::from(v)) {
+            if let Err(e) = check(name, f64::from(v)) {
                 let at = if width > 0 {
                     format!("at texel (x = {}, y = {}) of its texture", i % width, i / width)
                 } else {
@@ -1060,6 +1078,18 @@ fn qd_to_string(model: &QdModel) -> String {
 
 fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
+}
+
+fn qd_check_values(name: &str, values: &[f32], width: usize) -> Result<(), String> {
+    check_texture_values(name, values, width, qd::check_param_value)
+}
+
+fn qd_texture_grid_nodes() -> usize {
+    qd::TEXTURE_GRID_NODES
+}
+
+fn qd_texture_max_radii() -> usize {
+    qd::TEXTURE_MAX_RADII
 }
 
 // --------------------------------------------------------- fluo_matrix, fluo_gmm

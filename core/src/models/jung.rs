@@ -162,9 +162,7 @@ pub fn check_param_value(name: &str, value: f64) -> Result<()> {
                 Err(Error::param(
                     name,
                     value,
-                    format!(
-                        "[{MIN_STOKES_SHIFT_NM}, {hi:.4}) nm (and below s_max of every emission_peak it meets)"
-                    ),
+                    format!("[{MIN_STOKES_SHIFT_NM}, {hi:.4}) nm (and below s_max of every emission_peak it meets)"),
                 ))
             }
         }
@@ -772,7 +770,8 @@ mod tests {
         // the loose per-value bound admits every shift some peak allows
         let s = max_stokes_shift(EMISSION_PEAK_RANGE_NM.1) * 0.999;
         assert!(check_param_value("stokes_shift", s).is_ok());
-        assert!(JungFluorescence::new(JungParams { emission_peak: 1200.0, stokes_shift: s, ..JungParams::default() }).is_ok());
+        assert!(JungFluorescence::new(JungParams { emission_peak: 1200.0, stokes_shift: s, ..JungParams::default() })
+            .is_ok());
     }
     use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
 

@@ -332,39 +332,44 @@ private:
     }
 
     /// The K×K vertex matrix of a fluorescent BSDF for direction wo (value · cos).
-    /// A varying material's reduced model at si scales by `weight`.
+    /// A varying material adds its mixture's reduced models at si, each scaled by
+    /// prob·weight (BispectralBSDF::Local).
     void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
                             Square &m) const {
-        const fluo::ReducedModel *reduced = e.reduced;
-        bool lambertian = e.lambertian;
-        const Square *lm = &e.m;
-        double weight = 1.0;
         if (e.varies) {
-            auto local = e.bispectral->fluorescence_local(si);
             diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
-            if (!local.model || local.index >= e.count || !(local.weight > 0.0))
-                return; // no re-emission at this vertex: the elastic part alone
-            const VaryingModel &sh = m_varying[e.first + local.index];
-            reduced = sh.reduced;
-            lambertian = sh.lambertian;
-            lm = &sh.m;
-            weight = local.weight;
-        } else if (fluo::reduced_includes_elastic(*e.reduced)) {
-            m.fill(0.0);
-        } else {
-            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+            typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+            size_t n = e.bispectral->fluorescence_local(si, mix);
+            for (size_t k = 0; k < n; ++k) {
+                const auto &l = mix[k];
+                if (!l.model || l.index >= e.count || !(l.weight * l.prob > 0.0))
+                    continue; // no re-emission from this entry
+                const VaryingModel &v = m_varying[e.first + l.index];
+                add_reradiation(v.reduced, v.lambertian, v.m, si, wo, l.weight * l.prob, m);
+            }
+            return;
         }
+        if (fluo::reduced_includes_elastic(*e.reduced))
+            m.fill(0.0);
+        else
+            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+        add_reradiation(e.reduced, e.lambertian, e.m, si, wo, 1.0, m);
+    }
+
+    /// m += scale · (a reduced model's reradiation matrix for wo, times cos θo).
+    void add_reradiation(const fluo::ReducedModel *reduced, bool lambertian, const Square &lm,
+                         const SurfaceInteraction3f &si, const Vector3f &wo, double scale, Square &m) const {
         if (lambertian) { // f = M/π, times cos θo: no bridge call per direction
             double ci = (double) Frame3f::cos_theta(si.wi), co = (double) Frame3f::cos_theta(wo);
-            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 * weight : 0.0; // 1/π, as Rust
+            double factor = ci > 0.0 && co > 0.0 ? co * 0.31830988618379067154 * scale : 0.0; // 1/π, as Rust
             for (size_t i = 0; i < m_k * m_k; ++i)
-                m[i] += (*lm)[i] * factor;
+                m[i] += lm[i] * factor;
             return;
         }
         Square r{};
         fluo::reduced_reradiation(*reduced, vec(si.wi), vec(wo), rust::Slice<double>(r.data(), m_k * m_k));
         for (size_t i = 0; i < m_k * m_k; ++i)
-            m[i] += r[i] * weight;
+            m[i] += r[i] * scale;
     }
 
     /// R ← R · M · s

@@ -195,9 +195,19 @@ private:
             tr.model = e.model;
             fluo::Range range = e.range;
             if (e.varies) {
-                auto local = e.bispectral->fluorescence_local(si);
-                tr.model = local.weight > 0.0 ? local.model : nullptr;
-                tr.weight = local.weight;
+                // One entry of the material's mixture at si, picked with its probability.
+                typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+                size_t n = e.bispectral->fluorescence_local(si, mix), k = 0;
+                if (n > 1) {
+                    double u = sampler->next_1d(), acc = 0.0;
+                    for (k = 0; k + 1 < n; ++k) {
+                        acc += mix[k].prob;
+                        if (u < acc)
+                            break;
+                    }
+                }
+                tr.model = n > 0 && mix[k].weight > 0.0 ? mix[k].model : nullptr;
+                tr.weight = n > 0 ? mix[k].weight : 0.0;
                 if (tr.model) {
                     fluo::Range ex = fluo::fluo_excitation_range(*tr.model);
                     range = fluo::Range{ std::max(ex.lo, e.range.lo), std::min(ex.hi, e.range.hi) };
