@@ -341,6 +341,12 @@ mod bridge {
         fn measured_to_string(model: &MeasuredModel) -> String;
         /// The model's fluorescent part, for the integrator.
         fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence;
+        /// Check every value of a material-index texture selecting among `count` files
+        /// (`fluo::models::check_material_index`; `width` as for `jung_check_values`).
+        fn measured_check_index(values: &[f32], width: usize, count: usize) -> Result<()>;
+        /// The longest wavelength it re-emits at (0 if it never does), to pick a
+        /// representative among several materials.
+        fn measured_emission_max(model: &MeasuredModel) -> f64;
     }
 
     // ------------------------------------------- fluo_path: generic handle, reduced RGB
@@ -827,7 +833,7 @@ fn check_texture_values(
     name: &str,
     values: &[f32],
     width: usize,
-    check: fn(&str, f64) -> fluo::Result<()>,
+    check: impl Fn(&str, f64) -> fluo::Result<()>,
 ) -> Result<(), String> {
     guarded(|| {
         for (i, &v) in values.iter().enumerate() {
@@ -1139,6 +1145,14 @@ fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {
 
 fn measured_to_string(model: &MeasuredModel) -> String {
     model.0.model.to_string()
+}
+
+fn measured_check_index(values: &[f32], width: usize, count: usize) -> Result<(), String> {
+    check_texture_values("index", values, width, |_, v| fluo::models::check_material_index(v, count))
+}
+
+fn measured_emission_max(model: &MeasuredModel) -> f64 {
+    fluo::Bispectral::emission_range(&model.0.model).map_or(0.0, |r| r.1)
 }
 
 fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {

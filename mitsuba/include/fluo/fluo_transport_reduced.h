@@ -88,10 +88,8 @@ public:
                     const fluo::Fluorescence *shape = bisp->fluorescence_model(i);
                     m_reduced.push_back(fluo_detail::rust_call(
                         m_plugin, [&] { return fluo::reduced_new(*shape, *m_transport); }));
-                    if (fluo::reduced_includes_elastic(*m_reduced.back()))
-                        Throw("%s: a varying material's model includes its elastic part, which cannot be "
-                              "scaled per vertex", m_plugin);
                     VaryingModel sh{ &*m_reduced.back() };
+                    sh.full = fluo::reduced_includes_elastic(*sh.reduced);
                     sh.lambertian = fluo::reduced_lambertian(*sh.reduced, rust::Slice<double>(sh.m.data(), m_k * m_k));
                     m_varying.push_back(sh);
                 }
@@ -154,6 +152,7 @@ public:
     /// One model of a varying material, reduced at prepare time.
     struct VaryingModel {
         const fluo::ReducedModel *reduced;
+        bool full = false; ///< its matrix includes the elastic part (a measured material)
         bool lambertian = false;
         Square m{};
     };
@@ -337,15 +336,26 @@ private:
     void fluorescent_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo,
                             Square &m) const {
         if (e.varies) {
-            diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), m);
+            // Entries whose matrix includes the elastic part (measured materials, weight
+            // 1) cover their share `prob` of it; the rest comes from eval_elastic.
+            m.fill(0.0);
             typename BispectralBSDF<Float, Spectrum>::Mixture mix;
             size_t n = e.bispectral->fluorescence_local(si, mix);
+            double covered = 0.0;
             for (size_t k = 0; k < n; ++k) {
                 const auto &l = mix[k];
                 if (!l.model || l.index >= e.count || !(l.weight * l.prob > 0.0))
                     continue; // no re-emission from this entry
                 const VaryingModel &v = m_varying[e.first + l.index];
+                if (v.full)
+                    covered += l.prob;
                 add_reradiation(v.reduced, v.lambertian, v.m, si, wo, l.weight * l.prob, m);
+            }
+            if (covered < 1.0) {
+                Square d{};
+                diagonal_of(Spectrum(e.bispectral->eval_elastic(si, wo)), d);
+                for (size_t i = 0; i < m_k * m_k; ++i)
+                    m[i] += d[i] * (1.0 - covered);
             }
             return;
         }
