@@ -44,13 +44,23 @@ template <typename Float, typename Spectrum> struct TextureValues {
     }
 
 private:
-    /// The bitmap data and child textures a texture's traverse() reports.
+    /// The bitmap data (stored in single, half or double precision: an 8-bit image is
+    /// kept in half precision in RGB variants) and child textures a texture's
+    /// traverse() reports.
     struct Reader : TraversalCallback {
         const TensorXf *data = nullptr;
+        const TensorXf16 *data16 = nullptr;
+        const TensorXf64 *data64 = nullptr;
         std::vector<const Texture *> children;
         void put_value(std::string_view key, void *ptr, uint32_t, const std::type_info &type) override {
-            if (key == "data" && type == typeid(TensorXf))
+            if (key != "data")
+                return;
+            if (type == typeid(TensorXf))
                 data = static_cast<const TensorXf *>(ptr);
+            else if (type == typeid(TensorXf16))
+                data16 = static_cast<const TensorXf16 *>(ptr);
+            else if (type == typeid(TensorXf64))
+                data64 = static_cast<const TensorXf64 *>(ptr);
         }
         void put_object(std::string_view, Object *o, uint32_t) override {
             if (auto *t = dynamic_cast<const Texture *>(o))
@@ -69,8 +79,7 @@ private:
         }
         Reader r;
         const_cast<Texture *>(tex)->traverse(&r);
-        if (r.data) {
-            const TensorXf &t = *r.data;
+        auto texels = [&](const auto &t) {
             if (t.ndim() != 3 || t.shape(2) != 1)
                 Throw("%s: parameter \"%s\" is a texture with %zu channels; a textured numeric parameter "
                       "needs one channel (a grayscale image, or a single-channel EXR)",
@@ -81,6 +90,14 @@ private:
             values.reserve(values.size() + n);
             for (size_t i = 0; i < n; ++i)
                 values.push_back((float) dr::slice(t.array(), i));
+        };
+        if (r.data || r.data16 || r.data64) {
+            if (r.data)
+                texels(*r.data);
+            else if (r.data16)
+                texels(*r.data16);
+            else
+                texels(*r.data64);
             return;
         }
         if (r.children.empty()) {
