@@ -54,7 +54,8 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
      (an EXR; ``raw`` keeps Mitsuba from upsampling or gamma-decoding it). It is
      converted to a smooth reflectance plus just enough fluorescence (λe, c, s; Q = 0.96)
      through a coefficient cube: once for a constant colour, once per texel at load for
-     a texture (nearest texel at render time, ``wrap_mode`` repeat, ``to_uv`` ignored).
+     a texture (nearest texel at render time, or see ``texel_interpolation``; ``wrap_mode``
+     repeat, ``to_uv`` ignored).
      Mutually exclusive with ``reflectance``, ``coefficients``, ``emission_peak``,
      ``stokes_shift``, ``concentration`` and ``quantum_yield`` (the cube sets them).
  * - color_space
@@ -69,6 +70,13 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
    - ``nearest`` cube entry, or ``trilinear`` interpolation of coefficients (λe and s
      only over corners with c > 0, the paper's rule). (Default: nearest, which the
      paper finds less disruptive at the onset of fluorescence)
+ * - texel_interpolation
+   - |string|
+   - For a ``color`` texture: ``nearest`` texel, or ``bilinear``: the four texels around
+     the hit mixed with bilinear weights in the elastic part and the reradiation (Jung
+     et al. 2019, Fig. 12: interpolate the texels' reradiation rather than their
+     coefficients; ``fluo_path`` picks one texel's dye per vertex with its weight in
+     ``scalar_spectral``, an unbiased estimate of the mixture). (Default: nearest)
  * - fluorescence
    - |bool|
    - ``false`` uses the cube's reflectance-only solutions (for comparisons). (Default: true)
@@ -309,6 +317,15 @@ public:
     /// Textured parameters: the dye shape of the hit's (λe, s), scaled by its c·Q.
     size_t fluorescence_local(const SurfaceInteraction3f &si,
                               typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
+        if (m_texture_models && m_texel_bilinear) {
+            Texels t = texels_at(si);
+            for (size_t i = 0; i < t.n; ++i) {
+                const fluo::JungModel &m = fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]);
+                out[i] = { fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr,
+                           BispectralBSDF<Float, Spectrum>::NoIndex, 1.0, t.w[i] };
+            }
+            return t.n;
+        }
         if (!m_shapes)
             return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
         Hit h = hit_params(si, true);
@@ -500,6 +517,14 @@ private:
             cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
         m_lookup = std::string(props.get<std::string_view>("lookup", "nearest"));
         m_use_fluorescence = props.get<bool>("fluorescence", true);
+        std::string interp(props.get<std::string_view>("texel_interpolation", "nearest"));
+        if (interp != "nearest" && interp != "bilinear")
+            Throw("%s: invalid parameter \"texel_interpolation\" = \"%s\": valid values are \"nearest\", "
+                  "\"bilinear\"", Plugin, interp);
+        m_texel_bilinear = interp == "bilinear";
+        if (m_texel_bilinear && props.type("color") != Properties::Type::Object)
+            Throw("%s: \"texel_interpolation\" applies to a \"color\" texture, not to a constant colour",
+                  Plugin);
         m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
         if (props.type("color") == Properties::Type::Color) {
             ScalarColor3f c = props.get<ScalarColor3f>("color");
@@ -542,8 +567,43 @@ private:
                                           rust::Slice<const float>(texels.data(), texels.size()),
                                           m_lookup, m_use_fluorescence);
         });
-        m_color_text += tfm::format(", %zu distinct coefficient sets",
-                                    fluo::jung_texture_distinct(**m_texture_models));
+        m_color_text += tfm::format(", %zu distinct coefficient sets, %s texels",
+                                    fluo::jung_texture_distinct(**m_texture_models),
+                                    m_texel_bilinear ? "bilinear" : "nearest");
+    }
+
+    /// texel_interpolation = bilinear: the (up to) four texels around si.uv (texel
+    /// centres, repeat wrap) with their bilinear weights (Jung et al. 2019, Fig. 12:
+    /// interpolate the texels' reradiation, not their coefficients).
+    struct Texels {
+        size_t n = 0;
+        int64_t x[4]{}, y[4]{};
+        double w[4]{};
+    };
+    Texels texels_at(const SurfaceInteraction3f &si) const {
+        Texels t;
+        if (!m_texel_bilinear) {
+            auto [x, y] = texel_of(si);
+            t.n = 1;
+            t.x[0] = x;
+            t.y[0] = y;
+            t.w[0] = 1.0;
+            return t;
+        }
+        double u = (double) si.uv.x() * m_texture_res.x() - 0.5, v = (double) si.uv.y() * m_texture_res.y() - 0.5;
+        if (!std::isfinite(u) || !std::isfinite(v))
+            u = v = 0.0;
+        double fu = std::floor(u), fv = std::floor(v), tu = u - fu, tv = v - fv;
+        for (int a = 0; a < 2; ++a)
+            for (int b = 0; b < 2; ++b) {
+                double w = (a ? tu : 1.0 - tu) * (b ? tv : 1.0 - tv);
+                if (!(w > 0.0))
+                    continue;
+                t.x[t.n] = (int64_t) fu + a;
+                t.y[t.n] = (int64_t) fv + b;
+                t.w[t.n++] = w;
+            }
+        return t;
     }
 
     /// Nearest texel (repeat wrap) of the colour texture at si.uv.
@@ -585,16 +645,21 @@ private:
             }
         }
         if (m_texture_models) {
-            if constexpr (is_rgb_v<Spectrum>) {
-                auto [x, y] = texel_of(si);
-                fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, x, y);
-                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
-            } else {
-                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-                fluo::jung_elastic_albedo(texel_model(si), fluo_detail::slice(lambda),
-                                          fluo_detail::slice_mut(out));
-                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            // the texel's value, or the bilinear mixture of the four around si
+            Texels t = texels_at(si);
+            UnpolarizedSpectrum sum(0.f);
+            for (size_t i = 0; i < t.n; ++i) {
+                if constexpr (is_rgb_v<Spectrum>) {
+                    fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, t.x[i], t.y[i]);
+                    sum += (float) t.w[i] * Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+                } else {
+                    std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+                    fluo::jung_elastic_albedo(fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]),
+                                              fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
+                    sum += (float) t.w[i] * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+                }
             }
+            return sum;
         }
         if constexpr (is_rgb_v<Spectrum>) {
             if (!m_reflectance)
@@ -636,6 +701,7 @@ private:
     bool m_modifies_reflectance = false;
     // `color` (wide-gamut upsampling through a coefficient cube)
     bool m_color_mode = false, m_use_fluorescence = true;
+    bool m_texel_bilinear = false; ///< texel_interpolation = bilinear
     std::string m_lookup, m_color_text;
     std::optional<rust::Box<fluo::UpsampleCube>> m_cube;
     std::optional<rust::Box<fluo::JungTexture>> m_texture_models; ///< per-texel models
