@@ -18,6 +18,8 @@ reduced RGB ``x7``, ``scalar_rgb``                ``fluo_path`` / ``path`` (dyes
 spectral light on a plain box                     ``fluo_illuminant`` D65 / native ``d65``     1.01
 plain box + 1000 hidden fluorescent spheres       ``fluo_path`` (N = 1000) / ``path`` (N = 0)  1.15
 load of K coloured ``fluo_jung`` (``color``)      ms and MB per material (B: ``diffuse``)      0.2 ms
+textured ``fluo_jung`` (both variants)            textured / uniform ``fluo_jung``             1.30
+textured ``fluo_qd``, ``scalar_spectral``         textured / uniform ``fluo_qd``               1.30
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -25,7 +27,12 @@ box's area light with a D65 spectrum from 300 nm (``fluo_illuminant``), except i
 rows without fluorescence (Mitsuba's own light) and the ``fluo_illuminant`` row. The measured material is ``data/matrices/jung_orange.csv`` and its
 8-component fit ``jung_orange.gmm.json``. Hidden spheres sit behind the back wall, each
 with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
-``fluo_path`` knows 1000 fluorescent BSDFs.
+``fluo_path`` knows 1000 fluorescent BSDFs. The textured rows give the material
+checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shapes;
+``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
+with the first value of each; both render with ``fluo_path``. They run on request
+(``--rows textured,textured_rgb,textured_qd``, see ``EXTRA_ROWS``) until the saved table
+is next regenerated.
 
 Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
        python benches/bench_costs.py --json > docs/bench/costs.json
@@ -56,6 +63,17 @@ DYE = {"emission_peak": 560.0, "stokes_shift": 90.0, "concentration": 0.8}
 ROUGH = {"material": "Au", "distribution": "ggx", "alpha": 0.2}
 HIDDEN = 1000
 COLOURED = 100
+
+
+def checker(a: float, b: float) -> dict:
+    return {"type": "checkerboard", "color0": a, "color1": b,
+            "to_uv": mi.ScalarTransform4f().scale([8, 8, 1])}
+
+
+#: The textured rows' materials: (textured, uniform) parameters.
+TEXTURED_JUNG = ({"concentration": checker(0.8, 0.4), "emission_peak": checker(560.0, 610.0)},
+                 {"concentration": 0.8, "emission_peak": 560.0})
+TEXTURED_QD = ({"radius": checker(2.2, 3.0), "density": checker(0.8, 0.4)}, {"radius": 2.2, "density": 0.8})
 
 
 def box(res: int, integrator: str = "fluo_path", bsdf=None, light=D65, **integrator_props) -> dict:
@@ -185,6 +203,28 @@ ROWS = {
              lambda a: load_row(a.res, a.rounds)),
 }
 
+#: Rows measured on request (``--rows textured,textured_rgb,textured_qd``) and not yet part
+#: of the saved table docs/bench/costs.json, which a default run regenerates: they join
+#: ROWS when that table is next regenerated (tests/python/test_bench.py test10 checks
+#: that the saved table has exactly the rows of ROWS).
+EXTRA_ROWS = {
+    "textured": ("textured / uniform fluo_jung (concentration, emission_peak), spectral", 1.30,
+                 lambda a: render_pair("scalar_spectral",
+                                       box(a.res, bsdf=lambda r: {**jung(r), **TEXTURED_JUNG[0]}),
+                                       box(a.res, bsdf=lambda r: {**jung(r), **TEXTURED_JUNG[1]}),
+                                       a.spp, a.rounds)),
+    "textured_rgb": ("textured / uniform fluo_jung (concentration, emission_peak), reduced RGB x7", 1.30,
+                     lambda a: render_pair("scalar_rgb",
+                                           box(a.res, bsdf=lambda r: {**jung(r), **TEXTURED_JUNG[0]}, basis="x7"),
+                                           box(a.res, bsdf=lambda r: {**jung(r), **TEXTURED_JUNG[1]}, basis="x7"),
+                                           a.spp, a.rounds)),
+    "textured_qd": ("textured / uniform fluo_qd (radius, density), spectral", 1.30,
+                    lambda a: render_pair("scalar_spectral",
+                                          box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[0]}),
+                                          box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[1]}),
+                                          a.spp, a.rounds)),
+}
+
 
 BEGIN, END = "<!-- costs:begin", "<!-- costs:end -->"
 
@@ -225,7 +265,8 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--res", type=int, default=96)
     ap.add_argument("--rounds", type=int, default=7)
-    ap.add_argument("--rows", default=",".join(ROWS), help=f"comma-separated subset of {', '.join(ROWS)}")
+    ap.add_argument("--rows", default=",".join(ROWS),
+                    help=f"comma-separated subset of {', '.join(ROWS)}, {', '.join(EXTRA_ROWS)}")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--readme", type=Path, metavar="SAVED_JSON",
                     help="rewrite README.md's costs region from a saved --json run (measures nothing)")
@@ -239,7 +280,7 @@ def main() -> None:
         ap.error("--rounds must be at least 5 (median of paired rounds)")
     results = []
     for key in a.rows.split(","):
-        label, target, run = ROWS[key]
+        label, target, run = {**ROWS, **EXTRA_ROWS}[key]
         r = run(a)
         results.append({"row": key, "label": label, "target": target, **r})
         if not a.json:

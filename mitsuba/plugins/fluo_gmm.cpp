@@ -16,6 +16,20 @@ Gaussian-mixture reradiation (:monosp:`fluo_gmm`)
    - A fit file (``.gmm.json``) written by ``fluo fit-gmm X.BFC --components K -o
      X.gmm.json``: the measured diagonal, the scale S and 7 numbers per Gaussian.
      Resolved like other Mitsuba file parameters. Required.
+ * - filename0, filename1, ...
+   - |string|
+   - Alternative to ``filename``: several files (numbered from 0, no gaps), one per
+     material of an ``index`` texture.
+ * - index
+   - |texture|
+   - Material-index texture (a one-channel ``bitmap``, a ``checkerboard``, ...): at each
+     hit its ``eval_1`` value, rounded to the nearest whole number, selects
+     ``filename<i>``. Every texel (bitmaps) or constituent value (textures made of
+     others) must be a whole number in [0, number of files − 1], checked at load (the
+     error names the texel, e.g. ``"index" = 0.5 at texel (x = 1, y = 0)``); use
+     ``filter_type = nearest`` for bitmaps, since a filtered index between texels is
+     rounded. Each file is loaded once; ``fluo_path`` uses the hit's material in both
+     variants (in ``scalar_rgb`` each file's reduced matrix, computed once).
 
 A diffuse (Lambertian) fluorescent material whose reradiation is a 2-D Gaussian
 mixture fitted to a measured matrix (Hua et al., "Efficient Storage and Importance

@@ -10,6 +10,7 @@
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
 #include "fluo_lambertian.h"
+#include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -31,19 +32,19 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
    - Alternative to ``reflectance``: Jakob–Hanika sigmoid-polynomial coefficients
      "c0, c1, c2" with r(λ) = S(c0 λ² + c1 λ + c2), λ in nm (Jung et al. 2019, eq. 2).
  * - emission_peak
-   - |float|
+   - |float| or |texture|
    - Emission peak wavelength λe in nm, in [200, 1200]. (Default: 520)
  * - stokes_shift
-   - |float|
+   - |float| or |texture|
    - Stokes shift s in nm (distance from absorption peak to emission peak), in
      [0.001, s_max) where s_max keeps 2λe − s > 0 and the absorption band above 1 nm.
      (Default: 60)
  * - concentration
-   - |float|
+   - |float| or |texture|
    - Fluorophore concentration (mixing factor) c in [0, 1]. c = 0 is exactly
      Mitsuba's ``diffuse``. (Default: 0.5)
  * - quantum_yield
-   - |float|
+   - |float| or |texture|
    - Quantum yield Q in [0, 1]. (Default: 0.96, the paper's fixed value)
  * - color
    - |rgb| or |texture|
@@ -53,7 +54,8 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
      (an EXR; ``raw`` keeps Mitsuba from upsampling or gamma-decoding it). It is
      converted to a smooth reflectance plus just enough fluorescence (λe, c, s; Q = 0.96)
      through a coefficient cube: once for a constant colour, once per texel at load for
-     a texture (nearest texel at render time, ``wrap_mode`` repeat, ``to_uv`` ignored).
+     a texture (nearest texel at render time, or see ``texel_interpolation``; ``wrap_mode``
+     repeat, ``to_uv`` ignored).
      Mutually exclusive with ``reflectance``, ``coefficients``, ``emission_peak``,
      ``stokes_shift``, ``concentration`` and ``quantum_yield`` (the cube sets them).
  * - color_space
@@ -68,6 +70,13 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
    - ``nearest`` cube entry, or ``trilinear`` interpolation of coefficients (λe and s
      only over corners with c > 0, the paper's rule). (Default: nearest, which the
      paper finds less disruptive at the onset of fluorescence)
+ * - texel_interpolation
+   - |string|
+   - For a ``color`` texture: ``nearest`` texel, or ``bilinear``: the four texels around
+     the hit mixed with bilinear weights in the elastic part and the reradiation (Jung
+     et al. 2019, Fig. 12: interpolate the texels' reradiation rather than their
+     coefficients; ``fluo_path`` picks one texel's dye per vertex with its weight in
+     ``scalar_spectral``, an unbiased estimate of the mixture). (Default: nearest)
  * - fluorescence
    - |bool|
    - ``false`` uses the cube's reflectance-only solutions (for comparisons). (Default: true)
@@ -102,6 +111,31 @@ What this plugin computes in each variant:
   a ``color`` bitmap serves each texel's bounded albedo. Under ``fluo_path`` the RGB
   variant instead transports fluorescence with reduced reradiation matrices.
 
+**Textured parameters.** ``emission_peak``, ``stokes_shift``, ``concentration`` and
+``quantum_yield`` each take a float texture (a one-channel ``bitmap``, a ``checkerboard``,
+...), read per hit with the texture's own ``eval_1`` (its ``to_uv`` and filter), as
+Mitsuba's plugins read float textures. The model is the one of the hit's parameters in
+every variant and integrator: the reradiation c·Q·a(λi)·e(λo) is linear in c and Q and
+the elastic part (1 − c·a) r linear in c, so the plugin builds one dye shape (a, e) per
+(λe, s) pair at load and scales it per hit (``fluo_path``: per-hit wavelength shifting in
+``scalar_spectral``; in ``scalar_rgb`` each shape's reduced matrix, computed once, times
+c·Q, plus the hit's elastic part; Mitsuba's own integrators: the hit's albedo as for a
+uniform material). A filtered lookup between texels interpolates c and Q (exactly
+the interpolated material, by linearity); λe and s take the nearest of the texture's
+validated values (emission shapes are not blended: use ``filter_type=nearest`` for
+them). What is validated at load, with the same ranges as the floats: every texel of a
+bitmap (NaN and out-of-range values are named with their texel, e.g. ``"concentration" =
+1.5 at texel (x = 3, y = 7)``), the constituent values of a texture made of others (a
+checkerboard's ``color0``/``color1``), and every (λe, s) pair the two textures can
+combine (at most 4096 pairs). A ``concentration`` or ``quantum_yield`` texture whose
+values cannot be read (a procedural texture without texture children) is checked
+through its mean and maximum, and a hit's value is clamped to [0, 1]; such textures are
+refused for ``emission_peak`` and ``stokes_shift``. A parameter given as a float, or as a
+texture that does not vary, takes the uniform material's code path unchanged. With
+``coefficients`` the textured material's elastic part is the hit's r(1 − c a): in
+``scalar_rgb`` its sRGB (transported as a per-band albedo), where a uniform material's
+reduced matrix carries it spectrally.
+
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
 ``color_space``, a malformed cube) raise an error naming the parameter, its value
@@ -120,6 +154,21 @@ upsampled material is shown as Mitsuba shows any reflectance spectrum (sRGB unde
             <float name="emission_peak" value="520"/>
             <float name="stokes_shift" value="80"/>
             <float name="concentration" value="0.8"/>
+        </bsdf>
+
+    .. code-tab:: xml
+        :name: fluo-jung-textured
+
+        <bsdf type="fluo_jung">
+            <float name="reflectance" value="0.8"/>
+            <texture type="bitmap" name="concentration">
+                <string name="filename" value="textures/label_concentration.png"/>
+                <boolean name="raw" value="true"/>
+            </texture>
+            <texture type="checkerboard" name="emission_peak">
+                <float name="color0" value="520"/>
+                <float name="color1" value="610"/>
+            </texture>
         </bsdf>
 
     .. code-tab:: xml
@@ -147,10 +196,22 @@ public:
 
     FluoJung(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        m_config.emission_peak = get_float(Plugin, props, "emission_peak", m_config.emission_peak);
-        m_config.stokes_shift  = get_float(Plugin, props, "stokes_shift", m_config.stokes_shift);
-        m_config.concentration = get_float(Plugin, props, "concentration", m_config.concentration);
-        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", m_config.quantum_yield);
+        // A numeric parameter is a float (the uniform fast path) or a float texture; a
+        // texture that does not vary is read once as its float.
+        double *fields[NParams] = { &m_config.emission_peak, &m_config.stokes_shift, &m_config.concentration,
+                                    &m_config.quantum_yield };
+        for (size_t i = 0; i < NParams && !props.has_property("color"); ++i) {
+            const char *name = ParamNames[i];
+            if (props.has_property(name) && props.type(name) == Properties::Type::Object) {
+                ref<Texture> tex = props.get_texture<Texture>(name);
+                if (tex->is_spatially_varying())
+                    m_param_tex[i] = tex;
+                else
+                    *fields[i] = (double) tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true);
+            } else {
+                *fields[i] = get_float(Plugin, props, name, *fields[i]);
+            }
+        }
         m_config.has_coefficients = props.has_property("coefficients");
         if (props.has_property("color")) {
             init_color(props);
@@ -176,10 +237,13 @@ public:
             return; // everything derives from the colour and the cube
         if (m_reflectance)
             cb->put("reflectance", m_reflectance, ParamFlags::NonDifferentiable);
-        cb->put("emission_peak", m_emission_peak, ParamFlags::NonDifferentiable);
-        cb->put("stokes_shift", m_stokes_shift, ParamFlags::NonDifferentiable);
-        cb->put("concentration", m_concentration, ParamFlags::NonDifferentiable);
-        cb->put("quantum_yield", m_quantum_yield, ParamFlags::NonDifferentiable);
+        ScalarFloat *values[NParams] = { &m_emission_peak, &m_stokes_shift, &m_concentration, &m_quantum_yield };
+        for (size_t i = 0; i < NParams; ++i) {
+            if (m_param_tex[i])
+                cb->put(ParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
+            else
+                cb->put(ParamNames[i], *values[i], ParamFlags::NonDifferentiable);
+        }
     }
 
     void parameters_changed(const std::vector<std::string> &keys) override {
@@ -187,11 +251,12 @@ public:
         auto changed = [&](const char *name) {
             return keys.empty() || string::contains(keys, name);
         };
+        // A textured parameter's texture may have changed too: rebuild() re-reads them all.
         fluo_detail::transactional_update(m_config, [&] {
-            if (changed("emission_peak")) m_config.emission_peak = m_emission_peak;
-            if (changed("stokes_shift"))  m_config.stokes_shift  = m_stokes_shift;
-            if (changed("concentration")) m_config.concentration = m_concentration;
-            if (changed("quantum_yield")) m_config.quantum_yield = m_quantum_yield;
+            if (changed("emission_peak") && !m_param_tex[Peak])  m_config.emission_peak = m_emission_peak;
+            if (changed("stokes_shift") && !m_param_tex[Shift])  m_config.stokes_shift  = m_stokes_shift;
+            if (changed("concentration") && !m_param_tex[Conc])  m_config.concentration = m_concentration;
+            if (changed("quantum_yield") && !m_param_tex[Yield]) m_config.quantum_yield = m_quantum_yield;
         }, [&] { rebuild(); });
     }
 
@@ -222,6 +287,11 @@ public:
     }
 
     const fluo::Fluorescence *fluorescence() const override {
+        if (m_shapes) {
+            if (!m_shapes_fluoresce)
+                return nullptr;
+            return &fluo::jung_fluorescence(fluo::jung_shapes_model(**m_shapes, fluo::jung_shapes_representative(**m_shapes)));
+        }
         if (m_texture_models) {
             if (!fluo::jung_texture_is_fluorescent(**m_texture_models))
                 return nullptr;
@@ -231,16 +301,51 @@ public:
     }
 
     const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
+        if (m_shapes) {
+            typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+            fluorescence_local(si, mix);
+            return mix[0].model;
+        }
         if (!m_texture_models)
             return fluorescence();
         const fluo::JungModel &m = texel_model(si);
         return fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr;
     }
 
-    bool fluorescence_varies() const override { return m_texture_models.has_value(); }
+    bool fluorescence_varies() const override { return m_texture_models.has_value() || m_shapes.has_value(); }
+
+    /// Textured parameters: the dye shape of the hit's (λe, s), scaled by its c·Q.
+    size_t fluorescence_local(const SurfaceInteraction3f &si,
+                              typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
+        if (m_texture_models && m_texel_bilinear) {
+            Texels t = texels_at(si);
+            for (size_t i = 0; i < t.n; ++i) {
+                const fluo::JungModel &m = fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]);
+                out[i] = { fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr,
+                           BispectralBSDF<Float, Spectrum>::NoIndex, 1.0, t.w[i] };
+            }
+            return t.n;
+        }
+        if (!m_shapes)
+            return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
+        Hit h = hit_params(si, true);
+        double w = (double) h.c * (double) h.q;
+        out[0] = { w > 0.0 ? &fluo::jung_fluorescence(shape(h.shape)) : nullptr, h.shape, w, 1.0 };
+        return 1;
+    }
+
+    size_t fluorescence_models() const override { return m_shapes ? fluo::jung_shapes_len(**m_shapes) : 0; }
+
+    const fluo::Fluorescence *fluorescence_model(size_t i) const override {
+        return m_shapes ? &fluo::jung_fluorescence(shape(i)) : nullptr;
+    }
 
     UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
         if constexpr (is_rgb_v<Spectrum>) {
+            if (m_shapes) {
+                Color3f e = textured_rgb_elastic(si, hit_params(si, true));
+                return m_reflectance ? e : dr::clip(e, 0.f, 1.f);
+            }
             if (!m_reflectance)
                 return m_rgb_elastic_albedo;
             UnpolarizedSpectrum r = m_reflectance->eval(si, true);
@@ -263,6 +368,12 @@ public:
             << "  model = " << std::string(fluo::jung_to_string(**m_model)) << "," << std::endl;
         if (m_reflectance)
             oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
+        for (size_t i = 0; i < NParams; ++i)
+            if (m_param_tex[i])
+                oss << "  " << ParamNames[i] << " = " << string::indent(m_param_tex[i]) << "," << std::endl;
+        if (m_shapes)
+            oss << "  dye shapes = " << fluo::jung_shapes_len(**m_shapes) << " ((emission_peak, stokes_shift) pairs),"
+                << std::endl;
         if (m_color_mode)
             oss << "  color = " << m_color_text << "," << std::endl
                 << "  cube = " << std::string(fluo::upsample_cube_describe(**m_cube)) << std::endl;
@@ -275,6 +386,7 @@ public:
 private:
     /// Validate the configuration in Rust and precompute what each variant needs.
     void rebuild() {
+        init_param_textures();
         m_model = fluo_detail::rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
         m_build = fluo_detail::WavelengthMemo::next_build();
         m_emission_peak = (ScalarFloat) m_config.emission_peak;
@@ -293,7 +405,101 @@ private:
             m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(**m_model));
             m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(**m_model));
             m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(**m_model)), 0.f, 1.f);
+            m_shape_parts.clear();
+            for (size_t i = 0; m_shapes && i < fluo::jung_shapes_len(**m_shapes); ++i)
+                m_shape_parts.push_back(fluo::jung_rgb_parts(shape(i), **m_model));
         }
+    }
+
+    /// Textured parameters: read and validate every texture's values (per texel for a
+    /// bitmap, constituent values otherwise), and build one dye shape per (λe, s) pair
+    /// the textures can combine. m_config takes a representative value of each textured
+    /// parameter, so that the base model (the sigmoid reflectance) stays valid.
+    void init_param_textures() {
+        using namespace fluo_detail;
+        bool any = false;
+        for (auto &t : m_param_tex)
+            any |= (bool) t;
+        if (!any) {
+            m_shapes.reset();
+            return;
+        }
+        std::vector<float> levels[NParams];
+        bool fluoresces[2] = { m_config.concentration > 0.0, m_config.quantum_yield > 0.0 };
+        double *fields[NParams] = { &m_config.emission_peak, &m_config.stokes_shift, &m_config.concentration,
+                                    &m_config.quantum_yield };
+        for (size_t i = 0; i < NParams; ++i) {
+            if (!m_param_tex[i]) {
+                levels[i] = { (float) *fields[i] };
+                continue;
+            }
+            TextureValues<Float, Spectrum> tv(Plugin, ParamNames[i], m_param_tex[i].get());
+            rust_call(Plugin, [&] {
+                fluo::jung_check_values(ParamNames[i], rust::Slice<const float>(tv.values.data(), tv.values.size()),
+                                        tv.width);
+            });
+            if (!tv.complete) {
+                if (i == Peak || i == Shift)
+                    Throw("%s: parameter \"%s\" is a texture whose values cannot be read at load (%s); a "
+                          "textured emission_peak or stokes_shift must be a bitmap, a constant or a texture "
+                          "of those (checkerboard)", Plugin, ParamNames[i], m_param_tex[i]->class_name());
+                // concentration, quantum_yield: only the mean and the maximum are known
+                check_texture_range(Plugin, ParamNames[i], m_param_tex[i].get(), 0.0, 1.0);
+                tv.values.push_back((float) m_param_tex[i]->max());
+            }
+            levels[i] = distinct_levels(tv.values);
+            if (levels[i].empty())
+                Throw("%s: parameter \"%s\" is a texture without values", Plugin, ParamNames[i]);
+            *fields[i] = (double) levels[i].back();
+            if (i == Conc || i == Yield)
+                fluoresces[i - Conc] = levels[i].back() > 0.f;
+        }
+        m_shapes_fluoresce = fluoresces[0] && fluoresces[1];
+        m_peak_levels = levels[Peak];
+        m_shift_levels = levels[Shift];
+        std::vector<double> peaks(m_peak_levels.begin(), m_peak_levels.end()),
+            shifts(m_shift_levels.begin(), m_shift_levels.end());
+        m_shapes = rust_call(Plugin, [&] {
+            return fluo::jung_shapes_new(rust::Slice<const double>(peaks.data(), peaks.size()),
+                                         rust::Slice<const double>(shifts.data(), shifts.size()));
+        });
+        m_config.emission_peak = peaks[0];
+        m_config.stokes_shift = shifts[0];
+    }
+
+    /// A textured material's parameters at a hit: its dye shape, c and Q.
+    struct Hit {
+        size_t shape;
+        float c, q;
+    };
+
+    /// Evaluate the parameter textures at si (Mitsuba's own lookup: to_uv, filtering).
+    /// c and Q enter linearly and take the texture's value (clamped to [0, 1]: a
+    /// filtered value lies between validated texels); λe and s select the nearest of
+    /// the texture's validated values, so every shape the hit uses was built at load.
+    Hit hit_params(const SurfaceInteraction3f &si, Mask active) const {
+        auto unit = [&](size_t i) {
+            if (!m_param_tex[i])
+                return (float) (i == Conc ? m_config.concentration : m_config.quantum_yield);
+            float v = m_param_tex[i]->eval_1(si, active);
+            return std::isfinite(v) ? std::clamp(v, 0.f, 1.f) : 0.f;
+        };
+        size_t pi = m_param_tex[Peak] ? fluo_detail::nearest_level(m_peak_levels, m_param_tex[Peak]->eval_1(si, active)) : 0;
+        size_t si_ = m_param_tex[Shift] ? fluo_detail::nearest_level(m_shift_levels, m_param_tex[Shift]->eval_1(si, active)) : 0;
+        return { pi * m_shift_levels.size() + si_, unit(Conc), unit(Yield) };
+    }
+
+    const fluo::JungModel &shape(size_t i) const { return fluo::jung_shapes_model(**m_shapes, i); }
+
+    /// RGB variant, textured parameters: the elastic albedo at a hit (unclamped).
+    Color3f textured_rgb_elastic(const SurfaceInteraction3f &si, const Hit &h) const {
+        const fluo::JungRgbParts &p = m_shape_parts[h.shape];
+        auto color = [](const fluo::Rgb &c) { return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b); };
+        if (m_reflectance) {
+            Color3f r = m_reflectance->eval(si, true);
+            return r * dr::clip(1.f - h.c * color(p.absorbed_scale), 0.f, 1.f);
+        }
+        return color(p.reflectance) - h.c * color(p.reflectance_absorbed);
     }
 
     /// `color`: load the cube, then look up a constant colour once or every texel of
@@ -312,6 +518,14 @@ private:
             cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
         m_lookup = std::string(props.get<std::string_view>("lookup", "nearest"));
         m_use_fluorescence = props.get<bool>("fluorescence", true);
+        std::string interp(props.get<std::string_view>("texel_interpolation", "nearest"));
+        if (interp != "nearest" && interp != "bilinear")
+            Throw("%s: invalid parameter \"texel_interpolation\" = \"%s\": valid values are \"nearest\", "
+                  "\"bilinear\"", Plugin, interp);
+        m_texel_bilinear = interp == "bilinear";
+        if (m_texel_bilinear && props.type("color") != Properties::Type::Object)
+            Throw("%s: \"texel_interpolation\" applies to a \"color\" texture, not to a constant colour",
+                  Plugin);
         m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
         if (props.type("color") == Properties::Type::Color) {
             ScalarColor3f c = props.get<ScalarColor3f>("color");
@@ -354,8 +568,43 @@ private:
                                           rust::Slice<const float>(texels.data(), texels.size()),
                                           m_lookup, m_use_fluorescence);
         });
-        m_color_text += tfm::format(", %zu distinct coefficient sets",
-                                    fluo::jung_texture_distinct(**m_texture_models));
+        m_color_text += tfm::format(", %zu distinct coefficient sets, %s texels",
+                                    fluo::jung_texture_distinct(**m_texture_models),
+                                    m_texel_bilinear ? "bilinear" : "nearest");
+    }
+
+    /// texel_interpolation = bilinear: the (up to) four texels around si.uv (texel
+    /// centres, repeat wrap) with their bilinear weights (Jung et al. 2019, Fig. 12:
+    /// interpolate the texels' reradiation, not their coefficients).
+    struct Texels {
+        size_t n = 0;
+        int64_t x[4]{}, y[4]{};
+        double w[4]{};
+    };
+    Texels texels_at(const SurfaceInteraction3f &si) const {
+        Texels t;
+        if (!m_texel_bilinear) {
+            auto [x, y] = texel_of(si);
+            t.n = 1;
+            t.x[0] = x;
+            t.y[0] = y;
+            t.w[0] = 1.0;
+            return t;
+        }
+        double u = (double) si.uv.x() * m_texture_res.x() - 0.5, v = (double) si.uv.y() * m_texture_res.y() - 0.5;
+        if (!std::isfinite(u) || !std::isfinite(v))
+            u = v = 0.0;
+        double fu = std::floor(u), fv = std::floor(v), tu = u - fu, tv = v - fv;
+        for (int a = 0; a < 2; ++a)
+            for (int b = 0; b < 2; ++b) {
+                double w = (a ? tu : 1.0 - tu) * (b ? tv : 1.0 - tv);
+                if (!(w > 0.0))
+                    continue;
+                t.x[t.n] = (int64_t) fu + a;
+                t.y[t.n] = (int64_t) fv + b;
+                t.w[t.n++] = w;
+            }
+        return t;
     }
 
     /// Nearest texel (repeat wrap) of the colour texture at si.uv.
@@ -371,17 +620,47 @@ private:
 
     /// Directional-hemispherical albedo served to Mitsuba (see the doc comment).
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        if (m_texture_models) {
+        if (m_shapes) {
+            Hit h = hit_params(si, active);
             if constexpr (is_rgb_v<Spectrum>) {
-                auto [x, y] = texel_of(si);
-                fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, x, y);
-                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+                Color3f e = textured_rgb_elastic(si, h);
+                if (!(h.c > 0.f && h.q > 0.f))
+                    return m_reflectance ? e : dr::clip(e, 0.f, 1.f);
+                const fluo::JungRgbParts &p = m_shape_parts[h.shape];
+                double w = (double) h.c * (double) h.q;
+                fluo::Rgb b = fluo::rgb_bounded_albedo(fluo::Rgb{ e[0], e[1], e[2] },
+                                                       fluo::Rgb{ w * p.fluorescence.r, w * p.fluorescence.g,
+                                                                  w * p.fluorescence.b });
+                return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
             } else {
-                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-                fluo::jung_elastic_albedo(texel_model(si), fluo_detail::slice(lambda),
-                                          fluo_detail::slice_mut(out));
-                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), a{}, r{};
+                fluo::jung_absorption(shape(h.shape), fluo_detail::slice(lambda), fluo_detail::slice_mut(a));
+                UnpolarizedSpectrum refl;
+                if (m_reflectance) {
+                    refl = m_reflectance->eval(si, active);
+                } else {
+                    fluo::jung_reflectance(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(r));
+                    refl = UnpolarizedSpectrum(r[0], r[1], r[2], r[3]);
+                }
+                return refl * (1.f - h.c * UnpolarizedSpectrum(a[0], a[1], a[2], a[3]));
             }
+        }
+        if (m_texture_models) {
+            // the texel's value, or the bilinear mixture of the four around si
+            Texels t = texels_at(si);
+            UnpolarizedSpectrum sum(0.f);
+            for (size_t i = 0; i < t.n; ++i) {
+                if constexpr (is_rgb_v<Spectrum>) {
+                    fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, t.x[i], t.y[i]);
+                    sum += (float) t.w[i] * Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+                } else {
+                    std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+                    fluo::jung_elastic_albedo(fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]),
+                                              fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
+                    sum += (float) t.w[i] * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+                }
+            }
+            return sum;
         }
         if constexpr (is_rgb_v<Spectrum>) {
             if (!m_reflectance)
@@ -412,6 +691,11 @@ private:
         }
     }
 
+    /// The numeric parameters that take a texture, in the order of m_param_tex.
+    enum Param { Peak, Shift, Conc, Yield, NParams };
+    static constexpr const char *ParamNames[NParams] = { "emission_peak", "stokes_shift", "concentration",
+                                                         "quantum_yield" };
+
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
     std::optional<rust::Box<fluo::JungModel>> m_model; ///< set by rebuild() in the constructor
     /// This model's key in the per-thread memo of its elastic albedo/factor: a vertex
@@ -424,10 +708,17 @@ private:
     bool m_modifies_reflectance = false;
     // `color` (wide-gamut upsampling through a coefficient cube)
     bool m_color_mode = false, m_use_fluorescence = true;
+    bool m_texel_bilinear = false; ///< texel_interpolation = bilinear
     std::string m_lookup, m_color_text;
     std::optional<rust::Box<fluo::UpsampleCube>> m_cube;
     std::optional<rust::Box<fluo::JungTexture>> m_texture_models; ///< per-texel models
     ScalarVector2i m_texture_res = ScalarVector2i(0, 0);
+    // textured numeric parameters (null: the float in m_config)
+    ref<Texture> m_param_tex[NParams];
+    std::vector<float> m_peak_levels, m_shift_levels; ///< the validated values of λe and s
+    std::optional<rust::Box<fluo::JungShapes>> m_shapes; ///< one dye shape per (λe, s) pair
+    bool m_shapes_fluoresce = false; ///< some texel has c > 0 and some Q > 0
+    std::vector<fluo::JungRgbParts> m_shape_parts; ///< RGB variant: per dye shape
     Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f,
             m_rgb_elastic_albedo = 0.f;
 };

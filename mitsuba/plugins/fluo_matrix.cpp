@@ -17,6 +17,20 @@ Measured reradiation matrix (:monosp:`fluo_matrix`)
      a CSV matrix (``.csv``, header ``lambda_o\lambda_i,300,...``) or a bispectral
      Spectral OpenEXR file (``.exr``, channels ``T.<λ>nm`` and ``T.<λi>nm.<λo>nm``).
      Resolved like other Mitsuba file parameters (relative to the scene). Required.
+ * - filename0, filename1, ...
+   - |string|
+   - Alternative to ``filename``: several files (numbered from 0, no gaps), one per
+     material of an ``index`` texture.
+ * - index
+   - |texture|
+   - Material-index texture (a one-channel ``bitmap``, a ``checkerboard``, ...): at each
+     hit its ``eval_1`` value, rounded to the nearest whole number, selects
+     ``filename<i>``. Every texel (bitmaps) or constituent value (textures made of
+     others) must be a whole number in [0, number of files − 1], checked at load (the
+     error names the texel, e.g. ``"index" = 0.5 at texel (x = 1, y = 0)``); use
+     ``filter_type = nearest`` for bitmaps, since a filtered index between texels is
+     rounded. Each file is loaded once; ``fluo_path`` uses the hit's material in both
+     variants (in ``scalar_rgb`` each file's reduced matrix, computed once).
 
 A diffuse (Lambertian) fluorescent material that renders a measured matrix D(λo, λi)
 exactly as tabulated:
@@ -48,6 +62,19 @@ an error naming the file and the line and column.
 
         <bsdf type="fluo_matrix">
             <string name="filename" value="TEXTYELL.BFC"/>
+        </bsdf>
+
+    .. code-tab:: xml
+        :name: fluo-matrix-index
+
+        <bsdf type="fluo_matrix">
+            <string name="filename0" value="TEXTYELL.BFC"/>
+            <string name="filename1" value="CIBA12.BFC"/>
+            <texture type="bitmap" name="index">
+                <string name="filename" value="label_index.png"/>
+                <boolean name="raw" value="true"/>
+                <string name="filter_type" value="nearest"/>
+            </texture>
         </bsdf>
 
     .. code-tab:: python

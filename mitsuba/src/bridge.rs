@@ -130,6 +130,21 @@ mod bridge {
         c2: f64,
     }
 
+    /// RGB variant (linear sRGB under E, Mitsuba's conversion) of one `fluo_jung` model,
+    /// split so that a textured concentration c and yield Q apply per hit:
+    /// elastic = `reflectance` − c·`reflectance_absorbed` (sigmoid base) or texture ⊙
+    /// (1 − c·`absorbed_scale`), reradiation = c·Q·`fluorescence`.
+    struct JungRgbParts {
+        /// sRGB[r(λ)].
+        reflectance: Rgb,
+        /// sRGB[r(λ)·a(λ)].
+        reflectance_absorbed: Rgb,
+        /// sRGB[a(λ)] / sRGB[1] per channel.
+        absorbed_scale: Rgb,
+        /// sRGB[e(λ)·∫a] with ∫ over 360–830 nm (the reradiation at c = Q = 1).
+        fluorescence: Rgb,
+    }
+
     extern "Rust" {
         /// A validated, baked `fluo_jung` material.
         type JungModel;
@@ -194,6 +209,35 @@ mod bridge {
         fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool;
         /// Distinct coefficient sets among the texels.
         fn jung_texture_distinct(tex: &JungTexture) -> usize;
+
+        // Textured numeric parameters (`emission_peak`, `stokes_shift`,
+        // `concentration`, `quantum_yield`). The reradiation is linear in c·Q and the
+        // elastic factor 1 − c·a(λ) linear in c, so a vertex needs one dye *shape* per
+        // (λe, s) pair, built once at load with c = Q = 1, and its own c and Q.
+
+        /// Check every value of a parameter texture on its own
+        /// (`fluo::models::jung::check_param_value`): `width` > 0 names a failing value by
+        /// its texel (x, y), row-major from the top row; 0 by its position in `values`.
+        fn jung_check_values(name: &str, values: &[f32], width: usize) -> Result<()>;
+        /// out[j] = a(λ_j), the absorption (peak 1).
+        fn jung_absorption(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
+        /// out[j] = r(λ_j), the sigmoid base reflectance (0 without coefficients).
+        fn jung_reflectance(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
+        /// RGB variant: the c-linear parts of an albedo (see [`JungRgbParts`]) with the
+        /// dye of `dye` and the sigmoid base reflectance of `base`.
+        fn jung_rgb_parts(dye: &JungModel, base: &JungModel) -> JungRgbParts;
+
+        /// The dye shapes (c = Q = 1, no base reflectance) of every pair of the
+        /// textured emission peaks and Stokes shifts, index i·len(shifts) + j.
+        type JungShapes;
+
+        /// Errors name the first (λe, s) pair that is not a valid dye, and a pair count
+        /// above `MAX_JUNG_SHAPES`.
+        fn jung_shapes_new(peaks: &[f64], shifts: &[f64]) -> Result<Box<JungShapes>>;
+        fn jung_shapes_len(shapes: &JungShapes) -> usize;
+        fn jung_shapes_model(shapes: &JungShapes, i: usize) -> &JungModel;
+        /// The shape with the longest emission (for scene scans).
+        fn jung_shapes_representative(shapes: &JungShapes) -> usize;
     }
 
     // ----------------------------------------------------------------------- fluo_qd
@@ -270,6 +314,13 @@ mod bridge {
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
+        /// Check every value of a `radius`, `density` or `quantum_yield` texture on its own
+        /// (`fluo::models::qd::check_param_value`; `width` as for `jung_check_values`).
+        fn qd_check_values(name: &str, values: &[f32], width: usize) -> Result<()>;
+        /// `fluo::models::qd::TEXTURE_GRID_NODES`: density nodes of a textured coating.
+        fn qd_texture_grid_nodes() -> usize;
+        /// `fluo::models::qd::TEXTURE_MAX_RADII`: most radii a radius texture may hold.
+        fn qd_texture_max_radii() -> usize;
     }
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
@@ -294,6 +345,12 @@ mod bridge {
         fn measured_to_string(model: &MeasuredModel) -> String;
         /// The model's fluorescent part, for the integrator.
         fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence;
+        /// Check every value of a material-index texture selecting among `count` files
+        /// (`fluo::models::check_material_index`; `width` as for `jung_check_values`).
+        fn measured_check_index(values: &[f32], width: usize, count: usize) -> Result<()>;
+        /// The longest wavelength it re-emits at (0 if it never does), to pick a
+        /// representative among several materials.
+        fn measured_emission_max(model: &MeasuredModel) -> f64;
     }
 
     // ------------------------------------------- fluo_path: generic handle, reduced RGB
@@ -357,7 +414,7 @@ mod bridge {
     }
 }
 
-pub use bridge::{JungConfig, QdConfig, QdConstants, Range, Rgb, Sample, SampledSpectrum, Vec3};
+pub use bridge::{JungConfig, JungRgbParts, QdConfig, QdConstants, Range, Rgb, Sample, SampledSpectrum, Vec3};
 
 // ---------------------------------------------------------------- shared value types
 
@@ -777,6 +834,130 @@ fn jung_texture_distinct(tex: &JungTexture) -> usize {
     tex.models.len()
 }
 
+fn jung_check_values(name: &str, values: &[f32], width: usize) -> Result<(), String> {
+    check_texture_values(name, values, width, fluo::models::jung::check_param_value)
+}
+
+/// Check each value of a parameter texture with `check`, naming the first failing one by
+/// its texel (`width` > 0) or its position.
+fn check_texture_values(
+    name: &str,
+    values: &[f32],
+    width: usize,
+    check: impl Fn(&str, f64) -> fluo::Result<()>,
+) -> Result<(), String> {
+    guarded(|| {
+        for (i, &v) in values.iter().enumerate() {
+            if let Err(e) = check(name, f64::from(v)) {
+                let at = if width > 0 {
+                    format!("at texel (x = {}, y = {}) of its texture", i % width, i / width)
+                } else {
+                    format!("(value {i} of its texture)")
+                };
+                return Err(match e {
+                    fluo::Error::InvalidParameter { name, value, valid } => {
+                        fluo::Error::InvalidParameter { name, value: format!("{value} {at}"), valid }
+                    }
+                    other => other,
+                });
+            }
+        }
+        Ok(())
+    })
+}
+
+fn jung_absorption(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.dye.absorption(f64::from(l)) as f32;
+    }
+}
+
+fn jung_reflectance(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.reflectance(f64::from(l)) as f32;
+    }
+}
+
+fn jung_rgb_parts(dye: &JungModel, base: &JungModel) -> JungRgbParts {
+    let a = spectrum_to_srgb(|l| dye.dye.absorption(l));
+    let white = spectrum_to_srgb(|_| 1.0);
+    let ratio = |k: usize| if white[k].abs() > 0.0 { a[k] / white[k] } else { 0.0 };
+    let unit = dye.dye.absorption_integral_range(CIE_MIN_NM, CIE_MAX_NM);
+    JungRgbParts {
+        reflectance: rgb(spectrum_to_srgb(|l| base.reflectance(l))),
+        reflectance_absorbed: rgb(spectrum_to_srgb(|l| base.reflectance(l) * dye.dye.absorption(l))),
+        absorbed_scale: rgb([ratio(0), ratio(1), ratio(2)]),
+        fluorescence: rgb(spectrum_to_srgb(|l| unit * dye.dye.emission(l))),
+    }
+}
+
+/// Most (λe, s) pairs a textured `fluo_jung` may combine (about 1 kB each).
+const MAX_JUNG_SHAPES: usize = 4096;
+
+/// Opaque dye shapes of a `fluo_jung` with textured parameters.
+pub struct JungShapes {
+    models: Vec<JungModel>,
+    representative: usize,
+}
+
+fn jung_shapes_new(peaks: &[f64], shifts: &[f64]) -> Result<Box<JungShapes>, String> {
+    guarded(|| {
+        let n = peaks.len().saturating_mul(shifts.len());
+        if n == 0 || n > MAX_JUNG_SHAPES {
+            return Err(fluo::Error::data(format!(
+                "textured emission_peak and stokes_shift: {} distinct peaks × {} distinct shifts = {n} dye \
+                 shapes (at least 1, at most {MAX_JUNG_SHAPES}: quantize the textures to fewer values)",
+                peaks.len(),
+                shifts.len()
+            )));
+        }
+        let mut models = Vec::with_capacity(n);
+        for &emission_peak in peaks {
+            for &stokes_shift in shifts {
+                let config = JungConfig {
+                    emission_peak,
+                    stokes_shift,
+                    concentration: 1.0,
+                    quantum_yield: 1.0,
+                    ..jung_default_config()
+                };
+                models.push(JungModel::new(&config).map_err(|e| match e {
+                    fluo::Error::InvalidParameter { name, value, valid } if peaks.len() > 1 || shifts.len() > 1 => {
+                        fluo::Error::InvalidParameter {
+                            name,
+                            value: format!(
+                                "{value} (the pair emission_peak = {}, stokes_shift = {} of the textures' values)",
+                                fluo::num(emission_peak),
+                                fluo::num(stokes_shift)
+                            ),
+                            valid,
+                        }
+                    }
+                    other => other,
+                })?);
+            }
+        }
+        let representative = models
+            .iter()
+            .enumerate()
+            .max_by(|a, b| a.1.dye.emission_support().1.total_cmp(&b.1.dye.emission_support().1))
+            .map_or(0, |(i, _)| i);
+        Ok(Box::new(JungShapes { models, representative }))
+    })
+}
+
+fn jung_shapes_len(shapes: &JungShapes) -> usize {
+    shapes.models.len()
+}
+
+fn jung_shapes_model(shapes: &JungShapes, i: usize) -> &JungModel {
+    &shapes.models[i.min(shapes.models.len() - 1)]
+}
+
+fn jung_shapes_representative(shapes: &JungShapes) -> usize {
+    shapes.representative
+}
+
 // --------------------------------------------------------------------------- fluo_qd
 
 /// Opaque `fluo_qd` material handed to C++: the coating, shared with the generic handle.
@@ -916,6 +1097,18 @@ fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
 }
 
+fn qd_check_values(name: &str, values: &[f32], width: usize) -> Result<(), String> {
+    check_texture_values(name, values, width, qd::check_param_value)
+}
+
+fn qd_texture_grid_nodes() -> usize {
+    qd::TEXTURE_GRID_NODES
+}
+
+fn qd_texture_max_radii() -> usize {
+    qd::TEXTURE_MAX_RADII
+}
+
 // --------------------------------------------------------- fluo_matrix, fluo_gmm
 
 /// Opaque measured material (`fluo_matrix`, `fluo_gmm`) handed to C++: everything it
@@ -963,6 +1156,14 @@ fn measured_rgb_elastic(model: &MeasuredModel) -> Rgb {
 
 fn measured_to_string(model: &MeasuredModel) -> String {
     model.0.model.to_string()
+}
+
+fn measured_check_index(values: &[f32], width: usize, count: usize) -> Result<(), String> {
+    check_texture_values("index", values, width, |_, v| fluo::models::check_material_index(v, count))
+}
+
+fn measured_emission_max(model: &MeasuredModel) -> f64 {
+    fluo::Bispectral::emission_range(&model.0.model).map_or(0.0, |r| r.1)
 }
 
 fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {

@@ -14,8 +14,9 @@ one resolved text, so that every panel sees exactly the same objects:
   ================ ========================================================================
   material         without fluorescence
   ================ ========================================================================
-  ``fluo_jung``    ``quantum_yield`` 0: the dye still absorbs, (1 − c a(λ)) r(λ), but
-                   re-emits nothing (Jung et al. 2018, eq. 1 without its second term)
+  ``fluo_jung``    ``quantum_yield`` 0 (replacing a float or a texture): the dye still
+                   absorbs, (1 − c a(λ)) r(λ), but re-emits nothing (Jung et al. 2018,
+                   eq. 1 without its second term)
   ``fluo_jung`` +  ``fluorescence`` false: the coefficient cube's reflectance-only
   ``color``        solution for the same colour (the cube sets Q, so it cannot be zeroed)
   ``fluo_qd``      ``quantum_yield`` 0: the coating still absorbs and reflects (R_tot),
@@ -46,7 +47,9 @@ _DEFAULT = re.compile(r'\s*<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
 _PARAM = re.compile(r"\$([A-Za-z_]\w*)")
 _BSDF = re.compile(r'<bsdf\s+type="(' + "|".join(FLUORESCENT_BSDFS) + r')"\s*>(.*?)</bsdf>', re.S)
 _FILENAME = re.compile(r'<string\s+name="filename"\s+value="([^"]*)"\s*/>')
-_QUANTUM_YIELD = re.compile(r'<float\s+name="quantum_yield"\s+value="[^"]*"\s*/>')
+#: A float ``quantum_yield`` or a textured one (a texture without nested textures).
+_QUANTUM_YIELD = re.compile(r'<float\s+name="quantum_yield"\s+value="[^"]*"\s*/>'
+                            r'|<texture\s+type="[^"]*"\s+name="quantum_yield"\s*>(?:(?!<texture).)*?</texture>', re.S)
 _FLUORESCENCE = re.compile(r'<boolean\s+name="fluorescence"\s+value="[^"]*"\s*/>')
 _COLOR = re.compile(r'name="color"')
 

@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import VARIANTS
+from conftest import VARIANTS, scene_text
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -369,3 +369,223 @@ def test15_color_bad_input_raises_clear_errors(variant, tmp_path):
         with pytest.raises(Exception) as err:  # not raw: Mitsuba already turned it into spectra
             mi.load_string(_textured(nan_tex).replace('<boolean name="raw" value="true"/>', ""))
         assert "raw" in str(err.value), str(err.value)
+
+
+# ------------------------------------------------- textured numeric parameters (issue 17)
+#: Two values per texturable parameter, far enough apart that the two uniform
+#: materials differ by many times the tolerance of test16.
+TEXTURE_PAIRS = {
+    "concentration": (0.1, 0.9),
+    "quantum_yield": (0.2, 1.0),
+    "emission_peak": (480.0, 620.0),
+    "stokes_shift": (20.0, 120.0),
+}
+TEXTURED_BASE = {"type": "fluo_jung", "reflectance": 0.3, "emission_peak": 520.0, "stokes_shift": 60.0,
+                 "concentration": 0.8, "quantum_yield": 0.9}
+
+
+def checkerboard(a, b, cells=100):
+    """Mitsuba's checkerboard with `cells`×`cells` squares per unit of uv (color0 = a)."""
+    return {"type": "checkerboard", "color0": a, "color1": b,
+            "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1])}
+
+
+def plane_under_d65(variant, bsdf, spp=64):
+    """An orthographic camera straight above a plane (one bounce: max_depth 2) under a
+    distant D65 light from 300 nm. The camera sees uv [0.45, 0.55]², i.e. 10×10 squares
+    of `checkerboard`: exactly half of each value."""
+    mi.set_variant(variant)
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
+        "light": {"type": "directional", "direction": [0, 0, -1],
+                  "irradiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
+    })
+
+
+def mean_rgb(scene):
+    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("param", sorted(TEXTURE_PAIRS))
+def test16_checkerboard_parameter_renders_as_average_of_uniforms(variant, param):
+    """A checkerboard of two values of one parameter renders as the mean of the two
+    uniform materials: spectral (fluo_path's wavelength shifting, per-hit dye) and
+    scalar_rgb (reduced transport, per-hit reduced matrix)."""
+    a, b = TEXTURE_PAIRS[param]
+    ua = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: a})))
+    ub = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: b})))
+    got = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: checkerboard(a, b)})))
+    want = (ua + ub) / 2
+    # spectral: Monte Carlo noise of different materials (measured ≤ 0.4 %); reduced RGB
+    # is deterministic here (one bounce, no wavelength sampling)
+    rtol = 0.012 if variant == "scalar_spectral" else 1e-4
+    np.testing.assert_allclose(got, want, rtol=rtol)
+    # the test can fail: the two uniform materials differ by far more than the tolerance
+    assert np.abs(ua - ub).max() > 8 * rtol * want.max(), (ua, ub)
+    # and a material that ignored the texture (one value everywhere) would miss
+    assert min(np.abs(got - ua).max(), np.abs(got - ub).max()) > 4 * rtol * want.max()
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("param", sorted(TEXTURE_PAIRS))
+def test17_textured_parameter_is_the_uniform_material_at_each_hit(variant, param):
+    """Per hit, eval and the albedo served to Mitsuba's own integrators equal those of
+    the uniform material with that hit's value (sigmoid base reflectance: the elastic
+    part r(1 − c a) per hit). The hit's value is the texture's eval_1, as Mitsuba's own
+    plugins read float textures (Mitsuba 3.8's checkerboard.eval_1 returns color1 where
+    its eval returns color0 and vice versa; the value sets are the same)."""
+    a, b = TEXTURE_PAIRS[param]
+    base = dict(TEXTURED_BASE)
+    del base["reflectance"]
+    base["coefficients"] = "1e-5, -0.01, 1.5"  # r(λ) ≈ 0.1-0.6
+    mi.set_variant(variant)
+    board = checkerboard(a, b, cells=2)
+    tex = mi.load_dict(dict(base, **{param: board}))
+    board = mi.load_dict(board)
+    ctx = mi.BSDFContext()
+    wo = mi.Vector3f(0.3, 0.2, math.sqrt(1 - 0.13))
+    seen = set()
+    for uv in ((0.1, 0.1), (0.35, 0.1), (0.35, 0.35)):  # squares of 0.5 in uv·2
+        si = surface_interaction((410.0, 450.0, 475.0, 540.0))  # in the absorption bands
+        si.uv = mi.Point2f(*uv)
+        value = float(board.eval_1(si))
+        seen.add(value)
+        uniform = mi.load_dict(dict(base, **{param: value}))
+        np.testing.assert_allclose(np.array(tex.eval(ctx, si, wo)), np.array(uniform.eval(ctx, si, wo)),
+                                   rtol=2e-5, atol=1e-7)
+        np.testing.assert_allclose(np.array(tex.eval_diffuse_reflectance(si)),
+                                   np.array(uniform.eval_diffuse_reflectance(si)), rtol=2e-5, atol=1e-7)
+    assert len(seen) == 2
+    # the other value differs there (spectral eval serves the elastic part alone, which
+    # Q does not touch: test16 covers Q's reradiation)
+    if not (variant == "scalar_spectral" and param == "quantum_yield"):
+        other = mi.load_dict(dict(base, **{param: sum(TEXTURE_PAIRS[param]) - value}))
+        assert np.abs(np.array(other.eval(ctx, si, wo)) - np.array(tex.eval(ctx, si, wo))).max() > 1e-3
+    assert "dye shapes" in str(tex) and "dye shapes" not in str(uniform)  # uniform: the float fast path
+
+
+def _float_bitmap(values, filter_type="nearest"):
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.array(values, dtype=np.float32)), "raw": True,
+            "filter_type": filter_type}
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test18_textured_parameters_validated_per_texel(variant):
+    """Every texel (bitmaps) or constituent value (a checkerboard's colours) is checked
+    at load; the error names the parameter, the value, its texel and the valid range."""
+    mi.set_variant(variant)
+    nan = float("nan")
+    cases = [
+        ("concentration", _float_bitmap([[0.1, 0.2, 0.3], [0.4, 1.5, 0.6]]),
+         'invalid parameter "concentration" = 1.5 at texel (x = 1, y = 1)', "[0, 1]"),
+        ("quantum_yield", _float_bitmap([[0.1, nan], [0.4, 0.5]]),
+         'invalid parameter "quantum_yield" = NaN at texel (x = 1, y = 0)', "[0, 1]"),
+        ("emission_peak", _float_bitmap([[500.0, 520.0], [1500.0, 520.0]]),
+         'invalid parameter "emission_peak" = 1500 at texel (x = 0, y = 1)', "[200, 1200]"),
+        ("stokes_shift", _float_bitmap([[-3.0, 50.0], [50.0, 50.0]]),
+         'invalid parameter "stokes_shift" = -3 at texel (x = 0, y = 0)', "[0.001,"),
+        ("concentration", checkerboard(0.5, -0.2),
+         'invalid parameter "concentration" = -0.2 (value 1 of its texture)', "[0, 1]"),
+        # each (λe, s) pair the textures combine must be a valid dye: s < s_max(300 nm)
+        ("emission_peak", checkerboard(300.0, 700.0),
+         'the pair emission_peak = 300, stokes_shift = 500', "for emission_peak = 300 nm"),
+    ]
+    for param, tex, needle, needle2 in cases:
+        props = dict(TEXTURED_BASE, **{param: tex})
+        if needle.startswith("the pair"):
+            props["stokes_shift"] = checkerboard(20.0, 500.0)
+        with pytest.raises(Exception) as err:
+            mi.load_dict(props)
+        assert needle in str(err.value) and needle2 in str(err.value), str(err.value)
+    with pytest.raises(Exception, match="one channel"):
+        mi.load_dict(dict(TEXTURED_BASE, concentration=_float_bitmap(np.full((2, 2, 3), 0.5))))
+    with pytest.raises(Exception, match='do not also specify "concentration"'):
+        mi.load_dict({"type": "fluo_jung", "color": {"type": "rgb", "value": [0.5, 0.5, 0.5]},
+                      "concentration": checkerboard(0.1, 0.2)})
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test19_bitmap_parameter_renders_as_texel_average(variant):
+    """A 2×2 bitmap of concentrations (nearest texels, tiled over the plane) renders as
+    the mean of the four uniform materials; a bilinear bitmap interpolates c, which
+    enters the model linearly, so it renders the same mean."""
+    values = [[0.0, 0.3], [0.6, 1.0]]
+    uniform = [mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, concentration=v), spp=32))
+               for row in values for v in row]
+    want = np.mean(uniform, axis=0)
+    rtol = 0.012 if variant == "scalar_spectral" else 1e-4
+    for filter_type in ("nearest", "bilinear"):
+        tex = dict(_float_bitmap(values, filter_type), to_uv=mi.ScalarTransform4f().scale([50, 50, 1]))
+        got = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, concentration=tex), spp=32))
+        # bilinear: the pixel samples see a continuum of c, an estimate of its mean
+        np.testing.assert_allclose(got, want, rtol=rtol if filter_type == "nearest" else max(rtol, 2e-3),
+                                   err_msg=filter_type)
+    assert np.abs(uniform[0] - uniform[3]).max() > 8 * rtol * want.max()
+
+
+def test20_traverse_shows_and_updates_parameter_textures():
+    mi.set_variant("scalar_rgb")
+    b = mi.load_dict(dict(TEXTURED_BASE, concentration=_float_bitmap([[0.2, 0.4], [0.2, 0.4]])))
+    params = mi.traverse(b)
+    assert "concentration.data" in params and "emission_peak" in params
+    si = surface_interaction()
+    si.uv = mi.Point2f(0.25, 0.5)
+    before = np.array(b.eval_diffuse_reflectance(si))
+    params["concentration.data"] = mi.TensorXf(np.array([[[0.9], [0.4]], [[0.9], [0.4]]], dtype=np.float32))
+    params.update()
+    after = np.array(b.eval_diffuse_reflectance(si))
+    want = np.array(mi.load_dict(dict(TEXTURED_BASE, concentration=0.9)).eval_diffuse_reflectance(si))
+    np.testing.assert_allclose(after, want, rtol=1e-5)
+    assert np.abs(after - before).max() > 0.01
+    with pytest.raises(Exception, match=r'"concentration" = 2 at texel \(x = 0, y = 0\)'):
+        params["concentration.data"] = mi.TensorXf(np.array([[[2.0], [0.4]], [[0.9], [0.4]]], dtype=np.float32))
+        params.update()
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test21_bilinear_texels_interpolate_reradiation(variant, tmp_path, capsys):
+    """Jung et al. 2019, Fig. 12: with texel_interpolation = bilinear a magnified colour
+    texture renders as the bilinear interpolation of its texels' renders (the BBRRDFs
+    are mixed, so the light is), where nearest texels give a step. Two columns of
+    colours needing fluorescence, seen whole by an orthographic camera (32 pixel
+    columns; the texel centres at u = 1/4, 3/4 fall on pixel edges)."""
+    a, b = [0.9, 0.0, 0.9], [0.05, 0.8, 0.05]
+    tex = _write_exr(tmp_path / "two.exr", [[a, b], [a, b]])
+    uniform_tex = {k: _write_exr(tmp_path / f"{k}.exr", [[c, c], [c, c]]) for k, c in (("a", a), ("b", b))}
+
+    def render_columns(bsdf_xml):
+        mi.set_variant(variant)
+        scene = mi.load_string(scene_text(
+            bsdf_xml.replace('<bsdf version="3.0.0" ', "<bsdf "), integrator="fluo_path", max_depth=2,
+            camera="orthographic", origin="0, 0, 5", spp=4096, width=32, height=2, rfilter="box",
+            emitter="directional",
+            light='<spectrum type="fluo_illuminant" name="irradiance"><string name="illuminant" value="D65"/></spectrum>',
+            shape="rectangle", size=1))
+        return np.array(mi.render(scene, seed=3), dtype=np.float64).mean(axis=0)  # (32, 3)
+
+    bil = '<string name="texel_interpolation" value="bilinear"/>'
+    ua = render_columns(_textured(uniform_tex["a"])).mean(axis=0)
+    ub = render_columns(_textured(uniform_tex["b"])).mean(axis=0)
+    u = (np.arange(32) + 0.5) / 32
+    wb = np.interp(u, [-0.25, 0.25, 0.75, 1.25], [1.0, 0.0, 1.0, 0.0])  # texel b's weight, repeat wrap
+    want = (1 - wb)[:, None] * ua + wb[:, None] * ub
+    scale = want.mean()
+    errors = {}
+    for name, extra in (("nearest", ""), ("bilinear", bil)):
+        got = render_columns(_textured(tex, extra))
+        errors[name] = float(np.sqrt(np.mean((got - want) ** 2)) / scale)
+    with capsys.disabled():
+        print(f"\n[{variant}] relative RMSE against the interpolated texels: {errors}")
+    # spectral: Monte Carlo noise only (0.030, 0.023, 0.011 at 256, 1024, 4096 spp: 1/√spp);
+    # RGB: 8e-4; nearest: 0.83 spectral, 0.58 RGB
+    assert errors["bilinear"] < 0.02, errors
+    assert errors["nearest"] > 4 * errors["bilinear"], errors
+    with pytest.raises(Exception, match='"texel_interpolation" = "cubic"'):
+        mi.load_string(_textured(tex, '<string name="texel_interpolation" value="cubic"/>'))

@@ -247,3 +247,81 @@ def test10_demo_uses_fallbacks_only_for_missing_data(tmp_path, scene_xml):
         '<!-- fluo: fallback a=fa.csv -->\n<!-- fluo: fallback b=fb.csv -->\n'
         '<default name="a" value="here.csv"/><default name="b" value="missing.csv"/>'))
     assert scene_fallback_params(scene) == {"b": str(tmp_path / "fb.csv")}
+
+
+# ----------------------------------------- material-index texture (issue 17), both plugins
+MATRICES = REPO / "data" / "matrices"
+
+
+def index_plane(variant, bsdf, spp=64):
+    """Orthographic camera above a plane under a distant D65 light from 300 nm, one
+    bounce; it sees uv [0.45, 0.55]²: 10×10 squares of a 100-per-uv checkerboard."""
+    mi.set_variant(variant)
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
+        "light": {"type": "directional", "direction": [0, 0, -1],
+                  "irradiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
+    })
+
+
+def index_mean(scene):
+    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
+
+
+def index_files(plugin, tmp_path):
+    if plugin == "fluo_matrix":
+        return [str(MATRICES / "jung_orange.csv"), str(MATRICES / "jung_brightener.csv")]
+    second = tmp_path / "brightener.gmm.json"
+    fluo.run_tool(["fit-gmm", str(MATRICES / "jung_brightener.csv"), "--components", "4", "-o", str(second)])
+    return [str(MATRICES / "jung_orange.gmm.json"), str(second)]
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("plugin", ["fluo_matrix", "fluo_gmm"])
+def test11_material_index_checkerboard_renders_as_average(plugin, variant, tmp_path):
+    """filename0/filename1 selected by a checkerboard index render as the mean of the two
+    single-file materials (spectral shifting; reduced RGB with each file's matrix)."""
+    files = index_files(plugin, tmp_path)
+    ua = index_mean(index_plane(variant, {"type": plugin, "filename": files[0]}))
+    ub = index_mean(index_plane(variant, {"type": plugin, "filename": files[1]}))
+    board = {"type": "checkerboard", "color0": 0.0, "color1": 1.0,
+             "to_uv": mi.ScalarTransform4f().scale([100, 100, 1])}
+    got = index_mean(index_plane(variant, {"type": plugin, "filename0": files[0], "filename1": files[1],
+                                           "index": board}))
+    want = (ua + ub) / 2
+    rtol = 0.012 if variant == "scalar_spectral" else 1e-4  # measured 0.14 % / 0
+    np.testing.assert_allclose(got, want, rtol=rtol)
+    assert np.abs(ua - ub).max() > 8 * rtol * want.max(), (ua, ub)
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+def test12_material_index_validated_per_texel(variant):
+    mi.set_variant(variant)
+    files = {"filename0": str(MATRICES / "jung_orange.csv"), "filename1": str(MATRICES / "jung_yellow.csv"),
+             "filename2": str(MATRICES / "jung_brightener.csv")}
+
+    def bitmap(values):
+        return {"type": "bitmap", "bitmap": mi.Bitmap(np.array(values, dtype=np.float32)), "raw": True,
+                "filter_type": "nearest"}
+
+    for values, needle in (([[0, 1], [2, 3]], '"index" = 3 at texel (x = 1, y = 1)'),
+                           ([[0, 0.5], [2, 1]], '"index" = 0.5 at texel (x = 1, y = 0)'),
+                           ([[float("nan"), 0], [2, 1]], '"index" = NaN at texel (x = 0, y = 0)')):
+        with pytest.raises(Exception) as err:
+            mi.load_dict({"type": "fluo_matrix", **files, "index": bitmap(values)})
+        assert needle in str(err.value) and "whole numbers 0 to 2" in str(err.value), str(err.value)
+    ok = mi.load_dict({"type": "fluo_matrix", **files, "index": bitmap([[0, 1], [2, 1]])})
+    assert "filename2" in str(ok) and "index" in str(ok)
+    with pytest.raises(Exception, match="need a material-index texture"):
+        mi.load_dict({"type": "fluo_matrix", **files})
+    with pytest.raises(Exception, match="not both"):
+        mi.load_dict({"type": "fluo_matrix", "filename": files["filename0"], **files, "index": 0.0})
+    with pytest.raises(Exception, match='"filename1" = .*file not found'):
+        mi.load_dict({"type": "fluo_matrix", "filename0": files["filename0"], "filename1": "missing.csv",
+                      "index": 0.0})

@@ -70,14 +70,16 @@ def test03_scene_renders_in_both_variants(scene, variant):
 def test04_without_fluorescence_rewrites():
     text = ('<bsdf type="fluo_jung"><float name="concentration" value="1"/></bsdf>'
             '<bsdf type="fluo_qd"><float name="quantum_yield" value="0.9"/></bsdf>'
+            '<bsdf type="fluo_jung"><texture type="checkerboard" name="quantum_yield">'
+            '<float name="color0" value="0.2"/><float name="color1" value="0.9"/></texture></bsdf>'
             '<bsdf type="fluo_jung"><rgb name="color" value="0.1, 0.9, 0.1"/>'
             '<boolean name="fluorescence" value="true"/></bsdf>'
             '<bsdf type="fluo_gmm"><string name="filename" value="../data/matrices/jung_orange.gmm.json"/></bsdf>'
             '<bsdf type="fluo_matrix"><string name="filename" value="../data/matrices/jung_yellow.csv"/></bsdf>')
     out = scenes.without_fluorescence(text, fluo.repo_root() / "scenes")
-    assert out.count('<float name="quantum_yield" value="0"/>') == 2
+    assert out.count('<float name="quantum_yield" value="0"/>') == 3 and "checkerboard" not in out
     assert '<boolean name="fluorescence" value="false"/>' in out
-    assert scenes.fluorescent_materials(out) == ["fluo_jung", "fluo_qd", "fluo_jung"]
+    assert scenes.fluorescent_materials(out) == ["fluo_jung", "fluo_qd", "fluo_jung", "fluo_jung"]
     assert out.count('<bsdf type="diffuse"><spectrum name="reflectance"') == 2
 
 

@@ -142,6 +142,34 @@ pub fn max_stokes_shift(emission_peak: f64) -> f64 {
     2.0 * emission_peak * alpha / (emission_peak + alpha)
 }
 
+/// The `fluo_jung` parameters that take a texture ([`check_param_value`]).
+pub const TEXTURABLE_PARAMS: [&str; 4] = ["emission_peak", "stokes_shift", "concentration", "quantum_yield"];
+
+/// Check one value of a `fluo_jung` parameter on its own, as every texel (or constituent
+/// value) of a parameter texture is checked at load: `concentration` and `quantum_yield`
+/// in [0, 1], `emission_peak` in [`EMISSION_PEAK_RANGE_NM`], `stokes_shift` finite in
+/// [[`MIN_STOKES_SHIFT_NM`], s_max(1200 nm)). A Stokes shift's full bound depends on the
+/// emission peak: [`JungFluorescence::new`] checks each (λe, s) pair that can meet.
+pub fn check_param_value(name: &str, value: f64) -> Result<()> {
+    match name {
+        "concentration" | "quantum_yield" => check_range(name, value, 0.0, 1.0).map(|_| ()),
+        "emission_peak" => check_range(name, value, EMISSION_PEAK_RANGE_NM.0, EMISSION_PEAK_RANGE_NM.1).map(|_| ()),
+        "stokes_shift" => {
+            let hi = max_stokes_shift(EMISSION_PEAK_RANGE_NM.1);
+            if value.is_finite() && value >= MIN_STOKES_SHIFT_NM && value < hi {
+                Ok(())
+            } else {
+                Err(Error::param(
+                    name,
+                    value,
+                    format!("[{MIN_STOKES_SHIFT_NM}, {hi:.4}) nm (and below s_max of every emission_peak it meets)"),
+                ))
+            }
+        }
+        _ => Err(Error::param("parameter", format!("\"{name}\""), TEXTURABLE_PARAMS.join(", "))),
+    }
+}
+
 /// The fluorescent part of the model with its derived ("baked") quantities.
 #[derive(Debug, Clone, PartialEq)]
 pub struct JungFluorescence {
@@ -721,6 +749,30 @@ impl Bispectral for JungMaterial {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn texture_values_are_checked_one_by_one() {
+        assert!(check_param_value("concentration", 0.0).is_ok() && check_param_value("concentration", 1.0).is_ok());
+        assert!(check_param_value("quantum_yield", 0.5).is_ok());
+        for (name, bad) in [
+            ("concentration", 1.5),
+            ("concentration", f64::NAN),
+            ("quantum_yield", -0.1),
+            ("emission_peak", 150.0),
+            ("emission_peak", f64::INFINITY),
+            ("stokes_shift", 0.0),
+            ("stokes_shift", 5000.0),
+        ] {
+            let e = check_param_value(name, bad).unwrap_err().to_string();
+            assert!(e.contains(name), "{e}");
+        }
+        assert!(check_param_value("radius", 1.0).is_err());
+        // the loose per-value bound admits every shift some peak allows
+        let s = max_stokes_shift(EMISSION_PEAK_RANGE_NM.1) * 0.999;
+        assert!(check_param_value("stokes_shift", s).is_ok());
+        assert!(JungFluorescence::new(JungParams { emission_peak: 1200.0, stokes_shift: s, ..JungParams::default() })
+            .is_ok());
+    }
     use crate::testutil::{chi2, chi2_critical, simpson, uniforms};
 
     const UP: [f64; 3] = [0.0, 0.0, 1.0];

@@ -72,3 +72,40 @@ pub mod gmm;
 pub mod jung;
 pub mod matrix;
 pub mod qd;
+
+/// Largest distance of a material-index texel from an integer (an index map's value
+/// stored as a float; an 8-bit image's raw values are exact).
+pub const MATERIAL_INDEX_TOLERANCE: f64 = 1e-3;
+
+/// Check one value of a material-index texture (`fluo_matrix`/`fluo_gmm` `index`): a
+/// whole number (within [`MATERIAL_INDEX_TOLERANCE`]) in [0, `count` − 1].
+pub fn check_material_index(value: f64, count: usize) -> crate::Result<()> {
+    let hi = count.saturating_sub(1) as f64;
+    if value.is_finite()
+        && value >= -MATERIAL_INDEX_TOLERANCE
+        && value <= hi + MATERIAL_INDEX_TOLERANCE
+        && (value - value.round()).abs() <= MATERIAL_INDEX_TOLERANCE
+    {
+        Ok(())
+    } else {
+        Err(crate::Error::param(
+            "index",
+            value,
+            format!("whole numbers 0 to {} (one per filename0..filename{})", crate::num(hi), crate::num(hi)),
+        ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn material_indices_are_whole_and_in_range() {
+        assert!(check_material_index(0.0, 3).is_ok() && check_material_index(2.0, 3).is_ok());
+        assert!(check_material_index(1.0004, 3).is_ok());
+        for bad in [-1.0, 3.0, 0.5, f64::NAN] {
+            assert!(check_material_index(bad, 3).unwrap_err().to_string().contains("\"index\""));
+        }
+    }
+}

@@ -9,6 +9,7 @@
 // come from a texture.
 #pragma once
 
+#include <array>
 #include <atomic>
 
 #include <mitsuba/core/logger.h>
@@ -70,6 +71,36 @@ public:
 
     /// Whether fluorescence_at() depends on si.
     virtual bool fluorescence_varies() const { return false; }
+
+    /// A varying material's fluorescence at si as a mixture of at most MaxMix models
+    /// from a finite set (fluorescence_model(index)): f_fl(si) = Σ prob·weight·f_fl[model],
+    /// Σ prob = 1. fluo_jung with textured parameters gives one dye shape per (λe, s)
+    /// pair scaled by the hit's c·Q (one entry); fluo_qd interpolates models baked on a
+    /// (radius, density) grid (up to four entries, bilinear weights as `prob`).
+    /// fluo_path picks one entry with probability `prob` in scalar_spectral (an unbiased
+    /// estimate of the mixture) and sums the entries' reduced matrices in scalar_rgb.
+    struct Local {
+        const fluo::Fluorescence *model = nullptr; ///< nullptr: no re-emission from this entry
+        size_t index = NoIndex; ///< < fluorescence_models(), or NoIndex
+        double weight = 1.0;    ///< scale of the model's reradiation
+        double prob = 1.0;      ///< mixture probability
+    };
+    static constexpr size_t NoIndex = (size_t) -1;
+    static constexpr size_t MaxMix = 4;
+    using Mixture = std::array<Local, MaxMix>;
+
+    /// The mixture at si: fills `out` and returns its size (default: one entry,
+    /// fluorescence_at(si) with weight 1, no index).
+    virtual size_t fluorescence_local(const SurfaceInteraction3f &si, Mixture &out) const {
+        out[0] = Local{ fluorescence_at(si), NoIndex, 1.0, 1.0 };
+        return 1;
+    }
+
+    /// Number of models fluorescence_local() indexes (0: it gives no index, and reduced
+    /// RGB transport serves the material as a plain BSDF).
+    virtual size_t fluorescence_models() const { return 0; }
+    /// Model i < fluorescence_models().
+    virtual const fluo::Fluorescence *fluorescence_model(size_t /* i */) const { return nullptr; }
 
 protected:
     /// The once-per-scene warning of set_managed(); an atomic load when managed.

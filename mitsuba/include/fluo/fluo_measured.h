@@ -14,10 +14,13 @@
 #include <mitsuba/render/bsdf.h>
 
 #include <optional>
+#include <string>
+#include <vector>
 
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
 #include "fluo_lambertian.h"
+#include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -25,31 +28,71 @@ template <typename Float, typename Spectrum>
 class FluoMeasured : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
-    MI_IMPORT_TYPES()
+    MI_IMPORT_TYPES(Texture)
 
     using Factory = rust::Box<fluo::MeasuredModel> (*)(rust::Str);
 
     FluoMeasured(const Properties &props, const char *plugin, Factory factory)
         : Base(props), m_plugin(plugin) {
-        if (!props.has_property("filename"))
-            Throw("%s: parameter \"filename\" is required", plugin);
-        std::string name(props.get<std::string_view>("filename"));
-        fs::path path = file_resolver()->resolve(name);
-        if (!fs::exists(path))
-            Throw("%s: invalid parameter \"filename\" = \"%s\": file not found", plugin, name);
-        m_filename = path.string();
-        m_model = fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filename)); });
+        // One file ("filename"), or several ("filename0", "filename1", ...) selected per
+        // hit by the material-index texture "index".
+        std::vector<std::string> names;
+        if (props.has_property("filename"))
+            names.emplace_back(props.get<std::string_view>("filename"));
+        for (size_t i = 0;; ++i) {
+            std::string key = "filename" + std::to_string(i);
+            if (!props.has_property(key))
+                break;
+            names.emplace_back(props.get<std::string_view>(key));
+            m_keys.push_back(key);
+        }
+        if (names.empty())
+            Throw("%s: parameter \"filename\" is required (or \"filename0\", \"filename1\", ... with "
+                  "a material-index texture \"index\")", plugin);
+        if (props.has_property("filename") && !m_keys.empty())
+            Throw("%s: specify either \"filename\" or \"filename0\", \"filename1\", ..., not both", plugin);
+        if (m_keys.empty())
+            m_keys.push_back("filename");
+        if (m_keys.size() > 1 || props.has_property("index")) {
+            if (!props.has_property("index"))
+                Throw("%s: several files (\"filename0\" ...) need a material-index texture \"index\"", plugin);
+            m_index = props.get_texture<Texture>("index");
+        }
+        for (size_t i = 0; i < names.size(); ++i) {
+            fs::path path = file_resolver()->resolve(names[i]);
+            if (!fs::exists(path))
+                Throw("%s: invalid parameter \"%s\" = \"%s\": file not found", plugin, m_keys[i], names[i]);
+            m_filenames.push_back(path.string());
+            m_models.push_back(fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filenames.back())); }));
+        }
+        if (m_index)
+            check_index(m_index.get());
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
-        if constexpr (is_rgb_v<Spectrum>) {
-            fluo::Rgb c = fluo::measured_rgb_albedo(**m_model);
-            m_rgb_albedo = Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
-            fluo::Rgb e = fluo::measured_rgb_elastic(**m_model);
-            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
+        for (const auto &m : m_models) {
+            if (fluo::measured_is_fluorescent(*m) &&
+                (m_representative < 0 || fluo::measured_emission_max(*m) >
+                                             fluo::measured_emission_max(*m_models[(size_t) m_representative])))
+                m_representative = (int) (&m - m_models.data());
+            if constexpr (is_rgb_v<Spectrum>) {
+                fluo::Rgb c = fluo::measured_rgb_albedo(*m);
+                m_rgb_albedo.push_back(Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b));
+                fluo::Rgb e = fluo::measured_rgb_elastic(*m);
+                m_rgb_elastic.push_back(
+                    dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f));
+            }
         }
     }
 
-    // traverse: nothing to expose (the file is the parameter); parameters_changed: none.
+    void traverse(TraversalCallback *cb) override {
+        if (m_index)
+            cb->put("index", m_index, ParamFlags::NonDifferentiable);
+    }
+
+    void parameters_changed(const std::vector<std::string> & /* keys */) override {
+        if (m_index)
+            check_index(m_index.get()); // a changed index map is validated again
+    }
 
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
@@ -77,15 +120,40 @@ public:
         return depolarizer<Spectrum>(albedo(si));
     }
 
+    /// With an index texture: the fluorescent material with the longest emission
+    /// (a representative for scene scans).
     const fluo::Fluorescence *fluorescence() const override {
-        return fluo::measured_is_fluorescent(**m_model) ? &fluo::measured_fluorescence(**m_model)
-                                                        : nullptr;
+        return m_representative >= 0 ? &fluo::measured_fluorescence(*m_models[(size_t) m_representative]) : nullptr;
+    }
+
+    const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
+        if (!m_index)
+            return fluorescence();
+        const fluo::MeasuredModel &m = *m_models[material(si)];
+        return fluo::measured_is_fluorescent(m) ? &fluo::measured_fluorescence(m) : nullptr;
+    }
+
+    bool fluorescence_varies() const override { return (bool) m_index; }
+
+    size_t fluorescence_local(const SurfaceInteraction3f &si,
+                              typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
+        if (!m_index)
+            return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
+        size_t k = material(si);
+        out[0] = { fluorescence_at(si), k, 1.0, 1.0 };
+        return 1;
+    }
+
+    size_t fluorescence_models() const override { return m_index ? m_models.size() : 0; }
+
+    const fluo::Fluorescence *fluorescence_model(size_t i) const override {
+        return i < m_models.size() ? &fluo::measured_fluorescence(*m_models[i]) : nullptr;
     }
 
     /// The diagonal alone (in RGB its sRGB, without the equal-energy reradiation).
     UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
         if constexpr (is_rgb_v<Spectrum>)
-            return m_rgb_elastic;
+            return m_rgb_elastic[material(si)];
         else
             return albedo(si);
     }
@@ -99,10 +167,13 @@ public:
 
     std::string to_string() const override {
         std::ostringstream oss;
-        oss << this->class_name() << "[" << std::endl
-            << "  filename = \"" << m_filename << "\"," << std::endl
-            << "  model = " << std::string(fluo::measured_to_string(**m_model)) << std::endl
-            << "]";
+        oss << this->class_name() << "[" << std::endl;
+        for (size_t i = 0; i < m_models.size(); ++i)
+            oss << "  " << m_keys[i] << " = \"" << m_filenames[i] << "\"," << std::endl
+                << "  model = " << std::string(fluo::measured_to_string(*m_models[i])) << "," << std::endl;
+        if (m_index)
+            oss << "  index = " << string::indent(m_index) << std::endl;
+        oss << "]";
         return oss.str();
     }
 
@@ -111,20 +182,45 @@ private:
     /// equal-energy light (diagonal plus reradiation), in Mitsuba's sRGB convention.
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si) const {
         if constexpr (is_rgb_v<Spectrum>) {
-            (void) si;
-            return m_rgb_albedo;
+            return m_rgb_albedo[material(si)];
         } else {
             std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-            fluo::measured_elastic_albedo(**m_model, fluo_detail::slice(lambda),
+            fluo::measured_elastic_albedo(*m_models[material(si)], fluo_detail::slice(lambda),
                                           fluo_detail::slice_mut(out));
             return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
         }
     }
 
+    /// The material at si: 0 without an index texture, else the index texture's value
+    /// (its own eval_1: to_uv, filter) rounded to the nearest whole number, within range.
+    size_t material(const SurfaceInteraction3f &si) const {
+        if (!m_index)
+            return 0;
+        float v = m_index->eval_1(si, true);
+        if (!std::isfinite(v))
+            return 0;
+        return (size_t) std::clamp(std::lround(v), 0l, (long) m_models.size() - 1);
+    }
+
+    /// Every texel (or constituent value) of the index texture is a whole number in
+    /// [0, number of files − 1].
+    void check_index(const Texture *tex) const {
+        fluo_detail::TextureValues<Float, Spectrum> tv(m_plugin, "index", tex);
+        if (!tv.complete)
+            Throw("%s: the material-index texture's values cannot be read at load (%s): use a bitmap, a "
+                  "constant or a texture of those (checkerboard)", m_plugin, tex->class_name());
+        fluo_detail::rust_call(m_plugin, [&] {
+            fluo::measured_check_index(rust::Slice<const float>(tv.values.data(), tv.values.size()), tv.width,
+                                       m_models.size());
+        });
+    }
+
     const char *m_plugin;
-    std::string m_filename;
-    std::optional<rust::Box<fluo::MeasuredModel>> m_model;
-    Color3f m_rgb_albedo = 0.f, m_rgb_elastic = 0.f;
+    std::vector<std::string> m_keys, m_filenames; ///< "filename" or "filename0".., resolved paths
+    std::vector<rust::Box<fluo::MeasuredModel>> m_models;
+    ref<Texture> m_index; ///< material-index texture (null: one file)
+    int m_representative = -1; ///< fluorescence(): the model with the longest emission, or none
+    std::vector<Color3f> m_rgb_albedo, m_rgb_elastic;
 };
 
 NAMESPACE_END(mitsuba)

@@ -62,6 +62,7 @@ public:
     /// spectrum.
     void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers) {
         m_entries.clear();
+        m_varying.clear();
         m_reduced.clear();
         m_sources.clear();
         fluo_detail::Collector c;
@@ -71,10 +72,32 @@ public:
         for (Object *o : c.objects) {
             auto *bsdf = dynamic_cast<BSDF *>(o);
             auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
-            // Spatially varying materials (fluo_jung with a colour texture) stay plain
-            // BSDFs here: their RGB value is the colour the upsampling cube reproduces.
-            if (!bsdf || !bisp || !bisp->fluorescence() || bisp->fluorescence_varies())
+            if (!bsdf || !bisp || !bisp->fluorescence())
                 continue;
+            if (bisp->fluorescence_varies()) {
+                // A varying material with a finite set of models (fluo_jung's textured
+                // parameters: one dye shape per (λe, s) pair) has each reduced once here and
+                // scaled per vertex. Without such a set (fluo_jung's colour texture) it stays
+                // a plain BSDF: its RGB value is the colour the upsampling cube reproduces.
+                size_t n = bisp->fluorescence_models();
+                if (n == 0)
+                    continue;
+                Entry e{ bsdf, bisp, nullptr };
+                e.varies = true;
+                e.first = m_varying.size();
+                e.count = n;
+                for (size_t i = 0; i < n; ++i) {
+                    const fluo::Fluorescence *shape = bisp->fluorescence_model(i);
+                    m_reduced.push_back(fluo_detail::rust_call(
+                        m_plugin, [&] { return fluo::reduced_new(*shape, *m_transport); }));
+                    VaryingModel sh{ &*m_reduced.back() };
+                    sh.full = fluo::reduced_includes_elastic(*sh.reduced);
+                    sh.lambertian = fluo::reduced_lambertian(*sh.reduced, rust::Slice<double>(sh.m.data(), m_k * m_k));
+                    m_varying.push_back(sh);
+                }
+                m_entries.add(e);
+                continue;
+            }
             const fluo::Fluorescence *model = bisp->fluorescence();
             m_reduced.push_back(fluo_detail::rust_call(
                 m_plugin, [&] { return fluo::reduced_new(*model, *m_transport); }));
@@ -123,6 +146,18 @@ public:
         /// Whether the reduced operator includes the elastic part (else eval_elastic adds it).
         bool full = false;
         /// A Lambertian model's M (f = M/π), read once at prepare time.
+        bool lambertian = false;
+        Square m{};
+        /// Spatially varying (BispectralBSDF::fluorescence_local): its models are
+        /// m_varying[first, first + count), `reduced` is unused.
+        bool varies = false;
+        size_t first = 0, count = 0;
+    };
+
+    /// One model of a varying material, reduced at prepare time.
+    struct VaryingModel {
+        const fluo::ReducedModel *reduced;
+        bool full = false; ///< its matrix includes the elastic part (a measured material)
         bool lambertian = false;
         Square m{};
     };
@@ -332,10 +367,54 @@ private:
         });
     }
 
+    /// The K×K vertex matrix of a spatially varying material at si for direction wo:
+    /// its mixture's reduced models (BispectralBSDF::Local), each scaled by prob·weight;
+    /// models whose matrix includes the elastic part (measured materials, weight 1)
+    /// cover their share `prob` of it, eval_elastic the rest.
+    void varying_matrix(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo, Square &m) const {
+        m.fill(0.0);
+        typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+        size_t n = e.bispectral->fluorescence_local(si, mix);
+        double covered = 0.0;
+        for (size_t k = 0; k < n; ++k) {
+            const auto &l = mix[k];
+            if (!l.model || l.index >= e.count || !(l.weight * l.prob > 0.0))
+                continue; // no re-emission from this entry
+            const VaryingModel &v = m_varying[e.first + l.index];
+            if (v.full)
+                covered += l.prob;
+            add_reradiation(v.reduced, v.lambertian, v.m, si, wo, l.weight * l.prob, m);
+        }
+        if (covered < 1.0) {
+            Coeffs d = band_albedo(Spectrum(e.bispectral->eval_elastic(si, wo)));
+            for (size_t k = 0; k < m_k; ++k)
+                m[k * m_k + k] += d[k] * (1.0 - covered);
+        }
+    }
+
+    /// m += scale · (a reduced model's reradiation matrix for wo, times cos θo).
+    void add_reradiation(const fluo::ReducedModel *reduced, bool lambertian, const Square &lm,
+                         const SurfaceInteraction3f &si, const Vector3f &wo, double scale, Square &m) const {
+        if (lambertian) { // f = M/π, times cos θo: no bridge call per direction
+            double factor = lambertian_factor(si, wo) * scale;
+            for (size_t i = 0; i < m_k * m_k; ++i)
+                m[i] += lm[i] * factor;
+            return;
+        }
+        Square r{};
+        fluo::reduced_reradiation(*reduced, vec(si.wi), vec(wo), rust::Slice<double>(r.data(), m_k * m_k));
+        for (size_t i = 0; i < m_k * m_k; ++i)
+            m[i] += r[i] * scale;
+    }
+
     /// M(wo) · c for the vertex matrix M of a fluorescent BSDF (`scratch`: workspace).
     /// A Lambertian entry is applied as (cos θo/π)·(M·c) + d∘c, without forming M.
     Coeffs vertex_apply(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo, const Coeffs &c,
                         Square &scratch) const {
+        if (e.varies) {
+            varying_matrix(e, si, wo, scratch);
+            return apply(scratch, c);
+        }
         Coeffs d = elastic_diagonal(e, si, wo);
         if (!e.lambertian) {
             fluorescent_matrix(e, si, wo, d, scratch);
@@ -352,6 +431,11 @@ private:
     /// entry is applied as (R·M)·(cos θo/π)·s + R·diag(d)·s, without forming M.
     void vertex_multiply(const Entry &e, const SurfaceInteraction3f &si, const Vector3f &wo, Row3 &r, double s,
                          Square &scratch) const {
+        if (e.varies) {
+            varying_matrix(e, si, wo, scratch);
+            multiply(r, scratch, s);
+            return;
+        }
         Coeffs d = elastic_diagonal(e, si, wo);
         if (!e.lambertian) {
             fluorescent_matrix(e, si, wo, d, scratch);
@@ -417,6 +501,7 @@ private:
     Row3 m_output{}, m_from_rgb{};
     Coeffs m_white{};
     std::vector<rust::Box<fluo::ReducedModel>> m_reduced;
+    std::vector<VaryingModel> m_varying; ///< the models of varying materials (Entry::first)
     fluo_detail::EntryTable<Entry> m_entries;
     std::vector<EmitterSource> m_sources;
     const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter

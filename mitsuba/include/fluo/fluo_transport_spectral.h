@@ -111,8 +111,10 @@ public:
         std::array<bool, 4> shifted{};
         std::array<double, 4> lambda_o{}, lambda_i{};
         std::array<float, 4> scale{};
-        /// The model at this vertex (per texel for spatially varying materials).
+        /// The model at this vertex (per texel for spatially varying materials)...
         const fluo::Fluorescence *model = nullptr;
+        /// ... and its scale there (BispectralBSDF::Local; 1 for uniform materials).
+        double weight = 1.0;
     };
 
     /// The material at a vertex: its entry (nullptr: not fluorescent) and transitions.
@@ -193,7 +195,19 @@ private:
             tr.model = e.model;
             fluo::Range range = e.range;
             if (e.varies) {
-                tr.model = e.bispectral->fluorescence_at(si);
+                // One entry of the material's mixture at si, picked with its probability.
+                typename BispectralBSDF<Float, Spectrum>::Mixture mix;
+                size_t n = e.bispectral->fluorescence_local(si, mix), k = 0;
+                if (n > 1) {
+                    double u = sampler->next_1d(), acc = 0.0;
+                    for (k = 0; k + 1 < n; ++k) {
+                        acc += mix[k].prob;
+                        if (u < acc)
+                            break;
+                    }
+                }
+                tr.model = n > 0 && mix[k].weight > 0.0 ? mix[k].model : nullptr;
+                tr.weight = n > 0 ? mix[k].weight : 0.0;
                 if (tr.model) {
                     fluo::Range ex = fluo::fluo_excitation_range(*tr.model);
                     range = fluo::Range{ std::max(ex.lo, e.range.lo), std::min(ex.hi, e.range.hi) };
@@ -211,7 +225,7 @@ private:
                 tr.lambda_o[j] = tr.lambda_i[j] = lo;
                 double we = std::max(0.0, (double) albedo[j]);
                 double wf = std::max(0.0, e.shift ? fluo::shift_table_albedo(*e.shift, *tr.model, wi, lo)
-                                                  : fluo::fluo_shift_albedo(*tr.model, wi, lo, range));
+                                                  : tr.weight * fluo::fluo_shift_albedo(*tr.model, wi, lo, range));
                 Point2f u = sampler->next_2d();
                 double total = we + wf;
                 if (!(total > 0.0) || !std::isfinite(total)) {
@@ -246,7 +260,8 @@ private:
             fluo::Vec3 wi = vec(si.wi), o = vec(wo);
             for (size_t j = 0; j < N; ++j) {
                 if (tr.shifted[j])
-                    value[j] = (float) fluo::fluo_reradiation(*tr.model, wi, o, tr.lambda_i[j], tr.lambda_o[j]);
+                    value[j] = (float) (tr.weight * fluo::fluo_reradiation(*tr.model, wi, o, tr.lambda_i[j],
+                                                                           tr.lambda_o[j]));
                 value[j] *= tr.scale[j];
             }
         }

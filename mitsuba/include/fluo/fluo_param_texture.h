@@ -1,0 +1,131 @@
+// Numeric plugin parameters given as float textures (fluo_jung's emission_peak,
+// stokes_shift, concentration, quantum_yield): what load-time validation can read of a
+// texture, and the per-hit lookup of a parameter whose values select among models built
+// at load.
+#pragma once
+
+#include <drjit/tensor.h>
+#include <mitsuba/core/object.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/interaction.h>
+#include <mitsuba/render/texture.h>
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <string_view>
+#include <typeinfo>
+#include <unordered_set>
+#include <vector>
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// The values a float texture can take, as far as they can be read at load:
+/// - a bitmap: every texel (`width` > 0, row-major from the top row; one channel only,
+///   as a grayscale image or single-channel EXR is loaded);
+/// - a constant texture: its value;
+/// - any other texture (a checkerboard, ...): the union of the values of the textures it
+///   holds (a checkerboard's color0 and color1), read recursively.
+/// `complete` is false when some texture below has values that cannot be read (a
+/// procedural texture with no texture children, say): then only its mean and maximum
+/// are known.
+template <typename Float, typename Spectrum> struct TextureValues {
+    MI_IMPORT_TYPES(Texture)
+
+    std::vector<float> values;
+    size_t width = 0;   ///< > 0: `values` are the texels of one bitmap of this width
+    bool complete = true;
+
+    /// Read `tex`; errors name `plugin` and `name`.
+    TextureValues(const char *plugin, const char *name, const Texture *tex) {
+        std::unordered_set<const Object *> seen;
+        read(plugin, name, tex, seen, true);
+    }
+
+private:
+    /// The bitmap data (stored in single, half or double precision: an 8-bit image is
+    /// kept in half precision in RGB variants) and child textures a texture's
+    /// traverse() reports.
+    struct Reader : TraversalCallback {
+        const TensorXf *data = nullptr;
+        const TensorXf16 *data16 = nullptr;
+        const TensorXf64 *data64 = nullptr;
+        std::vector<const Texture *> children;
+        void put_value(std::string_view key, void *ptr, uint32_t, const std::type_info &type) override {
+            if (key != "data")
+                return;
+            if (type == typeid(TensorXf))
+                data = static_cast<const TensorXf *>(ptr);
+            else if (type == typeid(TensorXf16))
+                data16 = static_cast<const TensorXf16 *>(ptr);
+            else if (type == typeid(TensorXf64))
+                data64 = static_cast<const TensorXf64 *>(ptr);
+        }
+        void put_object(std::string_view, Object *o, uint32_t) override {
+            if (auto *t = dynamic_cast<const Texture *>(o))
+                children.push_back(t);
+        }
+    };
+
+    void read(const char *plugin, const char *name, const Texture *tex, std::unordered_set<const Object *> &seen,
+              bool top) {
+        if (!tex || !seen.insert(tex).second)
+            return;
+        if (!tex->is_spatially_varying()) {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+            values.push_back((float) tex->eval_1(si, true));
+            return;
+        }
+        Reader r;
+        const_cast<Texture *>(tex)->traverse(&r);
+        auto texels = [&](const auto &t) {
+            if (t.ndim() != 3 || t.shape(2) != 1)
+                Throw("%s: parameter \"%s\" is a texture with %zu channels; a textured numeric parameter "
+                      "needs one channel (a grayscale image, or a single-channel EXR)",
+                      plugin, name, t.ndim() == 3 ? t.shape(2) : (size_t) 0);
+            size_t n = t.shape(0) * t.shape(1);
+            if (top)
+                width = t.shape(1);
+            values.reserve(values.size() + n);
+            for (size_t i = 0; i < n; ++i)
+                values.push_back((float) dr::slice(t.array(), i));
+        };
+        if (r.data || r.data16 || r.data64) {
+            if (r.data)
+                texels(*r.data);
+            else if (r.data16)
+                texels(*r.data16);
+            else
+                texels(*r.data64);
+            return;
+        }
+        if (r.children.empty()) {
+            complete = false;
+            return;
+        }
+        for (const Texture *c : r.children)
+            read(plugin, name, c, seen, false);
+    }
+};
+
+/// The sorted distinct values of `v`.
+inline std::vector<float> distinct_levels(std::vector<float> v) {
+    std::sort(v.begin(), v.end());
+    v.erase(std::unique(v.begin(), v.end()), v.end());
+    return v;
+}
+
+/// Index of the level nearest to x (levels sorted, non-empty; NaN gives the first).
+inline size_t nearest_level(const std::vector<float> &levels, float x) {
+    auto it = std::lower_bound(levels.begin(), levels.end(), x);
+    if (it == levels.begin())
+        return 0;
+    if (it == levels.end())
+        return levels.size() - 1;
+    size_t hi = (size_t) (it - levels.begin());
+    return (x - levels[hi - 1] <= levels[hi] - x) ? hi - 1 : hi;
+}
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)
