@@ -30,9 +30,7 @@ with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
 ``fluo_path`` knows 1000 fluorescent BSDFs. The textured rows give the material
 checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shapes;
 ``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
-with the first value of each; both render with ``fluo_path``. They run on request
-(``--rows textured,textured_rgb,textured_qd``, see ``EXTRA_ROWS``) until the saved table
-is next regenerated.
+with the first value of each; both render with ``fluo_path``.
 
 Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
        python benches/bench_costs.py --json > docs/bench/costs.json
@@ -199,15 +197,6 @@ ROWS = {
     "hidden": (f"plain box + {HIDDEN} hidden fluorescent spheres: fluo_path / path at N = 0", 1.15,
                lambda a: render_pair("scalar_spectral", with_hidden_spheres(box(a.res, bsdf=diffuse), HIDDEN),
                                      box(a.res, "path", bsdf=diffuse), a.spp, a.rounds)),
-    "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
-             lambda a: load_row(a.res, a.rounds)),
-}
-
-#: Rows measured on request (``--rows textured,textured_rgb,textured_qd``) and not yet part
-#: of the saved table docs/bench/costs.json, which a default run regenerates: they join
-#: ROWS when that table is next regenerated (tests/python/test_bench.py test10 checks
-#: that the saved table has exactly the rows of ROWS).
-EXTRA_ROWS = {
     "textured": ("textured / uniform fluo_jung (concentration, emission_peak), spectral", 1.30,
                  lambda a: render_pair("scalar_spectral",
                                        box(a.res, bsdf=lambda r: {**jung(r), **TEXTURED_JUNG[0]}),
@@ -223,6 +212,8 @@ EXTRA_ROWS = {
                                           box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[0]}),
                                           box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[1]}),
                                           a.spp, a.rounds)),
+    "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
+             lambda a: load_row(a.res, a.rounds)),
 }
 
 
@@ -266,7 +257,7 @@ def main() -> None:
     ap.add_argument("--res", type=int, default=96)
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--rows", default=",".join(ROWS),
-                    help=f"comma-separated subset of {', '.join(ROWS)}, {', '.join(EXTRA_ROWS)}")
+                    help=f"comma-separated subset of {', '.join(ROWS)}")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--readme", type=Path, metavar="SAVED_JSON",
                     help="rewrite README.md's costs region from a saved --json run (measures nothing)")
@@ -280,7 +271,7 @@ def main() -> None:
         ap.error("--rounds must be at least 5 (median of paired rounds)")
     results = []
     for key in a.rows.split(","):
-        label, target, run = {**ROWS, **EXTRA_ROWS}[key]
+        label, target, run = ROWS[key]
         r = run(a)
         results.append({"row": key, "label": label, "target": target, **r})
         if not a.json:
