@@ -15,7 +15,7 @@
 //! 2. `fluo_illuminant`: [`Illuminant`];
 //! 3. `fluo_jung`: [`JungModel`], its colour upsampling cube ([`UpsampleCube`]) and
 //!    per-texel models ([`JungTexture`]);
-//! 4. `fluo_qd`: [`QdModel`];
+//! 4. `fluo_qd`: [`QdModel`]; `fluo_qd_medium`: [`QdMediumModel`];
 //! 5. `fluo_matrix`, `fluo_gmm` (measured materials): [`MeasuredModel`];
 //! 6. what the `fluo_path` integrator needs: the generic [`Fluorescence`] handle and the
 //!    reduced (matrix-throughput) RGB transport, [`TransportBasis`] and [`ReducedModel`].
@@ -80,7 +80,7 @@ mod bridge {
 
     extern "Rust" {
         /// Record a plugin the library registers with Mitsuba (`kind`: `bsdf`,
-        /// `integrator`, `texture`), for `fluo_plugin_list`.
+        /// `integrator`, `texture`, `medium`), for `fluo_plugin_list`.
         fn note_plugin(name: &str, kind: &str);
     }
 
@@ -268,6 +268,47 @@ mod bridge {
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
     }
 
+    // ---------------------------------------------------------------- fluo_qd_medium
+
+    /// `fluo_qd_medium` parameters as parsed by the shim:
+    /// `fluo::models::qd::QdMediumParams` under the plugin's parameter names.
+    struct QdMediumConfig {
+        radius: f64,
+        width: f64,
+        quantum_yield: f64,
+        /// Molar concentration of dots, µmol/L.
+        concentration: f64,
+        ext_ior: f64,
+        lambda_min: f64,
+        lambda_max: f64,
+        constants: QdConstants,
+        table_step: f64,
+    }
+
+    extern "Rust" {
+        /// A validated, baked `fluo_qd_medium` (coefficients per metre at density 1).
+        type QdMediumModel;
+
+        fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<QdMediumModel>>;
+        /// The plugin defaults (those of `QdMediumParams::default()`).
+        fn qd_medium_default_config() -> QdMediumConfig;
+        fn qd_medium_is_fluorescent(model: &QdMediumModel) -> bool;
+        /// out[j] = μa(λ_j), 1/m.
+        fn qd_medium_absorption(model: &QdMediumModel, lambdas: &[f32], out: &mut [f32]);
+        /// RGB variants: μa as Mitsuba turns a spectrum into linear sRGB
+        /// (`spectrum_to_srgb`), negative channels clipped to 0, 1/m.
+        fn qd_medium_absorption_rgb(model: &QdMediumModel) -> Rgb;
+        /// [λmin, λmax], nm: where absorption re-emits and where emission lands.
+        fn qd_medium_lambda_range(model: &QdMediumModel) -> Range;
+        /// μf(λo) = ∫_R μa(λi) f(λi → λo) dλi, 1/m.
+        fn qd_medium_shift_coefficient(model: &QdMediumModel, lambda_o: f64, range: &Range) -> f64;
+        /// λi ∝ μa over the excitation interval of λo in R; pdf 0: none.
+        fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
+        fn qd_medium_reradiation(model: &QdMediumModel, lambda_i: f64, lambda_o: f64) -> f64;
+        fn qd_medium_to_string(model: &QdMediumModel) -> String;
+    }
+
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
 
     extern "Rust" {
@@ -353,7 +394,7 @@ mod bridge {
     }
 }
 
-pub use bridge::{JungConfig, QdConfig, QdConstants, Range, Rgb, Sample, SampledSpectrum, Vec3};
+pub use bridge::{JungConfig, QdConfig, QdConstants, QdMediumConfig, Range, Rgb, Sample, SampledSpectrum, Vec3};
 
 // ---------------------------------------------------------------- shared value types
 
@@ -903,6 +944,83 @@ fn qd_to_string(model: &QdModel) -> String {
 
 fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
+}
+
+// -------------------------------------------------------------------- fluo_qd_medium
+
+/// Opaque `fluo_qd_medium` handed to C++.
+pub struct QdMediumModel {
+    medium: qd::QdMedium,
+}
+
+impl From<&QdMediumConfig> for qd::QdMediumParams {
+    fn from(c: &QdMediumConfig) -> Self {
+        qd::QdMediumParams {
+            radius_nm: c.radius,
+            width_nm: c.width,
+            quantum_yield: c.quantum_yield,
+            concentration_um: c.concentration,
+            ext_ior: c.ext_ior,
+            lambda_min_nm: c.lambda_min,
+            lambda_max_nm: c.lambda_max,
+            constants: (&c.constants).into(),
+            table_step_nm: c.table_step,
+        }
+    }
+}
+
+fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<QdMediumModel>, String> {
+    guarded(|| Ok(Box::new(QdMediumModel { medium: qd::QdMedium::new(config.into())? })))
+}
+
+fn qd_medium_default_config() -> QdMediumConfig {
+    let p = qd::QdMediumParams::default();
+    QdMediumConfig {
+        radius: p.radius_nm,
+        width: p.width_nm,
+        quantum_yield: p.quantum_yield,
+        concentration: p.concentration_um,
+        ext_ior: p.ext_ior,
+        lambda_min: p.lambda_min_nm,
+        lambda_max: p.lambda_max_nm,
+        constants: (&p.constants).into(),
+        table_step: p.table_step_nm,
+    }
+}
+
+fn qd_medium_is_fluorescent(model: &QdMediumModel) -> bool {
+    model.medium.is_fluorescent()
+}
+
+fn qd_medium_absorption(model: &QdMediumModel, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.medium.absorption_per_m(f64::from(l)) as f32;
+    }
+}
+
+fn qd_medium_absorption_rgb(model: &QdMediumModel) -> Rgb {
+    let c = spectrum_to_srgb(|l| model.medium.absorption_per_m(l));
+    rgb([c[0].max(0.0), c[1].max(0.0), c[2].max(0.0)])
+}
+
+fn qd_medium_lambda_range(model: &QdMediumModel) -> Range {
+    range_of(Some(model.medium.lambda_range()))
+}
+
+fn qd_medium_shift_coefficient(model: &QdMediumModel, lambda_o: f64, range: &Range) -> f64 {
+    model.medium.shift_coefficient_per_m(lambda_o, (range.lo, range.hi))
+}
+
+fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample {
+    sample_of(model.medium.sample_excitation(lambda_o, (range.lo, range.hi), xi))
+}
+
+fn qd_medium_reradiation(model: &QdMediumModel, lambda_i: f64, lambda_o: f64) -> f64 {
+    model.medium.reradiation_per_nm(lambda_i, lambda_o)
+}
+
+fn qd_medium_to_string(model: &QdMediumModel) -> String {
+    model.medium.to_string()
 }
 
 // --------------------------------------------------------- fluo_matrix, fluo_gmm
