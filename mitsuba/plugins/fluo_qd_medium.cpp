@@ -216,11 +216,19 @@ public:
     bool fluorescent() const override { return m_fluorescent; }
     fluo::Range lambda_range() const override { return m_range; }
 
-    double shift_coefficient(const MediumInteraction3f &mei, double lambda_o, const fluo::Range &range) const override {
-        double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
-        if (!(d > 0.0))
-            return 0.0;
-        return d * m_scale * fluo::qd_medium_shift_coefficient(**m_model, lambda_o, range);
+    void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
+                            std::array<float, 4> &out) const override {
+        out.fill(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
+            if (!(d > 0.0))
+                return;
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mei.wavelengths);
+            fluo::qd_medium_shift_coefficients(**m_model, fluo_detail::slice(lambda), range,
+                                               fluo_detail::slice_mut(out));
+            for (float &v : out)
+                v = (float) (v * d * m_scale);
+        }
     }
 
     fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const override {

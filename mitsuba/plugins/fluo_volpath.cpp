@@ -89,7 +89,7 @@ the radiative transfer equation's source is
 
 (elastic in-scattering plus isotropic re-emission of light absorbed at λi ∈ R; f is the
 medium's reradiation per unit absorbed power). With μf(λo) = ∫_R μa f dλi (the
-medium's ``shift_coefficient``), each λo independently picks the elastic event with
+medium's ``shift_coefficients``), each λo independently picks the elastic event with
 probability pe = σs/(σs + μf), else a shift, sampling λi ∝ μa(λi) f(λi → λo) (exactly:
 the medium inverts its CDF). Both branches then carry the same weight σs + μf in place
 of volpath's σs, so the estimator of each λo's source is unbiased, and a wavelength with
@@ -442,10 +442,12 @@ private:
                                     UnpolarizedSpectrum &sigma_s) const {
         MediumShift shift;
         if constexpr (is_spectral_v<Spectrum>) {
+            std::array<float, 4> mu_f{};
+            e.medium->shift_coefficients(mei, e.range, mu_f);
             for (size_t j = 0; j < 4; ++j) {
                 double lo = mei.wavelengths[j];
                 double ss = std::max(0.0, (double) sigma_s[j]);
-                double sf = std::max(0.0, e.medium->shift_coefficient(mei, lo, e.range));
+                double sf = std::max(0.0, (double) mu_f[j]);
                 double total = ss + sf;
                 Point2f u = sampler->next_2d();
                 if (!(total > 0.0) || !std::isfinite(total)) {

@@ -300,8 +300,8 @@ mod bridge {
         fn qd_medium_absorption_rgb(model: &QdMediumModel) -> Rgb;
         /// [λmin, λmax], nm: where absorption re-emits and where emission lands.
         fn qd_medium_lambda_range(model: &QdMediumModel) -> Range;
-        /// μf(λo) = ∫_R μa(λi) f(λi → λo) dλi, 1/m.
-        fn qd_medium_shift_coefficient(model: &QdMediumModel, lambda_o: f64, range: &Range) -> f64;
+        /// out[j] = μf(λo_j) = ∫_R μa(λi) f(λi → λo_j) dλi, 1/m.
+        fn qd_medium_shift_coefficients(model: &QdMediumModel, lambdas: &[f32], range: &Range, out: &mut [f32]);
         /// λi ∝ μa over the excitation interval of λo in R; pdf 0: none.
         fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample;
         /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
@@ -1007,8 +1007,10 @@ fn qd_medium_lambda_range(model: &QdMediumModel) -> Range {
     range_of(Some(model.medium.lambda_range()))
 }
 
-fn qd_medium_shift_coefficient(model: &QdMediumModel, lambda_o: f64, range: &Range) -> f64 {
-    model.medium.shift_coefficient_per_m(lambda_o, (range.lo, range.hi))
+fn qd_medium_shift_coefficients(model: &QdMediumModel, lambdas: &[f32], range: &Range, out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.medium.shift_coefficient_per_m(f64::from(l), (range.lo, range.hi)) as f32;
+    }
 }
 
 fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample {

@@ -5,7 +5,7 @@
 // fluo_volpath through it:
 //
 //   absorption μa(x, λ)            part of the Medium's σt (Mitsuba's interface)
-//   μf(x, λo | R)                  shift_coefficient(): the source coefficient a camera
+//   μf(x, λo | R)                  shift_coefficients(): the source coefficient a camera
 //                                  path at λo sees from excitations λi in R,
 //                                  ∫_R μa(x, λi) f(λi → λo) dλi (f: re-emitted power per
 //                                  nm of λo per unit absorbed power at λi, ∫ f dλo ≤ yield)
@@ -19,6 +19,7 @@
 // collisions (its docs have the estimator).
 #pragma once
 
+#include <array>
 #include <atomic>
 
 #include <mitsuba/core/logger.h>
@@ -50,9 +51,10 @@ public:
     /// [λmin, λmax], nm: absorption outside it is not re-emitted, emission lies inside.
     virtual fluo::Range lambda_range() const = 0;
 
-    /// μf(x, λo | R) in inverse scene units at mei.p (density and scale included).
-    virtual double shift_coefficient(const MediumInteraction3f &mei, double lambda_o,
-                                     const fluo::Range &range) const = 0;
+    /// μf(x, λo | R) in inverse scene units at mei.p (density and scale included), for
+    /// each of mei.wavelengths (out[j]; only the first N are written, N = their count).
+    virtual void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
+                                    std::array<float, 4> &out) const = 0;
 
     /// λi ~ μa(λi) f(λi → λo) / μf over R; pdf 0 when μf(λo) = 0. The density does not
     /// depend on x (a density grid scales μa uniformly in λ).
