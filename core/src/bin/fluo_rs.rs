@@ -408,7 +408,7 @@ fn cmd_qd_medium(args: &Args) -> Result<Value, String> {
         ..d
     };
     let step = args.f64_or("step", 1.0)?;
-    if !(step >= 0.01 && step <= 100.0) {
+    if !(0.01..=100.0).contains(&step) {
         return Err(format!("invalid parameter \"step\" = {step}: valid range is [0.01, 100] nm"));
     }
     let m = QdMedium::new(params).map_err(|e| e.to_string())?;
