@@ -15,7 +15,7 @@
 //! 2. `fluo_illuminant`: [`Illuminant`];
 //! 3. `fluo_jung`: [`JungModel`], its colour upsampling cube ([`UpsampleCube`]) and
 //!    per-texel models ([`JungTexture`]);
-//! 4. `fluo_qd`: [`QdModel`]; `fluo_qd_medium`: [`QdMediumModel`];
+//! 4. `fluo_qd`: [`QdModel`]; the media `fluo_qd_medium`, `fluo_dye_medium`: [`FluoMedium`];
 //! 5. `fluo_matrix`, `fluo_gmm` (measured materials): [`MeasuredModel`];
 //! 6. what the `fluo_path` integrator needs: the generic [`Fluorescence`] handle and the
 //!    reduced (matrix-throughput) RGB transport, [`TransportBasis`] and [`ReducedModel`].
@@ -41,7 +41,9 @@ use std::sync::Arc;
 use fluo::colour::bounded_rgb_albedo;
 use fluo::colour::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use fluo::interface::Bispectral;
+use fluo::medium::MediumModel;
 use fluo::model::Model;
+use fluo::models::dye_medium::{DyeMedium, DyeMediumParams};
 use fluo::models::jung::{JungFluorescence, JungParams, Reflectance};
 use fluo::models::qd;
 use fluo::reduce::{Method, Operator, Transport};
@@ -268,7 +270,7 @@ mod bridge {
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
     }
 
-    // ---------------------------------------------------------------- fluo_qd_medium
+    // ------------------------------------------- fluo_qd_medium, fluo_dye_medium
 
     /// `fluo_qd_medium` parameters as parsed by the shim:
     /// `fluo::models::qd::QdMediumParams` under the plugin's parameter names.
@@ -285,28 +287,41 @@ mod bridge {
         table_step: f64,
     }
 
-    extern "Rust" {
-        /// A validated, baked `fluo_qd_medium` (coefficients per metre at density 1).
-        type QdMediumModel;
+    /// `fluo_dye_medium` parameters: `fluo::models::dye_medium::DyeMediumParams`.
+    struct DyeMediumConfig {
+        emission_peak: f64,
+        stokes_shift: f64,
+        quantum_yield: f64,
+        /// Peak absorption coefficient, 1/m.
+        sigma_a: f64,
+    }
 
-        fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<QdMediumModel>>;
+    extern "Rust" {
+        /// A validated fluorescent participating medium (`fluo::medium::MediumModel`),
+        /// coefficients per metre at density 1.
+        type FluoMedium;
+
+        fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<FluoMedium>>;
         /// The plugin defaults (those of `QdMediumParams::default()`).
         fn qd_medium_default_config() -> QdMediumConfig;
-        fn qd_medium_is_fluorescent(model: &QdMediumModel) -> bool;
+        fn dye_medium_new(config: &DyeMediumConfig) -> Result<Box<FluoMedium>>;
+        /// The plugin defaults (those of `DyeMediumParams::default()`).
+        fn dye_medium_default_config() -> DyeMediumConfig;
+        fn medium_is_fluorescent(model: &FluoMedium) -> bool;
         /// out[j] = μa(λ_j), 1/m.
-        fn qd_medium_absorption(model: &QdMediumModel, lambdas: &[f32], out: &mut [f32]);
+        fn medium_absorption(model: &FluoMedium, lambdas: &[f32], out: &mut [f32]);
         /// RGB variants: μa as Mitsuba turns a spectrum into linear sRGB
         /// (`spectrum_to_srgb`), negative channels clipped to 0, 1/m.
-        fn qd_medium_absorption_rgb(model: &QdMediumModel) -> Rgb;
+        fn medium_absorption_rgb(model: &FluoMedium) -> Rgb;
         /// [λmin, λmax], nm: where absorption re-emits and where emission lands.
-        fn qd_medium_lambda_range(model: &QdMediumModel) -> Range;
+        fn medium_lambda_range(model: &FluoMedium) -> Range;
         /// out[j] = μf(λo_j) = ∫_R μa(λi) f(λi → λo_j) dλi, 1/m.
-        fn qd_medium_shift_coefficients(model: &QdMediumModel, lambdas: &[f32], range: &Range, out: &mut [f32]);
-        /// λi ∝ μa over the excitation interval of λo in R; pdf 0: none.
-        fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]);
+        /// λi with density μa f / μf over the excitation interval of λo in R; pdf 0: none.
+        fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample;
         /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
-        fn qd_medium_reradiation(model: &QdMediumModel, lambda_i: f64, lambda_o: f64) -> f64;
-        fn qd_medium_to_string(model: &QdMediumModel) -> String;
+        fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64;
+        fn medium_to_string(model: &FluoMedium) -> String;
     }
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
@@ -394,7 +409,9 @@ mod bridge {
     }
 }
 
-pub use bridge::{JungConfig, QdConfig, QdConstants, QdMediumConfig, Range, Rgb, Sample, SampledSpectrum, Vec3};
+pub use bridge::{
+    DyeMediumConfig, JungConfig, QdConfig, QdConstants, QdMediumConfig, Range, Rgb, Sample, SampledSpectrum, Vec3,
+};
 
 // ---------------------------------------------------------------- shared value types
 
@@ -946,11 +963,11 @@ fn qd_fluorescence(model: &QdModel) -> &Fluorescence {
     &model.generic
 }
 
-// -------------------------------------------------------------------- fluo_qd_medium
+// ------------------------------------------------ fluo_qd_medium, fluo_dye_medium
 
-/// Opaque `fluo_qd_medium` handed to C++.
-pub struct QdMediumModel {
-    medium: qd::QdMedium,
+/// Opaque fluorescent medium handed to C++ (either plugin).
+pub struct FluoMedium {
+    model: MediumModel,
 }
 
 impl From<&QdMediumConfig> for qd::QdMediumParams {
@@ -969,8 +986,8 @@ impl From<&QdMediumConfig> for qd::QdMediumParams {
     }
 }
 
-fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<QdMediumModel>, String> {
-    guarded(|| Ok(Box::new(QdMediumModel { medium: qd::QdMedium::new(config.into())? })))
+fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<FluoMedium>, String> {
+    guarded(|| Ok(Box::new(FluoMedium { model: MediumModel::Qd(Box::new(qd::QdMedium::new(config.into())?)) })))
 }
 
 fn qd_medium_default_config() -> QdMediumConfig {
@@ -988,41 +1005,63 @@ fn qd_medium_default_config() -> QdMediumConfig {
     }
 }
 
-fn qd_medium_is_fluorescent(model: &QdMediumModel) -> bool {
-    model.medium.is_fluorescent()
+fn dye_medium_new(c: &DyeMediumConfig) -> Result<Box<FluoMedium>, String> {
+    guarded(|| {
+        let p = DyeMediumParams {
+            emission_peak_nm: c.emission_peak,
+            stokes_shift_nm: c.stokes_shift,
+            quantum_yield: c.quantum_yield,
+            sigma_a_per_m: c.sigma_a,
+        };
+        Ok(Box::new(FluoMedium { model: MediumModel::Dye(DyeMedium::new(p)?) }))
+    })
 }
 
-fn qd_medium_absorption(model: &QdMediumModel, lambdas: &[f32], out: &mut [f32]) {
-    for (o, &l) in out.iter_mut().zip(lambdas) {
-        *o = model.medium.absorption_per_m(f64::from(l)) as f32;
+fn dye_medium_default_config() -> DyeMediumConfig {
+    let p = DyeMediumParams::default();
+    DyeMediumConfig {
+        emission_peak: p.emission_peak_nm,
+        stokes_shift: p.stokes_shift_nm,
+        quantum_yield: p.quantum_yield,
+        sigma_a: p.sigma_a_per_m,
     }
 }
 
-fn qd_medium_absorption_rgb(model: &QdMediumModel) -> Rgb {
-    let c = spectrum_to_srgb(|l| model.medium.absorption_per_m(l));
+fn medium_is_fluorescent(model: &FluoMedium) -> bool {
+    model.model.is_fluorescent()
+}
+
+fn medium_absorption(model: &FluoMedium, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.model.absorption_per_m(f64::from(l)) as f32;
+    }
+}
+
+fn medium_absorption_rgb(model: &FluoMedium) -> Rgb {
+    let c = spectrum_to_srgb(|l| model.model.absorption_per_m(l));
     rgb([c[0].max(0.0), c[1].max(0.0), c[2].max(0.0)])
 }
 
-fn qd_medium_lambda_range(model: &QdMediumModel) -> Range {
-    range_of(Some(model.medium.lambda_range()))
+fn medium_lambda_range(model: &FluoMedium) -> Range {
+    range_of(Some(model.model.lambda_range()))
 }
 
-fn qd_medium_shift_coefficients(model: &QdMediumModel, lambdas: &[f32], range: &Range, out: &mut [f32]) {
+fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]) {
     for (o, &l) in out.iter_mut().zip(lambdas) {
-        *o = model.medium.shift_coefficient_per_m(f64::from(l), (range.lo, range.hi)) as f32;
+        *o = model.model.shift_coefficient_per_m(f64::from(l), (range.lo, range.hi)) as f32;
     }
 }
 
-fn qd_medium_sample_excitation(model: &QdMediumModel, lambda_o: f64, xi: f64, range: &Range) -> Sample {
-    sample_of(model.medium.sample_excitation(lambda_o, (range.lo, range.hi), xi))
+fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample {
+    sample_of(model.model.sample_excitation(lambda_o, (range.lo, range.hi), xi))
 }
 
-fn qd_medium_reradiation(model: &QdMediumModel, lambda_i: f64, lambda_o: f64) -> f64 {
-    model.medium.reradiation_per_nm(lambda_i, lambda_o)
+fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64 {
+    model.model.reradiation_per_nm(lambda_i, lambda_o)
 }
 
-fn qd_medium_to_string(model: &QdMediumModel) -> String {
-    model.medium.to_string()
+fn medium_to_string(model: &FluoMedium) -> String {
+    model.model.to_string()
 }
 
 // --------------------------------------------------------- fluo_matrix, fluo_gmm

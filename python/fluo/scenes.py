@@ -22,8 +22,8 @@ one resolved text, so that every panel sees exactly the same objects:
                    the dots emit nothing (Benamira & Pattanaik 2023, eq. 28, Q = 0)
   ``fluo_matrix``  ``diffuse`` with the matrix's diagonal ρ(λ) (``fluo-rs diagonal``)
   ``fluo_gmm``     ``diffuse`` with the fit file's stored measured diagonal ρ(λ)
-  ``fluo_qd_medium`` ``quantum_yield`` 0: the dots still absorb (and the host scatters),
-                   nothing is re-emitted (a participating medium, ``<medium>``)
+  ``fluo_qd_medium`` ``quantum_yield`` 0: the dots (dye) still absorb and the host
+  ``fluo_dye_medium`` scatters, nothing is re-emitted (participating media, ``<medium>``)
   ================ ========================================================================
 
   The result has no fluorescent material left that re-emits, so ``fluo_path`` runs

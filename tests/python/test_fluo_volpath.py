@@ -110,9 +110,9 @@ BANDS = [(300, 350), (350, 400), (400, 450), (450, 500), (500, 550), (550, 600),
          (700, 800)]
 
 
-def slab_scene(spp: int, max_depth: int, medium: dict, lamp: dict, res: int = 8) -> dict:
+def slab_scene(spp: int, max_depth: int, medium: dict, lamp: dict, res: int = 8, bands=None) -> dict:
     film = {"type": "specfilm", "width": res, "height": res, "rfilter": {"type": "box"}}
-    for i, (a, b) in enumerate(BANDS):
+    for i, (a, b) in enumerate(bands or BANDS):
         film[f"band{i}"] = box_band(a, b)
     return {
         "type": "scene",
@@ -128,7 +128,7 @@ def slab_scene(spp: int, max_depth: int, medium: dict, lamp: dict, res: int = 8)
     }
 
 
-def slab_reference(tool: dict, scale: float, thickness: float, lamp) -> np.ndarray:
+def slab_reference(tool: dict, scale: float, thickness: float, lamp, bands=None):
     """Band integrals of the radiance leaving the slab's top, by quadrature.
 
     L(λo) = Le(λo) e^{-μ(λo) d} + ∫_0^d e^{-μ(λo)(d-z)} S(z, λo) dz, with the
@@ -163,12 +163,13 @@ def slab_reference(tool: dict, scale: float, thickness: float, lamp) -> np.ndarr
         integrand = mu[below] * le[below] * gz
         reemitted[k] = 0.5 * em[k] * np.sum(integrand * dl[below])
     total = transmitted + reemitted
+    bands = bands or BANDS
     out = []
-    for a_, b_ in BANDS:
+    for a_, b_ in bands:
         m = (lam >= a_) & (lam <= b_)
         out.append(np.trapezoid(total[m], lam[m]))
     return np.array(out), np.array([np.trapezoid(reemitted[(lam >= a_) & (lam <= b_)], lam[(lam >= a_) & (lam <= b_)])
-                                    for a_, b_ in BANDS])
+                                    for a_, b_ in bands])
 
 
 def test02_slab_matches_a_1d_reference():

@@ -68,6 +68,7 @@ macro_rules! lambertian_measured {
     };
 }
 
+pub mod dye_medium;
 pub mod gmm;
 pub mod jung;
 pub mod matrix;
