@@ -27,7 +27,6 @@ mod testutil;
 
 pub mod colour;
 pub mod interface;
-pub mod medium;
 pub mod model;
 pub mod models;
 pub mod patch;

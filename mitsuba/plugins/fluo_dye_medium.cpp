@@ -1,6 +1,6 @@
 // The fluo_dye_medium plugin: a fluorescent dye dissolved in a participating medium,
 // with Jung et al.'s absorption and emission spectra. Its documentation is the comment
-// below. Physics in Rust (core/src/models/dye_medium.rs); the Medium and the bispectral
+// below. Physics in Rust (DyeMedium in core/src/models/jung.rs); the Medium and the bispectral
 // medium interface for fluo_volpath are include/fluo/fluo_medium_shim.h.
 #include <initializer_list>
 

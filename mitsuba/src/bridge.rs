@@ -41,10 +41,8 @@ use std::sync::Arc;
 use fluo::colour::bounded_rgb_albedo;
 use fluo::colour::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use fluo::interface::Bispectral;
-use fluo::medium::MediumModel;
-use fluo::model::Model;
-use fluo::models::dye_medium::{DyeMedium, DyeMediumParams};
-use fluo::models::jung::{JungFluorescence, JungParams, Reflectance};
+use fluo::model::{MediumModel, Model};
+use fluo::models::jung::{DyeMedium, DyeMediumParams, JungFluorescence, JungParams, Reflectance};
 use fluo::models::qd;
 use fluo::reduce::{Method, Operator, Transport};
 use fluo::sigmoid::SigmoidPolynomial;
@@ -287,7 +285,7 @@ mod bridge {
         table_step: f64,
     }
 
-    /// `fluo_dye_medium` parameters: `fluo::models::dye_medium::DyeMediumParams`.
+    /// `fluo_dye_medium` parameters: `fluo::models::jung::DyeMediumParams`.
     struct DyeMediumConfig {
         emission_peak: f64,
         stokes_shift: f64,
@@ -297,7 +295,7 @@ mod bridge {
     }
 
     extern "Rust" {
-        /// A validated fluorescent participating medium (`fluo::medium::MediumModel`),
+        /// A validated fluorescent participating medium (`fluo::model::MediumModel`),
         /// coefficients per metre at density 1.
         type FluoMedium;
 

@@ -443,7 +443,7 @@ fn cmd_qd_medium(args: &Args) -> Result<Value, String> {
 }
 
 fn cmd_dye_medium(args: &Args) -> Result<Value, String> {
-    use fluo::models::dye_medium::{DyeMedium, DyeMediumParams};
+    use fluo::models::jung::{DyeMedium, DyeMediumParams};
     let d = DyeMediumParams::default();
     let params = DyeMediumParams {
         emission_peak_nm: args.f64_or("emission-peak", d.emission_peak_nm)?,

@@ -68,7 +68,6 @@ macro_rules! lambertian_measured {
     };
 }
 
-pub mod dye_medium;
 pub mod gmm;
 pub mod jung;
 pub mod matrix;

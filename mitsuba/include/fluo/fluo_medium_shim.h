@@ -2,7 +2,7 @@
 // fluo_dye_medium), written once: a Medium (optional density grid, host scattering
 // sigma_s with any phase function, scale in metres per scene unit, a majorant shared by
 // the hero wavelengths) plus the bispectral medium interface (fluo_bispectral_medium.h)
-// over a Rust fluo::FluoMedium (core/src/medium.rs). A plugin parses its own physical
+// over a Rust fluo::FluoMedium (MediumModel in core/src/model.rs). A plugin parses its own physical
 // parameters, builds the Rust model and hands it to init().
 #pragma once
 
