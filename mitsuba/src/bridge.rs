@@ -15,7 +15,7 @@
 //! 2. `fluo_illuminant`: [`Illuminant`];
 //! 3. `fluo_jung`: [`JungModel`], its colour upsampling cube ([`UpsampleCube`]) and
 //!    per-texel models ([`JungTexture`]);
-//! 4. `fluo_qd`: [`QdModel`];
+//! 4. `fluo_qd`: [`QdModel`]; the media `fluo_qd_medium`, `fluo_dye_medium`: [`FluoMedium`];
 //! 5. `fluo_matrix`, `fluo_gmm` (measured materials): [`MeasuredModel`];
 //! 6. what the `fluo_path` integrator needs: the generic [`Fluorescence`] handle and the
 //!    reduced (matrix-throughput) RGB transport, [`TransportBasis`] and [`ReducedModel`].
@@ -41,8 +41,8 @@ use std::sync::Arc;
 use fluo::colour::bounded_rgb_albedo;
 use fluo::colour::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use fluo::interface::Bispectral;
-use fluo::model::Model;
-use fluo::models::jung::{JungFluorescence, JungParams, Reflectance};
+use fluo::model::{MediumModel, Model};
+use fluo::models::jung::{DyeMedium, DyeMediumParams, JungFluorescence, JungParams, Reflectance};
 use fluo::models::qd;
 use fluo::reduce::{Method, Operator, Transport};
 use fluo::sigmoid::SigmoidPolynomial;
@@ -80,7 +80,7 @@ mod bridge {
 
     extern "Rust" {
         /// Record a plugin the library registers with Mitsuba (`kind`: `bsdf`,
-        /// `integrator`, `texture`), for `fluo_plugin_list`.
+        /// `integrator`, `texture`, `medium`), for `fluo_plugin_list`.
         fn note_plugin(name: &str, kind: &str);
     }
 
@@ -323,6 +323,60 @@ mod bridge {
         fn qd_texture_max_radii() -> usize;
     }
 
+    // ------------------------------------------- fluo_qd_medium, fluo_dye_medium
+
+    /// `fluo_qd_medium` parameters as parsed by the shim:
+    /// `fluo::models::qd::QdMediumParams` under the plugin's parameter names.
+    struct QdMediumConfig {
+        radius: f64,
+        width: f64,
+        quantum_yield: f64,
+        /// Molar concentration of dots, µmol/L.
+        concentration: f64,
+        ext_ior: f64,
+        lambda_min: f64,
+        lambda_max: f64,
+        constants: QdConstants,
+        table_step: f64,
+    }
+
+    /// `fluo_dye_medium` parameters: `fluo::models::jung::DyeMediumParams`.
+    struct DyeMediumConfig {
+        emission_peak: f64,
+        stokes_shift: f64,
+        quantum_yield: f64,
+        /// Peak absorption coefficient, 1/m.
+        sigma_a: f64,
+    }
+
+    extern "Rust" {
+        /// A validated fluorescent participating medium (`fluo::model::MediumModel`),
+        /// coefficients per metre at density 1.
+        type FluoMedium;
+
+        fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<FluoMedium>>;
+        /// The plugin defaults (those of `QdMediumParams::default()`).
+        fn qd_medium_default_config() -> QdMediumConfig;
+        fn dye_medium_new(config: &DyeMediumConfig) -> Result<Box<FluoMedium>>;
+        /// The plugin defaults (those of `DyeMediumParams::default()`).
+        fn dye_medium_default_config() -> DyeMediumConfig;
+        fn medium_is_fluorescent(model: &FluoMedium) -> bool;
+        /// out[j] = μa(λ_j), 1/m.
+        fn medium_absorption(model: &FluoMedium, lambdas: &[f32], out: &mut [f32]);
+        /// RGB variants: μa as Mitsuba turns a spectrum into linear sRGB
+        /// (`spectrum_to_srgb`), negative channels clipped to 0, 1/m.
+        fn medium_absorption_rgb(model: &FluoMedium) -> Rgb;
+        /// [λmin, λmax], nm: where absorption re-emits and where emission lands.
+        fn medium_lambda_range(model: &FluoMedium) -> Range;
+        /// out[j] = μf(λo_j) = ∫_R μa(λi) f(λi → λo_j) dλi, 1/m.
+        fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]);
+        /// λi with density μa f / μf over the excitation interval of λo in R; pdf 0: none.
+        fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
+        fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64;
+        fn medium_to_string(model: &FluoMedium) -> String;
+    }
+
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
 
     extern "Rust" {
@@ -414,7 +468,10 @@ mod bridge {
     }
 }
 
-pub use bridge::{JungConfig, JungRgbParts, QdConfig, QdConstants, Range, Rgb, Sample, SampledSpectrum, Vec3};
+pub use bridge::{
+    DyeMediumConfig, JungConfig, JungRgbParts, QdConfig, QdConstants, QdMediumConfig, Range, Rgb, Sample,
+    SampledSpectrum, Vec3,
+};
 
 // ---------------------------------------------------------------- shared value types
 
@@ -1107,6 +1164,107 @@ fn qd_texture_grid_nodes() -> usize {
 
 fn qd_texture_max_radii() -> usize {
     qd::TEXTURE_MAX_RADII
+}
+
+// ------------------------------------------------ fluo_qd_medium, fluo_dye_medium
+
+/// Opaque fluorescent medium handed to C++ (either plugin).
+pub struct FluoMedium {
+    model: MediumModel,
+}
+
+impl From<&QdMediumConfig> for qd::QdMediumParams {
+    fn from(c: &QdMediumConfig) -> Self {
+        qd::QdMediumParams {
+            radius_nm: c.radius,
+            width_nm: c.width,
+            quantum_yield: c.quantum_yield,
+            concentration_um: c.concentration,
+            ext_ior: c.ext_ior,
+            lambda_min_nm: c.lambda_min,
+            lambda_max_nm: c.lambda_max,
+            constants: (&c.constants).into(),
+            table_step_nm: c.table_step,
+        }
+    }
+}
+
+fn qd_medium_new(config: &QdMediumConfig) -> Result<Box<FluoMedium>, String> {
+    guarded(|| Ok(Box::new(FluoMedium { model: MediumModel::Qd(Box::new(qd::QdMedium::new(config.into())?)) })))
+}
+
+fn qd_medium_default_config() -> QdMediumConfig {
+    let p = qd::QdMediumParams::default();
+    QdMediumConfig {
+        radius: p.radius_nm,
+        width: p.width_nm,
+        quantum_yield: p.quantum_yield,
+        concentration: p.concentration_um,
+        ext_ior: p.ext_ior,
+        lambda_min: p.lambda_min_nm,
+        lambda_max: p.lambda_max_nm,
+        constants: (&p.constants).into(),
+        table_step: p.table_step_nm,
+    }
+}
+
+fn dye_medium_new(c: &DyeMediumConfig) -> Result<Box<FluoMedium>, String> {
+    guarded(|| {
+        let p = DyeMediumParams {
+            emission_peak_nm: c.emission_peak,
+            stokes_shift_nm: c.stokes_shift,
+            quantum_yield: c.quantum_yield,
+            sigma_a_per_m: c.sigma_a,
+        };
+        Ok(Box::new(FluoMedium { model: MediumModel::Dye(DyeMedium::new(p)?) }))
+    })
+}
+
+fn dye_medium_default_config() -> DyeMediumConfig {
+    let p = DyeMediumParams::default();
+    DyeMediumConfig {
+        emission_peak: p.emission_peak_nm,
+        stokes_shift: p.stokes_shift_nm,
+        quantum_yield: p.quantum_yield,
+        sigma_a: p.sigma_a_per_m,
+    }
+}
+
+fn medium_is_fluorescent(model: &FluoMedium) -> bool {
+    model.model.is_fluorescent()
+}
+
+fn medium_absorption(model: &FluoMedium, lambdas: &[f32], out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.model.absorption_per_m(f64::from(l)) as f32;
+    }
+}
+
+fn medium_absorption_rgb(model: &FluoMedium) -> Rgb {
+    let c = spectrum_to_srgb(|l| model.model.absorption_per_m(l));
+    rgb([c[0].max(0.0), c[1].max(0.0), c[2].max(0.0)])
+}
+
+fn medium_lambda_range(model: &FluoMedium) -> Range {
+    range_of(Some(model.model.lambda_range()))
+}
+
+fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]) {
+    for (o, &l) in out.iter_mut().zip(lambdas) {
+        *o = model.model.shift_coefficient_per_m(f64::from(l), (range.lo, range.hi)) as f32;
+    }
+}
+
+fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample {
+    sample_of(model.model.sample_excitation(lambda_o, (range.lo, range.hi), xi))
+}
+
+fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64 {
+    model.model.reradiation_per_nm(lambda_i, lambda_o)
+}
+
+fn medium_to_string(model: &FluoMedium) -> String {
+    model.model.to_string()
 }
 
 // --------------------------------------------------------- fluo_matrix, fluo_gmm

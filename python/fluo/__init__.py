@@ -236,7 +236,7 @@ _LIBRARY = _load_library()
 
 
 def _registered() -> dict[str, str]:
-    """name -> kind (``bsdf``, ``integrator``, ``texture``) of every plugin the library
+    """name -> kind (``bsdf``, ``integrator``, ``texture``, ``medium``) of every plugin the library
     registered, as its shims recorded them when it was loaded."""
     listing = _LIBRARY.fluo_plugin_list
     listing.restype = ctypes.c_char_p

@@ -23,6 +23,8 @@ one resolved text, so that every panel sees exactly the same objects:
                    the dots emit nothing (Benamira & Pattanaik 2023, eq. 28, Q = 0)
   ``fluo_matrix``  ``diffuse`` with the matrix's diagonal ρ(λ) (``fluo-rs diagonal``)
   ``fluo_gmm``     ``diffuse`` with the fit file's stored measured diagonal ρ(λ)
+  ``fluo_qd_medium`` ``quantum_yield`` 0: the dots (dye) still absorb and the host
+  ``fluo_dye_medium`` scatters, nothing is re-emitted (participating media, ``<medium>``)
   ================ ========================================================================
 
   The result has no fluorescent material left that re-emits, so ``fluo_path`` runs
@@ -41,11 +43,15 @@ from . import PLUGIN_KINDS
 #: Names of fluo's fluorescent BSDF plugins (``type="..."`` in XML): every BSDF the
 #: plugin library registers.
 FLUORESCENT_BSDFS = tuple(name for name, kind in PLUGIN_KINDS.items() if kind == "bsdf")
+#: Names of fluo's fluorescent participating media (``<medium type="...">``).
+FLUORESCENT_MEDIA = tuple(name for name, kind in PLUGIN_KINDS.items() if kind == "medium")
 
 _INCLUDE = re.compile(r'<include\s+filename="([^"]*)"\s*/>')
 _DEFAULT = re.compile(r'\s*<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
 _PARAM = re.compile(r"\$([A-Za-z_]\w*)")
 _BSDF = re.compile(r'<bsdf\s+type="(' + "|".join(FLUORESCENT_BSDFS) + r')"\s*>(.*?)</bsdf>', re.S)
+_MEDIUM = re.compile(r'<medium\s+type="(' + "|".join(FLUORESCENT_MEDIA or ("(?!)",)) + r')"([^>]*)>(.*?)</medium>',
+                     re.S)
 _FILENAME = re.compile(r'<string\s+name="filename"\s+value="([^"]*)"\s*/>')
 #: A float ``quantum_yield`` or a textured one (a texture without nested textures).
 _QUANTUM_YIELD = re.compile(r'<float\s+name="quantum_yield"\s+value="[^"]*"\s*/>'
@@ -84,8 +90,9 @@ def resolve(scene: Path, params: dict | None = None) -> str:
 
 
 def fluorescent_materials(text: str) -> list[str]:
-    """Plugin names of the fluorescent BSDFs in ``text``, in order of appearance."""
-    return [m.group(1) for m in _BSDF.finditer(text)]
+    """Plugin names of the fluorescent BSDFs and then media in ``text``, each in order
+    of appearance."""
+    return [m.group(1) for m in _BSDF.finditer(text)] + [m.group(1) for m in _MEDIUM.finditer(text)]
 
 
 def diffuse_bsdf(wavelengths, values) -> str:
@@ -123,7 +130,12 @@ def without_fluorescence(text: str, scene_dir: Path) -> str:
             body = _set_float(body, _QUANTUM_YIELD, '<float name="quantum_yield" value="0"/>')
         return f'<bsdf type="{kind}">{body}</bsdf>'
 
-    return _BSDF.sub(rewrite, text)
+    def rewrite_medium(m: re.Match) -> str:
+        kind, attributes, body = m.group(1), m.group(2), m.group(3)
+        body = _set_float(body, _QUANTUM_YIELD, '<float name="quantum_yield" value="0"/>')
+        return f'<medium type="{kind}"{attributes}>{body}</medium>'
+
+    return _MEDIUM.sub(rewrite_medium, _BSDF.sub(rewrite, text))
 
 
 def load(text: str, scene_dir: Path):

@@ -1,7 +1,9 @@
 """The demo scenes and the demo gallery (``fluo demo``; python/fluo/gallery.py, scenes.py).
 
-* Every ``scenes/*.xml`` uses ``fluo_path``, is allowed in both scalar variants, and
-  renders (1 spp, tiny film) to finite pixels in both, with and without fluorescence.
+* Every ``scenes/*.xml`` uses ``fluo_path`` and is allowed in both scalar variants, or
+  (fluorescent media) ``fluo_volpath`` in ``scalar_spectral`` only, which ``scalar_rgb``
+  refuses with a clear error; it renders (1 spp, tiny film) to finite pixels in each
+  allowed variant, with and without fluorescence.
 * The gallery of two scenes, rendered small into ``tmp_path``, writes its files; the
   figure has one row per scene and one column per panel; ``index.html`` names every
   scene; and each scene's "without fluorescence" panel differs from its spectral panel
@@ -50,9 +52,15 @@ def test01_scenes_exist():
 def test02_scene_uses_fluo_path_in_both_variants(scene):
     text = scenes.resolve(scene, scene_fallback_params(scene))
     integrators = re.findall(r'<integrator\s+type="([^"]+)"', text)
-    assert integrators == ["fluo_path"], integrators
-    assert scene_variants(scene) == VARIANTS
-    assert scenes.fluorescent_materials(text), "a demo scene should show fluorescence"
+    materials = scenes.fluorescent_materials(text)
+    assert materials, "a demo scene should show fluorescence"
+    if any(m in scenes.FLUORESCENT_MEDIA for m in materials):
+        # Fluorescent media: fluo_volpath, spectral only (no reduced RGB for media yet).
+        assert integrators == ["fluo_volpath"], integrators
+        assert scene_variants(scene) == ("scalar_spectral",)
+    else:
+        assert integrators == ["fluo_path"], integrators
+        assert scene_variants(scene) == VARIANTS
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -61,6 +69,11 @@ def test03_scene_renders_in_both_variants(scene, variant):
     params = {**scene_fallback_params(scene), "res": 8, "spp": 1}
     text = scenes.resolve(scene, params)
     mi.set_variant(variant)
+    if variant not in scene_variants(scene):
+        # Refused with a clear error, never rendered without its fluorescence.
+        with pytest.raises(RuntimeError, match="scalar_rgb"):
+            mi.render(scenes.load(text, scene.parent), spp=1, seed=0)
+        return
     for version in (text, scenes.without_fluorescence(text, scene.parent)):
         image = np.array(mi.render(scenes.load(version, scene.parent), spp=1, seed=0))
         assert image.ndim == 3 and image.shape[2] >= 3
@@ -81,6 +94,12 @@ def test04_without_fluorescence_rewrites():
     assert '<boolean name="fluorescence" value="false"/>' in out
     assert scenes.fluorescent_materials(out) == ["fluo_jung", "fluo_qd", "fluo_jung", "fluo_jung"]
     assert out.count('<bsdf type="diffuse"><spectrum name="reflectance"') == 2
+    medium = ('<medium type="fluo_qd_medium" id="dots"><float name="radius" value="2"/></medium>'
+              '<medium type="fluo_qd_medium"><float name="quantum_yield" value="0.8"/></medium>')
+    out = scenes.without_fluorescence(medium, fluo.repo_root() / "scenes")
+    assert scenes.fluorescent_materials(medium) == ["fluo_qd_medium", "fluo_qd_medium"]
+    assert out.count('<float name="quantum_yield" value="0"/>') == 2 and 'value="0.8"' not in out
+    assert '<medium type="fluo_qd_medium" id="dots">' in out
 
 
 @pytest.fixture(scope="module")

@@ -40,6 +40,17 @@ SUBCOMMANDS:
              Keys: lambda_qd_nm, stokes_shift_nm, emission_peak_nm, and the size and
              build time of the material's precomputed tables.
 
+    qd-medium  Absorption and emission of a fluo_qd_medium (dots in a host)
+             --radius NM --width NM --quantum-yield Q --concentration UMOL_PER_L
+             --ext-ior N --step NM (output grid over [300, 830] nm, default 1)
+             Keys: wavelengths_nm, absorption_per_m (μa, 1/m), emission_per_nm
+             (re-emitted per nm per unit absorbed power, before the no-anti-Stokes
+             cut), lambda_qd_nm, emission_peak_nm, lambda_min_nm, lambda_max_nm.
+
+    dye-medium Absorption and emission of a fluo_dye_medium (Jung et al.'s dye spectra)
+             --emission-peak NM --stokes-shift NM --quantum-yield Q --sigma-a PER_M
+             --step NM; keys as qd-medium (over the dye's absorption and emission support).
+
     patch    XYZ of a flat patch under a light, by direct single-bounce integration
              --material M     material JSON (inline or a .json file), e.g.
                               '{"model":"jung","emission_peak":520,"concentration":0.8}'
@@ -167,6 +178,31 @@ fn subcommands() -> Vec<Subcommand> {
     vec![
         ("jung", "Derived quantities of a fluo_jung material", jung, None),
         ("qd", "Quantum-dot band of a fluo_qd coating (Brus equation, Stokes shift)", qd, None),
+        (
+            "dye-medium",
+            "Absorption and emission of a fluo_dye_medium (Jung et al.'s dye spectra)",
+            vec![
+                ("emission-peak", Num),
+                ("stokes-shift", Num),
+                ("quantum-yield", Num),
+                ("sigma-a", Num),
+                ("step", Num),
+            ],
+            None,
+        ),
+        (
+            "qd-medium",
+            "Absorption and emission of a fluo_qd_medium (dots in a host)",
+            vec![
+                ("radius", Num),
+                ("width", Num),
+                ("quantum-yield", Num),
+                ("concentration", Num),
+                ("ext-ior", Num),
+                ("step", Num),
+            ],
+            None,
+        ),
         (
             "patch",
             "XYZ of a flat patch under a light, by direct single-bounce integration",
@@ -373,6 +409,62 @@ fn cmd_qd(args: &Args) -> Result<Value, String> {
             "bytes": model.table_bytes(),
             "build_ms": build_ms,
         },
+    }))
+}
+
+fn cmd_qd_medium(args: &Args) -> Result<Value, String> {
+    use fluo::models::qd::{QdMedium, QdMediumParams};
+    let d = QdMediumParams::default();
+    let params = QdMediumParams {
+        radius_nm: args.f64_or("radius", d.radius_nm)?,
+        width_nm: args.f64_or("width", d.width_nm)?,
+        quantum_yield: args.f64_or("quantum-yield", d.quantum_yield)?,
+        concentration_um: args.f64_or("concentration", d.concentration_um)?,
+        ext_ior: args.f64_or("ext-ior", d.ext_ior)?,
+        ..d
+    };
+    let step = args.f64_or("step", 1.0)?;
+    if !(0.01..=100.0).contains(&step) {
+        return Err(format!("invalid parameter \"step\" = {step}: valid range is [0.01, 100] nm"));
+    }
+    let m = QdMedium::new(params).map_err(|e| e.to_string())?;
+    let (lo, hi) = m.lambda_range();
+    let n = ((hi - lo) / step).round() as usize;
+    let grid: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
+    Ok(json!({
+        "lambda_qd_nm": m.band().lambda_qd_nm,
+        "emission_peak_nm": m.band().emission_peak_nm,
+        "lambda_min_nm": lo,
+        "lambda_max_nm": hi,
+        "wavelengths_nm": grid,
+        "absorption_per_m": grid.iter().map(|&l| m.absorption_per_m(l)).collect::<Vec<_>>(),
+        "emission_per_nm": grid.iter().map(|&l| m.emission_per_nm(l)).collect::<Vec<_>>(),
+    }))
+}
+
+fn cmd_dye_medium(args: &Args) -> Result<Value, String> {
+    use fluo::models::jung::{DyeMedium, DyeMediumParams};
+    let d = DyeMediumParams::default();
+    let params = DyeMediumParams {
+        emission_peak_nm: args.f64_or("emission-peak", d.emission_peak_nm)?,
+        stokes_shift_nm: args.f64_or("stokes-shift", d.stokes_shift_nm)?,
+        quantum_yield: args.f64_or("quantum-yield", d.quantum_yield)?,
+        sigma_a_per_m: args.f64_or("sigma-a", d.sigma_a_per_m)?,
+    };
+    let step = args.f64_or("step", 1.0)?;
+    if !(0.01..=100.0).contains(&step) {
+        return Err(format!("invalid parameter \"step\" = {step}: valid range is [0.01, 100] nm"));
+    }
+    let m = DyeMedium::new(params).map_err(|e| e.to_string())?;
+    let (lo, hi) = m.lambda_range();
+    let n = ((hi - lo) / step).round().max(1.0) as usize;
+    let grid: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
+    Ok(json!({
+        "lambda_min_nm": lo,
+        "lambda_max_nm": hi,
+        "wavelengths_nm": grid,
+        "absorption_per_m": grid.iter().map(|&l| m.absorption_per_m(l)).collect::<Vec<_>>(),
+        "emission_per_nm": grid.iter().map(|&l| m.emission_per_nm(l)).collect::<Vec<_>>(),
     }))
 }
 
@@ -882,6 +974,8 @@ fn run(argv: &[String]) -> Result<(), String> {
         "memory" => cmd_memory(&args)?,
         "diagonal" => cmd_diagonal(&args)?,
         "qd" => cmd_qd(&args)?,
+        "qd-medium" => cmd_qd_medium(&args)?,
+        "dye-medium" => cmd_dye_medium(&args)?,
         "upsample-cube" => cmd_upsample_cube(&args)?,
         "upsample-report" => cmd_upsample_report(&args)?,
         "upsample-lookup" => cmd_upsample_lookup(&args)?,

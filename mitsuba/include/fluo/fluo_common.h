@@ -197,6 +197,7 @@ template <template <typename, typename> class T>
 void register_scalar_plugin(const char *name, ObjectType type) {
     fluo::note_plugin(name, type == ObjectType::BSDF ? "bsdf"
                             : type == ObjectType::Integrator ? "integrator"
+                            : type == ObjectType::Medium     ? "medium"
                                                              : "texture");
     PluginManager *pm = PluginManager::instance();
     register_unavailable(name, type);

@@ -41,9 +41,10 @@ public:
 
     /// scalar_spectral: scan the scene once per render (the emitters' spectral range
     /// and the fluorescent BSDFs, whose wrappers go to `wrappers`). `lambda_min` (nm)
-    /// bounds the excitation range from below.
+    /// bounds the excitation range from below; `emission_hi` (nm) is the longest
+    /// wavelength other re-emitters found by the caller emit (fluo_volpath's media).
     void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers, double lambda_min,
-                 const char *plugin) {
+                 const char *plugin, double emission_hi = -1e30) {
         m_entries.clear();
         m_shift_tables.clear();
         // Where can light exist? The union of the emitters' radiance spectra.
@@ -74,6 +75,7 @@ public:
             c.visit(const_cast<Shape *>(shape.get()));
         wrappers.scan(c, plugin);
         std::vector<Entry> candidates;
+        hi = std::max(hi, emission_hi);
         for (Object *o : c.objects) {
             auto *bsdf = dynamic_cast<BSDF *>(o);
             auto *bisp = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o);
@@ -169,6 +171,10 @@ public:
             m_throughput *= bsdf_weight;
             return bsdf_sample;
         }
+
+        /// fluo_volpath's medium events: the throughput, and radiance arriving at it.
+        Spectrum &throughput() { return m_throughput; }
+        void add_radiance(const Spectrum &value) { m_result = dr::fmadd(m_throughput, value, m_result); }
 
         double throughput_max() const { return (double) dr::max(unpolarized_spectrum(m_throughput)); }
         void roulette(Float rr_prob) { m_throughput *= dr::rcp(rr_prob); }

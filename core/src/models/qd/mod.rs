@@ -143,6 +143,7 @@
 
 mod band;
 mod index;
+mod medium;
 mod microfacet;
 mod volume;
 
@@ -161,6 +162,7 @@ pub use index::{
     cdse_dielectric_function, cdse_refractive_index, local_field_factor, rayleigh_absorption_cross_section_nm2,
     rayleigh_scattering_cross_section_nm2, Complex, QdIndex, CDSE_TABLE_RANGE_NM, HC_EV_NM,
 };
+pub use medium::{QdMedium, QdMediumParams, CHLOROFORM_IOR, CONCENTRATION_RANGE_UM, HOST_IOR_RANGE, PER_M_PER_UM_NM2};
 pub use microfacet::{fresnel_conductor, Distribution, Microfacet, Substrate, MIN_ALPHA};
 pub use volume::QdVolume;
 

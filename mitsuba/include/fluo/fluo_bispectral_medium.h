@@ -1,0 +1,84 @@
+// The bispectral interface of fluo's fluorescent participating media, next to
+// Mitsuba's Medium interface, which the fluo_volpath integrator discovers at render
+// start with dynamic_cast (Mitsuba itself is unchanged). Any volumetric fluorophore
+// (fluo_qd_medium; a dye medium would implement the same four methods) plugs into
+// fluo_volpath through it:
+//
+//   absorption μa(x, λ)            part of the Medium's σt (Mitsuba's interface)
+//   μf(x, λo | R)                  shift_coefficients(): the source coefficient a camera
+//                                  path at λo sees from excitations λi in R,
+//                                  ∫_R μa(x, λi) f(λi → λo) dλi (f: re-emitted power per
+//                                  nm of λo per unit absorbed power at λi, ∫ f dλo ≤ yield)
+//   λi ~ p(λi | λo, R)             sample_excitation(), with p = μa f / μf exactly, so a
+//                                  shift's weight is μf (the medium must guarantee this)
+//   [λmin, λmax]                   lambda_range(): where it absorbs-to-re-emit and emits
+//
+// Re-emission is isotropic. The medium's σs is its elastic scattering only; its
+// absorption is all of σa (fluorescent or not), so σt = σa + σs and the fluorescent
+// source is an extra "scattering" coefficient μf that fluo_volpath adds at real
+// collisions (its docs have the estimator).
+#pragma once
+
+#include <array>
+#include <atomic>
+
+#include <mitsuba/core/logger.h>
+#include <mitsuba/render/interaction.h>
+
+#include "fluo-mitsuba/src/bridge.rs.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+namespace fluo_detail {
+/// Armed when a fluorescent medium is constructed, disarmed by the first warning:
+/// one "needs fluo_volpath" warning per loaded scene.
+inline std::atomic<bool> &unmanaged_medium_warning_armed() {
+    static std::atomic<bool> armed{ true };
+    return armed;
+}
+} // namespace fluo_detail
+
+template <typename Float, typename Spectrum> class BispectralMedium {
+public:
+    using MediumInteraction3f = MediumInteraction<Float, Spectrum>;
+
+    BispectralMedium() { fluo_detail::unmanaged_medium_warning_armed().store(true, std::memory_order_relaxed); }
+    virtual ~BispectralMedium() = default;
+
+    /// Whether the medium ever re-emits (yield > 0, fluorophores present).
+    virtual bool fluorescent() const = 0;
+
+    /// [λmin, λmax], nm: absorption outside it is not re-emitted, emission lies inside.
+    virtual fluo::Range lambda_range() const = 0;
+
+    /// μf(x, λo | R) in inverse scene units at mei.p (density and scale included), for
+    /// each of mei.wavelengths (out[j]; only the first N are written, N = their count).
+    virtual void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
+                                    std::array<float, 4> &out) const = 0;
+
+    /// λi ~ μa(λi) f(λi → λo) / μf over R; pdf 0 when μf(λo) = 0. The density does not
+    /// depend on x (a density grid scales μa uniformly in λ).
+    virtual fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const = 0;
+
+    /// fluo_volpath marks the media it transports when it prepares a render; any other
+    /// integrator renders absorption without re-emission and says so once per scene.
+    void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
+
+protected:
+    void warn_if_unmanaged(const char *plugin) const {
+        if (m_managed.load(std::memory_order_relaxed) || !fluorescent())
+            return;
+        if (fluo_detail::unmanaged_medium_warning_armed().exchange(false, std::memory_order_relaxed)) {
+            constexpr const char *ClassName = "fluo";
+            Log(Warn, "%s: this medium fluoresces, but the scene's integrator does not transport "
+                      "fluorescence in media: it absorbs without re-emitting. Use "
+                      "<integrator type=\"fluo_volpath\"/> (in scalar_spectral) to render its "
+                      "fluorescence. (This warning is printed once per scene.)", plugin);
+        }
+    }
+
+private:
+    mutable std::atomic<bool> m_managed{ false };
+};
+
+NAMESPACE_END(mitsuba)

@@ -1,0 +1,202 @@
+// The Mitsuba side of fluo's fluorescent participating media (fluo_qd_medium,
+// fluo_dye_medium), written once: a Medium (optional density grid, host scattering
+// sigma_s with any phase function, scale in metres per scene unit, a majorant shared by
+// the hero wavelengths) plus the bispectral medium interface (fluo_bispectral_medium.h)
+// over a Rust fluo::FluoMedium (MediumModel in core/src/model.rs). A plugin parses its own physical
+// parameters, builds the Rust model and hands it to init().
+#pragma once
+
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/medium.h>
+#include <mitsuba/render/phase.h>
+#include <mitsuba/render/volume.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <optional>
+#include <sstream>
+#include <string>
+
+#include "fluo_bispectral_medium.h"
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+template <typename Float, typename Spectrum>
+class FluoMediumShim : public Medium<Float, Spectrum>, public BispectralMedium<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(Medium, m_is_homogeneous, m_has_spectral_extinction, m_phase_function)
+    MI_IMPORT_TYPES(Scene, Sampler, Texture, Volume)
+
+    /// The majorant's floor relative to its largest value over the spectrum: null
+    /// collisions where the medium is (nearly) transparent, at most one per 10⁶ mean
+    /// free paths of its most opaque wavelength.
+    static constexpr double MajorantFloor = 1e-6;
+    /// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
+    static constexpr double MinMajorant = 1e-30;
+
+    void traverse(TraversalCallback *cb) override {
+        cb->put("density", m_density, ParamFlags::NonDifferentiable);
+        cb->put("sigma_s", m_sigma_s, ParamFlags::NonDifferentiable);
+        Base::traverse(cb);
+    }
+
+    std::tuple<Mask, Float, Float> intersect_aabb(const Ray3f &ray) const override {
+        if (!m_bounded)
+            return { true, 0.f, dr::Infinity<Float> };
+        return m_density->bbox().ray_intersect(ray);
+    }
+
+    UnpolarizedSpectrum get_majorant(const MediumInteraction3f &mi, Mask active) const override {
+        DRJIT_MARK_USED(active);
+        return majorant(absorption(mi));
+    }
+
+    std::tuple<UnpolarizedSpectrum, UnpolarizedSpectrum, UnpolarizedSpectrum>
+    get_scattering_coefficients(const MediumInteraction3f &mi, Mask active) const override {
+        this->warn_if_unmanaged(m_plugin);
+        Float d = m_bounded ? m_density->eval_1(mi, active) : Float(1.f);
+        UnpolarizedSpectrum mu_a = absorption(mi);
+        UnpolarizedSpectrum sigma_s = m_sigma_s->eval(mi, active) * (Float) m_scale;
+        UnpolarizedSpectrum sigma_t = mu_a * d * (Float) m_scale + sigma_s;
+        UnpolarizedSpectrum sigma_n = dr::maximum(majorant(mu_a) - sigma_t, 0.f);
+        return { sigma_s, sigma_n, sigma_t };
+    }
+
+    // ------------------------------------------------- the bispectral interface
+
+    bool fluorescent() const override { return m_fluorescent; }
+    fluo::Range lambda_range() const override { return m_range; }
+
+    void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
+                            std::array<float, 4> &out) const override {
+        out.fill(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
+            if (!(d > 0.0))
+                return;
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mei.wavelengths);
+            fluo::medium_shift_coefficients(**m_model, fluo_detail::slice(lambda), range,
+                                            fluo_detail::slice_mut(out));
+            for (float &v : out)
+                v = (float) (v * d * m_scale);
+        }
+    }
+
+    fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const override {
+        return fluo::medium_sample_excitation(**m_model, lambda_o, xi, range);
+    }
+
+protected:
+    /// Parse what every fluo medium shares (scale, density, sigma_s); the phase
+    /// function is Medium's.
+    FluoMediumShim(const Properties &props, const char *plugin) : Base(props), m_plugin(plugin) {
+        m_scale = get_double(props, "scale", 1.0);
+        if (!(m_scale > 0.0) || !std::isfinite(m_scale))
+            Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)",
+                  m_plugin, m_scale);
+        // Never "homogeneous" to Mitsuba, even without a grid: volpath then clips the ray
+        // at each tentative collision (ray.maxt = t), which is exact only without null
+        // collisions, and these media have them (their majorant is shared by the hero
+        // wavelengths). m_bounded: whether the density grid bounds the medium.
+        m_bounded = props.has_property("density");
+        m_is_homogeneous = false;
+        m_density = props.get_volume<Volume>("density", 1.f);
+        m_max_density = (double) m_density->max();
+        if (!(m_max_density >= 0.0) || !std::isfinite(m_max_density))
+            Throw("%s: invalid parameter \"density\": its maximum %g must be finite and >= 0", m_plugin,
+                  m_max_density);
+        m_sigma_s = props.get_volume<Volume>("sigma_s", 0.f);
+        m_max_sigma_s = (double) m_sigma_s->max();
+        if (!(m_max_sigma_s >= 0.0) || !std::isfinite(m_max_sigma_s))
+            Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", m_plugin,
+                  m_max_sigma_s);
+        m_has_spectral_extinction = true;
+    }
+
+    /// Adopt the plugin's Rust model and derive what the render needs from it.
+    void init(rust::Box<fluo::FluoMedium> model) {
+        m_model = std::move(model);
+        m_fluorescent = fluo::medium_is_fluorescent(**m_model);
+        m_range = fluo::medium_lambda_range(**m_model);
+        fluo::Rgb a = fluo::medium_absorption_rgb(**m_model);
+        m_mu_a_rgb = { a.r, a.g, a.b };
+        // The majorant's floor: where μa and σs vanish (beyond an absorption band) σt = 0,
+        // and volpath's mean null probability σn/μ̄ would be 0/0 (NaN) without it.
+        double mu_max = 0.0;
+        std::array<float, 4> lambda{}, mu{};
+        for (int l = 200; l <= 1200; l += 4) {
+            for (size_t j = 0; j < 4; ++j)
+                lambda[j] = (float) (l + j);
+            fluo::medium_absorption(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(mu));
+            for (float v : mu)
+                mu_max = std::max(mu_max, (double) v);
+        }
+        m_majorant_floor =
+            std::max(MajorantFloor * (mu_max * m_max_density + m_max_sigma_s) * m_scale, MinMajorant);
+    }
+
+    /// "Name[ model, scale, density, sigma_s, phase ]".
+    std::string describe(const char *name) const {
+        std::ostringstream oss;
+        oss << name << "[" << std::endl
+            << "  model = " << std::string(fluo::medium_to_string(**m_model)) << "," << std::endl
+            << "  scale = " << m_scale << "," << std::endl
+            << "  density_grid = " << m_bounded << "," << std::endl
+            << "  density = " << string::indent(m_density) << "," << std::endl
+            << "  sigma_s = " << string::indent(m_sigma_s) << "," << std::endl
+            << "  phase_function = " << string::indent(m_phase_function) << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    /// A double property, rejecting non-numeric input with a message naming it.
+    double get_double(const Properties &props, const char *name, double def) const {
+        if (!props.has_property(name))
+            return def;
+        try {
+            return props.get<double>(name);
+        } catch (const std::exception &e) {
+            Throw("%s: parameter \"%s\" must be a number (%s)", m_plugin, name, e.what());
+        }
+    }
+
+private:
+    /// μ̄ = max over the hero wavelengths of (max density · μa + max σs) · scale, at least
+    /// the floor (inverse scene units), the same for every wavelength: μa varies a
+    /// hundredfold over the spectrum, and a per-wavelength majorant would let the first
+    /// hero wavelength (which samples the distance) fly through where the others collide,
+    /// leaving their collisions (and fluorescence) to rare, huge weights.
+    UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &mu_a) const {
+        UnpolarizedSpectrum m = (mu_a * (Float) m_max_density + (Float) m_max_sigma_s) * (Float) m_scale;
+        return UnpolarizedSpectrum(dr::maximum(dr::max(m), (Float) m_majorant_floor));
+    }
+
+    /// μa at the interaction's wavelengths (spectral) or its sRGB (RGB), 1/m, density 1.
+    UnpolarizedSpectrum absorption(const MediumInteraction3f &mi) const {
+        UnpolarizedSpectrum out(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mi.wavelengths), mu{};
+            fluo::medium_absorption(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(mu));
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j)
+                out[j] = mu[j];
+        } else {
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum> && j < 3; ++j)
+                out[j] = (float) m_mu_a_rgb[j];
+        }
+        return out;
+    }
+
+    const char *m_plugin;
+    std::optional<rust::Box<fluo::FluoMedium>> m_model;
+    ref<Volume> m_density, m_sigma_s;
+    /// Metres per scene unit; the density's and σs's maxima (the majorant's parts).
+    double m_scale = 1.0, m_max_density = 1.0, m_max_sigma_s = 0.0, m_majorant_floor = MinMajorant;
+    bool m_fluorescent = false;
+    bool m_bounded = false;
+    fluo::Range m_range{ 0, 0 };
+    std::array<double, 3> m_mu_a_rgb{};
+};
+
+NAMESPACE_END(mitsuba)
