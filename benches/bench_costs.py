@@ -20,6 +20,8 @@ plain box + 1000 hidden fluorescent spheres       ``fluo_path`` (N = 1000) / ``p
 load of K coloured ``fluo_jung`` (``color``)      ms and MB per material (B: ``diffuse``)      0.2 ms
 textured ``fluo_jung`` (both variants)            textured / uniform ``fluo_jung``             1.30
 textured ``fluo_qd``, ``scalar_spectral``         textured / uniform ``fluo_qd``               1.30
+medium without fluorescence                       ``fluo_volpath`` / ``volpath``               1.05
+quantum-dot cuvette (homogeneous, density grid)   ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     1.50
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -27,7 +29,11 @@ box's area light with a D65 spectrum from 300 nm (``fluo_illuminant``), except i
 rows without fluorescence (Mitsuba's own light) and the ``fluo_illuminant`` row. The measured material is ``data/matrices/jung_orange.csv`` and its
 8-component fit ``jung_orange.gmm.json``. Hidden spheres sit behind the back wall, each
 with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
-``fluo_path`` knows 1000 fluorescent BSDFs. The textured rows give the material
+``fluo_path`` knows 1000 fluorescent BSDFs. The medium rows render a 1 cm cuvette (thin
+glass) of ``fluo_qd_medium`` (R = 2.7 nm, 0.4 µmol/L, μa(340 nm) ≈ 3/cm), homogeneous or
+with a density grid, on a grey floor under a D65 area light from 300 nm; B is the same
+medium made non-fluorescent (``quantum_yield`` 0: the same absorption and tracking
+majorant) under Mitsuba's ``volpath``. The textured rows give the material
 checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shapes;
 ``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
 with the first value of each; both render with ``fluo_path``.
@@ -51,6 +57,7 @@ import time
 from pathlib import Path
 
 import mitsuba as mi
+import numpy as np
 
 mi.set_variant("scalar_spectral")  # the scene dictionaries need a variant's types
 
@@ -60,6 +67,8 @@ D65 = {"type": "fluo_illuminant", "illuminant": "D65", "scale": 15.0}
 DYE = {"emission_peak": 560.0, "stokes_shift": 90.0, "concentration": 0.8}
 ROUGH = {"material": "Au", "distribution": "ggx", "alpha": 0.2}
 HIDDEN = 1000
+HOMOGENEOUS = {"type": "homogeneous", "sigma_t": 2.0, "albedo": 0.8}
+GRID = Path("/tmp") / "fluo_bench_volpath_density.vol"
 COLOURED = 100
 
 
@@ -103,6 +112,45 @@ def with_hidden_spheres(d: dict, n: int) -> dict:
             "radius": 0.01,
             "bsdf": {"type": "fluo_jung", "emission_peak": 500.0 + 0.1 * i, "concentration": 0.5}}
     return d
+
+
+T = mi.ScalarTransform4f()
+
+
+def cuvette(res: int, integrator: str, medium: dict) -> dict:
+    """A 1 cm cuvette (thin glass) of `medium` on a grey floor under a D65 area light from 300 nm."""
+    return {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": 12},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": T.look_at(origin=[0, 2.5, 6], target=[0, 0.6, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res},
+                   "sampler": {"type": "independent"}},
+        "light": {"type": "rectangle", "to_world": T.translate([0, 5, 2]) @ T.rotate([1, 0, 0], 90) @ T.scale(2),
+                  "emitter": {"type": "area",
+                              "radiance": {"type": "fluo_illuminant", "illuminant": "D65", "scale": 10.0}}},
+        "floor": {"type": "rectangle", "to_world": T.rotate([1, 0, 0], -90) @ T.scale(5),
+                  "bsdf": {"type": "diffuse", "reflectance": 0.3}},
+        "cuvette": {"type": "cube", "to_world": T.translate([0, 0.8, 0]) @ T.scale([0.5, 0.8, 0.5]),
+                    "bsdf": {"type": "thindielectric", "int_ior": 1.5}, "interior": medium},
+    }
+
+
+def density_grid(path: Path) -> dict:
+    """A smooth 16³ density grid written to `path`."""
+    x = np.linspace(0.0, 1.0, 16)
+    g = 0.5 + 0.5 * np.sin(6.0 * x)[:, None, None] * np.cos(4.0 * x)[None, :, None] * np.ones(16)[None, None, :]
+    mi.VolumeGrid(np.asarray(g, dtype=np.float32)[..., None]).write(str(path))
+    return {"type": "gridvolume", "filename": str(path),
+            "to_world": T.translate([-0.5, 0.0, -0.5]) @ T.scale([1.0, 1.6, 1.0])}
+
+
+def qd_medium(q: float, density: dict | None = None) -> dict:
+    """fluo_qd_medium: R = 2.7 nm, 0.4 µmol/L (μa(340 nm) ≈ 3/cm), yield q."""
+    m = {"type": "fluo_qd_medium", "radius": 2.7, "quantum_yield": q, "concentration": 0.4, "scale": 0.01}
+    if density is not None:
+        m["density"] = density
+    return m
 
 
 def paired(a, b, rounds: int) -> dict:
@@ -212,6 +260,17 @@ ROWS = {
                                           box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[0]}),
                                           box(a.res, bsdf=lambda r: {"type": "fluo_qd", **ROUGH, **TEXTURED_QD[1]}),
                                           a.spp, a.rounds)),
+    "volpath_plain": ("no fluorescence: fluo_volpath / volpath, homogeneous medium", 1.05,
+                      lambda a: render_pair("scalar_spectral", cuvette(a.res, "fluo_volpath", HOMOGENEOUS),
+                                            cuvette(a.res, "volpath", HOMOGENEOUS), a.spp, a.rounds)),
+    "volpath_qd": ("QD cuvette: fluo_volpath (Q 0.8) / volpath (Q 0), spectral", 1.5,
+                   lambda a: render_pair("scalar_spectral", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
+                                         cuvette(a.res, "volpath", qd_medium(0.0)), a.spp, a.rounds)),
+    "volpath_qd_grid": ("QD cuvette, density grid: fluo_volpath (Q 0.8) / volpath (Q 0)", 1.5,
+                        lambda a: render_pair("scalar_spectral",
+                                              cuvette(a.res, "fluo_volpath", qd_medium(0.8, density_grid(GRID))),
+                                              cuvette(a.res, "volpath", qd_medium(0.0, density_grid(GRID))),
+                                              a.spp, a.rounds)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
 }
