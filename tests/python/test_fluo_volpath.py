@@ -318,3 +318,24 @@ def test05_rgb_refuses_fluorescent_media_and_volpath_warns(mitsuba_log):
     render(cube_scene("volpath", fluorescent, res=4, spp=2))
     warnings = [l for l in mitsuba_log if "fluo_volpath" in l and "medium fluoresces" in l]
     assert len(warnings) == 1, mitsuba_log
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test06_fluo_path_warns_once_that_it_ignores_media(variant, mitsuba_log):
+    """fluo_path, like Mitsuba's path, does not trace media: a scene with one (here a
+    fluorescent cuvette) gets one warning per scene naming fluo_volpath; a scene without
+    media gets none."""
+    mi.set_variant(variant)
+    mitsuba_log.clear()
+    scene = mi.load_dict(cube_scene("fluo_path", medium_dict(quantum_yield=0.0, concentration=0.1, scale=0.01),
+                                    res=4, spp=1))
+    mi.render(scene)
+    mi.render(scene)
+    warnings = [l for l in mitsuba_log if "participating media" in l and "fluo_volpath" in l]
+    assert len(warnings) == 1, mitsuba_log
+    mitsuba_log.clear()
+    plain = cube_scene("fluo_path", medium_dict(quantum_yield=0.0, concentration=0.1, scale=0.01), res=4, spp=1)
+    for key in ("box", "glass"):
+        plain[key].pop("interior")
+    mi.render(mi.load_dict(plain))
+    assert not [l for l in mitsuba_log if "participating media" in l], mitsuba_log
