@@ -19,6 +19,12 @@ Fixtures:
     it from conftest) gives the same XML as text for ``mi.load_string``; its options
     choose the integrator, camera, film, filter, emitter, shape and an optional lit
     floor. ``extra`` goes first in ``<scene>`` (``<default>`` parameters, comments).
+``textured_plane`` / ``mean_rgb`` (import them from conftest)
+    ``textured_plane(variant, bsdf, spp=64, light="directional")``: an orthographic
+    camera straight above a plane (one bounce: ``fluo_path`` with max_depth 2) under a
+    D65 light from 300 nm (``fluo_illuminant``; a distant light, or ``"constant"`` for a
+    constant sky); it sees uv [0.45, 0.55]², i.e. 10×10 squares of a 100-per-uv
+    checkerboard: exactly half of each value. ``mean_rgb(scene)``: its mean RGB.
 ``mitsuba_log``
     The list of lines Mitsuba's logger writes while the test runs (warnings included).
 ``chi2_directions``
@@ -151,6 +157,29 @@ def _scene_xml(directory: Path, bsdf: str, *, name: str = "scene.xml", **options
 def scene_xml():
     """``scene_xml(directory, bsdf_xml, name="scene.xml", **options)`` -> the written path."""
     return _scene_xml
+
+
+def textured_plane(variant: str, bsdf: dict, spp: int = 64, light: str = "directional"):
+    """The checkerboard test scene (see the module docs), loaded in `variant`."""
+    mi.set_variant(variant)
+    d65 = {"type": "fluo_illuminant", "illuminant": "D65"}
+    emitter = ({"type": "directional", "direction": [0, 0, -1], "irradiance": d65} if light == "directional"
+               else {"type": "constant", "radiance": d65})
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
+        "sensor": {"type": "orthographic",
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
+                            "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
+        "light": emitter,
+    })
+
+
+def mean_rgb(scene) -> np.ndarray:
+    """Mean RGB of a render of `scene` (seed 1)."""
+    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
 
 
 class _LogLines(mi.Appender):

@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import VARIANTS, scene_text
+from conftest import VARIANTS, scene_text, textured_plane, mean_rgb
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -390,28 +390,6 @@ def checkerboard(a, b, cells=100):
             "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1])}
 
 
-def plane_under_d65(variant, bsdf, spp=64):
-    """An orthographic camera straight above a plane (one bounce: max_depth 2) under a
-    distant D65 light from 300 nm. The camera sees uv [0.45, 0.55]², i.e. 10×10 squares
-    of `checkerboard`: exactly half of each value."""
-    mi.set_variant(variant)
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
-        "light": {"type": "directional", "direction": [0, 0, -1],
-                  "irradiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
-    })
-
-
-def mean_rgb(scene):
-    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
-
-
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("param", sorted(TEXTURE_PAIRS))
 def test16_checkerboard_parameter_renders_as_average_of_uniforms(variant, param):
@@ -419,9 +397,9 @@ def test16_checkerboard_parameter_renders_as_average_of_uniforms(variant, param)
     uniform materials: spectral (fluo_path's wavelength shifting, per-hit dye) and
     scalar_rgb (reduced transport, per-hit reduced matrix)."""
     a, b = TEXTURE_PAIRS[param]
-    ua = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: a})))
-    ub = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: b})))
-    got = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, **{param: checkerboard(a, b)})))
+    ua = mean_rgb(textured_plane(variant, dict(TEXTURED_BASE, **{param: a})))
+    ub = mean_rgb(textured_plane(variant, dict(TEXTURED_BASE, **{param: b})))
+    got = mean_rgb(textured_plane(variant, dict(TEXTURED_BASE, **{param: checkerboard(a, b)})))
     want = (ua + ub) / 2
     # spectral: Monte Carlo noise of different materials (measured ≤ 0.4 %); reduced RGB
     # is deterministic here (one bounce, no wavelength sampling)
@@ -517,13 +495,13 @@ def test19_bitmap_parameter_renders_as_texel_average(variant):
     the mean of the four uniform materials; a bilinear bitmap interpolates c, which
     enters the model linearly, so it renders the same mean."""
     values = [[0.0, 0.3], [0.6, 1.0]]
-    uniform = [mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, concentration=v), spp=32))
+    uniform = [mean_rgb(textured_plane(variant, dict(TEXTURED_BASE, concentration=v), spp=32))
                for row in values for v in row]
     want = np.mean(uniform, axis=0)
     rtol = 0.012 if variant == "scalar_spectral" else 1e-4
     for filter_type in ("nearest", "bilinear"):
         tex = dict(_float_bitmap(values, filter_type), to_uv=mi.ScalarTransform4f().scale([50, 50, 1]))
-        got = mean_rgb(plane_under_d65(variant, dict(TEXTURED_BASE, concentration=tex), spp=32))
+        got = mean_rgb(textured_plane(variant, dict(TEXTURED_BASE, concentration=tex), spp=32))
         # bilinear: the pixel samples see a continuum of c, an estimate of its mean
         np.testing.assert_allclose(got, want, rtol=rtol if filter_type == "nearest" else max(rtol, 2e-3),
                                    err_msg=filter_type)

@@ -20,7 +20,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import scene_text
+from conftest import scene_text, textured_plane, mean_rgb
 
 import fluo
 
@@ -253,27 +253,6 @@ def test10_demo_uses_fallbacks_only_for_missing_data(tmp_path, scene_xml):
 MATRICES = REPO / "data" / "matrices"
 
 
-def index_plane(variant, bsdf, spp=64):
-    """Orthographic camera above a plane under a distant D65 light from 300 nm, one
-    bounce; it sees uv [0.45, 0.55]²: 10×10 squares of a 100-per-uv checkerboard."""
-    mi.set_variant(variant)
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
-        "light": {"type": "directional", "direction": [0, 0, -1],
-                  "irradiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
-    })
-
-
-def index_mean(scene):
-    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
-
-
 def index_files(plugin, tmp_path):
     if plugin == "fluo_matrix":
         return [str(MATRICES / "jung_orange.csv"), str(MATRICES / "jung_brightener.csv")]
@@ -288,11 +267,11 @@ def test11_material_index_checkerboard_renders_as_average(plugin, variant, tmp_p
     """filename0/filename1 selected by a checkerboard index render as the mean of the two
     single-file materials (spectral shifting; reduced RGB with each file's matrix)."""
     files = index_files(plugin, tmp_path)
-    ua = index_mean(index_plane(variant, {"type": plugin, "filename": files[0]}))
-    ub = index_mean(index_plane(variant, {"type": plugin, "filename": files[1]}))
+    ua = mean_rgb(textured_plane(variant, {"type": plugin, "filename": files[0]}))
+    ub = mean_rgb(textured_plane(variant, {"type": plugin, "filename": files[1]}))
     board = {"type": "checkerboard", "color0": 0.0, "color1": 1.0,
              "to_uv": mi.ScalarTransform4f().scale([100, 100, 1])}
-    got = index_mean(index_plane(variant, {"type": plugin, "filename0": files[0], "filename1": files[1],
+    got = mean_rgb(textured_plane(variant, {"type": plugin, "filename0": files[0], "filename1": files[1],
                                            "index": board}))
     want = (ua + ub) / 2
     rtol = 0.012 if variant == "scalar_spectral" else 1e-4  # measured 0.14 % / 0
