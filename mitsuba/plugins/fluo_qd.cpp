@@ -62,7 +62,7 @@ Quantum-dot coated rough surface (:monosp:`fluo_qd`)
    - ``beckmann`` or ``ggx`` (Default: ``beckmann``, as ``roughconductor``). Directions
      are sampled from the distribution of visible normals.
  * - alpha
-   - |float|
+   - |float| or |texture|
    - Roughness α in [0, 4]; 0 is clamped to 1e-4. (Default: 0.1)
  * - qd_eta, qd_k
    - |spectrum|
@@ -124,7 +124,7 @@ What this plugin computes in each variant:
   ``quantum_yield`` > 0) is refused with an error rather than rendered with the
   substrate of one texel.
 
-**Textured parameters.** ``radius``, ``density`` and ``quantum_yield`` each take a float
+**Textured parameters.** ``radius``, ``density``, ``quantum_yield`` and ``alpha`` each take a float
 texture (a one-channel ``bitmap``, a ``checkerboard``, ...), read per hit with the
 texture's own ``eval_1`` (its ``to_uv`` and filter). A coating model bakes tables (2–5 ms,
 ~0.44 MB each), so models are baked at load on (radius, density) levels and a hit uses
@@ -148,10 +148,19 @@ out-of-range values named with their texel, e.g. ``"radius" = 7 at texel (x = 0,
 1)``) and the constituent values of a texture made of others (a checkerboard's
 ``color0``/``color1``); a ``density`` or ``quantum_yield`` texture whose values cannot be
 read is checked through its mean and maximum (densities then on the grid over [0, max]),
-such a ``radius`` texture is refused. A parameter given as a float, or as a texture that
-does not vary, takes the uniform material's code path unchanged. ``alpha`` stays a
-float: the reradiation's microfacet lobe is baked into the Rust model with one
-roughness.
+such a ``radius`` or ``alpha`` texture is refused. A parameter given as a float, or as a
+texture that does not vary, takes the uniform material's code path unchanged.
+
+A textured ``alpha``: the elastic lobe (``eval``, ``sample``, ``pdf``) uses the hit's own
+roughness, max(α, 1e-4), exactly as ``roughconductor`` with a textured alpha. The
+reradiation's microfacet lobe is baked into each coating model, so models are baked
+per roughness too, at the texture's own values (at most 4 distinct roughnesses; more
+is an error: quantize the texture), and the grid becomes radius × density × α. A hit's
+reradiation uses the models of the roughness level *nearest* to its α (no mixing
+across roughnesses; radius and density keep their bilinear weights, so at most four
+models per hit): exact at every texel, and a filtered lookup between two texels of
+different roughness snaps the reradiation to the nearer one while the elastic lobe
+takes the filtered α.
 
 Invalid parameters raise an error naming the parameter, its value and the valid range.
 Directions are always sampled from the visible normals.
@@ -191,9 +200,9 @@ public:
         using namespace fluo_detail;
         fluo::QdConfig &c = m_config; // starts as fluo::qd_default_config(): the defaults live in Rust
         fluo::QdConstants &k = c.constants;
-        // radius, density, quantum_yield: a float (the uniform fast path) or a float
+        // radius, density, quantum_yield, alpha: a float (the uniform fast path) or a float
         // texture; a texture that does not vary is read once as its float.
-        double *textured_fields[NParams] = { &c.radius, &c.density, &c.quantum_yield };
+        double *textured_fields[NParams] = { &c.radius, &c.density, &c.quantum_yield, &c.alpha };
         for (size_t i = 0; i < NParams; ++i) {
             const char *name = ParamNames[i];
             if (!props.has_property(name) || props.type(name) != Properties::Type::Object)
@@ -205,9 +214,6 @@ public:
                 *textured_fields[i] = (double) tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true);
             props.mark_queried(name);
         }
-        if (props.has_property("alpha") && props.type("alpha") == Properties::Type::Object)
-            Throw("%s: \"alpha\" takes a float: the reradiation's microfacet lobe is baked into the "
-                  "coating's Rust model with one roughness (textured: radius, density, quantum_yield)", Plugin);
         for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
                  { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
                  { "density", &c.density }, { "ext_ior", &c.ext_ior }, { "lambda_min", &c.lambda_min },
@@ -272,7 +278,7 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
-        ScalarFloat *values[NParams] = { &m_radius, &m_density, &m_quantum_yield };
+        ScalarFloat *values[NParams] = { &m_radius, &m_density, &m_quantum_yield, &m_alpha };
         for (size_t i = 0; i < NParams; ++i) {
             if (m_param_tex[i])
                 cb->put(ParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
@@ -280,7 +286,6 @@ public:
                 cb->put(ParamNames[i], *values[i], ParamFlags::NonDifferentiable);
         }
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
-        cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
         cb->put("eta", m_eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_k, ParamFlags::NonDifferentiable);
     }
@@ -293,7 +298,7 @@ public:
             if (changed("width"))                                 m_config.width = m_width;
             if (changed("quantum_yield") && !m_param_tex[Yield]) m_config.quantum_yield = m_quantum_yield;
             if (changed("density") && !m_param_tex[Density])     m_config.density = m_density;
-            if (changed("alpha"))         m_config.alpha = m_alpha;
+            if (changed("alpha") && !m_param_tex[Alpha])         m_config.alpha = m_alpha;
         }, [&] { rebuild(); });
     }
 
@@ -307,7 +312,8 @@ public:
         if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
             return { bs, 0.f };
 
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float alpha = alpha_at(si, active);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
         Normal3f m;
         std::tie(m, bs.pdf) = distr.sample(si.wi, sample2);
         bs.wo = reflect(si.wi, m);
@@ -332,7 +338,8 @@ public:
             return 0.f;
 
         Vector3f H = dr::normalize(wo + si.wi);
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float alpha = alpha_at(si, active);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
         Float D = distr.eval(H);
         if (D == 0.f)
             return 0.f;
@@ -348,7 +355,8 @@ public:
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, m) > 0.f && dr::dot(wo, m) > 0.f;
         if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
             return 0.f;
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float alpha = alpha_at(si, active);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
         return distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i);
     }
 
@@ -359,7 +367,8 @@ public:
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, H) > 0.f && dr::dot(wo, H) > 0.f;
         if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
             return { 0.f, 0.f };
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float alpha = alpha_at(si, active);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
         Float D = distr.eval(H);
         if (D == 0.f)
             return { 0.f, 0.f };
@@ -391,8 +400,9 @@ public:
 
     bool fluorescence_varies() const override { return !m_grid.empty(); }
 
-    /// Textured: the models of the hit's surrounding (radius, density) nodes with their
-    /// bilinear weights as mixture probabilities, each scaled by the hit's Q.
+    /// Textured: the models of the hit's surrounding (radius, density) nodes, at the alpha
+    /// level nearest the hit's, with their bilinear weights as mixture probabilities, each
+    /// scaled by the hit's Q.
     size_t fluorescence_local(const SurfaceInteraction3f &si,
                               typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
         if (m_grid.empty())
@@ -431,7 +441,8 @@ public:
                 oss << "  " << ParamNames[i] << " = " << string::indent(m_param_tex[i]) << "," << std::endl;
         if (!m_grid.empty())
             oss << "  baked models = " << m_grid.size() << " (" << m_radius_levels.size() << " radii x "
-                << m_density_levels.size() << " densities" << (m_density_grid ? ", a grid" : "") << ")," << std::endl;
+                << m_density_levels.size() << " densities" << (m_density_grid ? ", a grid" : "") << " x "
+                << m_alpha_levels.size() << " alphas)," << std::endl;
         oss
             << "  eta = " << string::indent(m_eta) << "," << std::endl
             << "  k = " << string::indent(m_k) << std::endl
@@ -583,19 +594,21 @@ private:
         m_build = fluo_detail::WavelengthMemo::next_build();
     }
 
-    /// Textured radius, density, quantum_yield: read and validate each texture's values
-    /// (per texel for a bitmap, constituent values otherwise), then bake one model per
-    /// (radius, density) level pair with Q = 1 (the reradiation is linear in Q, which
-    /// scales it per hit). Radii: the texture's own values. Densities: the texture's own
-    /// values when at most TEXTURE_GRID_NODES, else that many nodes over their range.
+    /// Textured radius, density, quantum_yield, alpha: read and validate each texture's
+    /// values (per texel for a bitmap, constituent values otherwise), then bake one model
+    /// per (radius, density, alpha) level triple with Q = 1 (the reradiation is linear in
+    /// Q, which scales it per hit). Radii and alphas: the texture's own values. Densities:
+    /// the texture's own values when at most TEXTURE_GRID_NODES, else that many nodes
+    /// over their range.
     /// m_config takes the largest level of each (the base model, shown by to_string).
     void init_param_textures(const Samples &eta, const Samples &k, const Samples &qd_eta, const Samples &qd_k) {
         using namespace fluo_detail;
         m_grid.clear();
-        if (!m_param_tex[Radius] && !m_param_tex[Density] && !m_param_tex[Yield])
+        if (!m_param_tex[Radius] && !m_param_tex[Density] && !m_param_tex[Yield] && !m_param_tex[Alpha])
             return;
         std::vector<float> levels[NParams];
-        double *fields[NParams] = { &m_config.radius, &m_config.density, &m_config.quantum_yield };
+        double *fields[NParams] = { &m_config.radius, &m_config.density, &m_config.quantum_yield,
+                                    &m_config.alpha };
         m_density_grid = false;
         for (size_t i = 0; i < NParams; ++i) {
             if (!m_param_tex[i]) {
@@ -608,10 +621,10 @@ private:
                                       tv.width);
             });
             if (!tv.complete) {
-                if (i == Radius)
-                    Throw("%s: parameter \"radius\" is a texture whose values cannot be read at load (%s); a "
-                          "textured radius must be a bitmap, a constant or a texture of those (checkerboard)",
-                          Plugin, m_param_tex[i]->class_name());
+                if (i == Radius || i == Alpha)
+                    Throw("%s: parameter \"%s\" is a texture whose values cannot be read at load (%s); a "
+                          "textured %s must be a bitmap, a constant or a texture of those (checkerboard)",
+                          Plugin, ParamNames[i], m_param_tex[i]->class_name(), ParamNames[i]);
                 check_texture_range(Plugin, ParamNames[i], m_param_tex[i].get(), 0.0, 1.0);
                 tv.values.push_back(0.f); // its minimum is not known: the grid starts at 0
                 tv.values.push_back((float) m_param_tex[i]->max());
@@ -627,6 +640,11 @@ private:
             Throw("%s: the \"radius\" texture holds %zu distinct values; at most %zu are supported (each "
                   "radius bakes its own coating tables: quantize the texture)", Plugin, levels[Radius].size(),
                   max_radii);
+        size_t max_alphas = fluo::qd_texture_max_alphas();
+        if (levels[Alpha].size() > max_alphas)
+            Throw("%s: the \"alpha\" texture holds %zu distinct values; at most %zu are supported (each "
+                  "roughness bakes its own coating models: quantize the texture)", Plugin, levels[Alpha].size(),
+                  max_alphas);
         if (levels[Density].size() > nodes || m_density_grid) {
             float lo = levels[Density].front(), hi = levels[Density].back();
             levels[Density].clear();
@@ -637,23 +655,26 @@ private:
         }
         m_radius_levels = levels[Radius];
         m_density_levels = levels[Density];
+        m_alpha_levels = levels[Alpha];
         m_grid_fluoresces = levels[Yield].back() > 0.f && m_density_levels.back() > 0.f;
         fluo::QdConfig c = m_config;
         c.quantum_yield = 1.0;
         for (float r : m_radius_levels)
-            for (float d : m_density_levels) {
-                c.radius = r;
-                c.density = d;
-                m_grid.push_back(rust_call(Plugin, [&] {
-                    return fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
-                }));
-            }
+            for (float d : m_density_levels)
+                for (float a : m_alpha_levels) {
+                    c.radius = r;
+                    c.density = d;
+                    c.alpha = a;
+                    m_grid.push_back(rust_call(Plugin, [&] {
+                        return fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
+                    }));
+                }
         for (size_t i = 0; i < NParams; ++i)
             *fields[i] = (double) levels[i].back();
     }
 
-    /// A textured material at a hit: up to four (radius, density) models with their
-    /// bilinear weights, and the hit's Q.
+    /// A textured material at a hit: up to four (radius, density) models, at the alpha
+    /// level nearest the hit's, with their bilinear weights, and the hit's Q.
     struct Corners {
         size_t n = 0;
         size_t model[4]{};
@@ -679,23 +700,33 @@ private:
         };
         auto [ri, rt] = bracket(m_radius_levels, value(Radius));
         auto [di, dt] = bracket(m_density_levels, value(Density));
+        size_t ai = fluo_detail::nearest_level(m_alpha_levels, value(Alpha));
         float q = value(Yield);
         Corners c;
         c.q = std::isfinite(q) ? std::clamp((double) q, 0.0, 1.0) : 0.0;
-        size_t nd = m_density_levels.size();
+        size_t nd = m_density_levels.size(), na = m_alpha_levels.size();
         for (size_t a = 0; a < 2; ++a)
             for (size_t b = 0; b < 2; ++b) {
                 double w = (a ? rt : 1.0 - rt) * (b ? dt : 1.0 - dt);
                 if (!(w > 0.0))
                     continue;
-                c.model[c.n] = (ri + a) * nd + (di + b);
+                c.model[c.n] = ((ri + a) * nd + (di + b)) * na + ai;
                 c.weight[c.n++] = w;
             }
         return c;
     }
 
     const double *config_field(size_t i) const {
-        return i == Radius ? &m_config.radius : i == Density ? &m_config.density : &m_config.quantum_yield;
+        return i == Radius ? &m_config.radius : i == Density ? &m_config.density
+             : i == Yield  ? &m_config.quantum_yield : &m_config.alpha;
+    }
+
+    /// The elastic lobe's roughness at si: the hit's own with a textured alpha (clamped
+    /// as Mitsuba's roughconductor clamps it), else the uniform m_alpha_f.
+    Float alpha_at(const SurfaceInteraction3f &si, Mask active) const {
+        if (!m_param_tex[Alpha])
+            return m_alpha_f;
+        return dr::maximum(m_param_tex[Alpha]->eval_1(si, active), 1e-4f);
     }
 
     /// The substrate's Fresnel factor, times the coating's effect when coated (eq. 23).
@@ -747,8 +778,8 @@ private:
     }
 
     /// The numeric parameters that take a texture, in the order of m_param_tex.
-    enum Param { Radius, Density, Yield, NParams };
-    static constexpr const char *ParamNames[NParams] = { "radius", "density", "quantum_yield" };
+    enum Param { Radius, Density, Yield, Alpha, NParams };
+    static constexpr const char *ParamNames[NParams] = { "radius", "density", "quantum_yield", "alpha" };
 
     bool is_textured(const char *name) const {
         for (size_t i = 0; i < NParams; ++i)
@@ -772,12 +803,13 @@ private:
         for (size_t j = 0; j < 4; ++j)
             out[j] = s[j];
     }
-    // textured radius, density, quantum_yield (null: the float in m_config)
+    // textured radius, density, quantum_yield, alpha (null: the float in m_config)
     ref<Texture> m_param_tex[NParams];
-    std::vector<float> m_radius_levels, m_density_levels; ///< the baked levels
+    std::vector<float> m_radius_levels, m_density_levels, m_alpha_levels; ///< the baked levels
     bool m_density_grid = false;   ///< densities on a grid (more distinct values than its nodes)
     bool m_grid_fluoresces = false; ///< some texel has density > 0 and some Q > 0
-    std::vector<rust::Box<fluo::QdModel>> m_grid; ///< model (i, j) at i·len(densities) + j
+    /// model (i, j, l) at (i·len(densities) + j)·len(alphas) + l
+    std::vector<rust::Box<fluo::QdModel>> m_grid;
 };
 
 static const bool fluo_qd_registered =

@@ -314,13 +314,15 @@ mod bridge {
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
-        /// Check every value of a `radius`, `density` or `quantum_yield` texture on its own
+        /// Check every value of a `radius`, `density`, `quantum_yield` or `alpha` texture on its own
         /// (`fluo::models::qd::check_param_value`; `width` as for `jung_check_values`).
         fn qd_check_values(name: &str, values: &[f32], width: usize) -> Result<()>;
         /// `fluo::models::qd::TEXTURE_GRID_NODES`: density nodes of a textured coating.
         fn qd_texture_grid_nodes() -> usize;
         /// `fluo::models::qd::TEXTURE_MAX_RADII`: most radii a radius texture may hold.
         fn qd_texture_max_radii() -> usize;
+        /// `fluo::models::qd::TEXTURE_MAX_ALPHAS`: most roughnesses an alpha texture may hold.
+        fn qd_texture_max_alphas() -> usize;
     }
 
     // ------------------------------------------- fluo_qd_medium, fluo_dye_medium
@@ -1164,6 +1166,10 @@ fn qd_texture_grid_nodes() -> usize {
 
 fn qd_texture_max_radii() -> usize {
     qd::TEXTURE_MAX_RADII
+}
+
+fn qd_texture_max_alphas() -> usize {
+    qd::TEXTURE_MAX_ALPHAS
 }
 
 // ------------------------------------------------ fluo_qd_medium, fluo_dye_medium

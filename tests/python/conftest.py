@@ -24,7 +24,8 @@ Fixtures:
     camera straight above a plane (one bounce: ``fluo_path`` with max_depth 2) under a
     D65 light from 300 nm (``fluo_illuminant``; a distant light, or ``"constant"`` for a
     constant sky); it sees uv [0.45, 0.55]², i.e. 10×10 squares of a 100-per-uv
-    checkerboard: exactly half of each value. ``mean_rgb(scene)``: its mean RGB.
+    checkerboard (``checkerboard(a, b)``): exactly half of each value. ``mean_rgb(scene)``:
+    its mean RGB.
 ``mitsuba_log``
     The list of lines Mitsuba's logger writes while the test runs (warnings included).
 ``chi2_directions``
@@ -175,6 +176,12 @@ def textured_plane(variant: str, bsdf: dict, spp: int = 64, light: str = "direct
         "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
         "light": emitter,
     })
+
+
+def checkerboard(a, b, cells: int = 100) -> dict:
+    """Mitsuba's checkerboard with `cells`×`cells` squares per unit of uv (color0 = a)."""
+    return {"type": "checkerboard", "color0": a, "color1": b,
+            "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1])}
 
 
 def mean_rgb(scene) -> np.ndarray:

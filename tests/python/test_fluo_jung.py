@@ -15,7 +15,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import VARIANTS, scene_text, textured_plane, mean_rgb
+from conftest import VARIANTS, scene_text, textured_plane, mean_rgb, checkerboard
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -382,12 +382,6 @@ TEXTURE_PAIRS = {
 }
 TEXTURED_BASE = {"type": "fluo_jung", "reflectance": 0.3, "emission_peak": 520.0, "stokes_shift": 60.0,
                  "concentration": 0.8, "quantum_yield": 0.9}
-
-
-def checkerboard(a, b, cells=100):
-    """Mitsuba's checkerboard with `cells`×`cells` squares per unit of uv (color0 = a)."""
-    return {"type": "checkerboard", "color0": a, "color1": b,
-            "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1])}
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import VARIANTS
+from conftest import VARIANTS, textured_plane, mean_rgb, checkerboard
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -312,46 +312,27 @@ def test11_demo_scenes_render(render):
 
 
 # ------------------------------------------------- textured numeric parameters (issue 17)
-QD_PAIRS = {"radius": (1.8, 3.3), "density": (0.1, 0.9), "quantum_yield": (0.2, 1.0)}
+#: alpha: 0.05 vs 1.0 (not 0.5: at 0.5 the two uniform renders differ by only ~6 %, below
+#: the spectral test's 8 × 1.2 % separation; at 1.0 the rough lobe loses ~50 %).
+QD_PAIRS = {"radius": (1.8, 3.3), "density": (0.1, 0.9), "quantum_yield": (0.2, 1.0), "alpha": (0.05, 1.0)}
 QD_BASE = {"type": "fluo_qd", "material": "Al", "alpha": 0.3, "radius": 2.2, "density": 0.8,
            "quantum_yield": 0.9}
-
-
-def qd_plane(variant, bsdf, spp=64):
-    """An orthographic camera straight above a plane under a constant D65 sky from
-    300 nm (one bounce: max_depth 2); it sees uv [0.45, 0.55]², i.e. 10×10 squares of a
-    100-per-uv checkerboard: exactly half of each value."""
-    mi.set_variant(variant)
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "fluo_path", "max_depth": 2},
-        "sensor": {"type": "orthographic",
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 20, "height": 20, "pixel_format": "rgb",
-                            "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent", "sample_count": spp}},
-        "plane": {"type": "rectangle", "to_world": mi.ScalarTransform4f().scale(10), "bsdf": bsdf},
-        "light": {"type": "constant", "radiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
-    })
-
-
-def qd_mean(scene):
-    return np.array(mi.render(scene, seed=1), dtype=np.float64).reshape(-1, 3).mean(0)
-
-
-def board(a, b, cells=100):
-    return {"type": "checkerboard", "color0": a, "color1": b,
-            "to_uv": mi.ScalarTransform4f().scale([cells, cells, 1])}
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
 @pytest.mark.parametrize("param", sorted(QD_PAIRS))
 def test12_checkerboard_parameter_renders_as_average_of_uniforms(variant, param):
     """A checkerboard of two values renders as the mean of the two uniform coatings
-    (models baked at the texture's own values: exact per texel), spectral and reduced RGB."""
+    (models baked at the texture's own values: exact per texel), spectral and reduced RGB.
+    A textured alpha also drives the elastic lobe per hit (eval, sample, pdf)."""
     a, b = QD_PAIRS[param]
-    ua = qd_mean(qd_plane(variant, dict(QD_BASE, **{param: a})))
-    ub = qd_mean(qd_plane(variant, dict(QD_BASE, **{param: b})))
-    got = qd_mean(qd_plane(variant, dict(QD_BASE, **{param: board(a, b)})))
+    # alpha changes the sampled lobe itself: the checkerboard's samples then decorrelate
+    # from the uniform renders' (measured got/want − 1 in RGB: 1.6e-3 / 6e-4 / 1.4e-4 at
+    # 64 / 256 / 1024 spp, shrinking as noise), hence 1024 spp for it.
+    spp = 1024 if param == "alpha" else 64
+    ua = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: a}), spp=spp, light="constant"))
+    ub = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: b}), spp=spp, light="constant"))
+    got = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: checkerboard(a, b)}), spp=spp, light="constant"))
     want = (ua + ub) / 2
     rtol = 0.012 if variant == "scalar_spectral" else 1e-3  # measured ≤ 0.27 % / 1.1e-4
     np.testing.assert_allclose(got, want, rtol=rtol)
@@ -374,8 +355,9 @@ def test13_density_grid_interpolates_within_measured_error(variant):
     tex = dict(_float_bitmap(values), to_uv=mi.ScalarTransform4f().scale([25, 25, 1]))
     b = mi.load_dict(dict(QD_BASE, density=tex))
     assert "16 densities" not in str(b) and "9 densities, a grid" in str(b), str(b)
-    got = qd_mean(qd_plane(variant, dict(QD_BASE, density=tex), spp=32))
-    uniform = [qd_mean(qd_plane(variant, dict(QD_BASE, density=float(v)), spp=32)) for v in values.flat]
+    got = mean_rgb(textured_plane(variant, dict(QD_BASE, density=tex), spp=32, light="constant"))
+    uniform = [mean_rgb(textured_plane(variant, dict(QD_BASE, density=float(v)), spp=32, light="constant"))
+               for v in values.flat]
     want = np.mean(uniform, axis=0)
     rtol = 0.015 if variant == "scalar_spectral" else 0.008
     np.testing.assert_allclose(got, want, rtol=rtol)
@@ -391,8 +373,13 @@ def test14_textured_parameters_validated_per_texel(variant):
          "[1, 5]"),
         ("density", _float_bitmap([[0.1, nan], [0.4, 0.5]]),
          'invalid parameter "density" = NaN at texel (x = 1, y = 0)', "[0, 1]"),
-        ("quantum_yield", board(0.5, 1.2), 'invalid parameter "quantum_yield" = 1.2 (value 1 of its texture)',
+        ("quantum_yield", checkerboard(0.5, 1.2), 'invalid parameter "quantum_yield" = 1.2 (value 1 of its texture)',
          "[0, 1]"),
+        ("alpha", _float_bitmap([[0.1, 0.2], [4.5, 0.1]]), 'invalid parameter "alpha" = 4.5 at texel (x = 0, y = 1)',
+         "[0, 4]"),
+        ("alpha", _float_bitmap([[0.1, 0.2], [0.3, nan]]), 'invalid parameter "alpha" = NaN at texel (x = 1, y = 1)',
+         "[0, 4]"),
+        ("alpha", checkerboard(-0.1, 0.3), 'invalid parameter "alpha" = -0.1 (value 0 of its texture)', "[0, 4]"),
     ]
     for param, tex, needle, needle2 in cases:
         with pytest.raises(Exception) as err:
@@ -401,7 +388,39 @@ def test14_textured_parameters_validated_per_texel(variant):
     many = np.linspace(1.5, 4.0, 20, dtype=np.float32).reshape(4, 5)
     with pytest.raises(Exception, match="20 distinct values; at most 16"):
         mi.load_dict(dict(QD_BASE, radius=_float_bitmap(many)))
-    with pytest.raises(Exception, match='"alpha" takes a float'):
-        mi.load_dict(dict(QD_BASE, alpha=board(0.1, 0.3)))
+    with pytest.raises(Exception, match="the \"alpha\" texture holds 5 distinct values; at most 4"):
+        mi.load_dict(dict(QD_BASE, alpha=_float_bitmap([[0.1, 0.2, 0.3, 0.4, 0.5]])))
     uniform = mi.load_dict(QD_BASE)
     assert "baked models" not in str(uniform)  # floats: the uniform material's code path
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test15_textured_alpha_elastic_lobe_is_the_hits(variant):
+    """A textured alpha: at a hit inside one checker cell, eval, pdf, eval_pdf and sample
+    equal those of the uniform material with that cell's alpha (the elastic lobe uses the
+    hit's own roughness), and they differ from the other cell's."""
+    mi.set_variant(variant)
+    lo, hi = 0.05, 0.5
+    textured = mi.load_dict(dict(QD_BASE, alpha=checkerboard(lo, hi)))
+    assert "x 2 alphas" in str(textured), str(textured)
+    ctx = mi.BSDFContext()
+    wo = mi.Vector3f(-0.25, 0.05, math.sqrt(1 - 0.065))
+    evals = {}
+    # checkerboard of 100 cells per uv: uv' = (0.25, 0.25) is color1, (0.75, 0.25) color0
+    for uv, alpha in (((0.0025, 0.0025), hi), ((0.0075, 0.0025), lo)):
+        uniform = mi.load_dict(dict(QD_BASE, alpha=alpha))
+        si = surface_interaction(wi=(0.3, 0.0, math.sqrt(0.91)))
+        si.uv = mi.Point2f(*uv)
+        got, want = np.array(textured.eval(ctx, si, wo)), np.array(uniform.eval(ctx, si, wo))
+        np.testing.assert_allclose(got, want, rtol=1e-6)
+        assert float(textured.pdf(ctx, si, wo)) == pytest.approx(float(uniform.pdf(ctx, si, wo)), rel=1e-6)
+        (ev, pd), (ev_u, pd_u) = textured.eval_pdf(ctx, si, wo), uniform.eval_pdf(ctx, si, wo)
+        np.testing.assert_allclose(np.array(ev), np.array(ev_u), rtol=1e-6)
+        assert float(pd) == pytest.approx(float(pd_u), rel=1e-6)
+        bs, w = textured.sample(ctx, si, 0.5, mi.Point2f(0.3, 0.7))
+        bs_u, w_u = uniform.sample(ctx, si, 0.5, mi.Point2f(0.3, 0.7))
+        np.testing.assert_allclose(np.array(bs.wo), np.array(bs_u.wo), rtol=1e-6, atol=1e-7)
+        assert float(bs.pdf) == pytest.approx(float(bs_u.pdf), rel=1e-6)
+        np.testing.assert_allclose(np.array(w), np.array(w_u), rtol=1e-6)
+        evals[alpha] = got
+    assert np.abs(evals[lo] - evals[hi]).max() > 0.5 * np.abs(evals[hi]).max(), evals

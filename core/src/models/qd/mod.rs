@@ -298,9 +298,12 @@ pub struct QdModel {
     excitation: Option<(f64, f64)>,
 }
 
-/// The `fluo_qd` parameters that take a texture ([`check_param_value`]): `alpha` stays
-/// a float (one roughness per baked model).
-pub const TEXTURABLE_PARAMS: [&str; 3] = ["radius", "density", "quantum_yield"];
+/// The `fluo_qd` parameters that take a texture ([`check_param_value`]). A textured
+/// `alpha` bakes one model per distinct roughness (at most [`TEXTURE_MAX_ALPHAS`]).
+pub const TEXTURABLE_PARAMS: [&str; 4] = ["radius", "density", "quantum_yield", "alpha"];
+
+/// Valid range of the microfacet roughness `alpha` (0 is clamped to 1e-4 by the shim).
+pub const ALPHA_RANGE: (f64, f64) = (0.0, 4.0);
 
 /// Nodes of the density grid on which a textured `fluo_qd` bakes its models when the
 /// `density` texture has more distinct values than this (otherwise the models are baked
@@ -325,13 +328,20 @@ pub const TEXTURE_GRID_MAX_ERROR: f64 = 0.008;
 /// density node: about 0.44 MB with the default tables).
 pub const TEXTURE_MAX_RADII: usize = 16;
 
+/// Most distinct roughnesses an `alpha` texture may hold. The reradiation's microfacet
+/// lobe is baked into each model, so every roughness multiplies the (radius, density)
+/// grid; a hit's reradiation takes the model of the nearest roughness level (its elastic
+/// lobe uses the hit's exact roughness).
+pub const TEXTURE_MAX_ALPHAS: usize = 4;
+
 /// Check one value of a textured `fluo_qd` parameter on its own, as every texel (or
 /// constituent value) of a parameter texture is checked at load: `radius` in
-/// [`RADIUS_RANGE_NM`], `density` and `quantum_yield` in [0, 1].
+/// [`RADIUS_RANGE_NM`], `density` and `quantum_yield` in [0, 1], `alpha` in [`ALPHA_RANGE`].
 pub fn check_param_value(name: &str, value: f64) -> Result<()> {
     match name {
         "radius" => check_range(name, value, RADIUS_RANGE_NM.0, RADIUS_RANGE_NM.1).map(|_| ()),
         "density" | "quantum_yield" => check_range(name, value, 0.0, 1.0).map(|_| ()),
+        "alpha" => check_range(name, value, ALPHA_RANGE.0, ALPHA_RANGE.1).map(|_| ()),
         _ => Err(crate::Error::param("parameter", format!("\"{name}\""), TEXTURABLE_PARAMS.join(", "))),
     }
 }
@@ -344,7 +354,7 @@ impl QdModel {
         check_range("density", params.density, 0.0, 1.0)?;
         check_range("ext_ior", params.ext_ior, 1.0, 3.0)?;
         check_lambda_range((params.lambda_min_nm, params.lambda_max_nm))?;
-        check_range("alpha", params.alpha, 0.0, 4.0)?;
+        check_range("alpha", params.alpha, ALPHA_RANGE.0, ALPHA_RANGE.1)?;
         check_range("table_cos_nodes", params.cos_nodes as f64, COS_NODES_RANGE.0 as f64, COS_NODES_RANGE.1 as f64)?;
         check_range("table_step", params.table_step_nm, TABLE_STEP_RANGE_NM.0, TABLE_STEP_RANGE_NM.1)?;
         index.validate()?;
@@ -854,6 +864,17 @@ mod tests {
             lo += step;
         }
         xyz
+    }
+
+    #[test]
+    fn check_param_value_ranges() {
+        for name in TEXTURABLE_PARAMS {
+            assert!(check_param_value(name, f64::NAN).is_err(), "{name}");
+        }
+        assert!(check_param_value("alpha", ALPHA_RANGE.0).is_ok() && check_param_value("alpha", ALPHA_RANGE.1).is_ok());
+        let e = check_param_value("alpha", 4.5).unwrap_err().to_string();
+        assert!(e.contains("\"alpha\"") && e.contains("4.5"), "{e}");
+        assert!(check_param_value("width", 10.0).is_err());
     }
 
     #[test]
