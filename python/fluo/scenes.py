@@ -117,7 +117,11 @@ def without_fluorescence(text: str, scene_dir: Path) -> str:
     def rewrite(m: re.Match) -> str:
         kind, body = m.group(1), m.group(2)
         if kind in ("fluo_matrix", "fluo_gmm"):
-            name = _FILENAME.search(body).group(1)
+            found = _FILENAME.search(body)
+            if found is None:  # filename0..N selected by an index texture
+                raise RuntimeError(f"{kind} with several files (filename0..N and an index texture): removing "
+                                   "its fluorescence is supported for one file per material only")
+            name = found.group(1)
             path = Path(name) if Path(name).is_absolute() else (scene_dir / name).resolve()
             if kind == "fluo_gmm":
                 diagonal = json.loads(path.read_text(encoding="utf-8"))["diagonal"]

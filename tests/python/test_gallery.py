@@ -100,6 +100,11 @@ def test04_without_fluorescence_rewrites():
     assert scenes.fluorescent_materials(medium) == ["fluo_qd_medium", "fluo_qd_medium"]
     assert out.count('<float name="quantum_yield" value="0"/>') == 2 and 'value="0.8"' not in out
     assert '<medium type="fluo_qd_medium" id="dots">' in out
+    # several files behind an index texture: a clear error (the gallery notes it in the panel)
+    several = ('<bsdf type="fluo_matrix"><string name="filename0" value="a.csv"/>'
+               '<string name="filename1" value="b.csv"/></bsdf>')
+    with pytest.raises(RuntimeError, match="filename0..N"):
+        scenes.without_fluorescence(several, fluo.repo_root() / "scenes")
 
 
 @pytest.fixture(scope="module")
