@@ -67,7 +67,9 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
 Unidirectional path tracing with next-event estimation and MIS, Russian roulette and
 ``max_depth``/``rr_depth``/``hide_emitters`` exactly as Mitsuba's ``path``, extended
 with fluorescence (wavelength shifting) for fluo's bispectral BSDFs (``fluo_jung``
-and the other ``fluo_*`` materials) in ``scalar_spectral``.
+and the other ``fluo_*`` materials) in ``scalar_spectral``. Like ``path`` it does not
+trace participating media: a scene with media gets one warning per scene pointing to
+``fluo_volpath`` (which renders media, fluorescent or not).
 
 **Simulate only what the scene calls for.** At the start of each render the scene is
 scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface
