@@ -433,23 +433,14 @@ private:
                 levels[i] = { (float) *fields[i] };
                 continue;
             }
-            TextureValues<Float, Spectrum> tv(Plugin, ParamNames[i], m_param_tex[i].get());
-            rust_call(Plugin, [&] {
-                fluo::jung_check_values(ParamNames[i], rust::Slice<const float>(tv.values.data(), tv.values.size()),
-                                        tv.width);
-            });
-            if (!tv.complete) {
-                if (i == Peak || i == Shift)
-                    Throw("%s: parameter \"%s\" is a texture whose values cannot be read at load (%s); a "
-                          "textured emission_peak or stokes_shift must be a bitmap, a constant or a texture "
-                          "of those (checkerboard)", Plugin, ParamNames[i], m_param_tex[i]->class_name());
-                // concentration, quantum_yield: only the mean and the maximum are known
-                check_texture_range(Plugin, ParamNames[i], m_param_tex[i].get(), 0.0, 1.0);
-                tv.values.push_back((float) m_param_tex[i]->max());
-            }
-            levels[i] = distinct_levels(tv.values);
-            if (levels[i].empty())
-                Throw("%s: parameter \"%s\" is a texture without values", Plugin, ParamNames[i]);
+            // λe and s select dye shapes: their exact levels are needed
+            levels[i] = param_levels(Plugin, ParamNames[i], m_param_tex[i].get(), i == Peak || i == Shift, false,
+                                     [&](const std::vector<float> &v, size_t width) {
+                                         rust_call(Plugin, [&] {
+                                             fluo::jung_check_values(
+                                                 ParamNames[i], rust::Slice<const float>(v.data(), v.size()), width);
+                                         });
+                                     }).levels;
             *fields[i] = (double) levels[i].back();
             if (i == Conc || i == Yield)
                 fluoresces[i - Conc] = levels[i].back() > 0.f;

@@ -615,25 +615,19 @@ private:
                 levels[i] = { (float) *fields[i] };
                 continue;
             }
-            TextureValues<Float, Spectrum> tv(Plugin, ParamNames[i], m_param_tex[i].get());
-            rust_call(Plugin, [&] {
-                fluo::qd_check_values(ParamNames[i], rust::Slice<const float>(tv.values.data(), tv.values.size()),
-                                      tv.width);
-            });
-            if (!tv.complete) {
-                if (i == Radius || i == Alpha)
-                    Throw("%s: parameter \"%s\" is a texture whose values cannot be read at load (%s); a "
-                          "textured %s must be a bitmap, a constant or a texture of those (checkerboard)",
-                          Plugin, ParamNames[i], m_param_tex[i]->class_name(), ParamNames[i]);
-                check_texture_range(Plugin, ParamNames[i], m_param_tex[i].get(), 0.0, 1.0);
-                tv.values.push_back(0.f); // its minimum is not known: the grid starts at 0
-                tv.values.push_back((float) m_param_tex[i]->max());
-                if (i == Density)
-                    m_density_grid = true;
-            }
-            levels[i] = distinct_levels(tv.values);
-            if (levels[i].empty())
-                Throw("%s: parameter \"%s\" is a texture without values", Plugin, ParamNames[i]);
+            // radius and alpha bake their own models: their exact levels are needed; an
+            // unreadable density or yield spans [0, its maximum] (a density grid)
+            ParamLevels pl = param_levels(Plugin, ParamNames[i], m_param_tex[i].get(), i == Radius || i == Alpha,
+                                          true, [&](const std::vector<float> &v, size_t width) {
+                                              rust_call(Plugin, [&] {
+                                                  fluo::qd_check_values(ParamNames[i],
+                                                                        rust::Slice<const float>(v.data(), v.size()),
+                                                                        width);
+                                              });
+                                          });
+            levels[i] = std::move(pl.levels);
+            if (i == Density && !pl.complete)
+                m_density_grid = true;
         }
         size_t max_radii = fluo::qd_texture_max_radii(), nodes = fluo::qd_texture_grid_nodes();
         if (levels[Radius].size() > max_radii)

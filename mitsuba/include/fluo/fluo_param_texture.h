@@ -18,6 +18,8 @@
 #include <unordered_set>
 #include <vector>
 
+#include "fluo_common.h"
+
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
@@ -114,6 +116,40 @@ inline std::vector<float> distinct_levels(std::vector<float> v) {
     std::sort(v.begin(), v.end());
     v.erase(std::unique(v.begin(), v.end()), v.end());
     return v;
+}
+
+/// The values of a textured numeric parameter, read and checked at load: every texel
+/// or constituent value goes through `check(values, width)` (the plugin's Rust check,
+/// which names the texel). A texture whose values cannot be read is refused when the
+/// plugin needs its exact levels (`exact`); otherwise it is range-checked in [0, 1]
+/// through its mean and maximum and stands for {0 (if `from_zero`), its maximum}, and
+/// `complete` says so. `levels` are sorted and distinct, never empty.
+struct ParamLevels {
+    std::vector<float> levels;
+    bool complete = true;
+};
+
+template <typename Float, typename Spectrum, typename Check>
+ParamLevels param_levels(const char *plugin, const char *name, const Texture<Float, Spectrum> *tex, bool exact,
+                         bool from_zero, Check &&check) {
+    TextureValues<Float, Spectrum> tv(plugin, name, tex);
+    check(tv.values, tv.width);
+    ParamLevels out;
+    out.complete = tv.complete;
+    if (!tv.complete) {
+        if (exact)
+            Throw("%s: parameter \"%s\" is a texture whose values cannot be read at load (%s); a textured "
+                  "%s must be a bitmap, a constant or a texture of those (checkerboard)",
+                  plugin, name, tex->class_name(), name);
+        check_texture_range(plugin, name, tex, 0.0, 1.0);
+        if (from_zero)
+            tv.values.push_back(0.f); // its minimum is not known
+        tv.values.push_back((float) tex->max());
+    }
+    out.levels = distinct_levels(std::move(tv.values));
+    if (out.levels.empty())
+        Throw("%s: parameter \"%s\" is a texture without values", plugin, name);
+    return out;
 }
 
 /// Index of the level nearest to x (levels sorted, non-empty; NaN gives the first).
