@@ -7,6 +7,7 @@
 
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
+#include "fluo_jit.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -69,17 +70,22 @@ public:
     static constexpr const char *Plugin = "fluo_illuminant";
 
     FluoIlluminant(const Properties &props) : Texture(props), m_spectrum(create(props)) {
-        if constexpr (is_spectral_v<Spectrum>)
+        if constexpr (is_spectral_v<Spectrum>) {
             m_table = native_table(*m_spectrum);
+            if (dr::is_jit_v<Float> && !m_table)
+                Throw("%s: Mitsuba refused the spectrum's table (%s), which the vectorised variants need",
+                      Plugin, std::string(fluo::illuminant_to_string(*m_spectrum)));
+        }
         fluo::Range r = fluo::illuminant_range(*m_spectrum);
         m_range = ScalarVector2f((ScalarFloat) r.lo, (ScalarFloat) r.hi);
         m_mean = (ScalarFloat) fluo::illuminant_mean(*m_spectrum);
         fluo::Rgb c = fluo::illuminant_srgb(*m_spectrum);
-        m_rgb = Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+        m_rgb_host = ScalarColor3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
         // An invisible (e.g. UV-only) spectrum still needs a non-zero RGB, so that
         // reduced transport can recover the emitter's geometric weight from it.
-        if (!(dr::mean(m_rgb) > InvisibleRgb))
-            m_rgb = Color3f(InvisibleRgb);
+        if (!(dr::mean(m_rgb_host) > InvisibleRgb))
+            m_rgb_host = ScalarColor3f(InvisibleRgb);
+        m_rgb = Color3f(m_rgb_host);
     }
 
     /// RGB reported for spectra without visible energy (negligible, see above).
@@ -87,11 +93,15 @@ public:
 
     UnpolarizedSpectrum eval(const SurfaceInteraction3f &si, Mask active) const override {
         if constexpr (is_spectral_v<Spectrum>) {
-            if (m_table)
-                return m_table->eval(si, active);
-            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-            fluo::illuminant_eval(*m_spectrum, fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
-            return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            if constexpr (dr::is_jit_v<Float>) {
+                return m_table->eval(si, active); // the constructor ensured it exists
+            } else {
+                if (m_table)
+                    return m_table->eval(si, active);
+                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
+                fluo::illuminant_eval(*m_spectrum, fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
+                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
+            }
         } else {
             return m_rgb;
         }
@@ -106,13 +116,13 @@ public:
 
     const fluo::Illuminant &illuminant() const override { return *m_spectrum; }
     double rgb_luminance() const override {
-        return 0.212671 * m_rgb[0] + 0.715160 * m_rgb[1] + 0.072169 * m_rgb[2];
+        return 0.212671 * m_rgb_host[0] + 0.715160 * m_rgb_host[1] + 0.072169 * m_rgb_host[2];
     }
 
     Float mean() const override { return m_mean; }
     ScalarVector2f wavelength_range() const override { return m_range; }
     ScalarFloat max() const override {
-        return is_spectral_v<Spectrum> ? m_mean * 4.f : dr::max(m_rgb); // only a bound is needed
+        return is_spectral_v<Spectrum> ? m_mean * 4.f : dr::max(m_rgb_host); // only a bound is needed
     }
 
     std::string to_string() const override {
@@ -168,7 +178,10 @@ private:
         p.set("values", join(values));
         try {
             return PluginManager::instance()->create_object<Texture>(p);
-        } catch (const std::exception &) {
+        } catch (const std::exception &e) {
+            if constexpr (dr::is_jit_v<Float>)
+                Throw("%s: Mitsuba refused the spectrum's table, which the vectorised variants need: %s", Plugin,
+                      e.what());
             return nullptr;
         }
     }
@@ -177,10 +190,12 @@ private:
     ref<Texture> m_table; ///< spectral variants: the same spectrum as a native texture
     ScalarVector2f m_range;
     ScalarFloat m_mean;
+    ScalarColor3f m_rgb_host; ///< linear sRGB (RGB variants), on the host
     Color3f m_rgb;
 };
 
 static const bool fluo_illuminant_registered =
-    (fluo_detail::register_scalar_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
+    (fluo_detail::register_scalar_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture),
+     fluo_detail::register_llvm_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
 
 NAMESPACE_END(mitsuba)

@@ -165,11 +165,9 @@ public:
     using Reduced = ReducedTransport<Float, Spectrum>;
 
     static constexpr const char *Plugin = "fluo_path";
-    /// Allowed range of `lambda_min`, nm.
-    static constexpr double LambdaMinLo = 200.0, LambdaMinHi = 360.0;
 
     FluoPath(const Properties &props)
-        : Base(props), m_lambda_min(lambda_min_of(props)),
+        : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
           m_reduced(Plugin, string_of(props, "basis", "x7"), string_of(props, "method", "ours")) {}
 
     using Base::render;
@@ -210,14 +208,6 @@ public:
     MI_DECLARE_CLASS(FluoPath)
 
 private:
-    static double lambda_min_of(const Properties &props) {
-        double lambda_min = fluo_detail::get_float(Plugin, props, "lambda_min", 300.0);
-        if (!(lambda_min >= LambdaMinLo && lambda_min <= LambdaMinHi))
-            Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm",
-                  Plugin, lambda_min, LambdaMinLo, LambdaMinHi);
-        return lambda_min;
-    }
-
     static std::string string_of(const Properties &props, const char *name, const char *def) {
         return props.has_property(name) ? std::string(props.get<std::string_view>(name)) : def;
     }

@@ -467,6 +467,18 @@ mod bridge {
         fn reduced_lambertian(r: &ReducedModel, out: &mut [f64]) -> bool;
         /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
         fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
+        /// `fluo_jung` in the vectorised variants: its reduced operator split so that c
+        /// and Q stay differentiable, M = `reflectance` − c·`absorbed` + c·Q·`reradiation`
+        /// (each K×K row major, f = M/π; the reduction is linear in the operator). The
+        /// first two are zero and `false` is returned when the reflectance is not given
+        /// as sigmoid coefficients (the renderer adds its elastic part as a diagonal).
+        fn jung_reduced_parts(
+            model: &JungModel,
+            t: &TransportBasis,
+            reflectance: &mut [f64],
+            absorbed: &mut [f64],
+            reradiation: &mut [f64],
+        ) -> bool;
     }
 }
 
@@ -1464,6 +1476,37 @@ fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<ReducedModel>
             },
         }))
     })
+}
+
+fn jung_reduced_parts(
+    model: &JungModel,
+    t: &TransportBasis,
+    reflectance: &mut [f64],
+    absorbed: &mut [f64],
+    reradiation: &mut [f64],
+) -> bool {
+    let copy = |m: Vec<f64>, out: &mut [f64]| {
+        for (o, v) in out.iter_mut().zip(m.iter().chain(std::iter::repeat(&0.0))) {
+            *o = *v;
+        }
+    };
+    let dye = &model.dye;
+    copy(t.0.reduce(&Operator::new(|_| 0.0, |li, lo| {
+            if lo > li {
+                dye.absorption(li) * dye.emission(lo)
+            } else {
+                0.0
+            }
+        })), reradiation);
+    let has_reflectance = model.generic.elastic.is_some();
+    if has_reflectance {
+        copy(t.0.reduce(&Operator::new(|l| model.reflectance(l), |_, _| 0.0)), reflectance);
+        copy(t.0.reduce(&Operator::new(|l| model.reflectance(l) * dye.absorption(l), |_, _| 0.0)), absorbed);
+    } else {
+        reflectance.fill(0.0);
+        absorbed.fill(0.0);
+    }
+    has_reflectance
 }
 
 fn reduced_includes_elastic(r: &ReducedModel) -> bool {

@@ -85,6 +85,19 @@ void check_texture_range(const char *plugin, const char *name, const Texture *te
         check(max, "its maximum");
 }
 
+/// Allowed range of the integrators' `lambda_min`, nm.
+constexpr double LambdaMinLo = 200.0, LambdaMinHi = 360.0;
+
+/// The integrators' `lambda_min` (nm): where spectrally defined emitters reach below the
+/// camera's 360 nm, validated against [LambdaMinLo, LambdaMinHi].
+inline double lambda_min_of(const char *plugin, const Properties &props) {
+    double lambda_min = get_float(plugin, props, "lambda_min", 300.0);
+    if (!(lambda_min >= LambdaMinLo && lambda_min <= LambdaMinHi))
+        Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm", plugin, lambda_min,
+              LambdaMinLo, LambdaMinHi);
+    return lambda_min;
+}
+
 /// Parse "a, b, c" (commas and/or spaces) into exactly N doubles.
 template <size_t N>
 std::array<double, N> parse_list(const char *plugin, const char *name, const std::string &text) {
@@ -159,9 +172,16 @@ inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
     return rust::Slice<float>(a.data(), a.size());
 }
 
-/// Variants the fluo plugins serve; every other variant of the wheel gets a stub.
-inline bool served_variant(std::string_view variant) {
-    return variant == "scalar_rgb" || variant == "scalar_spectral";
+/// The plugins that also run in llvm_ad_rgb and llvm_ad_spectral (fluo_jit.h registers them).
+inline bool jit_plugin(std::string_view name) {
+    return name == "fluo_illuminant" || name == "fluo_jung" || name == "fluo_path";
+}
+
+/// Whether plugin `name` serves `variant`; every other variant of the wheel gets a stub.
+inline bool served_variant(std::string_view name, std::string_view variant) {
+    if (variant == "scalar_rgb" || variant == "scalar_spectral")
+        return true;
+    return jit_plugin(name) && (variant == "llvm_ad_rgb" || variant == "llvm_ad_spectral");
 }
 
 /// Register, for every variant of the wheel (MI_VARIANTS) that the plugins do not
@@ -177,7 +197,7 @@ inline void register_unavailable(const char *name, ObjectType type) {
         size_t end = all.find('\n');
         std::string_view variant = all.substr(0, end);
         all = end == std::string_view::npos ? std::string_view() : all.substr(end + 1);
-        if (variant.empty() || served_variant(variant))
+        if (variant.empty() || served_variant(name, variant))
             continue;
         entries.push_back({ name, std::string(variant) });
         PluginManager::instance()->register_plugin(
@@ -185,7 +205,8 @@ inline void register_unavailable(const char *name, ObjectType type) {
             [](void *payload, const Properties &) -> ref<Object> {
                 auto *u = static_cast<const Unavailable *>(payload);
                 Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb and "
-                      "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\")",
+                      "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\"), and "
+                      "fluo_illuminant, fluo_jung and fluo_path also in llvm_ad_rgb and llvm_ad_spectral",
                       u->name, u->variant);
             },
             nullptr, &entries.back());

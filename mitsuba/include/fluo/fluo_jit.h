@@ -1,0 +1,144 @@
+// fluo's plugins in Mitsuba's vectorised (JIT) variants, llvm_ad_rgb and llvm_ad_spectral.
+//
+// Dr.Jit cannot trace calls into Rust, so in these variants Rust runs at load time and in
+// parameters_changed() only: it validates the parameters and bakes tables (absorption CDFs,
+// reduced matrices, RGB parts), which the shims evaluate per lane with Dr.Jit types. The
+// scalar variants keep calling Rust per sample and are the reference the JIT shims are tested
+// against (tests/python/test_llvm.py: same images within noise, same values at random points).
+//
+// This header holds what every JIT shim shares: the registration for the llvm variants, the
+// interface fluo_path reaches fluorescent BSDFs through (dr::dispatch), and the closed forms
+// of Jung's dye (differentiable in its parameters).
+#pragma once
+
+#include <mitsuba/core/distr_1d.h>
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/render/bsdf.h>
+
+#include <array>
+#include <tuple>
+#include <vector>
+
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// Register plugin class template T for llvm_ad_rgb and llvm_ad_spectral (the name must be
+/// one of jit_plugins() in fluo_common.h, which keeps the "not available" stub off them).
+template <template <typename, typename> class T> void register_llvm_plugin(const char *name, ObjectType type) {
+    if (!served_variant(name, "llvm_ad_rgb"))
+        Throw("fluo: plugin \"%s\" is registered for llvm but not listed in jit_plugins()", name);
+    using LFloat = dr::DiffArray<JitBackend::LLVM, float>;
+    PluginManager *pm = PluginManager::instance();
+    pm->register_plugin(
+        name, "llvm_ad_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Color<LFloat, 3>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "llvm_ad_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Spectrum<LFloat, 4>>(p); },
+        nullptr, nullptr);
+}
+
+/// dr::dispatch exists for JIT pointer arrays only; a scalar pointer is called directly.
+template <typename Ptr, typename Func, typename... Args>
+auto dispatch_any(const Ptr &self, const Func &func, const Args &...args) {
+    if constexpr (dr::is_jit_v<Ptr>)
+        return dr::dispatch(self, func, args...);
+    else
+        return func(self, args...);
+}
+
+/// A single-lane JIT (or scalar) value read on the host.
+template <typename Float> double host_value(const Float &v) {
+    if constexpr (dr::is_jit_v<Float>)
+        return (double) dr::slice(dr::detach(v), 0);
+    else
+        return (double) v;
+}
+
+/// Jung et al.'s dye in closed form (core/src/models/jung.rs has the equations and their
+/// reading; test_llvm.py holds these against the Rust model at random wavelengths):
+/// α = λe·s/(2λe − s), e(λ) = b(3(λ − λe)/α)·9/(8α), a(λ) = b(v − 3) with
+/// v = 3(2 − kλ)/(αk(kλ − 1)), k = 2/(λe − α), on the support ((λe−α)(λe+α)/(λe+3α), λe − α).
+/// Written with Dr.Jit types so that gradients reach λe and s.
+template <typename Value> struct JungDye {
+    Value peak, alpha, edge, k, lo;
+
+    template <typename Param> JungDye(const Param &emission_peak, const Param &stokes_shift) {
+        peak = Value(emission_peak);
+        Value s = Value(stokes_shift);
+        alpha = peak * s / (2.f * peak - s);
+        edge = peak - alpha;
+        k = 2.f / edge;
+        lo = edge * (peak + alpha) / (peak + 3.f * alpha);
+    }
+
+    /// Quadratic b-spline of eq. 3: support (−3, 3), b(0) = 1.
+    static Value bspline(const Value &x) {
+        Value ax = dr::abs(x), d = 3.f - ax;
+        return dr::select(ax <= 1.f, 1.f - x * x * (1.f / 3.f), dr::select(ax < 3.f, d * d * (1.f / 6.f), 0.f));
+    }
+
+    /// e(λ), nm⁻¹, unit integral (eq. 5).
+    Value emission(const Value &lambda) const {
+        return bspline(3.f * (lambda - peak) / alpha) * (9.f / 8.f) / alpha;
+    }
+
+    /// a(λ) ∈ [0, 1], peak 1 at λe − s (eq. 6, mirrored over wavenumber).
+    Value absorption(const Value &lambda) const {
+        dr::mask_t<Value> inside = lambda > lo && lambda < edge;
+        Value kl = k * lambda;
+        Value v = 3.f * (2.f - kl) / (alpha * k * (kl - 1.f));
+        return dr::select(inside, bspline(dr::select(inside, v, 0.f) - 3.f), 0.f);
+    }
+};
+
+/// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
+/// (core/src/sigmoid.rs).
+template <typename Value> Value sigmoid_polynomial(const Value &lambda, double c0, double c1, double c2) {
+    Value x = dr::fmadd(dr::fmadd(Value((float) c0), lambda, Value((float) c1)), lambda, Value((float) c2));
+    return .5f + .5f * x * dr::rsqrt(dr::fmadd(x, x, 1.f));
+}
+
+/// What fluo_path needs of a fluorescent BSDF in the JIT variants, per lane.
+template <typename Float, typename Spectrum> class JitBispectral {
+public:
+    MI_IMPORT_TYPES()
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    virtual ~JitBispectral() = default;
+
+    /// Host: whether the material re-emits at all (e.g. c > 0 and Q > 0).
+    virtual bool jit_fluorescent() const = 0;
+    /// Host: the emission range (nm) it re-emits into.
+    virtual fluo::Range jit_emission_range() const = 0;
+
+    /// RGB reduced transport: the vertex operator is Σ_t w_t·M_t with f = M/π, the K×K
+    /// matrices M_t reduced once per render for `transport` (host, row major, sized K·K
+    /// by the caller) and the weights w_t per lane (differentiable). Returns whether the
+    /// operator includes the elastic part (otherwise fluo_path adds jit_elastic_albedo as
+    /// per-band albedos).
+    static constexpr size_t MaxTerms = 3;
+    virtual bool jit_reduced_matrices(const fluo::TransportBasis &transport,
+                                      std::array<std::vector<double>, MaxTerms> &m) const = 0;
+    virtual std::array<Float, MaxTerms> jit_reduced_weights() const = 0;
+
+    /// Elastic albedo at si.wavelengths (spectral), or its linear sRGB (RGB variant).
+    virtual UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const = 0;
+
+    /// Spectral: per hero wavelength λo = si.wavelengths, choose the elastic event or a
+    /// shift to λi ∈ [range_lo, range_hi] (the lights' range), with uniform numbers u1
+    /// (choice), u2 (λi). Returns the wavelengths to continue with, the estimator's
+    /// weight (1/probability; detached) and which wavelengths shifted.
+    virtual std::tuple<Wavelength, UnpolarizedSpectrum, WMask> jit_choose(const SurfaceInteraction3f &si,
+                                                                         const Wavelength &u1,
+                                                                         const Wavelength &u2, double range_lo,
+                                                                         double range_hi, Mask active) const = 0;
+    /// Spectral: f_fl(λi = si.wavelengths, ωi, ωo, λo)·cos θo.
+    virtual UnpolarizedSpectrum jit_reradiation(const SurfaceInteraction3f &si, const Vector3f &wo,
+                                                const Wavelength &lambda_o, Mask active) const = 0;
+};
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)

@@ -1,0 +1,558 @@
+// fluo_path in the vectorised variants (llvm_ad_rgb, llvm_ad_spectral): Mitsuba's `path`
+// loop (dr::while_loop, one kernel) with the same fluorescence as the scalar fluo_path
+// (fluo_path.cpp documents the estimators and is the reference the tests hold this one
+// against): per-lane wavelength shifting in spectral variants, the 3×K reduced matrix
+// throughput in RGB ones. Fluorescent BSDFs are reached through dr::dispatch and the
+// interface of fluo_jit.h; Rust runs once per render (the scene scan, reduced matrices).
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/emitter.h>
+#include <mitsuba/render/integrator.h>
+#include <mitsuba/render/records.h>
+#include <mitsuba/render/scene.h>
+
+#include <array>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <unordered_map>
+#include <unordered_set>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+#include "fluo_jit.h"
+#include "fluo_path_loop.h"
+#include "fluo_path_scene.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+template <typename Float, typename Spectrum>
+class FluoPathJit final : public MonteCarloIntegrator<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
+    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape, Texture)
+    using Bispectral = fluo_detail::JitBispectral<Float, Spectrum>;
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+
+    static constexpr const char *Plugin = "fluo_path";
+    static constexpr size_t KMax = 7;
+
+    FluoPathJit(const Properties &props) : Base(props) {
+        m_lambda_min = fluo_detail::lambda_min_of(Plugin, props);
+        std::string basis(props.get<std::string_view>("basis", "x7")), method(props.get<std::string_view>("method", "ours"));
+        m_transport = fluo_detail::rust_call(Plugin, [&] { return fluo::transport_new(basis, method); });
+        m_k = fluo::transport_size(**m_transport);
+        if (m_k != 3 && m_k != 4 && m_k != KMax)
+            Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4 and %zu", Plugin, basis, m_k,
+                  KMax);
+        m_output.resize(3 * m_k);
+        m_from_rgb.resize(3 * m_k);
+        m_white.resize(m_k);
+        fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
+        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
+        fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
+    }
+
+    using Base::render;
+    TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
+                    bool evaluate) override {
+        prepare(scene);
+        return Base::render(scene, sensor, seed, spp, develop, evaluate);
+    }
+
+    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                     const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
+        if (unlikely(m_max_depth == 0))
+            return { 0.f, false };
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (!m_entries.empty()) {
+                if (m_k == 3)
+                    return sample_reduced<3>(scene, sampler, ray, active);
+                if (m_k == 4)
+                    return sample_reduced<4>(scene, sampler, ray, active);
+                return sample_reduced<KMax>(scene, sampler, ray, active);
+            }
+        }
+        return sample_spectral(scene, sampler, ray, active);
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << "FluoPath[" << std::endl
+            << "  max_depth = " << m_max_depth << "," << std::endl
+            << "  rr_depth = " << m_rr_depth << "," << std::endl
+            << "  lambda_min = " << m_lambda_min << "," << std::endl
+            << "  basis = " << fluo::transport_name(**m_transport) << " (K = " << m_k << ")," << std::endl
+            << "  fluorescent_bsdfs = " << m_entries.size() << "," << std::endl
+            << "  excitation_range = [" << m_range_lo << ", " << m_range_hi << "]," << std::endl
+            << "  variant = vectorised" << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    MI_DECLARE_CLASS(FluoPathJit)
+
+private:
+    /// A fluorescent BSDF and, in RGB variants, its reduced operator Σ w_i·M_i (f = M/π).
+    struct Entry {
+        const BSDF *bsdf;
+        const Bispectral *bispectral;
+        bool full = false; ///< the operator includes the elastic part
+        std::array<std::vector<double>, Bispectral::MaxTerms> m;
+    };
+
+    /// A fluo_illuminant emitter's basis coefficients (RGB variants).
+    struct Source {
+        std::vector<double> coeffs;
+        double luminance;
+    };
+
+    /// Once per render: the fluorescent BSDFs (refusing wrappers, which the vectorised
+    /// loop cannot see through), the emitters' spectral range and, in RGB variants,
+    /// reduced matrices and the emitters' basis coefficients.
+    void prepare(Scene *scene) {
+        m_entries.clear();
+        m_sources.clear();
+        std::unordered_set<const Object *> direct;
+        for (const auto &shape : scene->shapes())
+            direct.insert(shape->bsdf());
+        fluo_detail::Collector c;
+        for (const auto &shape : scene->shapes())
+            c.visit(const_cast<Shape *>(shape.get()));
+        double lo = 1e30, hi = -1e30;
+        for (const auto &emitter : scene->emitters()) {
+            fluo_detail::Collector ce;
+            ce.visit(const_cast<Emitter *>(emitter.get()));
+            bool found = false;
+            for (Object *o : ce.objects) {
+                if (auto *tex = dynamic_cast<Texture *>(o)) {
+                    ScalarVector2f r = tex->wavelength_range();
+                    lo = std::min(lo, (double) r.x());
+                    hi = std::max(hi, (double) r.y());
+                    found = true;
+                }
+                if (auto *src = dynamic_cast<SpectralSource *>(o); src && is_rgb_v<Spectrum> &&
+                                                                    !m_sources.count(emitter.get())) {
+                    Source s{ std::vector<double>(m_k), src->rgb_luminance() };
+                    fluo::illuminant_coefficients(src->illuminant(), **m_transport,
+                                                  rust::Slice<double>(s.coeffs.data(), m_k));
+                    m_sources.emplace(emitter.get(), s);
+                }
+            }
+            if (!found) {
+                lo = std::min(lo, (double) MI_CIE_MIN);
+                hi = std::max(hi, (double) MI_CIE_MAX);
+            }
+        }
+        lo = std::max(lo, m_lambda_min);
+        for (Object *o : c.objects) {
+            auto *b = dynamic_cast<Bispectral *>(o);
+            if (!b || !b->jit_fluorescent())
+                continue;
+            if (!direct.count(o))
+                Throw("%s: a fluorescent material is wrapped in another BSDF (twosided, blendbsdf, mask, ...), "
+                      "which the vectorised variants cannot see through yet (its fluorescence would be lost): "
+                      "use it directly, or render in scalar_spectral/scalar_rgb", Plugin);
+            Entry e{ dynamic_cast<const BSDF *>(o), b };
+            hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
+            if constexpr (is_rgb_v<Spectrum>) {
+                for (auto &m : e.m)
+                    m.assign(m_k * m_k, 0.0);
+                e.full = fluo_detail::rust_call(Plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
+            }
+            m_entries.push_back(std::move(e));
+        }
+        m_range_lo = lo;
+        m_range_hi = hi;
+        if (scene->emitters().empty())
+            m_entries.clear();
+    }
+
+    const Entry *find(const BSDF *b) const {
+        for (const Entry &e : m_entries)
+            if (e.bsdf == b)
+                return &e;
+        return nullptr;
+    }
+
+    static Float mis_weight(const Float &a, const Float &b) { return dr::detach<true>(fluo_detail::mis_weight(a, b)); }
+
+    // ------------------------------------------------------------ spectral (and no fluorescence)
+    struct LoopState {
+        Ray3f ray;
+        PreliminaryIntersection3f pi;
+        Spectrum throughput, result;
+        Float eta;
+        UInt32 depth;
+        Mask valid_ray;
+        Interaction3f prev_si;
+        Float prev_bsdf_pdf;
+        Bool prev_bsdf_delta, active;
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopState, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
+                     prev_bsdf_delta, active, sampler)
+    };
+
+    std::pair<Spectrum, Bool> sample_spectral(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                              Bool active) const {
+        LoopState ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Spectrum(1.f), Spectrum(0.f),
+                         Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
+                         dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
+        ls.pi = scene->ray_intersect_preliminary(ls.ray, true, false, 0, 0, ls.active);
+        const bool fluorescent = is_spectral_v<Spectrum> && !m_entries.empty();
+        const double range_lo = m_range_lo, range_hi = m_range_hi;
+
+        dr::tie(ls) = dr::while_loop(
+            dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
+            [this, scene, fluorescent, range_lo, range_hi](LoopState &ls) {
+                BSDFContext bsdf_ctx;
+                SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+
+                // ---------------------- Direct emission ----------------------
+                if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
+                    DirectionSample3f ds(scene, si, ls.prev_si);
+                    Float em_pdf = 0.f;
+                    if (dr::any_or<true>(!ls.prev_bsdf_delta))
+                        em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
+                    Float mis_bsdf = mis_weight(ls.prev_bsdf_pdf, em_pdf);
+                    ls.result = dr::fmadd(ls.throughput, ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f) * mis_bsdf,
+                                          ls.result);
+                }
+
+                Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+                if (dr::none_or<false>(active_next)) {
+                    ls.active = active_next;
+                    return;
+                }
+                BSDFPtr bsdf = si.bsdf(ls.ray);
+
+                // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
+                Wavelength lambda_o = si.wavelengths;
+                UnpolarizedSpectrum scale = 1.f;
+                WMask shifted = false;
+                if (fluorescent) {
+                    Wavelength u1, u2;
+                    for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
+                        Point2f u = ls.sampler->next_2d(active_next);
+                        u1[j] = u.x();
+                        u2[j] = u.y();
+                    }
+                    auto [li, sc, sh] = fluo_detail::dispatch_any(
+                        bsdf,
+                        [range_lo, range_hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
+                                             const Wavelength &u2_, const Mask &on) {
+                            if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                                return f->jit_choose(si_, u1_, u2_, range_lo, range_hi, on);
+                            return std::tuple<Wavelength, UnpolarizedSpectrum, WMask>(
+                                si_.wavelengths, UnpolarizedSpectrum(1.f), WMask(false));
+                        },
+                        si, u1, u2, active_next);
+                    Mask has_bsdf = active_next && bsdf != nullptr;
+                    si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
+                    scale = dr::select(has_bsdf, sc, 1.f);
+                    shifted = WMask(has_bsdf) && sh;
+                }
+
+                // ---------------------- Emitter sampling ----------------------
+                Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+                DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+                Spectrum em_weight = dr::zeros<Spectrum>();
+                Vector3f wo = dr::zeros<Vector3f>();
+                if (dr::any_or<true>(active_em)) {
+                    std::tie(ds, em_weight) = scene->sample_emitter_direction(si, ls.sampler->next_2d(), true, active_em);
+                    active_em &= (ds.pdf != 0.f);
+                    wo = si.to_local(ds.d);
+                }
+
+                // ------ Evaluate BSDF * cos(theta) and sample direction -------
+                Float sample_1 = ls.sampler->next_1d();
+                Point2f sample_2 = ls.sampler->next_2d();
+                auto [bsdf_val, bsdf_pdf, bsdf_sample, bsdf_weight] =
+                    bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+
+                if (fluorescent) {
+                    auto [v_em, v_bs] = fluo_detail::dispatch_any(
+                        bsdf,
+                        [](const BSDF *b, const SurfaceInteraction3f &si_, const Vector3f &wo1, const Vector3f &wo2,
+                           const Wavelength &lo, const Mask &on) {
+                            if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                                return std::make_pair(f->jit_reradiation(si_, wo1, lo, on),
+                                                      f->jit_reradiation(si_, wo2, lo, on));
+                            return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                        },
+                        si, wo, bsdf_sample.wo, lambda_o, active_next);
+                    bsdf_val = dr::select(shifted, v_em, bsdf_val) * scale;
+                    UnpolarizedSpectrum w_bs = dr::select(bsdf_sample.pdf > 0.f, v_bs / bsdf_sample.pdf, 0.f);
+                    bsdf_weight = dr::select(shifted, w_bs, bsdf_weight) * scale;
+                }
+
+                if (dr::any_or<true>(active_em)) {
+                    Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                    ls.result[active_em] = dr::fmadd(ls.throughput, bsdf_val * em_weight * mis_em, ls.result);
+                }
+
+                // ---------------------- BSDF sampling ----------------------
+                ls.ray = si.spawn_ray(si.to_world(bsdf_sample.wo)); // carries the shifted wavelengths
+                ls.throughput *= bsdf_weight;
+                ls.eta *= bsdf_sample.eta;
+                ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bsdf_sample.sampled_type, BSDFFlags::Null);
+                ls.prev_si = Interaction3f(si);
+                ls.prev_bsdf_pdf = bsdf_sample.pdf;
+                ls.prev_bsdf_delta = has_flag(bsdf_sample.sampled_type, BSDFFlags::Delta);
+
+                // -------------------- Stopping criterion ---------------------
+                dr::masked(ls.depth, si.is_valid()) += 1;
+                Float throughput_max = dr::max(unpolarized_spectrum(ls.throughput));
+                Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
+                Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
+                ls.throughput[rr_active] *= dr::rcp(dr::detach(rr_prob));
+                ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+                ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+            });
+
+        return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
+    }
+
+    // ------------------------------------------------------------ RGB: reduced transport
+    template <size_t K> struct LoopStateR {
+        Ray3f ray;
+        PreliminaryIntersection3f pi;
+        Color3f t;                 ///< RGB throughput until the first fluorescent vertex
+        dr::Array<Float, 3 * K> R; ///< then the 3×K matrix throughput
+        Mask reduced;
+        Color3f result;
+        Float eta;
+        UInt32 depth;
+        Mask valid_ray;
+        Interaction3f prev_si;
+        Float prev_bsdf_pdf;
+        Bool prev_bsdf_delta, active;
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopStateR, ray, pi, t, R, reduced, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
+                     prev_bsdf_delta, active, sampler)
+    };
+
+    template <size_t K> using Coeffs = dr::Array<Float, K>;
+    template <size_t K> using Square = dr::Array<Float, K * K>;
+    template <size_t K> using Rows = dr::Array<Float, 3 * K>;
+
+    /// Per-band albedo a_k = (F·v)_k / (F·1)_k of an RGB value (a native BSDF on the K
+    /// coefficients; fluo_transport_reduced.h's band_albedo).
+    template <size_t K> Coeffs<K> band_albedo(const Color3f &v) const {
+        Coeffs<K> d;
+        Float mean = (v[0] + v[1] + v[2]) * (1.f / 3.f);
+        for (size_t k = 0; k < K; ++k) {
+            double w = m_white[k];
+            if (std::abs(w) > 1e-12)
+                d[k] = ((float) m_from_rgb[3 * k] * v[0] + (float) m_from_rgb[3 * k + 1] * v[1] +
+                        (float) m_from_rgb[3 * k + 2] * v[2]) * (float) (1.0 / w);
+            else
+                d[k] = mean;
+        }
+        return d;
+    }
+
+    /// Basis coefficients of an emitter's radiance `le` (RGB): a fluo_illuminant's own
+    /// coefficients rescaled to the radiance's luminance, else F·le.
+    template <size_t K> Coeffs<K> emitter_coefficients(const EmitterPtr &emitter, const Color3f &le,
+                                                        const Mask &active) const {
+        Coeffs<K> plain;
+        for (size_t k = 0; k < K; ++k)
+            plain[k] = (float) m_from_rgb[3 * k] * le[0] + (float) m_from_rgb[3 * k + 1] * le[1] +
+                       (float) m_from_rgb[3 * k + 2] * le[2];
+        if (m_sources.empty())
+            return plain;
+        const auto *sources = &m_sources;
+        auto [is_src, coeffs, lum] = fluo_detail::dispatch_any(
+            emitter,
+            [sources](const Emitter *e, const Mask &) {
+                Coeffs<K> c = dr::zeros<Coeffs<K>>();
+                auto it = sources->find(e);
+                if (it == sources->end())
+                    return std::make_tuple(Mask(false), c, Float(1.f));
+                for (size_t k = 0; k < K; ++k)
+                    c[k] = (float) it->second.coeffs[k];
+                return std::make_tuple(Mask(true), c, Float((float) it->second.luminance));
+            },
+            active);
+        Float y = 0.212671f * le[0] + 0.715160f * le[1] + 0.072169f * le[2];
+        Float s = dr::select(lum > 0.f, y / lum, 0.f);
+        return dr::select(is_src, coeffs * s, plain);
+    }
+
+    /// R·M (3×K times K×K).
+    template <size_t K> static Rows<K> mul(const Rows<K> &R, const Square<K> &M) {
+        Rows<K> out;
+        for (size_t r = 0; r < 3; ++r)
+            for (size_t j = 0; j < K; ++j) {
+                Float acc = R[r * K] * M[j];
+                for (size_t k = 1; k < K; ++k)
+                    acc = dr::fmadd(R[r * K + k], M[k * K + j], acc);
+                out[r * K + j] = acc;
+            }
+        return out;
+    }
+    /// R·c (3×K times K).
+    template <size_t K> static Color3f apply(const Rows<K> &R, const Coeffs<K> &c) {
+        Color3f out;
+        for (size_t r = 0; r < 3; ++r) {
+            Float acc = R[r * K] * c[0];
+            for (size_t k = 1; k < K; ++k)
+                acc = dr::fmadd(R[r * K + k], c[k], acc);
+            out[r] = acc;
+        }
+        return out;
+    }
+    /// R·diag(d).
+    template <size_t K> static Rows<K> scale_columns(Rows<K> R, const Coeffs<K> &d) {
+        for (size_t r = 0; r < 3; ++r)
+            for (size_t j = 0; j < K; ++j)
+                R[r * K + j] *= d[j];
+        return R;
+    }
+
+    template <size_t K>
+    std::pair<Spectrum, Bool> sample_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                             Bool active) const {
+        if constexpr (!is_rgb_v<Spectrum>) {
+            return { 0.f, false };
+        } else {
+            Rows<K> O; // R = diag(t)·O at the first fluorescent vertex
+            for (size_t i = 0; i < 3 * K; ++i)
+                O[i] = (float) m_output[i];
+            LoopStateR<K> ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Color3f(1.f),
+                                 dr::zeros<Rows<K>>(), Mask(false), Color3f(0.f), Float(1.f), UInt32(0),
+                                 Mask(!m_hide_emitters && scene->environment() != nullptr), dr::zeros<Interaction3f>(),
+                                 Float(1.f), Bool(true), active, sampler };
+            ls.pi = scene->ray_intersect_preliminary(ls.ray, true, false, 0, 0, ls.active);
+
+            dr::tie(ls) = dr::while_loop(
+                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
+                [this, scene, O](LoopStateR<K> &ls) {
+                    BSDFContext bsdf_ctx;
+                    SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+
+                    if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
+                        DirectionSample3f ds(scene, si, ls.prev_si);
+                        Float em_pdf = 0.f;
+                        if (dr::any_or<true>(!ls.prev_bsdf_delta))
+                            em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
+                        Float mis_bsdf = mis_weight(ls.prev_bsdf_pdf, em_pdf);
+                        Mask hit = ds.emitter != nullptr;
+                        Color3f le = ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f);
+                        Color3f c = dr::select(ls.reduced, apply<K>(ls.R, emitter_coefficients<K>(ds.emitter, le, hit)),
+                                               ls.t * le);
+                        ls.result = dr::fmadd(c, mis_bsdf, ls.result);
+                    }
+
+                    Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+                    if (dr::none_or<false>(active_next)) {
+                        ls.active = active_next;
+                        return;
+                    }
+                    BSDFPtr bsdf = si.bsdf(ls.ray);
+
+                    Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+                    DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+                    Spectrum em_weight = dr::zeros<Spectrum>();
+                    Vector3f wo = dr::zeros<Vector3f>();
+                    if (dr::any_or<true>(active_em)) {
+                        std::tie(ds, em_weight) =
+                            scene->sample_emitter_direction(si, ls.sampler->next_2d(), true, active_em);
+                        active_em &= (ds.pdf != 0.f);
+                        wo = si.to_local(ds.d);
+                    }
+                    Float sample_1 = ls.sampler->next_1d();
+                    Point2f sample_2 = ls.sampler->next_2d();
+                    auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+                        bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+
+                    // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
+                    // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian).
+                    auto [is_fl, A] = fluo_detail::dispatch_any(
+                        bsdf,
+                        [this](const BSDF *b, const SurfaceInteraction3f &si_, const Mask &on) {
+                            Square<K> a = dr::zeros<Square<K>>();
+                            const Entry *e = find(b);
+                            if (!e)
+                                return std::make_pair(Mask(false), a);
+                            auto w = e->bispectral->jit_reduced_weights();
+                            for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                                for (size_t i = 0; i < K * K; ++i)
+                                    if (e->m[t][i] != 0.0)
+                                        a[i] = dr::fmadd(w[t], (float) e->m[t][i], a[i]);
+                            if (!e->full) {
+                                Coeffs<K> d = band_albedo<K>(e->bispectral->jit_elastic_albedo(si_, on));
+                                for (size_t k = 0; k < K; ++k)
+                                    a[k * K + k] += d[k];
+                            }
+                            return std::make_pair(Mask(true), a);
+                        },
+                        si, active_next);
+                    is_fl &= active_next;
+                    Float cos_i = Frame3f::cos_theta(si.wi);
+                    auto lambert = [&](const Vector3f &w) {
+                        return dr::select(cos_i > 0.f && Frame3f::cos_theta(w) > 0.f,
+                                          Frame3f::cos_theta(w) * dr::InvPi<Float>, 0.f);
+                    };
+                    Mask matrix = ls.reduced || is_fl;
+                    Rows<K> R; // the matrix throughput, diag(t)·O on first entering it
+                    for (size_t r = 0; r < 3; ++r)
+                        for (size_t k = 0; k < K; ++k)
+                            R[r * K + k] = dr::select(ls.reduced, ls.R[r * K + k], O[r * K + k] * ls.t[r]);
+
+                    if (dr::any_or<true>(active_em)) {
+                        Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                        Coeffs<K> c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+                        Color3f v_fl = apply<K>(mul<K>(R, A), c) * lambert(wo);
+                        Color3f v_red = apply<K>(scale_columns<K>(R, band_albedo<K>(bsdf_val)), c);
+                        Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));
+                        ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
+                    }
+
+                    Float f_bs = dr::select(bs.pdf > 0.f, lambert(bs.wo) / bs.pdf, 0.f);
+                    Rows<K> R_fl = mul<K>(R, A * f_bs);
+                    Rows<K> R_red = scale_columns<K>(R, band_albedo<K>(bsdf_weight));
+                    ls.R = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
+                    ls.t = dr::select(matrix, ls.t, ls.t * bsdf_weight);
+                    ls.reduced = matrix;
+
+                    ls.ray = si.spawn_ray(si.to_world(bs.wo));
+                    ls.eta *= bs.eta;
+                    ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
+                    ls.prev_si = Interaction3f(si);
+                    ls.prev_bsdf_pdf = bs.pdf;
+                    ls.prev_bsdf_delta = has_flag(bs.sampled_type, BSDFFlags::Delta);
+
+                    dr::masked(ls.depth, si.is_valid()) += 1;
+                    Float r_max = dr::abs(ls.R[0]);
+                    for (size_t i = 1; i < 3 * K; ++i)
+                        r_max = dr::maximum(r_max, dr::abs(ls.R[i]));
+                    Float throughput_max = dr::select(ls.reduced, r_max, dr::max(ls.t));
+                    Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
+                    Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
+                    Float inv = dr::rcp(dr::detach(rr_prob));
+                    ls.R[rr_active] *= inv;
+                    ls.t[rr_active] *= inv;
+                    ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+                    ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+                });
+            // Out-of-gamut colours are clipped per sample, as in the scalar variant.
+            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+        }
+    }
+
+    double m_lambda_min = 300.0;
+    std::optional<rust::Box<fluo::TransportBasis>> m_transport;
+    size_t m_k = 3;
+    std::vector<double> m_output, m_from_rgb, m_white;
+    std::vector<Entry> m_entries;
+    std::unordered_map<const Emitter *, Source> m_sources;
+    double m_range_lo = 0.0, m_range_hi = 0.0;
+};
+
+static const bool fluo_path_jit_registered =
+    (fluo_detail::register_llvm_plugin<FluoPathJit>("fluo_path", ObjectType::Integrator), true);
+
+NAMESPACE_END(mitsuba)
