@@ -3,7 +3,8 @@
 # incremental when already done):
 #   1. .venv with Python >= 3.11,
 #   2. the pinned Python dependencies + pytest + this project (editable) into it,
-#   3. cargo build --release (the workspace) -> target/release/libfluo_mitsuba.so, fluo-rs.
+#   3. cargo build --release (the workspace) -> target/release/libfluo_mitsuba.so, fluo-rs,
+#   4. LLVM 19 for Dr.Jit's llvm variants (Debian's libllvm19, installed when missing).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 
@@ -47,4 +48,21 @@ for artefact in target/release/libfluo_mitsuba.so target/release/fluo-rs; do
         exit 1
     fi
 done
+# 4. Dr.Jit's llvm variants (llvm_ad_rgb, llvm_ad_spectral) load libLLVM at run time.
+if [[ -n ${DRJIT_LIBLLVM_PATH:-} ]] || ldconfig -p 2>/dev/null | grep -q 'libLLVM-19\.so\|libLLVM\.so\.19'; then
+    say "libLLVM 19 present"
+else
+    say "installing libllvm19 (apt-get) for the llvm variants"
+    sudo_=""
+    if (( EUID != 0 )) && command -v sudo >/dev/null 2>&1; then sudo_="sudo"; fi
+    if ! { $sudo_ apt-get install -y -q libllvm19 >/dev/null 2>&1 ||
+           { $sudo_ apt-get update -q >/dev/null 2>&1 && $sudo_ apt-get install -y -q libllvm19 >/dev/null 2>&1; }; }; then
+        say "warning: could not install libllvm19; the llvm variants (and their tests) will fail to start." >&2
+        say "         Install LLVM >= 11 and set DRJIT_LIBLLVM_PATH to its libLLVM.so." >&2
+    fi
+fi
+if ! .venv/bin/python -c 'import mitsuba as mi; mi.set_variant("llvm_ad_rgb"); import drjit as dr; dr.eval(dr.arange(mi.Float, 4))' 2>/dev/null; then
+    say "warning: Mitsuba's llvm_ad_rgb variant does not start (no usable libLLVM)" >&2
+fi
+
 say "ready: $PWD/target/release/libfluo_mitsuba.so, $PWD/target/release/fluo-rs, $PWD/.venv/bin/fluo"

@@ -215,31 +215,12 @@ private:
     /// Scan the scene once per render for the variant's transport: fluorescent BSDFs,
     /// their wrappers, and what the emitters emit.
     void prepare(Scene *scene) {
-        warn_if_media(scene);
+        fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
         Base::m_wrappers.clear();
         if constexpr (is_rgb_v<Spectrum>)
             m_reduced.prepare(scene, Base::m_wrappers);
         else
             m_spectral.prepare(scene, Base::m_wrappers, m_lambda_min, Plugin);
-    }
-
-    /// Like Mitsuba's path, fluo_path does not trace participating media: say so once
-    /// per scene when a shape or sensor has one (a fluorescent medium would otherwise
-    /// render as empty space without a word).
-    void warn_if_media(const Scene *scene) {
-        if (m_media_warned == scene)
-            return;
-        bool media = false;
-        for (const auto &shape : scene->shapes())
-            media |= shape->interior_medium() != nullptr || shape->exterior_medium() != nullptr;
-        for (const auto &sensor : scene->sensors())
-            media |= sensor->medium() != nullptr;
-        if (!media)
-            return;
-        m_media_warned = scene;
-        Log(Warn, "%s: the scene has participating media, which %s does not trace (as Mitsuba's path): "
-                  "they render as empty space. Use <integrator type=\"fluo_volpath\"/> for media, "
-                  "fluorescent (fluo_qd_medium, fluo_dye_medium) or not.", Plugin, Plugin);
     }
 
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media

@@ -106,12 +106,14 @@ private:
     struct Source {
         std::vector<double> coeffs;
         double luminance;
+        const fluo::Illuminant *illuminant;
     };
 
     /// Once per render: the fluorescent BSDFs (refusing wrappers, which the vectorised
     /// loop cannot see through), the emitters' spectral range and, in RGB variants,
     /// reduced matrices and the emitters' basis coefficients.
     void prepare(Scene *scene) {
+        fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
         m_entries.clear();
         m_sources.clear();
         std::unordered_set<const Object *> direct;
@@ -134,7 +136,7 @@ private:
                 }
                 if (auto *src = dynamic_cast<SpectralSource *>(o); src && is_rgb_v<Spectrum> &&
                                                                     !m_sources.count(emitter.get())) {
-                    Source s{ std::vector<double>(m_k), src->rgb_luminance() };
+                    Source s{ std::vector<double>(m_k), src->rgb_luminance(), &src->illuminant() };
                     fluo::illuminant_coefficients(src->illuminant(), **m_transport,
                                                   rust::Slice<double>(s.coeffs.data(), m_k));
                     m_sources.emplace(emitter.get(), s);
@@ -162,6 +164,14 @@ private:
                 e.full = fluo_detail::rust_call(Plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
             }
             m_entries.push_back(std::move(e));
+        }
+        if (is_rgb_v<Spectrum> && !m_entries.empty() && m_uv_warned != scene) {
+            for (const auto &[emitter, src] : m_sources)
+                if (fluo::illuminant_is_mostly_uv(*src.illuminant)) {
+                    fluo_detail::warn_uv_emitter(Plugin, "llvm_ad_rgb", emitter);
+                    m_uv_warned = scene;
+                    break;
+                }
         }
         m_range_lo = lo;
         m_range_hi = hi;
@@ -550,6 +560,8 @@ private:
     std::vector<Entry> m_entries;
     std::unordered_map<const Emitter *, Source> m_sources;
     double m_range_lo = 0.0, m_range_hi = 0.0;
+    const Scene *m_uv_warned = nullptr;    ///< the scene last warned of a UV emitter
+    const Scene *m_media_warned = nullptr; ///< the scene last warned of media
 };
 
 static const bool fluo_path_jit_registered =

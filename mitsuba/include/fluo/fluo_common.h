@@ -5,6 +5,7 @@
 // They serve the scalar variants only (Dr.Jit cannot trace calls into Rust).
 #pragma once
 
+#include <mitsuba/core/logger.h>
 #include <mitsuba/core/plugin.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/core/spectrum.h>
@@ -96,6 +97,15 @@ inline double lambda_min_of(const char *plugin, const Properties &props) {
         Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm", plugin, lambda_min,
               LambdaMinLo, LambdaMinHi);
     return lambda_min;
+}
+
+/// Reduced RGB transport's warning for an emitter whose radiance is mostly ultraviolet.
+inline void warn_uv_emitter(const char *plugin, const char *variant, const Object *emitter) {
+    std::string name = emitter->id().empty() ? std::string(emitter->class_name()) : std::string(emitter->id());
+    Log(Warn, "%s (%s): emitter %s is mostly ultraviolet; reduced transport carries it in one UV band, which "
+              "can misstate UV-excited fluorescence several times over (a narrow 365 nm lamp: ~5x too dark, see "
+              "`fluo-rs saturated-report`). Render UV-lit scenes in a spectral variant where that matters.",
+        plugin, variant, name);
 }
 
 /// Parse "a, b, c" (commas and/or spaces) into exactly N doubles.

@@ -38,6 +38,25 @@ struct Collector : TraversalCallback {
     void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
 };
 
+/// Like Mitsuba's path, fluo_path does not trace participating media: say so once per
+/// scene (`warned` remembers the last one) when a shape or sensor has one (a fluorescent
+/// medium would otherwise render as empty space without a word).
+template <typename Scene> void warn_if_media(const char *plugin, const Scene *scene, const Scene *&warned) {
+    if (warned == scene)
+        return;
+    bool media = false;
+    for (const auto &shape : scene->shapes())
+        media |= shape->interior_medium() != nullptr || shape->exterior_medium() != nullptr;
+    for (const auto &sensor : scene->sensors())
+        media |= sensor->medium() != nullptr;
+    if (!media)
+        return;
+    warned = scene;
+    Log(Warn, "%s: the scene has participating media, which %s does not trace (as Mitsuba's path): "
+              "they render as empty space. Use <integrator type=\"fluo_volpath\"/> for media, "
+              "fluorescent (fluo_qd_medium, fluo_dye_medium) or not.", plugin, plugin);
+}
+
 /// Direct children of an object as (name, object), in traverse order.
 struct Children : TraversalCallback {
     std::vector<std::pair<std::string, Object *>> list;

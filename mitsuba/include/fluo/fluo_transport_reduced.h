@@ -120,12 +120,7 @@ public:
                     if (!warned_uv && !m_entries.empty() && fluo::illuminant_is_mostly_uv(src->illuminant())) {
                         warned_uv = true;
                         m_uv_warned = scene;
-                        Log(Warn, "%s (scalar_rgb): emitter %s is mostly ultraviolet; reduced transport "
-                                  "carries it in one UV band, which can misstate UV-excited fluorescence "
-                                  "several times over (a narrow 365 nm lamp: ~5x too dark, see `fluo-rs "
-                                  "saturated-report`). Render UV-lit scenes in scalar_spectral where that "
-                                  "matters.", m_plugin,
-                            emitter->id().empty() ? std::string(emitter->class_name()) : emitter->id());
+                        fluo_detail::warn_uv_emitter(m_plugin, "scalar_rgb", emitter.get());
                     }
                     break;
                 }

@@ -1,0 +1,55 @@
+"""Render jobs in an llvm variant in a fresh process, for the tests (not a test module).
+
+Mitsuba 3.8 cannot load a scene in an llvm variant in a process that has rendered in a
+scalar variant ("jit_assemble(): variable ... scheduled in wrong ThreadState", with
+Mitsuba's own plugins alone), and pytest renders scalar scenes first; so tests hand their
+llvm renders to this script: ``python llvm_worker.py '<json list of jobs>'``. A job is
+``{"variant", "xml" (scene text) or "file" (path), "params" (substitutions), "spp",
+"seed", "integrator" (optional: replaces the scene's integrator by this plugin name)}``.
+It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
+per-pixel image (``"image": true`` in the job), or the error message.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import mitsuba as mi
+import numpy as np
+
+
+def run(job: dict) -> dict:
+    mi.set_variant(job["variant"])
+    import fluo  # noqa: F401  (registers the plugins)
+
+    params = job.get("params", {})
+    if "xml" in job:
+        scene = mi.load_string(job["xml"], **params)
+    else:
+        scene = mi.load_file(job["file"], **params)
+    kwargs = {}
+    if "integrator" in job:
+        kwargs["integrator"] = mi.load_dict({"type": job["integrator"], "max_depth": job.get("max_depth", 6)})
+    img = np.array(mi.render(scene, spp=job["spp"], seed=job.get("seed", 0), **kwargs), dtype=np.float64)
+    out = {"mean": img.mean(axis=(0, 1)).tolist(), "finite": bool(np.isfinite(img).all())}
+    if job.get("image"):
+        out["image"] = img.tolist()
+    return out
+
+
+def main() -> None:
+    results = []
+    for job in json.loads(sys.argv[1]):
+        try:
+            results.append(run(job))
+        except Exception as err:  # reported to the test, which decides (with its causes:
+            text, cause = str(err), err.__cause__  # render errors are chained by Dr.Jit)
+            while cause is not None:
+                text, cause = f"{text}\ncaused by: {cause}", cause.__cause__
+            results.append({"error": text})
+    print("RESULT " + json.dumps(results))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""fluo_illuminant, fluo_jung and fluo_path in the vectorised variants (llvm_ad_rgb,
+llvm_ad_spectral) against the scalar variants, which call the Rust reference per sample.
+
+The llvm renders run in a fresh process (``llvm_worker.py``: Mitsuba 3.8 cannot load an
+llvm scene after a scalar render in one process). Each comparison renders the scene twice
+in the scalar variant (seeds 0 and 1) and once in llvm, and tests every channel's mean with
+a z-score: the per-pixel Monte Carlo variance is estimated from the two scalar images,
+var ≈ mean((a − b)²)/2, so the llvm mean must lie within Z standard errors of the scalar
+one. Same estimator, same physics: only the random numbers differ.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import mitsuba as mi
+import numpy as np
+import pytest
+
+import fluo
+
+REPO = Path(__file__).resolve().parents[2]
+SCENES = REPO / "scenes"
+WORKER = Path(__file__).with_name("llvm_worker.py")
+#: Largest accepted |z| per channel. Path-traced pixels are heavy-tailed, so the variance
+#: estimate from a few images is itself noisy; 4.5 keeps false alarms rare while a 1 % bias
+#: of a box's mean (about 6 standard errors at 512 spp, 24²) still fails.
+Z = 4.5
+#: Differences below this fraction of the image mean pass whatever their z (the variance
+#: estimate can be small by chance); a missing or doubled glow is far larger.
+REL_FLOOR = 0.0075
+#: Scalar renders per comparison (their spread estimates the per-pixel variance).
+SCALAR_SEEDS = 3
+
+
+def run_llvm(jobs: list[dict], timeout: int = 600) -> list[dict]:
+    """Run render jobs in a fresh process (llvm_worker.py documents the job format)."""
+    proc = subprocess.run([sys.executable, str(WORKER), json.dumps(jobs)], capture_output=True, text=True,
+                          timeout=timeout, cwd=REPO)
+    lines = [line[line.index("RESULT ") + 7:] for line in proc.stdout.splitlines() if "RESULT " in line]
+    assert proc.returncode == 0 and lines, f"llvm worker failed:\n{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}"
+    return json.loads(lines[-1])
+
+
+def scalar_images(variant: str, job: dict) -> tuple[np.ndarray, np.ndarray]:
+    mi.set_variant(variant)
+    params = job.get("params", {})
+    scene = mi.load_string(job["xml"], **params) if "xml" in job else mi.load_file(job["file"], **params)
+    kwargs = {}
+    if "integrator" in job:
+        kwargs["integrator"] = mi.load_dict({"type": job["integrator"], "max_depth": job.get("max_depth", 6)})
+    return np.stack([np.array(mi.render(scene, spp=job["spp"], seed=s, **kwargs), dtype=np.float64)
+                     for s in range(SCALAR_SEEDS)])
+
+
+def z_scores(scalar: np.ndarray, mean_llvm) -> np.ndarray:
+    """z of the llvm image mean against the mean of the scalar images (same settings)."""
+    m, n = scalar.shape[0], scalar.shape[1] * scalar.shape[2]
+    var = np.mean(np.var(scalar, axis=0, ddof=1), axis=(0, 1))  # per-pixel MC variance, per channel
+    se = np.sqrt(var / n * (1.0 + 1.0 / m))  # llvm mean (1 image) vs scalar mean (m images)
+    return (np.asarray(mean_llvm) - scalar.mean(axis=(0, 1, 2))) / np.maximum(se, 1e-12)
+
+
+def scene_job(file: Path, variant: str, spp: int, res: int = 24, **params) -> dict:
+    params = {"res": str(res), "spp": str(spp), **{k: str(v) for k, v in params.items()}}
+    return {"variant": variant, "file": str(file), "params": params, "spp": spp, "seed": 7}
+
+
+# (scene, llvm variant, extra params): the Jung bench box under D65 from 300 nm (every RGB
+# basis), the demo objects under a UV-only lamp, sigmoid coefficients, `color` (the cube).
+CASES = [
+    ("bench/jung_box.xml", "llvm_ad_spectral", {}),
+    ("bench/jung_box.xml", "llvm_ad_rgb", {"basis": "rgb"}),
+    ("bench/jung_box.xml", "llvm_ad_rgb", {"basis": "xyzu"}),
+    ("bench/jung_box.xml", "llvm_ad_rgb", {"basis": "x7"}),
+    ("fluo_path_uv.xml", "llvm_ad_spectral", {}),
+    ("fluo_path_uv.xml", "llvm_ad_rgb", {"basis": "x7"}),
+    ("jung_spheres.xml", "llvm_ad_spectral", {}),
+    ("jung_spheres.xml", "llvm_ad_rgb", {}),
+    ("bench/highlighter_box.xml", "llvm_ad_spectral", {}),
+    ("bench/highlighter_box.xml", "llvm_ad_rgb", {"basis": "x7"}),
+]
+
+
+def test01_llvm_images_equal_scalar_within_noise():
+    """Image means of llvm renders lie within Z standard errors of the scalar ones, in
+    both variants, every basis, UV-only light, coefficients and `color`."""
+    jobs = [scene_job(SCENES / s, v, spp=512, **p) for s, v, p in CASES]
+    results = run_llvm(jobs)
+    report, bad = [], []
+    for (s, v, p), job, res in zip(CASES, jobs, results):
+        assert "error" not in res, f"{s} {v} {p}: {res['error']}"
+        assert res["finite"], f"{s} {v}: non-finite pixels"
+        scalar = scalar_images(v.replace("llvm_ad_", "scalar_"), job)
+        assert scalar.mean() > 1e-3, f"{s}: the scalar image is black, the comparison would be empty"
+        z = z_scores(scalar, res["mean"])
+        line = (f"{s} {v} {p}: llvm {np.round(res['mean'], 4)} scalar "
+                f"{np.round(scalar.mean(axis=(0, 1, 2)), 4)} z {np.round(z, 2)}")
+        report.append(line)
+        rel = np.abs(np.asarray(res["mean"]) - scalar.mean(axis=(0, 1, 2))) / scalar.mean()
+        if np.any((np.abs(z) > Z) & (rel > REL_FLOOR)):
+            bad.append(line)
+    print("\n".join(report))
+    assert not bad, "llvm differs from scalar beyond noise:\n" + "\n".join(bad)
+
+
+def test02_without_fluorescence_fluo_path_is_path():
+    """Without fluorescent materials (every dye at concentration 0) llvm fluo_path renders
+    what llvm path renders (within noise), in both variants."""
+    xml = (SCENES / "bench" / "jung_box.xml").read_text().replace('name="concentration" value="0.9"',
+                                                                  'name="concentration" value="0"')
+    xml = xml.replace('name="concentration" value="1.0"', 'name="concentration" value="0"')
+    xml = xml.replace('filename="include/', f'filename="{SCENES / "bench" / "include"}/')
+    jobs = []
+    for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
+        for integ, seed in (("fluo_path", 1), ("path", 2), ("path", 3), ("path", 4)):
+            jobs.append({"variant": v, "xml": xml, "params": {"res": "24", "spp": "256", "basis": "x7",
+                                                              "method": "ours"},
+                         "spp": 256, "seed": seed, "integrator": integ, "image": True})
+    results = run_llvm(jobs)
+    for i in range(0, len(jobs), 4):
+        assert all("error" not in r for r in results[i:i + 4]), results[i:i + 4]
+        fl, *paths = (np.array(r["image"]) for r in results[i:i + 4])
+        z = z_scores(np.stack(paths), fl.mean(axis=(0, 1)))
+        assert np.all(np.abs(z) < Z), f"{jobs[i]['variant']}: fluo_path vs path z = {z}"
+
+
+def test03_other_plugins_and_unsupported_inputs_raise_clear_errors():
+    """In llvm: plugins of part II (fluo_qd, fluo_matrix, ...) raise "not available";
+    fluo_jung's textured parameters and colour textures, and a fluorescent material inside
+    a wrapper, raise errors that name what is missing instead of rendering without it."""
+    base = """<scene version="3.0.0"><integrator type="fluo_path"/>
+        <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
+        <integer name="height" value="4"/></film></sensor>
+        <emitter type="constant"><spectrum type="fluo_illuminant" name="radiance">
+        <string name="illuminant" value="D65"/></spectrum></emitter>
+        <shape type="sphere">{bsdf}</shape></scene>"""
+    cases = {
+        "qd": ('<bsdf type="fluo_qd"/>', 'fluo_qd: not available in variant "llvm_ad_spectral"'),
+        "textured": ('<bsdf type="fluo_jung"><texture type="checkerboard" name="concentration"/></bsdf>',
+                     'a texture for "concentration" is not available in the vectorised variants'),
+        "color_texture": ('<bsdf type="fluo_jung"><texture type="checkerboard" name="color"/></bsdf>',
+                          'a "color" texture is not available in the vectorised variants'),
+        "wrapped": ('<bsdf type="twosided"><bsdf type="fluo_jung"/></bsdf>', "wrapped in another BSDF"),
+        "bad_yield": ('<bsdf type="fluo_jung"><float name="quantum_yield" value="1.5"/></bsdf>',
+                      'quantum_yield'),
+    }
+    jobs = [{"variant": "llvm_ad_spectral", "xml": base.format(bsdf=b), "spp": 1} for b, _ in cases.values()]
+    for name in fluo.PLUGIN_KINDS:
+        if name in ("fluo_illuminant", "fluo_jung", "fluo_path"):
+            continue
+        kind = fluo.PLUGIN_KINDS[name]
+        if kind == "bsdf":
+            jobs.append({"variant": "llvm_ad_rgb", "xml": base.format(bsdf=f'<bsdf type="{name}"/>'), "spp": 1})
+    results = run_llvm(jobs)
+    for (name, (_, expected)), res in zip(cases.items(), results):
+        assert "error" in res and expected in res["error"], f"{name}: {res}"
+    for res in results[len(cases):]:
+        assert "error" in res and "not available in variant" in res["error"], res
