@@ -50,6 +50,8 @@ be luminance-normalised: give ``normalize = false``.
 In ``scalar_rgb`` it evaluates to the spectrum's linear sRGB (Mitsuba's conversion; a
 negligible grey of 1e-12 for a spectrum without visible energy), and ``fluo_path``'s
 reduced transport uses the spectrum's own basis coefficients, UV band included.
+In ``llvm_ad_spectral`` and ``llvm_ad_rgb`` it behaves the same, evaluated per lane
+(the spectral table is Mitsuba's own ``regular``/``irregular`` spectrum).
 
 .. tabs::
     .. code-tab:: xml

@@ -136,6 +136,22 @@ texture that does not vary, takes the uniform material's code path unchanged. Wi
 ``scalar_rgb`` its sRGB (transported as a per-band albedo), where a uniform material's
 reduced matrix carries it spectrally.
 
+**Vectorised variants** (``llvm_ad_rgb``, ``llvm_ad_spectral``; ``fluo_jung_jit.cpp``).
+The same material, evaluated per lane with Dr.Jit types: Rust validates the parameters
+and bakes, at load and after every ``mi.traverse`` update, the dye's absorption table
+(which samples excitation wavelengths; the weights use the closed forms, so the estimator
+stays unbiased), the RGB parts and the reduced matrices; per lane the shim evaluates
+Jung's closed forms (b-spline emission, absorption mirrored over wavenumber, the sigmoid)
+and Mitsuba's reflectance texture. Rendered with ``fluo_path`` it gives the scalar
+variants' images within noise (``test_llvm.py``). ``mi.traverse`` exposes
+``concentration``, ``quantum_yield``, ``emission_peak``, ``stokes_shift`` and the
+``reflectance`` texture as differentiable parameters: in ``llvm_ad_spectral`` gradients
+reach all of them; in ``llvm_ad_rgb`` the reduced operator is M_r − c·M_ra + c·Q·M_fl
+(exact in c and Q, so their gradients and the reflectance's are exact), while the dye's
+shape (λe, s) is baked into the reduced matrices per render and gets no gradient there.
+Not yet available in these variants (a clear error at load): textured numeric
+parameters and a ``color`` texture (a constant ``<rgb name="color">`` works).
+
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
 ``color_space``, a malformed cube) raise an error naming the parameter, its value

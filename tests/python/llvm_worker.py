@@ -5,9 +5,11 @@ scalar variant ("jit_assemble(): variable ... scheduled in wrong ThreadState", w
 Mitsuba's own plugins alone), and pytest renders scalar scenes first; so tests hand their
 llvm renders to this script: ``python llvm_worker.py '<json list of jobs>'``. A job is
 ``{"variant", "xml" (scene text) or "file" (path), "params" (substitutions), "spp",
-"seed", "integrator" (optional: replaces the scene's integrator by this plugin name)}``.
+"seed", "integrator" (optional: replaces the scene's integrator by this plugin name)}``,
+or ``{"variant", "bsdf" (a plugin dict), "points": [[wi, wo, wavelengths], ...]}`` to
+evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths.
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
-per-pixel image (``"image": true`` in the job), or the error message.
+per-pixel image (``"image": true`` in the job), the BSDF values, or the error message.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ def run(job: dict) -> dict:
     mi.set_variant(job["variant"])
     import fluo  # noqa: F401  (registers the plugins)
 
+    if "bsdf" in job:
+        return {"values": eval_bsdf(mi.load_dict(job["bsdf"]), job["points"])}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -35,6 +39,20 @@ def run(job: dict) -> dict:
     out = {"mean": img.mean(axis=(0, 1)).tolist(), "finite": bool(np.isfinite(img).all())}
     if job.get("image"):
         out["image"] = img.tolist()
+    return out
+
+
+def eval_bsdf(bsdf, points) -> list:
+    """bsdf.eval at each (wi, wo, wavelengths) point (local frame, uv = 0.5)."""
+    out = []
+    for wi, wo, wavelengths in points:
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(*wi)
+        si.uv = mi.Point2f(0.5, 0.5)
+        if mi.is_spectral:
+            si.wavelengths = type(si.wavelengths)(*wavelengths)
+        value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wo))
+        out.append([float(v) for v in np.array(value).ravel()])
     return out
 
 
