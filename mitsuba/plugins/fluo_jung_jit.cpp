@@ -74,8 +74,8 @@ public:
             return; // everything derives from the colour and the cube
         if (m_reflectance)
             cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
-        cb->put("emission_peak", m_peak, ParamFlags::Differentiable | ParamFlags::Discontinuous);
-        cb->put("stokes_shift", m_shift, ParamFlags::Differentiable | ParamFlags::Discontinuous);
+        cb->put("emission_peak", m_peak, ParamFlags::Differentiable);
+        cb->put("stokes_shift", m_shift, ParamFlags::Differentiable);
         cb->put("concentration", m_conc, ParamFlags::Differentiable);
         cb->put("quantum_yield", m_yield, ParamFlags::Differentiable);
     }

@@ -371,24 +371,18 @@ private:
         for (size_t k = 0; k < K; ++k)
             plain[k] = (float) m_from_rgb[3 * k] * le[0] + (float) m_from_rgb[3 * k + 1] * le[1] +
                        (float) m_from_rgb[3 * k + 2] * le[2];
-        if (m_sources.empty())
-            return plain;
-        const auto *sources = &m_sources;
-        auto [is_src, coeffs, lum] = fluo_detail::dispatch_any(
-            emitter,
-            [sources](const Emitter *e, const Mask &) {
-                Coeffs<K> c = dr::zeros<Coeffs<K>>();
-                auto it = sources->find(e);
-                if (it == sources->end())
-                    return std::make_tuple(Mask(false), c, Float(1.f));
-                for (size_t k = 0; k < K; ++k)
-                    c[k] = (float) it->second.coeffs[k];
-                return std::make_tuple(Mask(true), c, Float((float) it->second.luminance));
-            },
-            active);
+        // Emitters are compared by pointer (a handful per scene), without a virtual call.
+        Coeffs<K> c = plain;
         Float y = 0.212671f * le[0] + 0.715160f * le[1] + 0.072169f * le[2];
-        Float s = dr::select(lum > 0.f, y / lum, 0.f);
-        return dr::select(is_src, coeffs * s, plain);
+        for (const auto &[e, src] : m_sources) {
+            Mask is_src = active && emitter == EmitterPtr(e);
+            if (dr::none_or<false>(is_src))
+                continue;
+            Float s = src.luminance > 0.0 ? y * (float) (1.0 / src.luminance) : Float(0.f);
+            for (size_t k = 0; k < K; ++k)
+                c[k] = dr::select(is_src, s * (float) src.coeffs[k], c[k]);
+        }
+        return c;
     }
 
     /// R·M (3×K times K×K).
@@ -512,17 +506,18 @@ private:
                         for (size_t k = 0; k < K; ++k)
                             R[r * K + k] = dr::select(ls.reduced, ls.R[r * K + k], O[r * K + k] * ls.t[r]);
 
+                    Rows<K> RA = mul<K>(R, A); // once for both directions
                     if (dr::any_or<true>(active_em)) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                         Coeffs<K> c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
-                        Color3f v_fl = apply<K>(mul<K>(R, A), c) * lambert(wo);
+                        Color3f v_fl = apply<K>(RA, c) * lambert(wo);
                         Color3f v_red = apply<K>(scale_columns<K>(R, band_albedo<K>(bsdf_val)), c);
                         Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));
                         ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
                     }
 
                     Float f_bs = dr::select(bs.pdf > 0.f, lambert(bs.wo) / bs.pdf, 0.f);
-                    Rows<K> R_fl = mul<K>(R, A * f_bs);
+                    Rows<K> R_fl = RA * f_bs;
                     Rows<K> R_red = scale_columns<K>(R, band_albedo<K>(bsdf_weight));
                     ls.R = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
                     ls.t = dr::select(matrix, ls.t, ls.t * bsdf_weight);
