@@ -198,6 +198,6 @@ private:
 
 static const bool fluo_illuminant_registered =
     (fluo_detail::register_scalar_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture),
-     fluo_detail::register_llvm_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
+     fluo_detail::register_jit_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
 
 NAMESPACE_END(mitsuba)

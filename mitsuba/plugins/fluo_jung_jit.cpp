@@ -319,6 +319,6 @@ private:
 };
 
 static const bool fluo_jung_jit_registered =
-    (fluo_detail::register_llvm_plugin<FluoJungJit>("fluo_jung", ObjectType::BSDF), true);
+    (fluo_detail::register_jit_plugin<FluoJungJit>("fluo_jung", ObjectType::BSDF), true);
 
 NAMESPACE_END(mitsuba)

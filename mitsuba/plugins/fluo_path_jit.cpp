@@ -560,6 +560,6 @@ private:
 };
 
 static const bool fluo_path_jit_registered =
-    (fluo_detail::register_llvm_plugin<FluoPathJit>("fluo_path", ObjectType::Integrator), true);
+    (fluo_detail::register_jit_plugin<FluoPathJit>("fluo_path", ObjectType::Integrator), true);
 
 NAMESPACE_END(mitsuba)

@@ -182,7 +182,7 @@ inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
     return rust::Slice<float>(a.data(), a.size());
 }
 
-/// The plugins that also run in llvm_ad_rgb and llvm_ad_spectral (fluo_jit.h registers them).
+/// The plugins that also run in the vectorised variants (fluo_jit.h registers them).
 inline bool jit_plugin(std::string_view name) {
     return name == "fluo_illuminant" || name == "fluo_jung" || name == "fluo_path";
 }
@@ -191,7 +191,8 @@ inline bool jit_plugin(std::string_view name) {
 inline bool served_variant(std::string_view name, std::string_view variant) {
     if (variant == "scalar_rgb" || variant == "scalar_spectral")
         return true;
-    return jit_plugin(name) && (variant == "llvm_ad_rgb" || variant == "llvm_ad_spectral");
+    return jit_plugin(name) && (variant == "llvm_ad_rgb" || variant == "llvm_ad_spectral" ||
+                                variant == "cuda_ad_rgb" || variant == "cuda_ad_spectral");
 }
 
 /// Register, for every variant of the wheel (MI_VARIANTS) that the plugins do not
@@ -216,7 +217,8 @@ inline void register_unavailable(const char *name, ObjectType type) {
                 auto *u = static_cast<const Unavailable *>(payload);
                 Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb and "
                       "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\"), and "
-                      "fluo_illuminant, fluo_jung and fluo_path also in llvm_ad_rgb and llvm_ad_spectral",
+                      "fluo_illuminant, fluo_jung and fluo_path also in llvm_ad_rgb, llvm_ad_spectral, cuda_ad_rgb and "
+                      "cuda_ad_spectral",
                       u->name, u->variant);
             },
             nullptr, &entries.back());

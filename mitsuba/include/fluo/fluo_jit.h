@@ -1,4 +1,5 @@
-// fluo's plugins in Mitsuba's vectorised (JIT) variants, llvm_ad_rgb and llvm_ad_spectral.
+// fluo's plugins in Mitsuba's vectorised (JIT) variants: llvm_ad_rgb, llvm_ad_spectral and
+// the same code on the CUDA backend, cuda_ad_rgb and cuda_ad_spectral.
 //
 // Dr.Jit cannot trace calls into Rust, so in these variants Rust runs at load time and in
 // parameters_changed() only: it validates the parameters and bakes tables (absorption CDFs,
@@ -24,12 +25,15 @@
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
-/// Register plugin class template T for llvm_ad_rgb and llvm_ad_spectral (the name must be
-/// one of jit_plugins() in fluo_common.h, which keeps the "not available" stub off them).
-template <template <typename, typename> class T> void register_llvm_plugin(const char *name, ObjectType type) {
+/// Register plugin class template T for the vectorised variants: llvm_ad_rgb,
+/// llvm_ad_spectral, cuda_ad_rgb and cuda_ad_spectral (the same code on Dr.Jit's CUDA
+/// backend: it compiles without a GPU and runs where one is present). The name must be one
+/// of jit_plugin() in fluo_common.h, which keeps the "not available" stub off them.
+template <template <typename, typename> class T> void register_jit_plugin(const char *name, ObjectType type) {
     if (!served_variant(name, "llvm_ad_rgb"))
-        Throw("fluo: plugin \"%s\" is registered for llvm but not listed in jit_plugins()", name);
+        Throw("fluo: plugin \"%s\" is registered for the JIT variants but not listed in jit_plugin()", name);
     using LFloat = dr::DiffArray<JitBackend::LLVM, float>;
+    using CFloat = dr::DiffArray<JitBackend::CUDA, float>;
     PluginManager *pm = PluginManager::instance();
     pm->register_plugin(
         name, "llvm_ad_rgb", type,
@@ -38,6 +42,14 @@ template <template <typename, typename> class T> void register_llvm_plugin(const
     pm->register_plugin(
         name, "llvm_ad_spectral", type,
         [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Spectrum<LFloat, 4>>(p); },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "cuda_ad_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Color<CFloat, 3>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "cuda_ad_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Spectrum<CFloat, 4>>(p); },
         nullptr, nullptr);
 }
 
