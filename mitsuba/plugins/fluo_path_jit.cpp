@@ -186,6 +186,21 @@ private:
         return nullptr;
     }
 
+    /// First intersection of a camera ray, skipping area emitters when they are hidden
+    /// (as path.cpp and the scalar fluo_path do at depth 0).
+    PreliminaryIntersection3f camera_intersection(const Scene *scene, const Ray3f &ray, Mask active) const {
+        PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
+        if (m_hide_emitters) {
+            Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
+            if (dr::any_or<true>(skip)) {
+                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
+                PreliminaryIntersection3f behind = Base::skip_area_emitters(scene, si.spawn_ray(ray.d), true, skip);
+                pi = dr::select(skip, behind, pi);
+            }
+        }
+        return pi;
+    }
+
     static Float mis_weight(const Float &a, const Float &b) { return dr::detach<true>(fluo_detail::mis_weight(a, b)); }
 
     // ------------------------------------------------------------ spectral (and no fluorescence)
@@ -209,7 +224,7 @@ private:
         LoopState ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Spectrum(1.f), Spectrum(0.f),
                          Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                          dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
-        ls.pi = scene->ray_intersect_preliminary(ls.ray, true, false, 0, 0, ls.active);
+        ls.pi = camera_intersection(scene, ls.ray, ls.active);
         const bool fluorescent = is_spectral_v<Spectrum> && !m_entries.empty();
         const double range_lo = m_range_lo, range_hi = m_range_hi;
 
@@ -429,7 +444,7 @@ private:
                                  dr::zeros<Rows<K>>(), Mask(false), Color3f(0.f), Float(1.f), UInt32(0),
                                  Mask(!m_hide_emitters && scene->environment() != nullptr), dr::zeros<Interaction3f>(),
                                  Float(1.f), Bool(true), active, sampler };
-            ls.pi = scene->ray_intersect_preliminary(ls.ray, true, false, 0, 0, ls.active);
+            ls.pi = camera_intersection(scene, ls.ray, ls.active);
 
             dr::tie(ls) = dr::while_loop(
                 dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
