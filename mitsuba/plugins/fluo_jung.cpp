@@ -149,8 +149,11 @@ variants' images within noise (``test_llvm.py``). ``mi.traverse`` exposes
 reach all of them; in ``llvm_ad_rgb`` the reduced operator is M_r − c·M_ra + c·Q·M_fl
 (exact in c and Q, so their gradients and the reflectance's are exact), while the dye's
 shape (λe, s) is baked into the reduced matrices per render and gets no gradient there.
-Not yet available in these variants (a clear error at load): textured numeric
-parameters and a ``color`` texture (a constant ``<rgb name="color">`` works).
+A ``color`` texture works with nearest texels (each texel's dye, sigmoid and RGB
+albedo gathered per lane; its excitation wavelength is sampled uniformly over the texel's
+absorption band, weighted by the exact absorption: unbiased, a little noisier than the
+scalar variants' exact inversion). Not yet available in these variants (a clear error at
+load): textured numeric parameters and ``texel_interpolation = bilinear``.
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown

@@ -129,13 +129,20 @@ public:
     }
 
     // ------------------------------------------------ fluo_path's interface (fluo_jit.h)
-    bool jit_fluorescent() const override { return fluo::jung_is_fluorescent(**m_model); }
+    bool jit_fluorescent() const override {
+        if (m_texels) // RGB: a colour texture is a plain BSDF (the colour the cube reproduces)
+            return is_spectral_v<Spectrum> && fluo::jung_texture_is_fluorescent(**m_texture);
+        return fluo::jung_is_fluorescent(**m_model);
+    }
     fluo::Range jit_emission_range() const override {
-        return fluo::fluo_emission_range(fluo::jung_fluorescence(**m_model));
+        return fluo::fluo_emission_range(fluo::jung_fluorescence(
+            m_texels ? fluo::jung_texture_representative(**m_texture) : **m_model));
     }
     /// M = M_r − c·M_ra + c·Q·M_fl (fluo::jung_reduced_parts): exact for every c and Q.
     bool jit_reduced_matrices(const fluo::TransportBasis &transport,
                               std::array<std::vector<double>, MaxTerms> &m) const override {
+        if (m_texels)
+            Throw("%s: a \"color\" texture has no reduced operator (it renders as its RGB albedo)", Plugin);
         auto slice = [](std::vector<double> &v) { return rust::Slice<double>(v.data(), v.size()); };
         return fluo::jung_reduced_parts(**m_model, transport, slice(m[0]), slice(m[1]),
                                         slice(m[2]));
@@ -145,6 +152,8 @@ public:
     }
 
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
+        if (m_texels)
+            return texel_elastic(si, active);
         if constexpr (is_rgb_v<Spectrum>) {
             if (m_reflectance)
                 return m_reflectance->eval(si, active) * dr::clip(1.f - m_conc * m_rgb_absorbed_scale, 0.f, 1.f);
@@ -162,6 +171,8 @@ public:
         if constexpr (!is_spectral_v<Spectrum>) {
             return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false) };
         } else {
+            if (m_texels)
+                return texel_choose(si, u1, u2, range_lo, range_hi, active);
             // Probabilities are detached: gradients flow through the values only.
             Dye dye(dr::detach(m_peak), dr::detach(m_shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
@@ -193,8 +204,9 @@ public:
             return 0.f;
         } else {
             active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
-            Dye dye(m_peak, m_shift);
-            UnpolarizedSpectrum v = m_conc * m_yield * dye.absorption(si.wavelengths) * dye.emission(lambda_o) *
+            Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };
+            Dye dye(t.peak, t.shift);
+            UnpolarizedSpectrum v = t.conc * t.yield * dye.absorption(si.wavelengths) * dye.emission(lambda_o) *
                                     dr::InvPi<Float> * Frame3f::cos_theta(wo);
             return dr::select(WMask(active) && si.wavelengths < lambda_o, v, 0.f);
         }
@@ -262,6 +274,8 @@ private:
     /// channels of each part clipped, the reradiation scaled by the largest k ≤ 1 keeping
     /// every channel ≤ 1).
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_texels)
+            return texel_elastic(si, active);
         if constexpr (is_rgb_v<Spectrum>) {
             Color3f e = dr::clip(jit_elastic_albedo(si, active), 0.f, 1.f);
             Color3f f = dr::maximum(m_conc * m_yield * m_rgb_fluorescence, 0.f);
@@ -283,9 +297,6 @@ private:
             if (props.has_property(other))
                 Throw("%s: \"color\" sets the reflectance and fluorescence through the cube; "
                       "do not also specify \"%s\"", Plugin, other);
-        if (props.type("color") != Properties::Type::Color)
-            Throw("%s: a \"color\" texture is not available in the vectorised variants yet (it is in "
-                  "scalar_rgb and scalar_spectral); give an <rgb> value", Plugin);
         m_color_mode = true;
         std::string space(props.get<std::string_view>("color_space", "acescg"));
         std::string cube_file(props.get<std::string_view>("cube", ""));
@@ -293,13 +304,155 @@ private:
             cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
         std::string lookup(props.get<std::string_view>("lookup", "nearest"));
         bool use_fluorescence = props.get<bool>("fluorescence", true);
+        std::string interp(props.get<std::string_view>("texel_interpolation", "nearest"));
+        if (interp != "nearest")
+            Throw("%s: texel_interpolation = \"%s\" is not available in the vectorised variants yet (it is in "
+                  "scalar_rgb and scalar_spectral); use \"nearest\"", Plugin, interp);
         auto cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
+        if (props.type("color") == Properties::Type::Object) {
+            init_color_texture(props.get_texture<Texture>("color"), *cube, space, lookup, use_fluorescence);
+            return;
+        }
+        if (props.type("color") != Properties::Type::Color)
+            Throw("%s: \"color\" must be an <rgb> value or a bitmap texture", Plugin);
         ScalarColor3f c = props.get<ScalarColor3f>("color");
         std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
         m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
         m_config = rust_call(Plugin, [&] {
             return fluo::upsample_lookup(*cube, rust::Slice<const double>(rgb.data(), 3), lookup, use_fluorescence);
         });
+    }
+
+    /// A `color` texture: every texel's model, looked up once at load (Rust, the cube), and
+    /// its parameters as arrays gathered per lane at the hit's nearest texel (repeat wrap, as
+    /// the scalar variants). The scalar variants read all texels with the texture's own
+    /// eval_3 at texel centres; here one vectorised call does it.
+    void init_color_texture(const ref<Texture> &tex, const fluo::UpsampleCube &cube, const std::string &space,
+                            const std::string &lookup, bool use_fluorescence) {
+        using namespace fluo_detail;
+        if (!tex->is_spatially_varying())
+            Throw("%s: \"color\" is a constant texture; give it as <rgb name=\"color\" value=\"r, g, b\"/> "
+                  "(or as a raw bitmap texture)", Plugin);
+        ScalarVector2i res = tex->resolution();
+        if (!(res.x() > 0 && res.y() > 0))
+            Throw("%s: \"color\" texture has no texels", Plugin);
+        size_t w = (size_t) res.x(), h = (size_t) res.y(), n = w * h;
+        std::vector<float> texels(3 * n);
+        try {
+            UInt32 i = dr::arange<UInt32>((uint32_t) n);
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(n);
+            si.uv = Point2f((Float(i % (uint32_t) w) + .5f) / (float) w, (Float(i / (uint32_t) w) + .5f) / (float) h);
+            Color3f v = tex->eval_3(si, true);
+            for (size_t k = 0; k < 3; ++k) {
+                Float channel = v[k];
+                dr::eval(channel);
+                dr::store(texels.data() + k * n, channel); // planar, reordered below
+            }
+        } catch (const std::exception &e) {
+            Throw("%s: cannot read the \"color\" texture's RGB texels (it must be a 3-channel "
+                  "bitmap with <boolean name=\"raw\" value=\"true\"/>, holding linear %s): %s",
+                  Plugin, space, e.what());
+        }
+        std::vector<float> rgb(3 * n);
+        for (size_t t = 0; t < n; ++t)
+            for (size_t k = 0; k < 3; ++k)
+                rgb[3 * t + k] = texels[k * n + t];
+        m_texture = rust_call(Plugin, [&] {
+            return fluo::jung_texture_new(cube, w, h, rust::Slice<const float>(rgb.data(), rgb.size()), lookup,
+                                          use_fluorescence);
+        });
+        m_color_text = tfm::format("texture %zu x %zu %s, %zu distinct coefficient sets", w, h, space,
+                                   fluo::jung_texture_distinct(**m_texture));
+        std::vector<float> fields[TexelFields];
+        for (auto &f : fields)
+            f.resize(n);
+        for (size_t t = 0; t < n; ++t) {
+            int64_t x = (int64_t) (t % w), y = (int64_t) (t / w);
+            const fluo::JungModel &m = fluo::jung_texture_model(**m_texture, x, y);
+            fluo::JungConfig c = fluo::jung_config(m);
+            fluo::Rgb a = fluo::jung_texture_rgb(**m_texture, x, y);
+            double values[TexelFields] = { c.emission_peak, c.stokes_shift, c.concentration, c.quantum_yield,
+                                           c.c0, c.c1, c.c2, fluo::jung_absorption_integral(m), a.r, a.g, a.b };
+            for (size_t k = 0; k < TexelFields; ++k)
+                fields[k][t] = (float) values[k];
+        }
+        for (size_t k = 0; k < TexelFields; ++k)
+            m_texel_data[k] = dr::load<FloatStorage>(fields[k].data(), n);
+        m_res = res;
+        m_texels = true;
+        m_config = fluo::jung_config(fluo::jung_texture_representative(**m_texture)); // for rebuild()
+    }
+
+    /// Per-texel parameters (m_texel_data) in this order.
+    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TAbsorbed, TR, TG, TB, TexelFields };
+    using FloatStorage = DynamicBuffer<Float>;
+
+    /// A hit's dye: λe, s, c, Q.
+    struct Texel {
+        Float peak, shift, conc, yield;
+    };
+
+    /// Index of the hit's nearest texel (repeat wrap; uv that is not finite reads texel 0).
+    UInt32 texel_index(const SurfaceInteraction3f &si) const {
+        auto wrap = [](const Float &x, int size) {
+            Float f = dr::select(dr::isfinite(x), dr::floor(x * (float) size), 0.f);
+            Int32 i = Int32(f) % size;
+            return UInt32(dr::select(i < 0, i + size, i));
+        };
+        return wrap(si.uv.y(), m_res.y()) * (uint32_t) m_res.x() + wrap(si.uv.x(), m_res.x());
+    }
+
+    Float texel_field(TexelField k, const UInt32 &index, Mask active) const {
+        return dr::gather<Float>(m_texel_data[k], index, active);
+    }
+
+    Texel texel(const SurfaceInteraction3f &si, Mask active) const {
+        UInt32 i = texel_index(si);
+        return { texel_field(TPeak, i, active), texel_field(TShift, i, active), texel_field(TConc, i, active),
+                 texel_field(TYield, i, active) };
+    }
+
+    /// A colour texture's elastic albedo: r(λ)(1 − c a(λ)) of the texel's sigmoid and dye
+    /// (spectral), or the texel's RGB albedo (RGB variants, as the scalar ones).
+    UnpolarizedSpectrum texel_elastic(const SurfaceInteraction3f &si, Mask active) const {
+        UInt32 i = texel_index(si);
+        if constexpr (is_rgb_v<Spectrum>) {
+            return Color3f(texel_field(TR, i, active), texel_field(TG, i, active), texel_field(TB, i, active));
+        } else {
+            Dye dye(texel_field(TPeak, i, active), texel_field(TShift, i, active));
+            UnpolarizedSpectrum r = fluo_detail::sigmoid_polynomial(
+                si.wavelengths, texel_field(TC0, i, active), texel_field(TC1, i, active), texel_field(TC2, i, active));
+            return r * (1.f - texel_field(TConc, i, active) * dye.absorption(si.wavelengths));
+        }
+    }
+
+    /// A colour texture's elastic/shift choice: as for a uniform dye, but the excitation
+    /// wavelength is sampled uniformly over the part of the texel's absorption band inside
+    /// [range_lo, range_hi] (each texel has its own band; the weight uses the exact
+    /// absorption, so the estimate stays unbiased, at some extra variance), and the shift
+    /// probability uses the band's whole absorption integral.
+    std::tuple<Wavelength, UnpolarizedSpectrum, WMask> texel_choose(const SurfaceInteraction3f &si,
+                                                                    const Wavelength &u1, const Wavelength &u2,
+                                                                    double range_lo, double range_hi,
+                                                                    Mask active) const {
+        const Wavelength &lambda_o = si.wavelengths;
+        UInt32 i = texel_index(si);
+        Float peak = texel_field(TPeak, i, active), shift = texel_field(TShift, i, active);
+        Dye dye(peak, shift);
+        Float strength = texel_field(TConc, i, active) * texel_field(TYield, i, active);
+        UnpolarizedSpectrum we = dr::maximum(texel_elastic(si, active), 0.f);
+        UnpolarizedSpectrum lo = dr::maximum(dye.lo, (float) range_lo), hi = dr::minimum(dye.edge, (float) range_hi);
+        UnpolarizedSpectrum width = dr::maximum(hi - lo, 0.f);
+        UnpolarizedSpectrum wf = dr::select(width > 0.f, strength * dye.emission(lambda_o) *
+                                                             texel_field(TAbsorbed, i, active), 0.f);
+        UnpolarizedSpectrum total = we + wf;
+        WMask valid = WMask(active) && total > 0.f && dr::isfinite(total);
+        UnpolarizedSpectrum pe = dr::select(valid, we / total, 1.f);
+        WMask shifted = valid && u1 >= pe && wf > 0.f;
+        Wavelength lambda_i = dr::fmadd(u2, width, lo);
+        UnpolarizedSpectrum scale = dr::select(shifted, width / (1.f - pe), dr::rcp(pe));
+        scale = dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
+        return { dr::select(shifted, lambda_i, lambda_o), scale, shifted };
     }
 
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust
@@ -313,6 +466,10 @@ private:
             m_rgb_fluorescence = 0.f; ///< RGB variant: fluo::JungRgbParts of the unit dye
     bool m_color_mode = false;
     std::string m_color_text;
+    bool m_texels = false; ///< a `color` texture: per-texel dyes (below)
+    std::optional<rust::Box<fluo::JungTexture>> m_texture;
+    FloatStorage m_texel_data[TexelFields];
+    ScalarVector2i m_res = ScalarVector2i(0, 0);
 
     MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_absorption, m_rgb_reflectance,
                    m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)

@@ -209,6 +209,11 @@ mod bridge {
         fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool;
         /// Distinct coefficient sets among the texels.
         fn jung_texture_distinct(tex: &JungTexture) -> usize;
+        /// The configuration a model was built from (the vectorised shim bakes texels'
+        /// parameters into arrays from it).
+        fn jung_config(model: &JungModel) -> JungConfig;
+        /// ∫ a(λ) dλ over the model's whole absorption band, nm.
+        fn jung_absorption_integral(model: &JungModel) -> f64;
 
         // Textured numeric parameters (`emission_peak`, `stokes_shift`,
         // `concentration`, `quantum_yield`). The reradiation is linear in c·Q and the
@@ -895,6 +900,29 @@ fn jung_texture_rgb(tex: &JungTexture, x: i64, y: i64) -> Rgb {
 
 fn jung_texture_representative(tex: &JungTexture) -> &JungModel {
     &tex.models[tex.representative]
+}
+
+fn jung_config(model: &JungModel) -> JungConfig {
+    let p = model.dye.params();
+    let coefficients = match &model.generic.elastic {
+        Some(Reflectance::Sigmoid(s)) => Some(s.coefficients),
+        _ => None,
+    };
+    let [c0, c1, c2] = coefficients.unwrap_or([0.0; 3]);
+    JungConfig {
+        emission_peak: p.emission_peak,
+        stokes_shift: p.stokes_shift,
+        concentration: p.concentration,
+        quantum_yield: p.quantum_yield,
+        has_coefficients: coefficients.is_some(),
+        c0,
+        c1,
+        c2,
+    }
+}
+
+fn jung_absorption_integral(model: &JungModel) -> f64 {
+    model.dye.absorption_integral()
 }
 
 fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool {

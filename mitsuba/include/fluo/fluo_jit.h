@@ -109,8 +109,9 @@ template <typename Value> struct JungDye {
 
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
 /// (core/src/sigmoid.rs).
-template <typename Value> Value sigmoid_polynomial(const Value &lambda, double c0, double c1, double c2) {
-    Value x = dr::fmadd(dr::fmadd(Value((float) c0), lambda, Value((float) c1)), lambda, Value((float) c2));
+template <typename Value, typename Coeff>
+Value sigmoid_polynomial(const Value &lambda, const Coeff &c0, const Coeff &c1, const Coeff &c2) {
+    Value x = dr::fmadd(dr::fmadd(Value(c0), lambda, Value(c1)), lambda, Value(c2));
     return .5f + .5f * x * dr::rsqrt(dr::fmadd(x, x, 1.f));
 }
 
