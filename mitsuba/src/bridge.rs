@@ -1519,13 +1519,19 @@ fn jung_reduced_parts(
         }
     };
     let dye = &model.dye;
-    copy(t.0.reduce(&Operator::new(|_| 0.0, |li, lo| {
-            if lo > li {
-                dye.absorption(li) * dye.emission(lo)
-            } else {
-                0.0
-            }
-        })), reradiation);
+    copy(
+        t.0.reduce(&Operator::new(
+            |_| 0.0,
+            |li, lo| {
+                if lo > li {
+                    dye.absorption(li) * dye.emission(lo)
+                } else {
+                    0.0
+                }
+            },
+        )),
+        reradiation,
+    );
     let has_reflectance = model.generic.elastic.is_some();
     if has_reflectance {
         copy(t.0.reduce(&Operator::new(|l| model.reflectance(l), |_, _| 0.0)), reflectance);
