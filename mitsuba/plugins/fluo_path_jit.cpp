@@ -122,18 +122,12 @@ private:
         fluo_detail::Collector c;
         for (const auto &shape : scene->shapes())
             c.visit(const_cast<Shape *>(shape.get()));
-        double lo = 1e30, hi = -1e30;
+        fluo::Range lights = fluo_detail::emitters_range(scene);
+        double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
         for (const auto &emitter : scene->emitters()) {
             fluo_detail::Collector ce;
             ce.visit(const_cast<Emitter *>(emitter.get()));
-            bool found = false;
-            for (Object *o : ce.objects) {
-                if (auto *tex = dynamic_cast<Texture *>(o)) {
-                    ScalarVector2f r = tex->wavelength_range();
-                    lo = std::min(lo, (double) r.x());
-                    hi = std::max(hi, (double) r.y());
-                    found = true;
-                }
+            for (Object *o : ce.objects)
                 if (auto *src = dynamic_cast<SpectralSource *>(o); src && is_rgb_v<Spectrum> &&
                                                                     !m_sources.count(emitter.get())) {
                     Source s{ std::vector<double>(m_k), src->rgb_luminance(), &src->illuminant() };
@@ -141,13 +135,7 @@ private:
                                                   rust::Slice<double>(s.coeffs.data(), m_k));
                     m_sources.emplace(emitter.get(), s);
                 }
-            }
-            if (!found) {
-                lo = std::min(lo, (double) MI_CIE_MIN);
-                hi = std::max(hi, (double) MI_CIE_MAX);
-            }
         }
-        lo = std::max(lo, m_lambda_min);
         for (Object *o : c.objects) {
             auto *b = dynamic_cast<Bispectral *>(o);
             if (!b || !b->jit_fluorescent())
@@ -201,6 +189,58 @@ private:
         return pi;
     }
 
+    /// Emission found by a BSDF-sampled ray (as path.cpp): emitter, radiance, MIS weight.
+    template <typename State>
+    std::tuple<EmitterPtr, Spectrum, Float> hit_emission(const Scene *scene, const SurfaceInteraction3f &si,
+                                                         const State &ls) const {
+        DirectionSample3f ds(scene, si, ls.prev_si);
+        Float em_pdf = 0.f;
+        if (dr::any_or<true>(!ls.prev_bsdf_delta))
+            em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
+        return { ds.emitter, ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f), mis_weight(ls.prev_bsdf_pdf, em_pdf) };
+    }
+
+    /// Next-event estimation at a vertex with a smooth BSDF (as path.cpp): the direction
+    /// sample, the emitter's weight, the local direction and where the sample is valid.
+    std::tuple<DirectionSample3f, Spectrum, Vector3f, Mask> sample_emitter(const Scene *scene,
+                                                                           const SurfaceInteraction3f &si,
+                                                                           Sampler *sampler, const BSDFPtr &bsdf,
+                                                                           const Mask &active) const {
+        Mask active_em = active && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+        DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+        Spectrum em_weight = dr::zeros<Spectrum>();
+        Vector3f wo = dr::zeros<Vector3f>();
+        if (dr::any_or<true>(active_em)) {
+            std::tie(ds, em_weight) = scene->sample_emitter_direction(si, sampler->next_2d(), true, active_em);
+            active_em &= (ds.pdf != 0.f);
+            wo = si.to_local(ds.d);
+        }
+        return { ds, em_weight, wo, active_em };
+    }
+
+    /// The loop's bookkeeping after a BSDF sample (as path.cpp): the next ray, the alpha
+    /// mask, the previous vertex for MIS, and the depth.
+    template <typename State>
+    static void advance(State &ls, const SurfaceInteraction3f &si, const BSDFSample3f &bs) {
+        ls.ray = si.spawn_ray(si.to_world(bs.wo)); // carries the (shifted) wavelengths
+        ls.eta *= bs.eta;
+        ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
+        ls.prev_si = Interaction3f(si);
+        ls.prev_bsdf_pdf = bs.pdf;
+        ls.prev_bsdf_delta = has_flag(bs.sampled_type, BSDFFlags::Delta);
+        dr::masked(ls.depth, si.is_valid()) += 1;
+    }
+
+    /// Russian roulette on `throughput_max` (as path.cpp): returns where the throughput must
+    /// be scaled and by what, and ends the paths that stop.
+    template <typename State>
+    std::pair<Mask, Float> roulette(State &ls, const Float &throughput_max, const Mask &active_next) const {
+        Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
+        Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
+        ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+        return { rr_active, dr::rcp(dr::detach(rr_prob)) };
+    }
+
     static Float mis_weight(const Float &a, const Float &b) { return dr::detach<true>(fluo_detail::mis_weight(a, b)); }
 
     // ------------------------------------------------------------ spectral (and no fluorescence)
@@ -236,13 +276,8 @@ private:
 
                 // ---------------------- Direct emission ----------------------
                 if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
-                    DirectionSample3f ds(scene, si, ls.prev_si);
-                    Float em_pdf = 0.f;
-                    if (dr::any_or<true>(!ls.prev_bsdf_delta))
-                        em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
-                    Float mis_bsdf = mis_weight(ls.prev_bsdf_pdf, em_pdf);
-                    ls.result = dr::fmadd(ls.throughput, ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f) * mis_bsdf,
-                                          ls.result);
+                    auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
+                    ls.result = dr::fmadd(ls.throughput, le * mis_bsdf, ls.result);
                 }
 
                 Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
@@ -280,15 +315,7 @@ private:
                 }
 
                 // ---------------------- Emitter sampling ----------------------
-                Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
-                DirectionSample3f ds = dr::zeros<DirectionSample3f>();
-                Spectrum em_weight = dr::zeros<Spectrum>();
-                Vector3f wo = dr::zeros<Vector3f>();
-                if (dr::any_or<true>(active_em)) {
-                    std::tie(ds, em_weight) = scene->sample_emitter_direction(si, ls.sampler->next_2d(), true, active_em);
-                    active_em &= (ds.pdf != 0.f);
-                    wo = si.to_local(ds.d);
-                }
+                auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
 
                 // ------ Evaluate BSDF * cos(theta) and sample direction -------
                 Float sample_1 = ls.sampler->next_1d();
@@ -318,21 +345,12 @@ private:
                 }
 
                 // ---------------------- BSDF sampling ----------------------
-                ls.ray = si.spawn_ray(si.to_world(bsdf_sample.wo)); // carries the shifted wavelengths
                 ls.throughput *= bsdf_weight;
-                ls.eta *= bsdf_sample.eta;
-                ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bsdf_sample.sampled_type, BSDFFlags::Null);
-                ls.prev_si = Interaction3f(si);
-                ls.prev_bsdf_pdf = bsdf_sample.pdf;
-                ls.prev_bsdf_delta = has_flag(bsdf_sample.sampled_type, BSDFFlags::Delta);
+                advance(ls, si, bsdf_sample);
 
                 // -------------------- Stopping criterion ---------------------
-                dr::masked(ls.depth, si.is_valid()) += 1;
-                Float throughput_max = dr::max(unpolarized_spectrum(ls.throughput));
-                Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
-                Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
-                ls.throughput[rr_active] *= dr::rcp(dr::detach(rr_prob));
-                ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+                auto [rr_active, rr_scale] = roulette(ls, dr::max(unpolarized_spectrum(ls.throughput)), active_next);
+                ls.throughput[rr_active] *= rr_scale;
                 ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
             });
 
@@ -453,15 +471,10 @@ private:
                     SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
 
                     if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
-                        DirectionSample3f ds(scene, si, ls.prev_si);
-                        Float em_pdf = 0.f;
-                        if (dr::any_or<true>(!ls.prev_bsdf_delta))
-                            em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
-                        Float mis_bsdf = mis_weight(ls.prev_bsdf_pdf, em_pdf);
-                        Mask hit = ds.emitter != nullptr;
-                        Color3f le = ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f);
-                        Color3f c = dr::select(ls.reduced, apply<K>(ls.R, emitter_coefficients<K>(ds.emitter, le, hit)),
-                                               ls.t * le);
+                        auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
+                        Color3f c = dr::select(
+                            ls.reduced, apply<K>(ls.R, emitter_coefficients<K>(emitter, le, emitter != nullptr)),
+                            ls.t * le);
                         ls.result = dr::fmadd(c, mis_bsdf, ls.result);
                     }
 
@@ -472,16 +485,7 @@ private:
                     }
                     BSDFPtr bsdf = si.bsdf(ls.ray);
 
-                    Mask active_em = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
-                    DirectionSample3f ds = dr::zeros<DirectionSample3f>();
-                    Spectrum em_weight = dr::zeros<Spectrum>();
-                    Vector3f wo = dr::zeros<Vector3f>();
-                    if (dr::any_or<true>(active_em)) {
-                        std::tie(ds, em_weight) =
-                            scene->sample_emitter_direction(si, ls.sampler->next_2d(), true, active_em);
-                        active_em &= (ds.pdf != 0.f);
-                        wo = si.to_local(ds.d);
-                    }
+                    auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
                     Float sample_1 = ls.sampler->next_1d();
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
@@ -538,24 +542,14 @@ private:
                     ls.t = dr::select(matrix, ls.t, ls.t * bsdf_weight);
                     ls.reduced = matrix;
 
-                    ls.ray = si.spawn_ray(si.to_world(bs.wo));
-                    ls.eta *= bs.eta;
-                    ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
-                    ls.prev_si = Interaction3f(si);
-                    ls.prev_bsdf_pdf = bs.pdf;
-                    ls.prev_bsdf_delta = has_flag(bs.sampled_type, BSDFFlags::Delta);
+                    advance(ls, si, bs);
 
-                    dr::masked(ls.depth, si.is_valid()) += 1;
                     Float r_max = dr::abs(ls.R[0]);
                     for (size_t i = 1; i < 3 * K; ++i)
                         r_max = dr::maximum(r_max, dr::abs(ls.R[i]));
-                    Float throughput_max = dr::select(ls.reduced, r_max, dr::max(ls.t));
-                    Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
-                    Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
-                    Float inv = dr::rcp(dr::detach(rr_prob));
-                    ls.R[rr_active] *= inv;
-                    ls.t[rr_active] *= inv;
-                    ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+                    auto [rr_active, rr_scale] = roulette(ls, dr::select(ls.reduced, r_max, dr::max(ls.t)), active_next);
+                    ls.R[rr_active] *= rr_scale;
+                    ls.t[rr_active] *= rr_scale;
                     ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
                 });
             // Out-of-gamut colours are clipped per sample, as in the scalar variant.

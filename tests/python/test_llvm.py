@@ -21,6 +21,7 @@ import numpy as np
 import pytest
 
 import fluo
+from llvm_worker import eval_bsdf
 
 REPO = Path(__file__).resolve().parents[2]
 SCENES = REPO / "scenes"
@@ -188,22 +189,11 @@ def test04_bsdf_values_equal_the_rust_reference():
     for job, res in zip(jobs, results):
         assert "error" not in res, res
         mi.set_variant(job["variant"].replace("llvm_ad_", "scalar_"))
-        ref = eval_scalar(mi.load_dict(job["bsdf"]), points)
+        ref = np.array(eval_bsdf(mi.load_dict(job["bsdf"]), points))
         got = np.array(res["values"])
         assert np.abs(ref).max() > 1e-3
         np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-6, err_msg=f"{job['variant']} {job['bsdf']}")
 
-
-def eval_scalar(bsdf, points) -> np.ndarray:
-    out = []
-    for wi, wo, wavelengths in points:
-        si = mi.SurfaceInteraction3f()
-        si.wi = mi.Vector3f(*wi)
-        si.uv = mi.Point2f(0.5, 0.5)
-        if mi.is_spectral:
-            si.wavelengths = type(si.wavelengths)(*wavelengths)
-        out.append(np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wo)), dtype=np.float64).ravel())
-    return np.array(out)
 
 
 def test05_color_texture_per_texel():

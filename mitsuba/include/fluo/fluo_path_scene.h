@@ -57,6 +57,30 @@ template <typename Scene> void warn_if_media(const char *plugin, const Scene *sc
               "fluorescent (fluo_qd_medium, fluo_dye_medium) or not.", plugin, plugin);
 }
 
+/// Where the scene's light can start: the union of the wavelength ranges of the textures
+/// of every emitter (Mitsuba's 360-830 nm for an emitter without one), nm; empty
+/// (lo > hi) without emitters.
+template <typename Float, typename Spectrum> fluo::Range emitters_range(const Scene<Float, Spectrum> *scene) {
+    double lo = 1e30, hi = -1e30;
+    for (const auto &emitter : scene->emitters()) {
+        Collector c;
+        c.visit(const_cast<Emitter<Float, Spectrum> *>(emitter.get()));
+        bool found = false;
+        for (Object *o : c.objects)
+            if (auto *tex = dynamic_cast<Texture<Float, Spectrum> *>(o)) {
+                auto r = tex->wavelength_range();
+                lo = std::min(lo, (double) r.x());
+                hi = std::max(hi, (double) r.y());
+                found = true;
+            }
+        if (!found) {
+            lo = std::min(lo, (double) MI_CIE_MIN);
+            hi = std::max(hi, (double) MI_CIE_MAX);
+        }
+    }
+    return fluo::Range{ lo, hi };
+}
+
 /// Direct children of an object as (name, object), in traverse order.
 struct Children : TraversalCallback {
     std::vector<std::pair<std::string, Object *>> list;

@@ -48,23 +48,8 @@ public:
         m_entries.clear();
         m_shift_tables.clear();
         // Where can light exist? The union of the emitters' radiance spectra.
-        double lo = 1e30, hi = -1e30;
-        for (const auto &emitter : scene->emitters()) {
-            fluo_detail::Collector c;
-            c.visit(const_cast<Emitter *>(emitter.get()));
-            bool found = false;
-            for (Object *o : c.objects)
-                if (auto *tex = dynamic_cast<Texture *>(o)) {
-                    ScalarVector2f r = tex->wavelength_range();
-                    lo = std::min(lo, (double) r.x());
-                    hi = std::max(hi, (double) r.y());
-                    found = true;
-                }
-            if (!found) {
-                lo = std::min(lo, (double) MI_CIE_MIN);
-                hi = std::max(hi, (double) MI_CIE_MAX);
-            }
-        }
+        fluo::Range lights = fluo_detail::emitters_range(scene);
+        double lo = lights.lo, hi = lights.hi;
         if (scene->emitters().empty())
             return;
         lo = std::max(lo, lambda_min);
