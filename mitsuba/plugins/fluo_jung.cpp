@@ -9,6 +9,7 @@
 
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
+#include "fluo_jung_color.h"
 #include "fluo_lambertian.h"
 #include "fluo_param_texture.h"
 
@@ -516,26 +517,12 @@ private:
     /// a (raw) bitmap texture once.
     void init_color(const Properties &props) {
         using namespace fluo_detail;
-        for (const char *other : { "reflectance", "coefficients", "emission_peak", "stokes_shift",
-                                   "concentration", "quantum_yield" })
-            if (props.has_property(other))
-                Throw("%s: \"color\" sets the reflectance and fluorescence through the cube; "
-                      "do not also specify \"%s\"", Plugin, other);
+        JungColorOptions o = jung_color_options(Plugin, props);
         m_color_mode = true;
-        std::string space(props.get<std::string_view>("color_space", "acescg"));
-        std::string cube_file(props.get<std::string_view>("cube", ""));
-        if (!cube_file.empty())
-            cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
-        m_lookup = std::string(props.get<std::string_view>("lookup", "nearest"));
-        m_use_fluorescence = props.get<bool>("fluorescence", true);
-        std::string interp(props.get<std::string_view>("texel_interpolation", "nearest"));
-        if (interp != "nearest" && interp != "bilinear")
-            Throw("%s: invalid parameter \"texel_interpolation\" = \"%s\": valid values are \"nearest\", "
-                  "\"bilinear\"", Plugin, interp);
-        m_texel_bilinear = interp == "bilinear";
-        if (m_texel_bilinear && props.type("color") != Properties::Type::Object)
-            Throw("%s: \"texel_interpolation\" applies to a \"color\" texture, not to a constant colour",
-                  Plugin);
+        const std::string &space = o.space, &cube_file = o.cube_file;
+        m_lookup = o.lookup;
+        m_use_fluorescence = o.fluorescence;
+        m_texel_bilinear = o.bilinear;
         m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
         if (props.type("color") == Properties::Type::Color) {
             ScalarColor3f c = props.get<ScalarColor3f>("color");
@@ -547,9 +534,7 @@ private:
             });
             return;
         }
-        if (props.type("color") != Properties::Type::Object)
-            Throw("%s: \"color\" must be an <rgb> value or a bitmap texture", Plugin);
-        ref<Texture> tex = props.get_texture<Texture>("color");
+        ref<Texture> tex = props.get_texture<Texture>("color"); // jung_color_options checked the type
         if (!tex->is_spatially_varying())
             Throw("%s: \"color\" is a constant texture; give it as <rgb name=\"color\" value=\"r, g, b\"/> "
                   "(or as a raw bitmap texture)", Plugin);

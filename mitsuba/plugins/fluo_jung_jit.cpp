@@ -17,6 +17,7 @@
 
 #include "fluo_common.h"
 #include "fluo_jit.h"
+#include "fluo_jung_color.h"
 #include "fluo_lambertian.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -292,29 +293,18 @@ private:
     /// `color` (a constant <rgb>): the cube's dye and sigmoid, as in the scalar variants.
     void init_color(const Properties &props) {
         using namespace fluo_detail;
-        for (const char *other : { "reflectance", "coefficients", "emission_peak", "stokes_shift",
-                                   "concentration", "quantum_yield" })
-            if (props.has_property(other))
-                Throw("%s: \"color\" sets the reflectance and fluorescence through the cube; "
-                      "do not also specify \"%s\"", Plugin, other);
+        JungColorOptions o = jung_color_options(Plugin, props);
         m_color_mode = true;
-        std::string space(props.get<std::string_view>("color_space", "acescg"));
-        std::string cube_file(props.get<std::string_view>("cube", ""));
-        if (!cube_file.empty())
-            cube_file = mitsuba::file_resolver()->resolve(cube_file).string();
-        std::string lookup(props.get<std::string_view>("lookup", "nearest"));
-        bool use_fluorescence = props.get<bool>("fluorescence", true);
-        std::string interp(props.get<std::string_view>("texel_interpolation", "nearest"));
-        if (interp != "nearest")
-            Throw("%s: texel_interpolation = \"%s\" is not available in the vectorised variants yet (it is in "
-                  "scalar_rgb and scalar_spectral); use \"nearest\"", Plugin, interp);
+        const std::string &space = o.space, &cube_file = o.cube_file, &lookup = o.lookup;
+        bool use_fluorescence = o.fluorescence;
+        if (o.bilinear)
+            Throw("%s: texel_interpolation = \"bilinear\" is not available in the vectorised variants yet (it is "
+                  "in scalar_rgb and scalar_spectral); use \"nearest\"", Plugin);
         auto cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
-        if (props.type("color") == Properties::Type::Object) {
+        if (o.texture) {
             init_color_texture(props.get_texture<Texture>("color"), *cube, space, lookup, use_fluorescence);
             return;
         }
-        if (props.type("color") != Properties::Type::Color)
-            Throw("%s: \"color\" must be an <rgb> value or a bitmap texture", Plugin);
         ScalarColor3f c = props.get<ScalarColor3f>("color");
         std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
         m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
