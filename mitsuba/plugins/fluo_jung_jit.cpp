@@ -104,30 +104,7 @@ public:
         Base::parameters_changed(keys);
     }
 
-    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
-                                             Float /* sample1 */, const Point2f &sample2,
-                                             Mask active) const override {
-        return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return albedo(si, active); });
-    }
-
-    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-                  Mask active) const override {
-        return Lambertian<Float, Spectrum>::eval(ctx, si, wo, active, [&] { return albedo(si, active); });
-    }
-
-    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-              Mask active) const override {
-        return Lambertian<Float, Spectrum>::pdf(ctx, si, wo, active);
-    }
-
-    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
-                                        const Vector3f &wo, Mask active) const override {
-        return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return albedo(si, active); });
-    }
-
-    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {
-        return depolarizer<Spectrum>(albedo(si, active));
-    }
+    FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), (void) 0)
 
     // ------------------------------------------------ fluo_path's interface (fluo_jit.h)
     bool jit_fluorescent() const override {

@@ -67,4 +67,32 @@ template <typename Float, typename Spectrum> struct Lambertian {
     }
 };
 
+/// The BSDF methods (sample, eval, pdf, eval_pdf, eval_diffuse_reflectance) of a plugin
+/// whose lobe is Lambertian, in its class body: `ALBEDO` is an expression of `si` and
+/// `active` giving the albedo, `BEFORE_SAMPLE` a statement sample() runs first (e.g. the
+/// unmanaged-use warning; `(void) 0` for none).
+#define FLUO_LAMBERTIAN_BSDF_METHODS(ALBEDO, BEFORE_SAMPLE)                                                   \
+    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,          \
+                                             Float /* sample1 */, const Point2f &sample2, Mask active)        \
+        const override {                                                                                      \
+        BEFORE_SAMPLE;                                                                                        \
+        return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return ALBEDO; });         \
+    }                                                                                                         \
+    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo, Mask active)    \
+        const override {                                                                                      \
+        return Lambertian<Float, Spectrum>::eval(ctx, si, wo, active, [&] { return ALBEDO; });                \
+    }                                                                                                         \
+    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo, Mask active)        \
+        const override {                                                                                      \
+        return Lambertian<Float, Spectrum>::pdf(ctx, si, wo, active);                                         \
+    }                                                                                                         \
+    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,               \
+                                        const Vector3f &wo, Mask active) const override {                     \
+        return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return ALBEDO; });            \
+    }                                                                                                         \
+    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {           \
+        (void) active;                                                                                        \
+        return depolarizer<Spectrum>(ALBEDO);                                                                 \
+    }
+
 NAMESPACE_END(mitsuba)

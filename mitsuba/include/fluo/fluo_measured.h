@@ -94,31 +94,7 @@ public:
             check_index(m_index.get()); // a changed index map is validated again
     }
 
-    std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
-                                             Float /* sample1 */, const Point2f &sample2,
-                                             Mask active) const override {
-        this->warn_if_unmanaged(m_plugin);
-        return Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return albedo(si); });
-    }
-
-    Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-                  Mask active) const override {
-        return Lambertian<Float, Spectrum>::eval(ctx, si, wo, active, [&] { return albedo(si); });
-    }
-
-    Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-              Mask active) const override {
-        return Lambertian<Float, Spectrum>::pdf(ctx, si, wo, active);
-    }
-
-    std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
-                                        const Vector3f &wo, Mask active) const override {
-        return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return albedo(si); });
-    }
-
-    Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask /* active */) const override {
-        return depolarizer<Spectrum>(albedo(si));
-    }
+    FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si), this->warn_if_unmanaged(m_plugin))
 
     /// With an index texture: the fluorescent material with the longest emission
     /// (a representative for scene scans).
