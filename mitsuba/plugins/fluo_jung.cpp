@@ -232,21 +232,10 @@ public:
                 *fields[i] = get_float(Plugin, props, name, *fields[i]);
             }
         }
-        m_config.has_coefficients = props.has_property("coefficients");
-        if (props.has_property("color")) {
+        if (props.has_property("color"))
             init_color(props);
-        } else if (m_config.has_coefficients) {
-            if (props.has_property("reflectance"))
-                Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", Plugin);
-            auto c = parse_list<3>(Plugin, "coefficients",
-                                   std::string(props.get<std::string_view>("coefficients")));
-            m_config.c0 = c[0];
-            m_config.c1 = c[1];
-            m_config.c2 = c[2];
-        } else {
-            m_reflectance = props.get_texture<Texture>("reflectance", .5f);
-            check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
-        }
+        else
+            m_reflectance = jung_reflectance<Texture>(Plugin, props, m_config);
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();

@@ -46,20 +46,10 @@ public:
         m_config.stokes_shift = get_float(Plugin, props, "stokes_shift", m_config.stokes_shift);
         m_config.concentration = get_float(Plugin, props, "concentration", m_config.concentration);
         m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", m_config.quantum_yield);
-        m_config.has_coefficients = props.has_property("coefficients");
-        if (props.has_property("color")) {
+        if (props.has_property("color"))
             init_color(props);
-        } else if (m_config.has_coefficients) {
-            if (props.has_property("reflectance"))
-                Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", Plugin);
-            auto c = parse_list<3>(Plugin, "coefficients", std::string(props.get<std::string_view>("coefficients")));
-            m_config.c0 = c[0];
-            m_config.c1 = c[1];
-            m_config.c2 = c[2];
-        } else {
-            m_reflectance = props.get_texture<Texture>("reflectance", .5f);
-            check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
-        }
+        else
+            m_reflectance = jung_reflectance<Texture>(Plugin, props, m_config);
         m_peak = (ScalarFloat) m_config.emission_peak;
         m_shift = (ScalarFloat) m_config.stokes_shift;
         m_conc = (ScalarFloat) m_config.concentration;

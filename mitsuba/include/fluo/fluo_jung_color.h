@@ -1,6 +1,6 @@
-// fluo_jung's `color` options (wide-gamut upsampling through a coefficient cube), parsed
-// and checked once for the scalar shim (fluo_jung.cpp) and the vectorised one
-// (fluo_jung_jit.cpp).
+// fluo_jung's reflectance and `color` options (wide-gamut upsampling through a coefficient
+// cube), parsed and checked once for the scalar shim (fluo_jung.cpp) and the vectorised
+// one (fluo_jung_jit.cpp).
 #pragma once
 
 #include <mitsuba/core/fresolver.h>
@@ -48,6 +48,25 @@ inline JungColorOptions jung_color_options(const char *plugin, const Properties 
     if (o.bilinear && !o.texture)
         Throw("%s: \"texel_interpolation\" applies to a \"color\" texture, not to a constant colour", plugin);
     return o;
+}
+
+/// fluo_jung's elastic reflectance when no `color` is given: sigmoid `coefficients` (set in
+/// `config`; returns null) or a `reflectance` texture (default 0.5), checked to lie in [0, 1].
+template <typename Texture>
+ref<Texture> jung_reflectance(const char *plugin, const Properties &props, fluo::JungConfig &config) {
+    config.has_coefficients = props.has_property("coefficients");
+    if (!config.has_coefficients) {
+        ref<Texture> r = props.get_texture<Texture>("reflectance", .5f);
+        check_texture_range(plugin, "reflectance", r.get(), 0.0, 1.0);
+        return r;
+    }
+    if (props.has_property("reflectance"))
+        Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", plugin);
+    auto c = parse_list<3>(plugin, "coefficients", std::string(props.get<std::string_view>("coefficients")));
+    config.c0 = c[0];
+    config.c1 = c[1];
+    config.c2 = c[2];
+    return nullptr;
 }
 
 NAMESPACE_END(fluo_detail)
