@@ -73,9 +73,9 @@ public:
 
     void parameters_changed(const std::vector<std::string> &keys) override {
         // The JIT values keep their AD graph; Rust sees their detached values and
-        // re-bakes the tables (a rejected update restores the previous values).
+        // re-bakes the tables. A rejected update restores the previous values (m_config:
+        // the members already hold the rejected ones), so the material keeps working.
         fluo::JungConfig previous = m_config;
-        Float prev[4] = { m_peak, m_shift, m_conc, m_yield };
         try {
             m_config.emission_peak = fluo_detail::host_value(m_peak);
             m_config.stokes_shift = fluo_detail::host_value(m_shift);
@@ -84,10 +84,10 @@ public:
             rebuild();
         } catch (...) {
             m_config = previous;
-            m_peak = prev[0];
-            m_shift = prev[1];
-            m_conc = prev[2];
-            m_yield = prev[3];
+            m_peak = (ScalarFloat) previous.emission_peak;
+            m_shift = (ScalarFloat) previous.stokes_shift;
+            m_conc = (ScalarFloat) previous.concentration;
+            m_yield = (ScalarFloat) previous.quantum_yield;
             rebuild();
             throw;
         }

@@ -7,7 +7,10 @@ llvm renders to this script: ``python llvm_worker.py '<json list of jobs>'``. A 
 ``{"variant", "xml" (scene text) or "file" (path), "params" (substitutions), "spp",
 "seed", "integrator" (optional: replaces the scene's integrator by this plugin name)}``,
 or ``{"variant", "bsdf" (a plugin dict), "points": [[wi, wo, wavelengths], ...]}`` to
-evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths.
+evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths, or
+``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
+derivative of the image mean by automatic differentiation and by central differences
+(same seed) for each parameter of ``mi.traverse``.
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
 per-pixel image (``"image": true`` in the job), the BSDF values, or the error message.
 """
@@ -27,6 +30,8 @@ def run(job: dict) -> dict:
 
     if "bsdf" in job:
         return {"values": eval_bsdf(mi.load_dict(job["bsdf"]), job["points"])}
+    if "gradients" in job:
+        return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -53,6 +58,38 @@ def eval_bsdf(bsdf, points) -> list:
             si.wavelengths = type(si.wavelengths)(*wavelengths)
         value = bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(*wo))
         out.append([float(v) for v in np.array(value).ravel()])
+    return out
+
+
+def gradients(scene, steps: dict, spp: int, seed: int) -> dict:
+    """{key: [AD derivative, central difference]} of the mean image for each parameter, along
+    the parameter's all-ones direction (every channel of a colour moves together)."""
+    import drjit as dr
+
+    params = mi.traverse(scene)
+    out = {}
+    for key, h in steps.items():
+        x0 = type(params[key])(params[key])
+        t = mi.Float(0.0)
+        dr.enable_grad(t)
+        params[key] = x0 + t
+        params.update()
+        loss = dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None)
+        try:
+            dr.backward(loss)
+            ad = float(dr.grad(t)[0])
+        except RuntimeError as err:  # the image does not depend on it through differentiable code
+            if "does not depend on the input variable" not in str(err):
+                raise
+            ad = 0.0
+        values = []
+        for d in (-h, h):
+            params[key] = x0 + d
+            params.update()
+            values.append(float(dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None).array[0]))
+        params[key] = x0
+        params.update()
+        out[key] = [ad, (values[1] - values[0]) / (2 * h)]
     return out
 
 
