@@ -32,9 +32,11 @@ public:
     using fluo_detail::JitBispectral<Float, Spectrum>::MaxTerms;
 
     static constexpr const char *Plugin = "fluo_jung";
-    /// Nodes of the absorption table that samples excitation wavelengths (the values
-    /// weighting a sample are the closed form's: the table only shapes the variance).
-    static constexpr size_t AbsorptionNodes = 512;
+    /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
+    /// (in the b-spline coordinate, mapped to λ per lane: the table does not depend on the
+    /// dye, so parameter updates reuse the compiled kernels; the values weighting a sample
+    /// are the closed forms, the table shapes only the variance).
+    static constexpr size_t BsplineNodes = 601;
 
     FluoJungJit(const Properties &props) : Base(props) {
         using namespace fluo_detail;
@@ -54,6 +56,10 @@ public:
         m_shift = (ScalarFloat) m_config.stokes_shift;
         m_conc = (ScalarFloat) m_config.concentration;
         m_yield = (ScalarFloat) m_config.quantum_yield;
+        std::vector<float> b(BsplineNodes);
+        for (size_t i = 0; i < BsplineNodes; ++i)
+            b[i] = (float) fluo_detail::JungDye<double>::bspline(6.0 * (double) i / (double) (BsplineNodes - 1) - 3.0);
+        m_bspline = ContinuousDistribution<Wavelength>(ScalarVector2f(0.f, 6.f), b.data(), BsplineNodes);
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();
@@ -139,27 +145,35 @@ public:
         if constexpr (!is_spectral_v<Spectrum>) {
             return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false) };
         } else {
-            if (m_texels)
-                return texel_choose(si, u1, u2, range_lo, range_hi, active);
             // Probabilities are detached: gradients flow through the values only.
-            Dye dye(dr::detach(m_peak), dr::detach(m_shift));
+            Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };
+            Dye dye(dr::detach(t.peak), dr::detach(t.shift));
+            fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
-            double lo = std::max(range_lo, m_support_lo), hi = std::min(range_hi, m_support_hi);
-            UnpolarizedSpectrum wf = 0.f, cdf_lo = 0.f, mass = 0.f;
-            if (lo < hi && jit_fluorescent()) {
-                cdf_lo = m_absorption.eval_cdf(Wavelength((ScalarFloat) lo), active);
-                mass = m_absorption.eval_cdf(Wavelength((ScalarFloat) hi), active) - cdf_lo;
-                wf = dr::detach(m_conc * m_yield) * dye.emission(lambda_o) * mass;
-            }
+            // The excitation range: the dye's absorption band inside the lights' range, as
+            // an interval of the b-spline coordinate v (decreasing in λ).
+            Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
+            Mask overlap = active && hi > lo;
+            Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
+                  v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
+            Float cdf_a = m_bspline.eval_cdf(Wavelength(v_a), overlap)[0],
+                  mass = dr::select(overlap, m_bspline.eval_cdf(Wavelength(v_b), overlap)[0] - cdf_a, 0.f);
+            // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
+            // any positive value where the shift integrand is positive keeps the estimate
+            // unbiased; a close one keeps the variance low.
+            Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
+            UnpolarizedSpectrum wf =
+                dr::select(mass > 0.f, dr::detach(t.conc * t.yield) * dye.emission(lambda_o) * (mass * jacobian), 0.f);
             UnpolarizedSpectrum total = we + wf;
             WMask valid = WMask(active) && total > 0.f && dr::isfinite(total);
             UnpolarizedSpectrum pe = dr::select(valid, we / total, 1.f);
             WMask shifted = valid && u1 >= pe && wf > 0.f;
-            // λi from the table restricted to [lo, hi]: the unnormalised CDF at cdf_lo + u2·mass.
-            Wavelength lambda_i = m_absorption.sample((cdf_lo + u2 * mass) * m_absorption.normalization(), shifted);
-            UnpolarizedSpectrum pdf_i = m_absorption.eval_pdf(lambda_i, shifted) / mass;
-            UnpolarizedSpectrum scale =
-                dr::select(shifted, dr::rcp((1.f - pe) * pdf_i), dr::rcp(pe));
+            // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
+            // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
+            Wavelength v = m_bspline.sample((cdf_a + u2 * mass) * m_bspline.normalization(), shifted);
+            Wavelength lambda_i = dye.lambda_of(v);
+            UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
+            UnpolarizedSpectrum scale = dr::select(shifted, dr::rcp((1.f - pe) * pdf_i), dr::rcp(pe));
             shifted &= pdf_i > 0.f;
             scale = dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
             return { dr::select(shifted, lambda_i, lambda_o), scale, shifted };
@@ -204,16 +218,6 @@ private:
             return fluo::jung_shapes_new(rust::Slice<const double>(&peak, 1), rust::Slice<const double>(&shift, 1));
         });
         const fluo::JungModel &unit = fluo::jung_shapes_model(**m_unit, 0);
-        fluo::Range ex = fluo::fluo_excitation_range(fluo::jung_fluorescence(unit));
-        m_support_lo = ex.lo;
-        m_support_hi = ex.hi;
-        std::vector<float> lambda(AbsorptionNodes), a(AbsorptionNodes);
-        for (size_t i = 0; i < AbsorptionNodes; ++i)
-            lambda[i] = (float) (ex.lo + (ex.hi - ex.lo) * (double) i / (double) (AbsorptionNodes - 1));
-        fluo::jung_absorption(unit, rust::Slice<const float>(lambda.data(), lambda.size()),
-                              rust::Slice<float>(a.data(), a.size()));
-        m_absorption = ContinuousDistribution<Wavelength>(
-            ScalarVector2f((ScalarFloat) ex.lo, (ScalarFloat) ex.hi), a.data(), AbsorptionNodes);
         if constexpr (is_rgb_v<Spectrum>) {
             auto color = [](const fluo::Rgb &c) {
                 return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
@@ -329,7 +333,7 @@ private:
             fluo::JungConfig c = fluo::jung_config(m);
             fluo::Rgb a = fluo::jung_texture_rgb(**m_texture, x, y);
             double values[TexelFields] = { c.emission_peak, c.stokes_shift, c.concentration, c.quantum_yield,
-                                           c.c0, c.c1, c.c2, fluo::jung_absorption_integral(m), a.r, a.g, a.b };
+                                           c.c0, c.c1, c.c2, a.r, a.g, a.b };
             for (size_t k = 0; k < TexelFields; ++k)
                 fields[k][t] = (float) values[k];
         }
@@ -341,7 +345,7 @@ private:
     }
 
     /// Per-texel parameters (m_texel_data) in this order.
-    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TAbsorbed, TR, TG, TB, TexelFields };
+    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TR, TG, TB, TexelFields };
     using FloatStorage = DynamicBuffer<Float>;
 
     /// A hit's dye: λe, s, c, Q.
@@ -383,42 +387,12 @@ private:
         }
     }
 
-    /// A colour texture's elastic/shift choice: as for a uniform dye, but the excitation
-    /// wavelength is sampled uniformly over the part of the texel's absorption band inside
-    /// [range_lo, range_hi] (each texel has its own band; the weight uses the exact
-    /// absorption, so the estimate stays unbiased, at some extra variance), and the shift
-    /// probability uses the band's whole absorption integral.
-    std::tuple<Wavelength, UnpolarizedSpectrum, WMask> texel_choose(const SurfaceInteraction3f &si,
-                                                                    const Wavelength &u1, const Wavelength &u2,
-                                                                    double range_lo, double range_hi,
-                                                                    Mask active) const {
-        const Wavelength &lambda_o = si.wavelengths;
-        UInt32 i = texel_index(si);
-        Float peak = texel_field(TPeak, i, active), shift = texel_field(TShift, i, active);
-        Dye dye(peak, shift);
-        Float strength = texel_field(TConc, i, active) * texel_field(TYield, i, active);
-        UnpolarizedSpectrum we = dr::maximum(texel_elastic(si, active), 0.f);
-        UnpolarizedSpectrum lo = dr::maximum(dye.lo, (float) range_lo), hi = dr::minimum(dye.edge, (float) range_hi);
-        UnpolarizedSpectrum width = dr::maximum(hi - lo, 0.f);
-        UnpolarizedSpectrum wf = dr::select(width > 0.f, strength * dye.emission(lambda_o) *
-                                                             texel_field(TAbsorbed, i, active), 0.f);
-        UnpolarizedSpectrum total = we + wf;
-        WMask valid = WMask(active) && total > 0.f && dr::isfinite(total);
-        UnpolarizedSpectrum pe = dr::select(valid, we / total, 1.f);
-        WMask shifted = valid && u1 >= pe && wf > 0.f;
-        Wavelength lambda_i = dr::fmadd(u2, width, lo);
-        UnpolarizedSpectrum scale = dr::select(shifted, width / (1.f - pe), dr::rcp(pe));
-        scale = dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
-        return { dr::select(shifted, lambda_i, lambda_o), scale, shifted };
-    }
-
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust
     std::optional<rust::Box<fluo::JungModel>> m_model;      ///< validated at every rebuild
     std::optional<rust::Box<fluo::JungShapes>> m_unit;      ///< the dye at c = Q = 1
     ref<Texture> m_reflectance;                              ///< null: sigmoid coefficients
     Float m_peak, m_shift, m_conc, m_yield;                  ///< λe, s, c, Q (differentiable)
-    double m_support_lo = 0.0, m_support_hi = 0.0;           ///< absorption support, nm
-    ContinuousDistribution<Wavelength> m_absorption;        ///< samples λi ∝ a (unit peak)
+    ContinuousDistribution<Wavelength> m_bspline;           ///< b(v − 3) on [0, 6]: samples v
     Color3f m_rgb_reflectance = 0.f, m_rgb_reflectance_absorbed = 0.f, m_rgb_absorbed_scale = 0.f,
             m_rgb_fluorescence = 0.f; ///< RGB variant: fluo::JungRgbParts of the unit dye
     bool m_color_mode = false;
@@ -428,7 +402,7 @@ private:
     FloatStorage m_texel_data[TexelFields];
     ScalarVector2i m_res = ScalarVector2i(0, 0);
 
-    MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_absorption, m_rgb_reflectance,
+    MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,
                    m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)
 };
 

@@ -98,12 +98,27 @@ template <typename Value> struct JungDye {
         return bspline(3.f * (lambda - peak) / alpha) * (9.f / 8.f) / alpha;
     }
 
+    /// The absorption's b-spline coordinate v(λ) = 3(2 − kλ)/(αk(kλ − 1)) ∈ (0, 6) on the
+    /// support (decreasing in λ), its inverse λ(v) = (2 + q)/(k(1 + q)) with q = vαk/3, and
+    /// |dv/dλ| = 3/(α(kλ − 1)²): excitation wavelengths are sampled in v from a fixed table
+    /// of b(v − 3) and mapped to λ, with the exact Jacobian in the pdf.
+    Value v_of(const Value &lambda) const {
+        Value kl = k * lambda;
+        return 3.f * (2.f - kl) / (alpha * k * (kl - 1.f));
+    }
+    Value lambda_of(const Value &v) const {
+        Value q = v * alpha * k * (1.f / 3.f);
+        return (2.f + q) / (k * (1.f + q));
+    }
+    Value dv_dlambda(const Value &lambda) const {
+        Value d = k * lambda - 1.f;
+        return 3.f / (alpha * d * d);
+    }
+
     /// a(λ) ∈ [0, 1], peak 1 at λe − s (eq. 6, mirrored over wavenumber).
     Value absorption(const Value &lambda) const {
         dr::mask_t<Value> inside = lambda > lo && lambda < edge;
-        Value kl = k * lambda;
-        Value v = 3.f * (2.f - kl) / (alpha * k * (kl - 1.f));
-        return dr::select(inside, bspline(dr::select(inside, v, 0.f) - 3.f), 0.f);
+        return dr::select(inside, bspline(dr::select(inside, v_of(lambda), 0.f) - 3.f), 0.f);
     }
 };
 
