@@ -1,7 +1,7 @@
 """Inverse rendering of a fluorescent dye: recover fluo_jung's concentration and emission
 peak from a target image, by gradient descent through Mitsuba's llvm_ad_spectral variant.
 
-    .venv/bin/python examples/inverse_jung.py [--iterations 40] [--spp 32] [--res 32]
+    .venv/bin/python examples/inverse_jung.py [--iterations 60] [--spp 32] [--res 32]
 
 A diffuse plate with a dye (fluo_jung) under a light that reaches into the UV
 (fluo_illuminant D65 from 300 nm) is rendered with fluo_path at the true parameters
@@ -28,7 +28,7 @@ START = {"concentration": 0.3, "emission_peak": 520.0}
 TOLERANCE = {"concentration": 0.05, "emission_peak": 5.0}
 #: Valid ranges (fluo_jung's docs) and Adam's step per iteration, in each parameter's units.
 RANGES = {"concentration": (0.0, 1.0), "emission_peak": (200.0, 1200.0)}
-LEARNING_RATE = {"concentration": 0.03, "emission_peak": 3.0}
+LEARNING_RATE = {"concentration": 0.05, "emission_peak": 3.0}
 
 SCENE = """<scene version="3.0.0">
     <integrator type="fluo_path"><integer name="max_depth" value="3"/></integrator>
@@ -51,7 +51,7 @@ SCENE = """<scene version="3.0.0">
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--iterations", type=int, default=40)
+    ap.add_argument("--iterations", type=int, default=60)
     ap.add_argument("--spp", type=int, default=32)
     ap.add_argument("--res", type=int, default=32)
     ap.add_argument("--variant", default="llvm_ad_spectral")

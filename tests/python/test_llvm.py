@@ -302,3 +302,13 @@ print("RESULT " + json.dumps({{"errors": errors, "before": float(before), "after
         assert err is not None and name in err, (name, err)
     assert res["conc"] == pytest.approx(0.6)
     assert res["after"] == pytest.approx(res["before"], rel=1e-6)
+
+
+def test08_inverse_rendering_example_recovers_the_dye():
+    """examples/inverse_jung.py recovers concentration and emission peak from a target image
+    within its tolerances (it exits non-zero otherwise), starting 0.4 and 40 nm away."""
+    proc = subprocess.run([sys.executable, str(REPO / "examples" / "inverse_jung.py")], capture_output=True,
+                          text=True, timeout=900, cwd=REPO)
+    print(proc.stdout[-1500:])
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "MISSED" not in proc.stdout and proc.stdout.count(" ok (tolerance") == 2
