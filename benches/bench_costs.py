@@ -22,6 +22,10 @@ textured ``fluo_jung`` (both variants)            textured / uniform ``fluo_jung
 textured ``fluo_qd``, ``scalar_spectral``         textured / uniform ``fluo_qd``               1.30
 medium without fluorescence                       ``fluo_volpath`` / ``volpath``               1.05
 quantum-dot cuvette (homogeneous, density grid)   ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     1.50
+llvm: box without fluorescence (both variants)    llvm ``fluo_path`` / llvm ``path``           1.05
+llvm: fluorescent box, ``llvm_ad_spectral``       ``fluo_path`` / ``path`` (dyes removed)      1.50
+llvm: reduced RGB ``x7``, ``llvm_ad_rgb``         ``fluo_path`` / ``path`` (dyes removed)      1.50
+llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``fluo_path``    report
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -38,9 +42,18 @@ checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shape
 ``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
 with the first value of each; both render with ``fluo_path``.
 
+The llvm rows render ``LLVM_SPP_FACTOR`` (8) times the samples of the others and run in
+a fresh process each (Mitsuba 3.8 cannot start an llvm variant in a
+process that has rendered in a scalar one): A and B are interleaved there as everywhere
+else; their first render, which traces and compiles the kernels, is reported as
+``compile_s`` (kernel compile time) and not timed. The speed-up row times the same
+fluorescent box in a scalar process and an llvm process, started alternately, each
+round's ratio of the two render times (after their first, compiling, render).
+
 Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
        python benches/bench_costs.py --json > docs/bench/costs.json
        python benches/bench_costs.py --readme docs/bench/costs.json   # README's costs region
+       python benches/bench_costs.py --rows llvm_jung --merge docs/bench/costs.json  # update rows in place
 
 ``--readme`` measures nothing: it rewrites README.md's region between
 ``<!-- costs:begin -->`` and ``<!-- costs:end -->`` from a saved ``--json`` run, so the
@@ -53,6 +66,8 @@ import argparse
 import json
 import platform
 import statistics
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -208,6 +223,99 @@ def load_row(res: int, rounds: int) -> dict:
     return {**r, "per_material_ms": per_ms, "per_material_mb": grown / COLOURED}
 
 
+#: The llvm rows render this many times the samples of the others: a vectorised render of
+#: a 96² image at 16 spp takes milliseconds, where kernel launches and thread start-up
+#: would be what is timed.
+LLVM_SPP_FACTOR = 8
+
+
+def in_worker(row: str, a) -> dict:
+    """Run one row (or one side of one) in a fresh process; its JSON result."""
+    cmd = [sys.executable, __file__, "--worker", row, "--spp", str(a.spp * LLVM_SPP_FACTOR), "--res", str(a.res),
+           "--rounds", str(a.rounds)]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    lines = [ln[ln.index("RESULT ") + 7:] for ln in proc.stdout.splitlines() if "RESULT " in ln]
+    if proc.returncode != 0 or not lines:
+        raise SystemExit(f"bench worker {row} failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
+    return json.loads(lines[-1])
+
+
+def render_pair_jit(variant: str, da: dict, db: dict, spp: int, rounds: int) -> dict:
+    """render_pair in a JIT variant: renders are evaluated (and waited for) inside the timing;
+    the first render of each scene (tracing, kernel compilation) is timed apart."""
+    import drjit as dr
+
+    mi.set_variant(variant)
+    import fluo  # noqa: F401
+
+    sa, sb = mi.load_dict(da), mi.load_dict(db)
+
+    def run(scene):
+        img = mi.render(scene, spp=spp, seed=1)
+        dr.eval(img)
+        dr.sync_thread()
+
+    compile_s = []
+    for scene in (sa, sb):
+        t0 = time.perf_counter()
+        run(scene)
+        compile_s.append(time.perf_counter() - t0)
+    r = paired(lambda: run(sa), lambda: run(sb), rounds)
+    return {**r, "compile_s": compile_s[0] - r["a_s"], "compile_b_s": compile_s[1] - r["b_s"]}
+
+
+def render_times(variant: str, d: dict, spp: int, rounds: int) -> dict:
+    """One scene's render times in this process: the first (compiling) and `rounds` more."""
+    import drjit as dr
+
+    mi.set_variant(variant)
+    import fluo  # noqa: F401
+
+    scene = mi.load_dict(d)
+    times = []
+    for _ in range(rounds + 1):
+        t0 = time.perf_counter()
+        img = mi.render(scene, spp=spp, seed=1)
+        if dr.is_jit_v(type(img)):
+            dr.eval(img)
+            dr.sync_thread()
+        times.append(time.perf_counter() - t0)
+    return {"first_s": times[0], "times": times[1:]}
+
+
+def speedup_row(a, family: str) -> dict:
+    """scalar / llvm render time of the fluorescent box, processes started alternately."""
+    ratios, ts, tl, compile_s = [], [], [], 0.0
+    for r in range(a.rounds):
+        order = ("scalar", "llvm") if r % 2 == 0 else ("llvm", "scalar")
+        got = {side: in_worker(f"speedup_{side}_{family}", argparse.Namespace(spp=a.spp, res=a.res, rounds=5))
+               for side in order}
+        s, l = statistics.median(got["scalar"]["times"]), statistics.median(got["llvm"]["times"])
+        ratios.append(s / l)
+        ts.append(s)
+        tl.append(l)
+        compile_s = max(compile_s, got["llvm"]["first_s"] - l)
+    return {"ratio": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "a_s": statistics.median(ts), "b_s": statistics.median(tl), "compile_s": compile_s}
+
+
+#: Rows measured in a fresh process (llvm), by name: what the worker runs.
+WORKER_ROWS = {
+    "llvm_plain": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=diffuse, light=None),
+                                            box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds),
+    "llvm_plain_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=diffuse, light=None),
+                                                box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds),
+    "llvm_jung": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=jung),
+                                           box(a.res, "path", bsdf=diffuse), a.spp, a.rounds),
+    "llvm_reduced": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=jung, basis="x7"),
+                                              box(a.res, "path", bsdf=diffuse), a.spp, a.rounds),
+    "speedup_scalar_spectral": lambda a: render_times("scalar_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
+    "speedup_llvm_spectral": lambda a: render_times("llvm_ad_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
+    "speedup_scalar_rgb": lambda a: render_times("scalar_rgb", box(a.res, bsdf=jung, basis="x7"), a.spp, a.rounds),
+    "speedup_llvm_rgb": lambda a: render_times("llvm_ad_rgb", box(a.res, bsdf=jung, basis="x7"), a.spp, a.rounds),
+}
+
+
 ROWS = {
     "plain": ("no fluorescence: fluo_path / path, plain box (spectral)", 1.05,
               lambda a: render_pair("scalar_spectral", box(a.res, bsdf=diffuse, light=None),
@@ -273,6 +381,18 @@ ROWS = {
                                               a.spp, a.rounds)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
+    "llvm_plain": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_spectral)", 1.05,
+                   lambda a: in_worker("llvm_plain", a)),
+    "llvm_plain_rgb": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_rgb)", 1.05,
+                       lambda a: in_worker("llvm_plain_rgb", a)),
+    "llvm_jung": ("llvm: fluorescent box: fluo_path / path (dyes removed), llvm_ad_spectral", 1.5,
+                  lambda a: in_worker("llvm_jung", a)),
+    "llvm_reduced": ("llvm: reduced RGB x7 / path (dyes removed), llvm_ad_rgb", 1.5,
+                     lambda a: in_worker("llvm_reduced", a)),
+    "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
+                     lambda a: speedup_row(a, "spectral")),
+    "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,
+                         lambda a: speedup_row(a, "rgb")),
 }
 
 
@@ -291,7 +411,9 @@ def readme_region(run: dict, source: str) -> str:
             target = f"≤ {r['target']} ms"
         else:
             got = f"{r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}]"
-            target = f"≤ {r['target']:.2f}"
+            target = f"≤ {r['target']:.2f}" if r["target"] is not None else "reported"
+            if "compile_s" in r:
+                got += f" (kernel compile {r['compile_s']:.1f} s)"
         lines.append(f"| {r['label']} | {got} | {target} |")
     return "\n".join(lines + [END]) + "\n"
 
@@ -320,7 +442,17 @@ def main() -> None:
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--readme", type=Path, metavar="SAVED_JSON",
                     help="rewrite README.md's costs region from a saved --json run (measures nothing)")
+    ap.add_argument("--merge", type=Path, metavar="SAVED_JSON",
+                    help="measure --rows and replace (or add) them in a saved --json run, same settings")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.worker:
+        mi.set_log_level(mi.LogLevel.Error)
+        print("RESULT " + json.dumps(WORKER_ROWS[a.worker](a)))
+        return
+    if a.merge:
+        saved = json.loads(a.merge.read_text())
+        a.spp, a.res, a.rounds, a.json = saved["spp"], saved["res"], saved["rounds"], True
     if a.readme:
         write_readme(a.readme, REPO / "README.md")
         return
@@ -338,9 +470,16 @@ def main() -> None:
                 print(f"{label:70s} +{r['per_material_ms']:.2f} ms, +{r['per_material_mb']:.2f} MB "
                       f"(target <= {target} ms; load ratio {r['ratio']:.2f})", flush=True)
             else:
-                print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] (target <= {target:.2f})",
-                      flush=True)
-    if a.json:
+                goal = f"target <= {target:.2f}" if target is not None else "reported"
+                extra = f", kernel compile {r['compile_s']:.1f} s" if "compile_s" in r else ""
+                print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] ({goal}{extra})", flush=True)
+    if a.merge:
+        fresh = {r["row"]: r for r in results}
+        merged = [fresh.pop(r["row"], r) for r in saved["results"] if r["row"] in ROWS]
+        saved["results"] = sorted(merged + list(fresh.values()), key=lambda r: list(ROWS).index(r["row"]))
+        a.merge.write_text(json.dumps(saved) + "\n")
+        print(f"merged {', '.join(r['row'] for r in results)} into {a.merge}")
+    elif a.json:
         print(json.dumps({"machine": platform.machine(), "spp": a.spp, "res": a.res, "rounds": a.rounds,
                           "results": results}))
 

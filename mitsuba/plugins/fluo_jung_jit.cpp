@@ -30,6 +30,7 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using Dye = fluo_detail::JungDye<UnpolarizedSpectrum>;
     using fluo_detail::JitBispectral<Float, Spectrum>::MaxTerms;
+    using Choice = typename fluo_detail::JitBispectral<Float, Spectrum>::Choice;
 
     static constexpr const char *Plugin = "fluo_jung";
     /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
@@ -137,13 +138,11 @@ public:
         }
     }
 
-    std::tuple<Wavelength, UnpolarizedSpectrum, WMask> jit_choose(const SurfaceInteraction3f &si,
-                                                                 const Wavelength &u1, const Wavelength &u2,
-                                                                 double range_lo, double range_hi,
-                                                                 Mask active) const override {
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
+                      double range_hi, Mask active) const override {
         const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
-            return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false) };
+            return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
         } else {
             // Probabilities are detached: gradients flow through the values only.
             Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };
@@ -176,21 +175,11 @@ public:
             UnpolarizedSpectrum scale = dr::select(shifted, dr::rcp((1.f - pe) * pdf_i), dr::rcp(pe));
             shifted &= pdf_i > 0.f;
             scale = dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
-            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted };
-        }
-    }
-
-    UnpolarizedSpectrum jit_reradiation(const SurfaceInteraction3f &si, const Vector3f &wo,
-                                        const Wavelength &lambda_o, Mask active) const override {
-        if constexpr (!is_spectral_v<Spectrum>) {
-            return 0.f;
-        } else {
-            active &= Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f;
-            Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };
-            Dye dye(t.peak, t.shift);
-            UnpolarizedSpectrum v = t.conc * t.yield * dye.absorption(si.wavelengths) * dye.emission(lambda_o) *
-                                    dr::InvPi<Float> * Frame3f::cos_theta(wo);
-            return dr::select(WMask(active) && si.wavelengths < lambda_o, v, 0.f);
+            // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
+            Dye exact(t.peak, t.shift);
+            UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
+            rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
+            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad };
         }
     }
 

@@ -288,8 +288,7 @@ private:
                 BSDFPtr bsdf = si.bsdf(ls.ray);
 
                 // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
-                Wavelength lambda_o = si.wavelengths;
-                UnpolarizedSpectrum scale = 1.f;
+                UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
                 WMask shifted = false;
                 if (fluorescent) {
                     Wavelength u1, u2;
@@ -298,20 +297,21 @@ private:
                         u1[j] = u.x();
                         u2[j] = u.y();
                     }
-                    auto [li, sc, sh] = fluo_detail::dispatch_any(
+                    auto [li, sc, sh, rr] = fluo_detail::dispatch_any(
                         bsdf,
                         [range_lo, range_hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
                                              const Wavelength &u2_, const Mask &on) {
                             if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
                                 return f->jit_choose(si_, u1_, u2_, range_lo, range_hi, on);
-                            return std::tuple<Wavelength, UnpolarizedSpectrum, WMask>(
-                                si_.wavelengths, UnpolarizedSpectrum(1.f), WMask(false));
+                            return typename Bispectral::Choice(si_.wavelengths, UnpolarizedSpectrum(1.f),
+                                                               WMask(false), UnpolarizedSpectrum(0.f));
                         },
                         si, u1, u2, active_next);
                     Mask has_bsdf = active_next && bsdf != nullptr;
                     si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
                     scale = dr::select(has_bsdf, sc, 1.f);
                     shifted = WMask(has_bsdf) && sh;
+                    rerad = dr::select(shifted, rr, 0.f);
                 }
 
                 // ---------------------- Emitter sampling ----------------------
@@ -324,16 +324,13 @@ private:
                     bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
 
                 if (fluorescent) {
-                    auto [v_em, v_bs] = fluo_detail::dispatch_any(
-                        bsdf,
-                        [](const BSDF *b, const SurfaceInteraction3f &si_, const Vector3f &wo1, const Vector3f &wo2,
-                           const Wavelength &lo, const Mask &on) {
-                            if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
-                                return std::make_pair(f->jit_reradiation(si_, wo1, lo, on),
-                                                      f->jit_reradiation(si_, wo2, lo, on));
-                            return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
-                        },
-                        si, wo, bsdf_sample.wo, lambda_o, active_next);
+                    // Shifted wavelengths: the (Lambertian) reradiation lobe, π·f_fl·cos θo/π.
+                    Float cos_i = Frame3f::cos_theta(si.wi);
+                    auto lambert = [&](const Vector3f &w) {
+                        return dr::select(cos_i > 0.f && Frame3f::cos_theta(w) > 0.f,
+                                          Frame3f::cos_theta(w) * dr::InvPi<Float>, 0.f);
+                    };
+                    UnpolarizedSpectrum v_em = rerad * lambert(wo), v_bs = rerad * lambert(bsdf_sample.wo);
                     bsdf_val = dr::select(shifted, v_em, bsdf_val) * scale;
                     UnpolarizedSpectrum w_bs = dr::select(bsdf_sample.pdf > 0.f, v_bs / bsdf_sample.pdf, 0.f);
                     bsdf_weight = dr::select(shifted, w_bs, bsdf_weight) * scale;

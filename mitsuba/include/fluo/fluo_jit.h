@@ -158,14 +158,12 @@ public:
     /// Spectral: per hero wavelength λo = si.wavelengths, choose the elastic event or a
     /// shift to λi ∈ [range_lo, range_hi] (the lights' range), with uniform numbers u1
     /// (choice), u2 (λi). Returns the wavelengths to continue with, the estimator's
-    /// weight (1/probability; detached) and which wavelengths shifted.
-    virtual std::tuple<Wavelength, UnpolarizedSpectrum, WMask> jit_choose(const SurfaceInteraction3f &si,
-                                                                         const Wavelength &u1,
-                                                                         const Wavelength &u2, double range_lo,
-                                                                         double range_hi, Mask active) const = 0;
-    /// Spectral: f_fl(λi = si.wavelengths, ωi, ωo, λo)·cos θo.
-    virtual UnpolarizedSpectrum jit_reradiation(const SurfaceInteraction3f &si, const Vector3f &wo,
-                                                const Wavelength &lambda_o, Mask active) const = 0;
+    /// weight (1/probability; detached), which wavelengths shifted, and for those the
+    /// reradiation π·f_fl(λi, λo) (differentiable). The reradiation lobe is Lambertian
+    /// (f_fl·cos θo = that value·cos θo/π), so one call per vertex serves both directions.
+    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum>;
+    virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
+                              double range_lo, double range_hi, Mask active) const = 0;
 };
 
 NAMESPACE_END(fluo_detail)
