@@ -22,6 +22,7 @@ textured ``fluo_jung`` (both variants)            textured / uniform ``fluo_jung
 textured ``fluo_qd``, ``scalar_spectral``         textured / uniform ``fluo_qd``               1.30
 medium without fluorescence                       ``fluo_volpath`` / ``volpath``               1.05
 quantum-dot cuvette (homogeneous, density grid)   ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     1.50
+quantum-dot cuvette, reduced RGB ``x7``          ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     1.50
 llvm: box without fluorescence (both variants)    llvm ``fluo_path`` / llvm ``path``           1.05
 llvm: fluorescent box, ``llvm_ad_spectral``       ``fluo_path`` / ``path`` (dyes removed)      1.50
 llvm: reduced RGB ``x7``, ``llvm_ad_rgb``         ``fluo_path`` / ``path`` (dyes removed)      1.50
@@ -37,7 +38,8 @@ with its own dye (Mitsuba merges equal definitions), so no ray reaches them but
 glass) of ``fluo_qd_medium`` (R = 2.7 nm, 0.4 µmol/L, μa(340 nm) ≈ 3/cm), homogeneous or
 with a density grid, on a grey floor under a D65 area light from 300 nm; B is the same
 medium made non-fluorescent (``quantum_yield`` 0: the same absorption and tracking
-majorant) under Mitsuba's ``volpath``. The textured rows give the material
+majorant) under Mitsuba's ``volpath``, in ``scalar_spectral`` and (the reduced row)
+``scalar_rgb``. The textured rows give the material
 checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shapes;
 ``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
 with the first value of each; both render with ``fluo_path``.
@@ -64,6 +66,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import subprocess
@@ -71,8 +74,12 @@ import sys
 import time
 from pathlib import Path
 
-import mitsuba as mi
-import numpy as np
+# One BLAS thread: numpy's idle OpenBLAS threads spin on the renders' cores (~6 % of
+# a 2-core machine's time, on both sides of every ratio).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
 
 mi.set_variant("scalar_spectral")  # the scene dictionaries need a variant's types
 
@@ -379,6 +386,9 @@ ROWS = {
                                               cuvette(a.res, "fluo_volpath", qd_medium(0.8, density_grid(GRID))),
                                               cuvette(a.res, "volpath", qd_medium(0.0, density_grid(GRID))),
                                               a.spp, a.rounds)),
+    "volpath_qd_rgb": ("QD cuvette: fluo_volpath reduced x7 (Q 0.8) / volpath (Q 0), scalar_rgb", 1.5,
+                       lambda a: render_pair("scalar_rgb", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
+                                             cuvette(a.res, "volpath", qd_medium(0.0)), a.spp, a.rounds)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
     "llvm_plain": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_spectral)", 1.05,

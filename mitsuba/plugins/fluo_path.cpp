@@ -178,7 +178,8 @@ public:
 
     FluoPath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
-          m_reduced(Plugin, string_of(props, "basis", "x7"), string_of(props, "method", "ours")) {}
+          m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
+                    fluo_detail::get_string(props, "method", "ours")) {}
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
@@ -218,10 +219,6 @@ public:
     MI_DECLARE_CLASS(FluoPath)
 
 private:
-    static std::string string_of(const Properties &props, const char *name, const char *def) {
-        return props.has_property(name) ? std::string(props.get<std::string_view>(name)) : def;
-    }
-
     /// Scan the scene once per render for the variant's transport: fluorescent BSDFs,
     /// their wrappers, and what the emitters emit.
     void prepare(Scene *scene) {

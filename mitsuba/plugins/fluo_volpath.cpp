@@ -16,6 +16,7 @@
 #include <mitsuba/render/shape.h>
 
 #include <algorithm>
+#include <limits>
 #include <array>
 #include <sstream>
 #include <string>
@@ -27,6 +28,7 @@
 #include "fluo_common.h"
 #include "fluo_path_loop.h"
 #include "fluo_path_scene.h"
+#include "fluo_transport_reduced.h"
 #include "fluo_transport_spectral.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -53,6 +55,15 @@ Wavelength-shifting volumetric path tracer (:monosp:`fluo_volpath`)
    - |float|
    - Shortest excitation wavelength ever shifted to, nm, in [200, 360], as for
      ``fluo_path``. (Default: 300)
+ * - basis
+   - |string|
+   - ``scalar_rgb`` only: transport basis of the reduced transport, ``rgb``, ``xyzu`` or
+     ``x7``, as for ``fluo_path`` (whose documentation says which when).
+     (Default: ``x7``)
+ * - method
+   - |string|
+   - ``scalar_rgb`` only: reduction, ``ours`` or ``naive``, as for ``fluo_path``.
+     (Default: ``ours``)
 
 Mitsuba's ``volpath`` (delta tracking with null collisions, next-event estimation
 through media with ratio-tracked transmittance, MIS between emitter and phase/BSDF
@@ -81,9 +92,16 @@ media the probabilities follow spectral tracking (Kutz et al. 2017): in proporti
 max_j |T_j| σn_j and max_j |T_j| σt_j over the wavelengths' throughputs T, so that a
 wavelength in a transparent part of the spectrum is not dragged to zero by one deep in
 the absorption band (volpath's rule makes such a medium's transmittance estimate
-vanish, with probability ~0.75^n after n null collisions). At a real collision, for
-each λo
-the radiative transfer equation's source is
+vanish, with probability ~0.75^n after n null collisions). Fluorescence also needs
+real collisions where the medium is transparent at λo but re-emits there (dots emit
+beyond their absorption edge: blue dots seen at 470 nm absorb only below 420 nm): the
+real-collision probability is raised to at least κ/μ̄, κ = min(σs + μf, 1/ℓ) over the
+carried wavelengths with ℓ the length of the current straight flight, and for that
+flight the medium's majorant covers μf up to 1/ℓ as well. That is about one
+fluorescent collision per flight, spread along it; the transmitted wavelengths' null
+weights grow by at most ~e over it. (Without it such a glow came from real collisions
+near where other hero wavelengths were absorbed only: ~9x too dark, test02b.) At a
+real collision, for each λo the radiative transfer equation's source is
 
     σs(λo) ∫ p(ω, ω') L(λo, ω') dω'  +  ∫_R μa(λi) f(λi → λo) (1/4π) ∫ L(λi, ω') dω' dλi
 
@@ -103,15 +121,40 @@ wavelengths. Energy: the medium guarantees ∫ f dλo ≤ Q, so re-emitted power
 exceeds the yield times the absorbed power (a closed-furnace test checks it).
 
 **Cost.** Tracking takes about one tentative collision per unit optical depth of the
-most opaque hero wavelength (each a call into the medium's Rust tables): optically
-thick fluorescent media (τ ≫ 100 over the scene) render slowly; fluorescence itself
-costs one excitation sample per shifted wavelength at real collisions.
+most opaque hero wavelength (the medium's absorption and re-emission coefficients at a
+path's wavelengths are looked up once per flight and per thread, not per collision):
+optically thick fluorescent media (τ ≫ 100 over the scene) render slowly; fluorescence
+itself costs one excitation sample per shifted wavelength at real collisions, and the
+paths it continues (re-emitted light goes on where volpath's absorbed light stops).
 
-**Variants.** Fluorescence is transported in ``scalar_spectral``. In ``scalar_rgb`` a
-scene with a fluorescent medium or fluorescent BSDF is refused at render start with an
-error (reduced RGB transport for media is not implemented; for surfaces without media
-use ``fluo_path``), never rendered without its glow; without fluorescence
-``scalar_rgb`` renders exactly as ``volpath``.
+**Reduced RGB transport (scalar_rgb).** With fluorescent media or BSDFs in the scene,
+``scalar_rgb`` carries fluo_path's reduced transport (its ``basis``: K bands; the RGB
+throughput t until the first fluorescent event, then the 3×K matrix R). A fluorescent
+medium acts on the K basis coefficients through two K×K operators that Rust reduces at
+render start from its spectra (``fluo::medium_reduced``): its absorption A (the
+reduction of the diagonal μa(λ)) and its reradiation F (of μa(λi) f(λi → λo)), per
+unit density. Tracking uses the medium's majorant μ̄ (in RGB the maximum of μa over the
+whole spectrum, so that it bounds every band) with matrix weights, exact for the
+reduced operators: a null collision multiplies R by (μ̄ − σs − d·A)/(μ̄ p_null), a
+real one by the collision's source σs·p + d·F/(4π) over μ̄ p_real (p: the phase
+function's value, or weight with the sampled direction; d: the density there), with the
+probabilities of spectral tracking over R's columns (bands instead of wavelengths,
+the same fluorescent-source rule). Shadow rays through fluorescent media carry their
+transmittance as the list of those null operators, applied to the emitter's basis
+coefficients at the end (K² per collision). Native media and null interfaces act on R
+through their RGB weights' per-band factors, as native BSDFs do in fluo_path.
+Accuracy: that of the basis (the dots' glow in a thin 2 cm cube under D65 within 3 %
+of the spectral reference with ``x7`` and ``xyzu``, test05), plus the reduction of
+attenuation itself: exp(−d·A·t) is not the reduction of exp(−μa(λ) t), so optically
+thick media (τ ≳ 1 over their colour) lose their transmission windows as native RGB
+media do (the same cube at thirty times that density, τ ≈ 1 in the green: 8 % under
+the spectral red). Under narrow UV lamps one UV band averages the absorption over
+300-400 nm (the basis's warning applies; the cuvettes of blue- to red-emitting dots under
+a 300-380 nm lamp came out within 5-15 % of the spectral render here, but a narrow
+365 nm line can be off several-fold).
+
+**Variants.** ``scalar_spectral`` (wavelength shifting) and ``scalar_rgb`` (reduced
+transport); without fluorescence both render exactly as ``volpath``.
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.
@@ -133,14 +176,18 @@ public:
     using Path = typename Spectral::Path;
     using EmitterSample = fluo_detail::EmitterSample<Float, Spectrum>;
     using BMedium = BispectralMedium<Float, Spectrum>;
+    using Reduced = ReducedTransport<Float, Spectrum>;
+    using Square = typename Reduced::Square;
+    using Coeffs = typename Reduced::Coeffs;
 
     static constexpr const char *Plugin = "fluo_volpath";
-    /// Allowed range of `lambda_min`, nm (as fluo_path).
-    static constexpr double LambdaMinLo = 200.0, LambdaMinHi = 360.0;
     /// Isotropic re-emission, 1/(4π) per steradian.
     static constexpr float InvFourPi = (float) (0.25 * M_1_PI);
 
-    FluoVolpath(const Properties &props) : Base(props), m_lambda_min(lambda_min_of(props)) {}
+    FluoVolpath(const Properties &props)
+        : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
+          m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
+                    fluo_detail::get_string(props, "method", "ours")) {}
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
@@ -152,7 +199,30 @@ public:
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
                                      const Medium *initial_medium, Float * /* aovs */,
                                      Bool active) const override {
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (m_use_reduced) {
+                typename Reduced::Path path(m_reduced);
+                return trace(scene, sampler, ray_, initial_medium, active, path);
+            }
+        }
         Path path(m_spectral);
+        return trace(scene, sampler, ray_, initial_medium, active, path);
+    }
+
+    /// volpath's loop; `path` is fluo_path's spectral transport (every variant without
+    /// fluorescence, and scalar_spectral) or its reduced transport (scalar_rgb with
+    /// fluorescence), whose fluorescent media act on basis coefficients.
+    template <typename PathT>
+    std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                    const Medium *initial_medium, Bool active, PathT &path) const {
+        constexpr bool IsReduced = !std::is_same_v<PathT, Path>;
+        // A wavelength-preserving weight.
+        auto scale = [&path](const Spectrum &w) {
+            if constexpr (IsReduced)
+                path.scale(w);
+            else
+                path.throughput() *= w;
+        };
         Bool valid_ray = !m_hide_emitters && (scene->environment() != nullptr);
         Ray3f ray = Ray3f(ray_);
         Float eta = 1.f;
@@ -171,16 +241,27 @@ public:
         Interaction3f last_scatter_event = dr::zeros<Interaction3f>();
         Bool needs_intersection = true;
         Float last_scatter_direction_pdf = 1.f;
+        double flight_inv_len = 0.0;
 
         while (active) {
             // ----------------- Russian roulette, max_depth -----------------
-            Spectrum &throughput = path.throughput();
-            active &= dr::any(unpolarized_spectrum(throughput) != 0.f);
-            Float q = dr::minimum(dr::max(unpolarized_spectrum(throughput)) * dr::square(eta), .95f);
-            Bool perform_rr = depth > (uint32_t) m_rr_depth;
-            active &= sampler->next_1d(active) < q || !perform_rr;
-            if (perform_rr)
-                throughput *= dr::rcp(q);
+            if constexpr (IsReduced) {
+                double t_max = path.throughput_max();
+                active &= t_max != 0.0;
+                Float q = dr::minimum((Float) t_max * dr::square(eta), .95f);
+                Bool perform_rr = depth > (uint32_t) m_rr_depth;
+                active &= sampler->next_1d(active) < q || !perform_rr;
+                if (perform_rr)
+                    path.roulette(q);
+            } else {
+                Spectrum &throughput = path.throughput();
+                active &= dr::any(unpolarized_spectrum(throughput) != 0.f);
+                Float q = dr::minimum(dr::max(unpolarized_spectrum(throughput)) * dr::square(eta), .95f);
+                Bool perform_rr = depth > (uint32_t) m_rr_depth;
+                active &= sampler->next_1d(active) < q || !perform_rr;
+                if (perform_rr)
+                    throughput *= dr::rcp(q);
+            }
             active &= depth < (uint32_t) m_max_depth;
             if (!active)
                 break;
@@ -192,10 +273,31 @@ public:
             Bool is_spectral = active_medium, not_spectral = false;
             Float null_scatter_prob = 0.f, real_scatter_prob = 1.f;
             const MediumEntry *fluo_entry = nullptr;
+            const ReducedMedium *rmed = nullptr; // reduced: a fluorescent medium
+            Collision col;                       // reduced: its real collision
             if (active_medium) {
                 is_spectral = medium->has_spectral_extinction();
                 not_spectral = !is_spectral;
-                mei = medium->sample_interaction(ray, sampler->next_1d(active_medium), channel, active_medium);
+                bool fluorescent_here;
+                if constexpr (IsReduced)
+                    fluorescent_here = find_reduced(medium) != nullptr;
+                else
+                    fluorescent_here = find_medium(medium) != nullptr;
+                if (fluorescent_here && needs_intersection) {
+                    si = scene->ray_intersect(ray, true);
+                    needs_intersection = false;
+                    // 1/ℓ for the flight that starts here (ℓ: its length to the next
+                    // surface; 0 without one): the fluorescent source is sampled at rate
+                    // up to 1/ℓ (spectral_tracking), and the majorant covers it.
+                    flight_inv_len = si.is_valid() ? 1.0 / std::max((double) si.t, 1e-30) : 0.0;
+                }
+                {
+                    fluo_detail::ScopedSourceRate rate(
+                        !fluorescent_here ? 0.0
+                                          : (flight_inv_len > 0.0 ? flight_inv_len
+                                                                   : std::numeric_limits<double>::infinity()));
+                    mei = medium->sample_interaction(ray, sampler->next_1d(active_medium), channel, active_medium);
+                }
                 if (medium->is_homogeneous() && mei.is_valid())
                     ray.maxt = mei.t;
                 if (needs_intersection)
@@ -203,10 +305,14 @@ public:
                 needs_intersection = false;
                 if (si.t < mei.t)
                     mei.t = dr::Infinity<Float>;
-                if (is_spectral) {
+                if constexpr (IsReduced)
+                    rmed = find_reduced(medium);
+                // (a fluorescent medium's majorant is one for all bands: weight 1 to escape,
+                // 1/μ̄ at a tentative collision, applied below)
+                if (is_spectral && !rmed) {
                     auto [tr, free_flight_pdf] = medium->transmittance_eval_pdf(mei, si, true);
                     Float tr_pdf = free_flight_pdf[channel];
-                    throughput *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+                    scale(dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f));
                 }
                 escaped_medium = !mei.is_valid();
                 active_medium = mei.is_valid();
@@ -216,8 +322,24 @@ public:
                     // Null or real: volpath's rule (the hero wavelengths' mean null
                     // probability), or spectral tracking in fluorescent media.
                     fluo_entry = find_medium(mei.medium);
-                    if (fluo_entry && is_spectral) {
-                        std::tie(null_scatter_prob, real_scatter_prob) = spectral_tracking(mei, throughput);
+                    if constexpr (IsReduced) {
+                        if (rmed) {
+                            // Null or real by spectral tracking over the bands' columns of R.
+                            path.to_reduced();
+                            col = collision(*rmed, mei);
+                            std::tie(null_scatter_prob, real_scatter_prob) =
+                                band_tracking(*rmed, col, path.column_max(), flight_inv_len);
+                        }
+                    }
+                    if (rmed) {
+                        // (the probabilities are set)
+                    } else if (fluo_entry && is_spectral) {
+                        if constexpr (!IsReduced) {
+                            std::array<float, 4> bound{};
+                            fluo_entry->medium->source_bound(mei, bound);
+                            std::tie(null_scatter_prob, real_scatter_prob) =
+                                spectral_tracking(mei, path.throughput(), bound, flight_inv_len);
+                        }
                     } else {
                         null_scatter_prob = dr::mean(mei.sigma_n / mei.combined_extinction);
                         real_scatter_prob = dr::mean(mei.sigma_t / mei.combined_extinction);
@@ -225,8 +347,17 @@ public:
                     Bool null_scatter = sampler->next_1d(active_medium) < null_scatter_prob;
                     act_null_scatter = null_scatter;
                     act_medium_scatter = !null_scatter;
-                    if (is_spectral && act_null_scatter)
-                        throughput *= mei.sigma_n / null_scatter_prob;
+                    if constexpr (IsReduced) {
+                        if (rmed && act_null_scatter) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
+                            Coeffs g{};
+                            for (size_t k = 0; k < m_reduced.bands(); ++k)
+                                g[k] = col.majorant - col.sigma_s[k];
+                            path.multiply_null(rmed->a, col.density, g,
+                                               1.0 / (col.majorant * (double) null_scatter_prob));
+                        }
+                    }
+                    if (is_spectral && act_null_scatter && !rmed)
+                        scale(mei.sigma_n / null_scatter_prob);
                     if (act_medium_scatter) {
                         depth += 1;
                         last_scatter_event = Interaction3f(mei);
@@ -246,13 +377,16 @@ public:
                 // Elastic scattering, or fluorescence per wavelength (see the docs).
                 UnpolarizedSpectrum sigma_s = mei.sigma_s;
                 MediumShift shift;
-                if (fluo_entry)
+                if (fluo_entry && !IsReduced)
                     shift = choose_medium_shift(*fluo_entry, mei, sampler, sigma_s);
 
-                if (is_spectral)
-                    throughput *= sigma_s / real_scatter_prob;
+                // A fluorescent medium's real collision (reduced): the source operator
+                // W = σs·p + d·F/(4π) over μ̄ p_real, applied with the direction below.
+                double real_scale = rmed ? 1.0 / (col.majorant * (double) real_scatter_prob) : 1.0;
+                if (is_spectral && !rmed)
+                    scale(sigma_s / real_scatter_prob);
                 if (not_spectral)
-                    throughput *= sigma_s / mei.sigma_t;
+                    scale(sigma_s / mei.sigma_t);
 
                 PhaseFunctionContext phase_ctx(sampler);
                 const auto *phase = mei.medium->phase_function();
@@ -262,11 +396,23 @@ public:
                 valid_ray = true;
                 specular_chain = !sample_emitters;
                 if (sample_emitters) {
-                    auto [emitted, ds] = sample_emitter(mei, scene, sampler, medium, channel);
+                    Shadow shadow;
+                    auto [emitted, ds] = sample_emitter(mei, scene, sampler, medium, channel, &shadow);
                     auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, mei, ds.d, true);
-                    shift.apply(phase_val);
-                    path.add_radiance(phase_val * emitted *
-                                      fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf)));
+                    Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                    if constexpr (IsReduced) {
+                        Coeffs c{};
+                        if (shadow.active || rmed)
+                            c = shadow_light(shadow, m_reduced.light_coefficients(ds.emitter, emitted));
+                        if (rmed)
+                            path.add(source_matrix(*rmed, col, phase_val, InvFourPi), c, real_scale * (double) mis);
+                        else
+                            path.add_light(phase_val, ds.emitter, emitted, shadow.active ? &c : nullptr,
+                                           (double) mis);
+                    } else {
+                        shift.apply(phase_val);
+                        path.add_radiance(phase_val * emitted * mis);
+                    }
                 }
 
                 // ---------------------- Phase function sampling ------------
@@ -283,7 +429,13 @@ public:
                     ray = mei.spawn_ray(wo);
                     needs_intersection = true;
                     last_scatter_direction_pdf = phase_pdf;
-                    throughput *= phase_weight;
+                    if constexpr (IsReduced) {
+                        if (rmed)
+                            path.multiply(source_matrix(*rmed, col, phase_weight, InvFourPi / (double) phase_pdf),
+                                          real_scale);
+                    }
+                    if (!rmed)
+                        scale(phase_weight);
                 }
             }
 
@@ -325,11 +477,18 @@ public:
                 // ------------------------ Emitter sampling -----------------
                 EmitterSample em;
                 em.active = has_flag(bsdf->flags(), BSDFFlags::Smooth) && (depth + 1 < (uint32_t) m_max_depth);
+                Shadow shadow;
                 if (em.active) {
-                    auto [emitted, ds] = sample_emitter(si, scene, sampler, medium, channel);
+                    auto [emitted, ds] = sample_emitter(si, scene, sampler, medium, channel, &shadow);
                     em.ds = ds;
                     em.weight = emitted;
                     em.wo = si.to_local(ds.d);
+                }
+                Coeffs light{};
+                if constexpr (IsReduced) {
+                    if (shadow.active)
+                        light = shadow_light(shadow, m_reduced.light_coefficients(em.ds.emitter, em.weight));
+                    path.set_light(shadow.active ? &light : nullptr);
                 }
 
                 // ---------------- Emitter contribution, BSDF sampling ------
@@ -381,6 +540,27 @@ private:
         fluo::Range range;
     };
 
+    /// A shadow ray's transfer through fluorescent media (reduced transport): its
+    /// operators T_i = diag(g) − d·A in the ray's order from the vertex, applied to the
+    /// emitter's coefficients c at the end, T_1·(T_2·(…·c)) at K² each (multiplying
+    /// them out as they come would cost K³ each); beyond Capacity they are multiplied
+    /// out into p.
+    struct Shadow {
+        using Coeffs = typename ReducedTransport<Float, Spectrum>::Coeffs;
+        using Square = typename ReducedTransport<Float, Spectrum>::Square;
+        struct Op {
+            const Square *a; ///< nullptr: diagonal only
+            double d;
+            Coeffs g;
+        };
+        static constexpr size_t Capacity = 32;
+        bool active = false; ///< a fluorescent medium was met: the light is light(c)
+        size_t n = 0;
+        std::array<Op, Capacity> ops;
+        bool folded = false; ///< p holds the operators before ops
+        Square p{};
+    };
+
     /// The per-wavelength choice at a real collision in a fluorescent medium.
     struct MediumShift {
         bool any = false;
@@ -402,14 +582,6 @@ private:
         }
     };
 
-    static double lambda_min_of(const Properties &props) {
-        double lambda_min = fluo_detail::get_float(Plugin, props, "lambda_min", 300.0);
-        if (!(lambda_min >= LambdaMinLo && lambda_min <= LambdaMinHi))
-            Throw("%s: invalid parameter \"lambda_min\" = %f: valid range is [%.0f, %.0f] nm", Plugin, lambda_min,
-                  LambdaMinLo, LambdaMinHi);
-        return lambda_min;
-    }
-
     const MediumEntry *find_medium(const Medium *m) const {
         if (m_media.empty())
             return nullptr;
@@ -417,22 +589,51 @@ private:
         return it == m_media.end() ? nullptr : &it->second;
     }
 
-    /// Null and real collision probabilities in a fluorescent medium, by spectral tracking
+    /// Null and real collision probabilities in a fluorescent medium. Spectral tracking
     /// (Kutz et al. 2017): in proportion to max_j |T_j| σn_j and max_j |T_j| σt_j over the
     /// hero wavelengths' throughputs T. Where the first hero wavelength is in the
     /// absorption band and the others are not, volpath's mean rule would keep killing
     /// the transparent ones with it (their transmittance estimate survives n null
-    /// collisions with probability ~0.75^n); here, once a wavelength's throughput is 0
-    /// it no longer votes. Unbiased: either event has positive probability wherever its
-    /// weight is non-zero for some wavelength.
-    static std::pair<Float, Float> spectral_tracking(const MediumInteraction3f &mei, const Spectrum &throughput) {
+    /// collisions with probability ~0.75^n); here, once a wavelength's throughput is 0 it
+    /// no longer votes. Then p_real is raised to at least min(κ/μ̄, 1/2), κ = max_j
+    /// min(σs_j + μf_j, 1/ℓ) over the carried wavelengths (μf: the medium's
+    /// source_bound; ℓ: the length of the current straight flight, no cap without a
+    /// surface ahead): a real collision's weight (σs + μf)/(μ̄ p_real) is non-zero where
+    /// the medium re-emits at λo also where it is transparent at λo (blue dots seen at
+    /// 470 nm absorb only below 420 nm: μf(λo) > 0 = σt(λo)). With σt alone such
+    /// collisions happened only near where other hero wavelengths were absorbed and the
+    /// glow came out ~9x too dark. At rate ≤ 1/ℓ (the majorant covers it: fluo_volpath
+    /// asks the medium for it, fluo_detail::ScopedSourceRate) this makes about one
+    /// fluorescent collision per flight, spread along it, and the transparent
+    /// wavelengths' null weights grow by at most ~e over the flight. Unbiased: either
+    /// event has positive probability wherever its weight is non-zero for a carried
+    /// wavelength (p_null stays ≥ 1/2 unless every carried σn is 0).
+    static std::pair<Float, Float> spectral_tracking(const MediumInteraction3f &mei, const Spectrum &throughput,
+                                                     const std::array<float, 4> &source_bound, double inv_len) {
         UnpolarizedSpectrum t = dr::abs(unpolarized_spectrum(throughput));
-        Float q_null = dr::max(t * mei.sigma_n), q_real = dr::max(t * mei.sigma_t);
-        Float total = q_null + q_real;
-        if (!(total > 0.f) || !dr::isfinite(total))
+        double q_null = (double) dr::max(t * mei.sigma_n), q_real = (double) dr::max(t * mei.sigma_t);
+        double kappa = 0.0;
+        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum> && j < 4; ++j) {
+            if (!(t[j] > 0.f))
+                continue;
+            double source = std::max(0.0, (double) mei.sigma_s[j]) + std::max(0.0, (double) source_bound[j]);
+            kappa = std::max(kappa, inv_len > 0.0 ? std::min(source, inv_len) : source);
+        }
+        return collision_probabilities(q_null, q_real, kappa, (double) dr::max(mei.combined_extinction));
+    }
+
+    /// (p_null, p_real) from the tracking weights q_null, q_real and the source rate κ
+    /// (spectral_tracking; band_tracking for the reduced transport).
+    static std::pair<Float, Float> collision_probabilities(double q_null, double q_real, double kappa,
+                                                           double majorant) {
+        double total = q_null + q_real;
+        if (!(total > 0.0) || !std::isfinite(total))
             return { 0.f, 1.f }; // nothing carried: a real collision with weight 0 ends it
-        Float p_null = q_null / total;
-        return { p_null, 1.f - p_null };
+        double p_real = q_real / total;
+        if (majorant > 0.0 && std::isfinite(majorant))
+            p_real = std::max(p_real, std::min(kappa / majorant, 0.5));
+        p_real = std::clamp(p_real, 0.0, 1.0);
+        return { (Float) (1.0 - p_real), (Float) p_real };
     }
 
     /// Per hero wavelength: elastic with probability σs/(σs + μf), else a shift to λi
@@ -471,6 +672,143 @@ private:
         return shift;
     }
 
+    // ------------------ scalar_rgb: reduced transport in fluorescent media -----------
+
+    /// A fluorescent medium's reduced operators A and F, per scene unit at density 1.
+    struct ReducedMedium {
+        const BMedium *medium;
+        Square a{}, f{};
+        Coeffs f_rows{}; ///< Σ_i |F_ki| / (4π): the re-emission into band k per unit density
+    };
+    /// A tentative collision in a fluorescent medium: density, per-band σs, majorant μ̄.
+    struct Collision {
+        double density = 0.0, majorant = 1.0;
+        Coeffs sigma_s{};
+    };
+
+    const ReducedMedium *find_reduced(const Medium *m) const {
+        if (m_rmedia.empty() || m == nullptr)
+            return nullptr;
+        auto it = m_rmedia.find(static_cast<const void *>(m));
+        return it == m_rmedia.end() ? nullptr : &it->second;
+    }
+
+    Collision collision(const ReducedMedium &r, const MediumInteraction3f &mei) const {
+        Collision c;
+        c.density = std::max(0.0, (double) r.medium->density_at(mei));
+        c.majorant = (double) dr::max(mei.combined_extinction);
+        c.sigma_s = m_reduced.band_factors(Spectrum(mei.sigma_s));
+        return c;
+    }
+
+    /// Null and real probabilities over the bands, as spectral_tracking over the hero
+    /// wavelengths: the bands R carries (w_k = column_max of R) take the wavelengths'
+    /// place, in proportion to max_k w_k |μ̄ − σt_k| and max_k w_k σt_k (σt_k = d·A_kk +
+    /// σs_k), with the source rate min(σs_k + d·Σ_i |F_ki|/(4π), 1/ℓ) (band k of R meets
+    /// row k of the collision's operators). The weights are exact whatever the split.
+    std::pair<Float, Float> band_tracking(const ReducedMedium &r, const Collision &c, const Coeffs &w,
+                                          double inv_len) const {
+        size_t k = m_reduced.bands();
+        double q_null = 0.0, q_real = 0.0, kappa = 0.0;
+        for (size_t i = 0; i < k; ++i) {
+            if (!(w[i] > 0.0))
+                continue;
+            double st = std::max(0.0, c.density * r.a[i * k + i] + c.sigma_s[i]);
+            q_null = std::max(q_null, w[i] * std::abs(c.majorant - st));
+            q_real = std::max(q_real, w[i] * st);
+            double source = std::max(0.0, c.sigma_s[i]) + c.density * r.f_rows[i];
+            kappa = std::max(kappa, inv_len > 0.0 ? std::min(source, inv_len) : source);
+        }
+        return collision_probabilities(q_null, q_real, kappa, c.majorant);
+    }
+
+    /// diag(σs ∘ p) + d·F·iso: the collision's source for an elastic weight p (phase
+    /// value or weight) and the isotropic re-emission's iso (1/4π, over the pdf if sampled).
+    Square source_matrix(const ReducedMedium &r, const Collision &c, const Spectrum &p, double iso) const {
+        size_t k = m_reduced.bands();
+        Coeffs pk = m_reduced.band_factors(p);
+        Square w{};
+        for (size_t i = 0; i < k * k; ++i)
+            w[i] = c.density * r.f[i] * iso;
+        for (size_t i = 0; i < k; ++i)
+            w[i * k + i] += c.sigma_s[i] * pk[i];
+        return w;
+    }
+
+    /// p ← p·n·s (K×K).
+    void multiply(Square &p, const Square &n, double s) const {
+        size_t k = m_reduced.bands();
+        Square out{};
+        for (size_t i = 0; i < k; ++i)
+            for (size_t j = 0; j < k; ++j) {
+                double acc = 0.0;
+                for (size_t l = 0; l < k; ++l)
+                    acc += p[i * k + l] * n[l * k + j];
+                out[i * k + j] = acc * s;
+            }
+        p = out;
+    }
+
+    /// Move a shadow ray's RGB transmittance t so far into its transfer (a diagonal
+    /// operator of t's band factors, unless t = 1), and mark the transfer active; t ← 1.
+    void flush(Shadow &shadow, Spectrum &t) const {
+        shadow.active = true;
+        if (dr::all(t == 1.f))
+            return;
+        push(shadow, typename Shadow::Op{ nullptr, 0.0, m_reduced.band_factors(t) });
+        t = Spectrum(1.f);
+    }
+
+    /// Append an operator to a shadow ray's transfer (multiplying the list out into p
+    /// when it is full).
+    void push(Shadow &shadow, const typename Shadow::Op &op) const {
+        if (shadow.n == Shadow::Capacity) {
+            size_t k = m_reduced.bands();
+            if (!shadow.folded) {
+                shadow.p.fill(0.0);
+                for (size_t i = 0; i < k; ++i)
+                    shadow.p[i * k + i] = 1.0;
+                shadow.folded = true;
+            }
+            for (size_t i = 0; i < shadow.n; ++i) {
+                const auto &o = shadow.ops[i];
+                Square m{};
+                for (size_t j = 0; j < k * k; ++j)
+                    m[j] = o.a ? -o.d * (*o.a)[j] : 0.0;
+                for (size_t j = 0; j < k; ++j)
+                    m[j * k + j] += o.g[j];
+                multiply(shadow.p, m, 1.0);
+            }
+            shadow.n = 0;
+        }
+        shadow.ops[shadow.n++] = op;
+    }
+
+    /// A shadow ray's transfer applied to light c: T_1·(T_2·(…·c)), K² per operator.
+    Coeffs shadow_light(const Shadow &shadow, Coeffs c) const {
+        size_t k = m_reduced.bands();
+        for (size_t i = shadow.n; i-- > 0;) {
+            const auto &o = shadow.ops[i];
+            Coeffs out{};
+            for (size_t r = 0; r < k; ++r) {
+                double acc = o.g[r] * c[r];
+                if (o.a)
+                    for (size_t j = 0; j < k; ++j)
+                        acc -= o.d * (*o.a)[r * k + j] * c[j];
+                out[r] = acc;
+            }
+            c = out;
+        }
+        if (shadow.folded) {
+            Coeffs out{};
+            for (size_t r = 0; r < k; ++r)
+                for (size_t j = 0; j < k; ++j)
+                    out[r] += shadow.p[r * k + j] * c[j];
+            c = out;
+        }
+        return c;
+    }
+
     /// Scan the scene once per render: fluorescent media and BSDFs, emitters' range.
     void prepare(Scene *scene) {
         m_wrappers.clear();
@@ -491,21 +829,24 @@ private:
             add(sensor->medium());
 
         if constexpr (is_rgb_v<Spectrum>) {
-            if (!media.empty())
-                Throw("%s: the scene has a fluorescent participating medium, which scalar_rgb cannot "
-                      "transport yet (no reduced RGB transport for media): render it in scalar_spectral, "
-                      "or set the medium's quantum_yield to 0 for its non-fluorescent limit",
-                      Plugin);
-            fluo_detail::Collector c;
-            for (const auto &shape : scene->shapes())
-                c.visit(const_cast<Shape *>(shape.get()));
-            for (Object *o : c.objects)
-                if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o); b && b->fluorescence())
-                    Throw("%s: the scene has a fluorescent BSDF, which fluo_volpath transports only in "
-                          "scalar_spectral: render it in scalar_spectral, or use fluo_path (reduced RGB "
-                          "transport) for scenes without participating media",
-                          Plugin);
-            m_spectral.prepare(scene, m_wrappers, m_lambda_min, Plugin);
+            // Reduced transport when anything fluoresces, else volpath.
+            m_rmedia.clear();
+            size_t k = m_reduced.bands();
+            for (const BMedium *b : media) {
+                ReducedMedium r{ b, {}, {}, {} };
+                b->reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
+                                     rust::Slice<double>(r.f.data(), k * k));
+                for (size_t i = 0; i < k; ++i)
+                    for (size_t j = 0; j < k; ++j)
+                        r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
+                m_rmedia.emplace(static_cast<const void *>(dynamic_cast<const Medium *>(b)), r);
+            }
+            m_reduced.prepare(scene, m_wrappers, !media.empty());
+            m_use_reduced = m_reduced.active() || !m_rmedia.empty();
+            if (!m_use_reduced) {
+                m_wrappers.clear();
+                m_spectral.prepare(scene, m_wrappers, m_lambda_min, Plugin);
+            }
             return;
         } else {
             double hi = -1e30;
@@ -528,10 +869,13 @@ private:
 
     /// An emitter sample seen from `ref` and its transmittance through media and null
     /// interfaces (ratio tracking, as volpath's sample_emitter).
+    /// With the reduced transport, fluorescent media on the way act on basis
+    /// coefficients: `shadow` then receives the ray's K×K transfer (everything after the
+    /// first such medium is in it; the returned radiance is then the emitter's alone).
     template <typename Interaction>
     std::pair<Spectrum, DirectionSample3f> sample_emitter(const Interaction &ref, const Scene *scene,
-                                                         Sampler *sampler, MediumPtr medium,
-                                                         uint32_t channel) const {
+                                                         Sampler *sampler, MediumPtr medium, uint32_t channel,
+                                                         Shadow *shadow) const {
         Spectrum transmittance(1.0f);
         auto [ds, emitter_val] = scene->sample_emitter_direction(ref, sampler->next_2d(true), false, true);
         if (ds.pdf == 0.f)
@@ -568,9 +912,10 @@ private:
                     mei.t = dr::Infinity<Float>;
                 needs_intersection = false;
 
+                const ReducedMedium *rmed = m_use_reduced ? find_reduced(medium) : nullptr;
                 Bool is_spectral = medium->has_spectral_extinction();
                 Bool not_spectral = !is_spectral;
-                if (is_spectral) {
+                if (is_spectral && !rmed) {
                     Float t = dr::minimum(remaining_dist, dr::minimum(mei.t, si.t)) - mei.mint;
                     UnpolarizedSpectrum tr = dr::exp(-t * mei.combined_extinction);
                     UnpolarizedSpectrum free_flight_pdf =
@@ -593,7 +938,14 @@ private:
                     total_dist += mei.t;
                     ray.o = mei.p;
                     si.t = si.t - mei.t;
-                    if (is_spectral)
+                    if (rmed) { // ratio tracking on coefficients: T = (μ̄ − σs − d·A)/μ̄
+                        Collision c = collision(*rmed, mei);
+                        flush(*shadow, transmittance);
+                        typename Shadow::Op op{ &rmed->a, c.density / c.majorant, {} };
+                        for (size_t k = 0; k < m_reduced.bands(); ++k)
+                            op.g[k] = (c.majorant - c.sigma_s[k]) / c.majorant;
+                        push(*shadow, op);
+                    } else if (is_spectral)
                         transmittance *= mei.sigma_n;
                     if (not_spectral)
                         transmittance *= mei.sigma_n / mei.combined_extinction;
@@ -623,11 +975,18 @@ private:
             if (active_surface && si.is_medium_transition())
                 medium = si.target_medium(ray.d);
         }
+        if (shadow && shadow->active) {
+            flush(*shadow, transmittance);
+            return { emitter_val, ds };
+        }
         return { emitter_val * transmittance, ds };
     }
 
     double m_lambda_min;
     Spectral m_spectral;
+    Reduced m_reduced; ///< scalar_rgb with fluorescence (the basis is checked in both variants)
+    bool m_use_reduced = false;
+    std::unordered_map<const void *, ReducedMedium> m_rmedia;
     fluo_detail::FluoWrappers<Float, Spectrum> m_wrappers;
     std::unordered_map<const void *, MediumEntry> m_media;
 };

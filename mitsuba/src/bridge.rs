@@ -457,6 +457,17 @@ mod bridge {
         /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
         fn transport_white(t: &TransportBasis, out: &mut [f64]);
         fn transport_name(t: &TransportBasis) -> &'static str;
+        /// A fluorescent medium's operators reduced for a transport (`fluo_volpath` in
+        /// scalar_rgb), K×K row major, 1/m at density 1: `absorption` A (the reduction of
+        /// the diagonal μa(λ)) and `reradiation` F (of the density μa(λi) f(λi → λo)), so
+        /// that light with coefficients c re-emits F·c/(4π) per unit length and steradian.
+        fn medium_reduced(model: &FluoMedium, t: &TransportBasis, absorption: &mut [f64], reradiation: &mut [f64]);
+        /// max of μa over the wavelengths reduced transport covers (its grid), 1/m: the
+        /// RGB variants' majorant.
+        fn medium_grid_absorption_max(model: &FluoMedium) -> f64;
+        /// max over the grid of the fluorescent source μf (over the medium's whole
+        /// range), 1/m: what the RGB majorant may have to cover for fluo_volpath.
+        fn medium_grid_source_max(model: &FluoMedium) -> f64;
 
         /// A fluorescent model's reradiation reduced for a transport.
         type ReducedModel;
@@ -1457,6 +1468,25 @@ fn transport_white(t: &TransportBasis, out: &mut [f64]) {
 }
 fn transport_name(t: &TransportBasis) -> &'static str {
     t.0.name
+}
+
+fn medium_grid_absorption_max(model: &FluoMedium) -> f64 {
+    fluo::reduce::grid().into_iter().map(|l| model.model.absorption_per_m(l)).fold(0.0, f64::max)
+}
+
+fn medium_grid_source_max(model: &FluoMedium) -> f64 {
+    let m = &model.model;
+    let range = m.lambda_range();
+    fluo::reduce::grid().into_iter().map(|l| m.shift_coefficient_per_m(l, range)).fold(0.0, f64::max)
+}
+
+fn medium_reduced(model: &FluoMedium, t: &TransportBasis, absorption: &mut [f64], reradiation: &mut [f64]) {
+    let m = &model.model;
+    copy_into(&t.0.reduce(&Operator::new(|l| m.absorption_per_m(l), |_, _| 0.0)), absorption);
+    copy_into(
+        &t.0.reduce(&Operator::new(|_| 0.0, |li, lo| m.absorption_per_m(li) * m.reradiation_per_nm(li, lo))),
+        reradiation,
+    );
 }
 
 /// Incidence-cosine nodes of angle-dependent reduced tables (uniform in cos θ,

@@ -41,7 +41,10 @@ coefficient cube of ``fluo_jung``'s ``color`` (resolution 9 and 17, generated in
 of measured matrices (2/4/8).
 
 Methods are declared in :func:`methods`: how to turn a bench scene into the method's
-scene (variant, integrator, material rewrite). ``scripts/bench_readme.py`` turns a
+scene (variant, integrator, material rewrite). A method named "(fluo_path)" renders with
+the scene's own fluo integrator: ``fluo_volpath`` in the scene with fluorescent media
+(``qd_cuvette``), whose rows without fluorescence set the media's ``quantum_yield`` to 0
+(the same absorption) under Mitsuba's ``volpath``. ``scripts/bench_readme.py`` turns a
 ``results.json`` into the README's table and its reading (:func:`readme_region`). The table goes to stdout (Markdown),
 ``results.json`` and ``accuracy_vs_time.png`` to the output folder.
 """
@@ -71,7 +74,30 @@ def _strip_reduced_params(text: str) -> str:
 
 
 def _to_path(text: str) -> str:
-    return _strip_reduced_params(text.replace('<integrator type="fluo_path">', '<integrator type="path">'))
+    """Mitsuba's own integrator: path for fluo_path, volpath for fluo_volpath."""
+    text = text.replace('<integrator type="fluo_path">', '<integrator type="path">')
+    return _strip_reduced_params(text.replace('<integrator type="fluo_volpath">', '<integrator type="volpath">'))
+
+
+MEDIUM = re.compile(r'(<medium type="fluo_(?:qd|dye)_medium"[^>]*>)(.*?)(</medium>)', flags=re.S)
+
+
+def _media_without_fluorescence(text: str) -> str:
+    """Fluorescent media at quantum_yield 0: the same absorption, no re-emission (their
+    non-fluorescent limit, a plain absorbing medium under any integrator)."""
+    def repl(m: re.Match) -> str:
+        body = re.sub(r'\s*<float name="quantum_yield" value="[^"]*"/>', "", m.group(2))
+        return m.group(1) + '<float name="quantum_yield" value="0"/>' + body + m.group(3)
+    return MEDIUM.sub(repl, text)
+
+
+def _outside_media(text: str, rewrite: Callable[[str], str]) -> str:
+    """Apply ``rewrite`` to everything but the fluorescent media's definitions."""
+    out, last = [], 0
+    for m in MEDIUM.finditer(text):
+        out += [rewrite(text[last:m.start()]), m.group(0)]
+        last = m.end()
+    return "".join(out + [rewrite(text[last:])])
 
 
 def _matrix_to_diffuse(text: str) -> str:
@@ -86,11 +112,12 @@ def _matrix_to_diffuse(text: str) -> str:
 def _remove_dyes(text: str) -> str:
     """The same materials without their fluorescent dye (concentration or density 0; a
     ``color`` through the cube takes the cube's reflectance-only solution; a measured
-    matrix keeps its diagonal)."""
-    text = re.sub(r'<float name="concentration" value="[^"]*"/>', '<float name="concentration" value="0"/>', text)
-    text = re.sub(r'(<rgb name="color" value="[^"]*"/>)', r'\1<boolean name="fluorescence" value="false"/>', text)
-    text = re.sub(r'<float name="density" value="[^"]*"/>', '<float name="density" value="0"/>', text)
-    return _matrix_to_diffuse(text)
+    matrix keeps its diagonal); fluorescent media keep their absorption at yield 0."""
+    def surfaces(t: str) -> str:
+        t = re.sub(r'<float name="concentration" value="[^"]*"/>', '<float name="concentration" value="0"/>', t)
+        t = re.sub(r'(<rgb name="color" value="[^"]*"/>)', r'\1<boolean name="fluorescence" value="false"/>', t)
+        return re.sub(r'<float name="density" value="[^"]*"/>', '<float name="density" value="0"/>', t)
+    return _matrix_to_diffuse(_media_without_fluorescence(_outside_media(text, surfaces)))
 
 
 #: Linear ACEScg (AP1) to linear sRGB / Rec. 709 (Bradford D60 → D65), for the nearest
@@ -120,7 +147,7 @@ def _to_native(text: str) -> str:
         return f'<bsdf type="roughconductor"{m.group(1) or ""}>' + "".join(keep) + "</bsdf>"
     text = re.sub(r'<bsdf type="fluo_jung"( id="[^"]*")?>(.*?)</bsdf>', jung, text, flags=re.S)
     text = re.sub(r'<bsdf type="fluo_qd"( id="[^"]*")?>(.*?)</bsdf>', qd, text, flags=re.S)
-    return _matrix_to_diffuse(text)
+    return _media_without_fluorescence(_matrix_to_diffuse(text))
 
 
 def _gmm(components: int, cache: Path) -> Callable[[str], str]:
@@ -178,8 +205,11 @@ def _reduced(basis: str, method: str) -> Callable[[str], str]:
 
 
 def _material_kinds(text: str) -> set[str]:
-    """Fluorescent material kinds of a scene; ``cube`` when a fluo_jung takes a ``color``."""
+    """Fluorescent material kinds of a scene; ``cube`` when a fluo_jung takes a ``color``;
+    ``medium`` for fluorescent participating media."""
     kinds = set(re.findall(r'<bsdf type="fluo_(jung|matrix|gmm|qd)"', text))
+    if MEDIUM.search(text):
+        kinds.add("medium")
     if re.search(r'<bsdf type="fluo_jung"[^>]*>(?:(?!</bsdf>).)*name="color"', text, flags=re.S):
         kinds.add("cube")
     return kinds
@@ -211,14 +241,24 @@ def _material_bytes(text: str) -> float:
             sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"] + path.stat().st_size)
         else:
             sizes.append(run_tool(["memory", "--material", '{"model":"jung"}'])["bytes"])
+    for m in MEDIUM.finditer(text):
+        if 'fluo_qd_medium' in m.group(1):
+            args = ["qd-medium"]
+            for name in ("radius", "width", "concentration"):
+                v = re.search(rf'<float name="{name}" value="([^"]*)"/>', m.group(2))
+                if v:
+                    args += [f"--{name}", v.group(1)]
+            sizes.append(run_tool(args)["bytes"])
     return float(np.mean(sizes)) if sizes else 0.0
 
 
 def _reduced_bytes(k: int) -> Callable[[str], float]:
     def size(text: str) -> float:
         kinds = _material_kinds(text)
-        # a K×K matrix of f64 per material; angle-dependent coatings keep 17 of them
-        return float(8 * k * k * (17 if kinds == {"qd"} else 1)) if kinds else 0.0
+        # a K×K matrix of f64 per material; angle-dependent coatings keep 17 of them,
+        # media two (absorption and reradiation)
+        per = {"qd": 17, "medium": 2}.get(next(iter(kinds)), 1) if len(kinds) == 1 else 1
+        return float(8 * k * k * per) if kinds else 0.0
     return size
 
 

@@ -8,7 +8,9 @@
 * test03: closed furnace: re-emitted power <= Q x absorbed power, = for Q = 1.
 * test04: hard cases: optically thick and thin media, Q = 0 and 1, a lamp outside the
   absorption band, dots at the radius bounds: finite, with the right limits.
-* test05: scalar_rgb refuses fluorescent media with a clear error; volpath warns.
+* test05: scalar_rgb's reduced transport in fluorescent media against the spectral
+  reference (thin cube of dots under D65: the light and the glow alone), fluorescent
+  surfaces with media (as fluo_path without them), hard cases and warnings.
 """
 
 from __future__ import annotations
@@ -198,6 +200,29 @@ def test02_slab_matches_a_1d_reference():
     np.testing.assert_allclose((got - got0)[6], reemitted[6], rtol=0.08)
 
 
+def test02b_dots_transparent_at_their_emission_glow_as_the_1d_reference():
+    """Blue-emitting dots (R = 1.5 nm: emission 390-550 nm, absorption only below ~420 nm)
+    under a 300-380 nm lamp: the camera's wavelengths mostly see a transparent medium,
+    yet it re-emits there (μf > 0 = μa). The majorant and the real-collision
+    probability cover μf, so the glow matches the reference (before they did, it came
+    out ~9x too dark)."""
+    mi.set_variant("scalar_spectral")
+    dots = dict(radius=1.5, width=15.0, quantum_yield=0.8, concentration=1.0)
+    bands = [(380, 430), (430, 480), (480, 530), (530, 600)]
+    tool = qd_medium_tool(step=0.5, **dots)
+    lamp = {"type": "regular", "wavelength_min": 300, "wavelength_max": 380, "values": "1, 1"}
+    img = render(slab_scene(4096, 2, medium_dict(scale=0.01, **dots), lamp, bands=bands), seed=5)
+    got = img.reshape(-1, img.shape[-1]).mean(axis=0)
+    want, reemitted = slab_reference(tool, 0.01, SLAB_D, lambda l: np.where((l >= 300) & (l <= 380), 1.0, 0.0),
+                                     bands=bands)
+    assert reemitted[1] > 0.9 * want[1] and want[1] > 1.0, (reemitted, want)  # all of it re-emitted
+    # Seeds 5-9 at 2048 spp: bands 1 and 2 within ±5 % of it, std ~3.5 % (single
+    # fluorescent collisions); at 4096 spp ~2.5 %. (Band 0 holds the lamp's 380 nm edge,
+    # which the quadrature's grid weighs differently.)
+    np.testing.assert_allclose(got[1:3], want[1:3], rtol=0.08)
+    np.testing.assert_allclose(got[1:3].sum(), want[1:3].sum(), rtol=0.05)
+
+
 # ------------------------------------------------------------------------- test03
 
 
@@ -243,8 +268,8 @@ def test03_closed_furnace_reemits_at_most_yield_times_absorbed():
 FLAT = {"type": "regular", "wavelength_min": 300, "wavelength_max": 830, "values": "1, 1"}
 
 
-def slab_bands(spp: int, seed: int = 1, lamp: dict = FLAT, **medium) -> np.ndarray:
-    img = render(slab_scene(spp, 8, medium_dict(scale=0.01, **medium), lamp, res=8), seed=seed)
+def slab_bands(spp: int, seed: int = 1, lamp: dict = FLAT, max_depth: int = 8, **medium) -> np.ndarray:
+    img = render(slab_scene(spp, max_depth, medium_dict(scale=0.01, **medium), lamp, res=8), seed=seed)
     assert np.all(np.isfinite(img)) and np.all(img >= 0.0)
     return img.reshape(-1, img.shape[-1]).mean(axis=0)
 
@@ -269,13 +294,20 @@ def test04_hard_cases(case):
         np.testing.assert_allclose(bands, WIDTHS, rtol=0.02)  # film noise ~0.7 %
     elif case in ("yield0", "yield1"):
         q = 0.0 if case == "yield0" else 1.0
-        bands = slab_bands(2048, concentration=0.15, radius=2.7, quantum_yield=q)
+        # max_depth 2: single fluorescent collisions, as the reference.
+        bands = slab_bands(2048, concentration=0.15, radius=2.7, quantum_yield=q, max_depth=2)
         tool = qd_medium_tool(step=0.5, radius=2.7, quantum_yield=q, concentration=0.15)
         want, re = slab_reference(tool, 0.01, SLAB_D, lambda l: np.where((l >= 300) & (l <= 830), 1.0, 0.0))
-        # max_depth 8: re-absorbed re-emission adds < 1 % to single scattering here.
-        np.testing.assert_allclose(bands, want, rtol=0.04 if q else 0.02)
+        np.testing.assert_allclose(bands, want, rtol=0.03 if q else 0.02)
         if q == 0.0:
             assert np.all(re == 0.0)
+        else:
+            # Re-emitted light the dots absorb again (their emission overlaps their band
+            # edge) and re-emit at Q = 1 adds ~3.5 % to band 6 (seeds 1-4: 96.3-96.5
+            # against 92.7 at max_depth 2); nothing is lost elsewhere.
+            deep = slab_bands(2048, concentration=0.15, radius=2.7, quantum_yield=q, max_depth=8)
+            assert 1.015 * bands[6] < deep[6] < 1.07 * bands[6], (bands, deep)
+            np.testing.assert_allclose(np.delete(deep, 6), np.delete(bands, 6), rtol=0.03)
     elif case == "lamp_outside_band":
         lamp = {"type": "regular", "wavelength_min": 700, "wavelength_max": 830, "values": "1, 1"}
         bands = slab_bands(256, lamp=lamp, concentration=0.15, **base)
@@ -298,26 +330,107 @@ def test04_hard_cases(case):
 # ------------------------------------------------------------------------- test05
 
 
-def test05_rgb_refuses_fluorescent_media_and_volpath_warns(mitsuba_log):
+def d65_cube_scene(variant: str, medium: dict, basis: str = "x7", res: int = 24, spp: int = 256) -> dict:
+    """A 2 cm cube of `medium` (null boundary) in a D65 environment from 300 nm, seen
+    face on: the centre of the image looks through 2 cm of it."""
+    integrator = {"type": "fluo_volpath", "max_depth": 8}
+    if variant == "scalar_rgb":
+        integrator["basis"] = basis
+    return {
+        "type": "scene",
+        "integrator": integrator,
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": T().look_at(origin=[0, 0, 5], target=[0, 0, 0], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent", "sample_count": spp}},
+        "env": {"type": "constant", "radiance": {"type": "fluo_illuminant", "illuminant": "D65"}},
+        "box": {"type": "cube", "bsdf": {"type": "null"}, "interior": medium},
+    }
+
+
+def centre_mean(img: np.ndarray) -> np.ndarray:
+    h, w = img.shape[:2]
+    return img[h // 4: 3 * h // 4, w // 4: 3 * w // 4, :3].mean(axis=(0, 1))
+
+
+def qd_thin(q: float) -> dict:
+    return medium_dict(radius=2.7, width=15.0, quantum_yield=q, concentration=0.01, scale=0.01,
+                       phase={"type": "isotropic"})
+
+
+@pytest.mark.parametrize("basis", ["x7", "xyzu"])
+def test05_rgb_reduced_media_match_the_spectral_reference(basis):
+    """scalar_rgb transports fluorescent media with reduced (K×K) operators: through a thin
+    cube of red-emitting dots under D65, the light seen (transmitted plus the glow) and the
+    glow alone (Q 0.8 minus Q 0) agree with scalar_spectral's fluo_volpath."""
+    means = {}
+    for variant in VARIANTS:
+        mi.set_variant(variant)
+        means[variant] = {q: centre_mean(render(d65_cube_scene(variant, qd_thin(q), basis=basis), seed=3))
+                          for q in (0.0, 0.8)}
+    spec, rgb = means["scalar_spectral"], means["scalar_rgb"]
+    glow_spec, glow_rgb = spec[0.8] - spec[0.0], rgb[0.8] - rgb[0.0]
+    assert glow_spec[0] > 0.15, glow_spec  # a red glow a quarter of the transmitted light
+    np.testing.assert_allclose(rgb[0.8], spec[0.8], rtol=0.03)
+    np.testing.assert_allclose(glow_rgb[0], glow_spec[0], rtol=0.1)
+    assert abs(glow_rgb[1]) < 0.03 and abs(glow_rgb[2]) < 0.03, glow_rgb
+
+
+def test05b_rgb_fluorescent_surfaces_with_media_render_as_fluo_path():
+    """Without media, fluo_volpath's reduced transport is fluo_path's: a fluo_jung floor
+    renders the same image mean with either integrator; with a native medium, a null
+    boundary and a glass sphere in the scene (formerly refused in scalar_rgb) it agrees
+    with the spectral reference."""
     mi.set_variant("scalar_rgb")
-    fluorescent = medium_dict(quantum_yield=0.8, concentration=0.1, scale=0.01)
-    with pytest.raises(RuntimeError, match=r"fluo_volpath.*fluorescent participating medium.*scalar_rgb"):
-        render(cube_scene("fluo_volpath", fluorescent, res=4, spp=1))
-    surface = cube_scene("fluo_volpath", {"type": "homogeneous", "sigma_t": 0.5}, res=4, spp=1)
-    surface["floor"]["bsdf"] = {"type": "fluo_jung", "emission_peak": 520.0, "stokes_shift": 60.0,
-                                "concentration": 0.8}
-    with pytest.raises(RuntimeError, match=r"fluo_volpath.*fluorescent BSDF.*scalar_spectral"):
-        render(surface)
+    jung = {"type": "fluo_jung", "emission_peak": 520.0, "stokes_shift": 60.0, "concentration": 0.8}
+    means = {}
+    for integrator in ("fluo_volpath", "fluo_path"):
+        scene = cube_scene(integrator, {"type": "homogeneous", "sigma_t": 0.5}, res=24, spp=128)
+        scene["env"]["radiance"] = {"type": "fluo_illuminant", "illuminant": "D65", "scale": 0.5}
+        scene["floor"]["bsdf"] = jung
+        for key in ("box", "glass"):  # (path's shadow rays stop at null interfaces, volpath's do not)
+            scene.pop(key)
+        means[integrator] = render(scene, seed=1)[..., :3].mean(axis=(0, 1))
+    np.testing.assert_allclose(means["fluo_volpath"], means["fluo_path"], rtol=0.02)
+    with_medium = {}
+    for variant in VARIANTS:
+        mi.set_variant(variant)
+        scene = cube_scene("fluo_volpath", {"type": "homogeneous", "sigma_t": 0.5, "albedo": 0.5}, res=24, spp=128)
+        scene["env"]["radiance"] = {"type": "fluo_illuminant", "illuminant": "D65", "scale": 0.5}
+        scene["floor"]["bsdf"] = jung
+        with_medium[variant] = render(scene, seed=1)[..., :3].mean(axis=(0, 1))
+    np.testing.assert_allclose(with_medium["scalar_rgb"], with_medium["scalar_spectral"], rtol=0.03)
+
+
+def test05c_rgb_hard_cases_and_warnings(mitsuba_log):
+    """scalar_rgb: an optically thick fluorescent medium renders finite; a UV-only lamp
+    gets the reduced transport's one warning; Q = 0 renders exactly as volpath; and
+    Mitsuba's volpath renders a fluorescent medium without its glow and says so once."""
+    mi.set_variant("scalar_rgb")
+    thick = medium_dict(radius=2.7, quantum_yield=1.0, concentration=30.0, scale=0.01)
+    img = render(d65_cube_scene("scalar_rgb", thick, res=8, spp=16))
+    assert np.all(np.isfinite(img)) and centre_mean(img)[0] > 0.1, centre_mean(img)
+    mitsuba_log.clear()
+    uv = cube_scene("fluo_volpath", medium_dict(quantum_yield=0.8, concentration=0.1, scale=0.01), res=4, spp=2)
+    uv.pop("env")
+    uv["lamp"] = {"type": "point", "position": [2, 3, 2],
+                  "intensity": {"type": "fluo_illuminant",
+                                "filename": str(fluo.scenes_dir() / "spectra" / "uv_flat_300_380.csv")}}
+    scene = mi.load_dict(uv)
+    mi.render(scene)
+    mi.render(scene)
+    assert len([l for l in mitsuba_log if "mostly ultraviolet" in l]) == 1, mitsuba_log
     # Q = 0 renders in RGB (absorption only), exactly as volpath renders it.
     plain = medium_dict(quantum_yield=0.0, concentration=0.1, scale=0.01)
     np.testing.assert_allclose(render(cube_scene("fluo_volpath", plain, res=6, spp=4), seed=2),
                                render(cube_scene("volpath", plain, res=6, spp=4), seed=2), rtol=1e-4, atol=1e-5)
-    # Mitsuba's volpath renders a fluorescent medium without its glow, and says so once.
-    mi.set_variant("scalar_spectral")
-    mitsuba_log.clear()
-    render(cube_scene("volpath", fluorescent, res=4, spp=2))
-    warnings = [l for l in mitsuba_log if "fluo_volpath" in l and "medium fluoresces" in l]
-    assert len(warnings) == 1, mitsuba_log
+    fluorescent = medium_dict(quantum_yield=0.8, concentration=0.1, scale=0.01)
+    for variant in VARIANTS:
+        mi.set_variant(variant)
+        mitsuba_log.clear()
+        render(cube_scene("volpath", fluorescent, res=4, spp=2))
+        warnings = [l for l in mitsuba_log if "fluo_volpath" in l and "medium fluoresces" in l]
+        assert len(warnings) == 1, mitsuba_log
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

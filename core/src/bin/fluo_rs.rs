@@ -439,6 +439,7 @@ fn cmd_qd_medium(args: &Args) -> Result<Value, String> {
         "wavelengths_nm": grid,
         "absorption_per_m": grid.iter().map(|&l| m.absorption_per_m(l)).collect::<Vec<_>>(),
         "emission_per_nm": grid.iter().map(|&l| m.emission_per_nm(l)).collect::<Vec<_>>(),
+        "bytes": m.bytes_at_render_time(),
     }))
 }
 

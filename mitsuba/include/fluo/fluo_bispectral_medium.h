@@ -36,6 +36,23 @@ inline std::atomic<bool> &unmanaged_medium_warning_armed() {
     static std::atomic<bool> armed{ true };
     return armed;
 }
+
+/// fluo_volpath's request for the next free flight in a fluorescent medium, per thread
+/// (inverse scene units, 0: none): its majorant should also cover the fluorescent
+/// source up to this rate, so that tentative collisions happen where the medium
+/// re-emits at a path's wavelengths even where it does not absorb them (set around one
+/// Medium::sample_interaction call, whose get_majorant and get_scattering_coefficients
+/// both read it).
+inline double &source_rate_request() {
+    thread_local double rate = 0.0;
+    return rate;
+}
+struct ScopedSourceRate {
+    explicit ScopedSourceRate(double rate) { source_rate_request() = rate; }
+    ~ScopedSourceRate() { source_rate_request() = 0.0; }
+    ScopedSourceRate(const ScopedSourceRate &) = delete;
+    ScopedSourceRate &operator=(const ScopedSourceRate &) = delete;
+};
 } // namespace fluo_detail
 
 template <typename Float, typename Spectrum> class BispectralMedium {
@@ -56,9 +73,23 @@ public:
     virtual void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
                                     std::array<float, 4> &out) const = 0;
 
+    /// An upper bound of shift_coefficients for any R (μf over the medium's whole range),
+    /// cheap at every tentative collision (fluo_volpath's collision probabilities).
+    virtual void source_bound(const MediumInteraction3f &mei, std::array<float, 4> &out) const = 0;
+
     /// λi ~ μa(λi) f(λi → λo) / μf over R; pdf 0 when μf(λo) = 0. The density does not
     /// depend on x (a density grid scales μa uniformly in λ).
     virtual fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const = 0;
+
+    /// scalar_rgb (fluo_volpath's reduced transport): the medium's absorption A and
+    /// reradiation F reduced for the transport `t` (fluo::medium_reduced), K×K row major
+    /// each, per scene unit at density 1: μa(x) acts on basis coefficients as
+    /// density_at(x)·A, and light c re-emits density_at(x)·F·c/(4π) per steradian.
+    virtual void reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
+                                   rust::Slice<double> f) const = 0;
+
+    /// The density at mei.p, 1 without a density grid.
+    virtual Float density_at(const MediumInteraction3f &mei) const = 0;
 
     /// fluo_volpath marks the media it transports when it prepares a render; any other
     /// integrator renders absorption without re-emission and says so once per scene.

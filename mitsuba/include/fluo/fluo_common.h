@@ -45,6 +45,11 @@ inline double get_float(const char *plugin, const Properties &props, const char 
     }
 }
 
+/// A string parameter, `def` when absent.
+inline std::string get_string(const Properties &props, const char *name, const char *def) {
+    return props.has_property(name) ? std::string(props.get<std::string_view>(name)) : def;
+}
+
 /// A parameter update as a transaction: `apply()` copies the traversed values into
 /// `config` and `rebuild()` validates it in Rust and re-derives everything from it. If
 /// either throws, `config` is restored and rebuilt (which also resets the traversed

@@ -13,6 +13,7 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cmath>
 #include <optional>
 #include <sstream>
@@ -50,7 +51,7 @@ public:
 
     UnpolarizedSpectrum get_majorant(const MediumInteraction3f &mi, Mask active) const override {
         DRJIT_MARK_USED(active);
-        return majorant(absorption(mi));
+        return majorant(collision_bound(mi, absorption(mi)));
     }
 
     std::tuple<UnpolarizedSpectrum, UnpolarizedSpectrum, UnpolarizedSpectrum>
@@ -60,7 +61,7 @@ public:
         UnpolarizedSpectrum mu_a = absorption(mi);
         UnpolarizedSpectrum sigma_s = m_sigma_s->eval(mi, active) * (Float) m_scale;
         UnpolarizedSpectrum sigma_t = mu_a * d * (Float) m_scale + sigma_s;
-        UnpolarizedSpectrum sigma_n = dr::maximum(majorant(mu_a) - sigma_t, 0.f);
+        UnpolarizedSpectrum sigma_n = dr::maximum(majorant(collision_bound(mi, mu_a)) - sigma_t, 0.f);
         return { sigma_s, sigma_n, sigma_t };
     }
 
@@ -84,8 +85,33 @@ public:
         }
     }
 
+    void source_bound(const MediumInteraction3f &mei, std::array<float, 4> &out) const override {
+        out.fill(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
+            if (!(d > 0.0))
+                return;
+            const Rates &r = rates(mei);
+            for (size_t j = 0; j < 4; ++j)
+                out[j] = (float) (r.mu_f[j] * d * m_scale);
+        }
+    }
+
     fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const override {
         return fluo::medium_sample_excitation(**m_model, lambda_o, xi, range);
+    }
+
+    void reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
+                           rust::Slice<double> f) const override {
+        fluo::medium_reduced(**m_model, t, a, f);
+        for (double &v : a)
+            v *= m_scale;
+        for (double &v : f)
+            v *= m_scale;
+    }
+
+    Float density_at(const MediumInteraction3f &mei) const override {
+        return m_bounded ? m_density->eval_1(mei, true) : Float(1.f);
     }
 
 protected:
@@ -135,6 +161,9 @@ protected:
         }
         m_majorant_floor =
             std::max(MajorantFloor * (mu_max * m_max_density + m_max_sigma_s) * m_scale, MinMajorant);
+        m_mu_a_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
+                                m_mu_a_rgb[2] });
+        m_mu_f_max = m_fluorescent ? fluo::medium_grid_source_max(**m_model) : 0.0;
     }
 
     /// "Name[ model, scale, density, sigma_s, phase ]".
@@ -163,24 +192,72 @@ protected:
     }
 
 private:
-    /// μ̄ = max over the hero wavelengths of (max density · μa + max σs) · scale, at least
+    /// μ̄ = max over the hero wavelengths of (max density · μa + max σs) · scale (in RGB:
+    /// over the whole spectrum), at least
     /// the floor (inverse scene units), the same for every wavelength: μa varies a
     /// hundredfold over the spectrum, and a per-wavelength majorant would let the first
     /// hero wavelength (which samples the distance) fly through where the others collide,
     /// leaving their collisions (and fluorescence) to rare, huge weights.
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &mu_a) const {
         UnpolarizedSpectrum m = (mu_a * (Float) m_max_density + (Float) m_max_sigma_s) * (Float) m_scale;
+        if constexpr (is_rgb_v<Spectrum>) // the spectrum's maximum: it bounds the bands of any reduced transport
+            m = dr::maximum(m, UnpolarizedSpectrum((Float) ((m_mu_a_max * m_max_density + m_max_sigma_s) * m_scale)));
         return UnpolarizedSpectrum(dr::maximum(dr::max(m), (Float) m_majorant_floor));
+    }
+
+    /// What the majorant must cover per wavelength, 1/m at density 1: μa and, when
+    /// fluo_volpath asks for a source rate ρ (fluo_detail::source_rate_request, inverse
+    /// scene units), the fluorescent source μf(λ) (over the medium's whole range) up to
+    /// ρ: its real collisions re-emit at λ with weight σs + μf also where μa(λ) = 0, and
+    /// without tentative collisions there dots transparent at their own emission band
+    /// would seldom be hit at all. Capped at ρ (about one per flight), the majorant grows
+    /// only where the path's wavelengths are not absorbed.
+    UnpolarizedSpectrum collision_bound(const MediumInteraction3f &mi, const UnpolarizedSpectrum &mu_a) const {
+        double rate = fluo_detail::source_rate_request();
+        if (!m_fluorescent || !(rate > 0.0) || !(m_max_density > 0.0))
+            return mu_a;
+        Float cap = (Float) (rate / (m_max_density * m_scale)); // 1/m at density 1
+        UnpolarizedSpectrum out = mu_a;
+        if constexpr (is_spectral_v<Spectrum>) {
+            const Rates &r = rates(mi);
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j)
+                out[j] = dr::maximum(out[j], dr::minimum(r.mu_f[j], cap));
+        } else {
+            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j)
+                out[j] = dr::maximum(out[j], dr::minimum((Float) m_mu_f_max, cap));
+        }
+        return out;
+    }
+
+    /// μa and μf (whole range) at a path's four wavelengths, 1/m at density 1. A flight
+    /// keeps its wavelengths over all of its tentative collisions, each of which asks
+    /// for them 2-3 times: one Rust call per new set of wavelengths, per thread.
+    struct Rates {
+        uint64_t owner = 0; ///< m_id of the medium (0: empty)
+        std::array<float, 4> lambda{}, mu_a{}, mu_f{};
+    };
+    const Rates &rates(const MediumInteraction3f &mi) const {
+        thread_local Rates cache;
+        std::array<float, 4> lambda = fluo_detail::wavelengths_of(mi.wavelengths);
+        if (cache.owner != m_id || cache.lambda != lambda) {
+            cache.owner = m_id;
+            cache.lambda = lambda;
+            fluo::medium_absorption(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(cache.mu_a));
+            cache.mu_f.fill(0.f);
+            if (m_fluorescent)
+                fluo::medium_shift_coefficients(**m_model, fluo_detail::slice(lambda), m_range,
+                                                fluo_detail::slice_mut(cache.mu_f));
+        }
+        return cache;
     }
 
     /// μa at the interaction's wavelengths (spectral) or its sRGB (RGB), 1/m, density 1.
     UnpolarizedSpectrum absorption(const MediumInteraction3f &mi) const {
         UnpolarizedSpectrum out(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mi.wavelengths), mu{};
-            fluo::medium_absorption(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(mu));
+            const Rates &r = rates(mi);
             for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j)
-                out[j] = mu[j];
+                out[j] = r.mu_a[j];
         } else {
             for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum> && j < 3; ++j)
                 out[j] = (float) m_mu_a_rgb[j];
@@ -189,10 +266,19 @@ private:
     }
 
     const char *m_plugin;
+    /// Unique per medium object (the key of the per-thread Rates cache).
+    const uint64_t m_id = next_id();
+    static uint64_t next_id() {
+        static std::atomic<uint64_t> counter{ 0 };
+        return ++counter;
+    }
     std::optional<rust::Box<fluo::FluoMedium>> m_model;
     ref<Volume> m_density, m_sigma_s;
     /// Metres per scene unit; the density's and σs's maxima (the majorant's parts).
     double m_scale = 1.0, m_max_density = 1.0, m_max_sigma_s = 0.0, m_majorant_floor = MinMajorant;
+    /// max of μa over reduced transport's wavelengths and of its RGB channels, 1/m: the RGB
+    /// variants' majorant; and the max of μf there (collision_bound).
+    double m_mu_a_max = 0.0, m_mu_f_max = 0.0;
     bool m_fluorescent = false;
     bool m_bounded = false;
     fluo::Range m_range{ 0, 0 };

@@ -60,7 +60,8 @@ public:
     /// scalar_rgb: reduce every fluorescent BSDF for the transport basis (their
     /// wrappers go to `wrappers`), and find the emitters whose radiance has a known
     /// spectrum.
-    void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers) {
+    void prepare(Scene *scene, fluo_detail::FluoWrappers<Float, Spectrum> &wrappers,
+                 bool fluorescent_media = false) {
         m_entries.clear();
         m_varying.clear();
         m_reduced.clear();
@@ -117,7 +118,8 @@ public:
                                                   rust::Slice<double>(es.coeffs.data(), m_k));
                     es.luminance = src->rgb_luminance();
                     m_sources.push_back(es);
-                    if (!warned_uv && !m_entries.empty() && fluo::illuminant_is_mostly_uv(src->illuminant())) {
+                    if (!warned_uv && (!m_entries.empty() || fluorescent_media) &&
+                        fluo::illuminant_is_mostly_uv(src->illuminant())) {
                         warned_uv = true;
                         m_uv_warned = scene;
                         fluo_detail::warn_uv_emitter(m_plugin, "scalar_rgb", emitter.get());
@@ -180,22 +182,23 @@ public:
         BSDFSample3f scatter(const Vertex &fl, const BSDF *bsdf, const SurfaceInteraction3f &si,
                              const EmitterSample &em, Float sample_1, const Point2f &sample_2) {
             BSDFContext bsdf_ctx;
+            const Coeffs *light = m_light;
+            m_light = nullptr;
             // --------------- Emitter sampling contribution ----------------
             if (em.active) {
                 if (fl) {
                     Float mis_em = dr::select(em.ds.delta, 1.f,
                                               fluo_detail::mis_weight(em.ds.pdf, bsdf->pdf(bsdf_ctx, si, em.wo)));
                     // R·(M·c): a K×K matrix-vector product instead of the 3K×K product R·M.
-                    Coeffs mc = m_t.vertex_apply(*fl, si, em.wo, m_t.emitter_coefficients(em.ds.emitter, em.weight),
-                                                 m_m);
+                    Coeffs mc = m_t.vertex_apply(*fl, si, em.wo, light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight), m_m);
                     m_t.accumulate(m_result, m_reduced ? m_R : m_t.rows_scaled(m_rgb), mc, mis_em);
                 } else {
                     auto [val, bsdf_pdf] = bsdf->eval_pdf(bsdf_ctx, si, em.wo);
                     Float mis_em = dr::select(em.ds.delta, 1.f, fluo_detail::mis_weight(em.ds.pdf, bsdf_pdf));
-                    if (m_reduced) {
-                        Row3 rm = m_R;
+                    if (m_reduced || light) {
+                        Row3 rm = m_reduced ? m_R : m_t.rows_scaled(m_rgb);
                         m_t.scale_columns(rm, m_t.band_albedo(val));
-                        m_t.accumulate(m_result, rm, m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
+                        m_t.accumulate(m_result, rm, light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
                     } else {
                         m_result = dr::fmadd(m_rgb, val * em.weight * mis_em, m_result);
                     }
@@ -238,6 +241,74 @@ public:
             m_rgb /= rr_prob;
         }
 
+        // ------------- fluo_volpath's media (fluo_volpath_reduced.h) -------------
+
+        /// The next scatter()'s emitter sample reached the vertex through a fluorescent
+        /// medium: its light is given as basis coefficients `c` (the shadow ray's transfer
+        /// applied to the emitter's coefficients), not by its RGB weight. Valid for that
+        /// one call; nullptr: none.
+        void set_light(const Coeffs *c) { m_light = c; }
+        /// Switch to the 3×K form (a fluorescent medium acts on bands, not RGB).
+        void to_reduced() {
+            if (!m_reduced)
+                m_R = m_t.rows_scaled(m_rgb);
+            m_reduced = true;
+        }
+        /// A wavelength-preserving weight (native media, null interfaces, phase weights).
+        void scale(const Spectrum &w) {
+            if (m_reduced)
+                m_t.scale_columns(m_R, m_t.band_albedo(w));
+            else
+                m_rgb *= w;
+        }
+        /// R ← R·M·s (to the 3×K form first).
+        void multiply(const Square &m, double s) {
+            to_reduced();
+            m_t.multiply(m_R, m, s);
+        }
+        /// R ← (R·diag(g) − d·R·A)·s (3×K form): a fluorescent medium's null collision
+        /// (A: its reduced absorption), without forming the K×K operator.
+        void multiply_null(const Square &a, double d, const Coeffs &g, double s) {
+            to_reduced();
+            m_t.with_k([&](auto kc) {
+                constexpr size_t K = decltype(kc)::value;
+                std::array<double, 3 * K> out;
+                for (size_t row = 0; row < 3; ++row)
+                    for (size_t j = 0; j < K; ++j) {
+                        double acc = 0.0;
+                        for (size_t l = 0; l < K; ++l)
+                            acc += m_R[row * K + l] * a[l * K + j];
+                        out[row * K + j] = (m_R[row * K + j] * g[j] - d * acc) * s;
+                    }
+                std::copy(out.begin(), out.end(), m_R.begin());
+            });
+        }
+
+        /// result += R·(M·c)·s (RGB form: diag(t)·O·(M·c)·s) for light c.
+        void add(const Square &m, const Coeffs &c, double s) {
+            m_t.accumulate(m_result, m_reduced ? m_R : m_t.rows_scaled(m_rgb), m_t.apply(m, c), s);
+        }
+        /// result += R·diag(w)·c·s for a wavelength-preserving weight w and light c (basis
+        /// coefficients); without c, light of RGB radiance le from emitter e (in the RGB
+        /// form: t·w·le·s, as Mitsuba).
+        void add_light(const Spectrum &w, const Emitter *e, const Spectrum &le, const Coeffs *c, double s) {
+            if (!m_reduced && !c) {
+                m_result = dr::fmadd(m_rgb, w * le * (Float) s, m_result);
+                return;
+            }
+            Row3 rm = m_reduced ? m_R : m_t.rows_scaled(m_rgb);
+            m_t.scale_columns(rm, m_t.band_albedo(w));
+            m_t.accumulate(m_result, rm, c ? *c : m_t.emitter_coefficients(e, le), s);
+        }
+        /// Per band k, max over the rows of |R_rk| (3×K form).
+        Coeffs column_max() const {
+            Coeffs out{};
+            for (size_t row = 0; row < 3; ++row)
+                for (size_t k = 0; k < m_t.m_k; ++k)
+                    out[k] = std::max(out[k], std::abs(m_R[row * m_t.m_k + k]));
+            return out;
+        }
+
         /// Out-of-gamut colours (a saturated 520 nm emission has negative linear sRGB
         /// red) are clipped here, per sample, as an sRGB film must store them; along
         /// the path the coefficients stay signed.
@@ -250,7 +321,15 @@ public:
         bool m_reduced = false; // whether m_R (not m_rgb) carries the throughput
         Color3f m_result = 0.f;
         Square m_m{};           // scratch: the current vertex matrix
+        const Coeffs *m_light = nullptr; // set_light()
     };
+
+    /// Coefficients of an emitter's radiance `rgb` (see emitter_coefficients below).
+    Coeffs light_coefficients(const Emitter *e, const Spectrum &rgb) const { return emitter_coefficients(e, rgb); }
+    /// The transport basis (to reduce other operators for it).
+    const fluo::TransportBasis &basis() const { return *m_transport; }
+    /// Per-band factors of an RGB weight (see band_albedo below).
+    Coeffs band_factors(const Spectrum &v) const { return band_albedo(v); }
 
 private:
     struct EmitterSource {

@@ -296,6 +296,11 @@ pub(super) struct LambdaIndex {
 }
 
 impl LambdaIndex {
+    /// Heap bytes of the index.
+    pub(super) fn heap_bytes(&self) -> usize {
+        self.first.len() * std::mem::size_of::<u32>()
+    }
+
     /// Index `grid` (strictly increasing, ≥ 2 nodes).
     pub(super) fn new(grid: &[f64]) -> Self {
         let n = grid.len();

@@ -136,6 +136,12 @@ pub struct QdMedium {
 }
 
 impl QdMedium {
+    /// Bytes the medium occupies at render time: the struct and its tables (λ grid, μa,
+    /// its running integral, the grid's index).
+    pub fn bytes_at_render_time(&self) -> usize {
+        std::mem::size_of::<Self>() + 8 * (self.grid.len() + self.mu_a.len() + self.cum.len()) + self.index.heap_bytes()
+    }
+
     /// Validate and bake (errors name the parameter, its value and the valid range).
     pub fn new(params: QdMediumParams) -> Result<Self> {
         check_range("concentration", params.concentration_um, CONCENTRATION_RANGE_UM.0, CONCENTRATION_RANGE_UM.1)?;
