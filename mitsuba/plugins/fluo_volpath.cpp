@@ -902,7 +902,29 @@ private:
             Bool escaped_medium = false;
             Bool active_medium = medium != nullptr;
             Bool active_surface = !active_medium;
-            if (active_medium) {
+            // A fluorescent medium whose extinction is the same everywhere: its
+            // transmittance to the next surface in closed form, exp(−σt·t) per
+            // wavelength, instead of ratio tracking's ~μ̄·t steps (scalar_spectral).
+            const MediumEntry *constant_entry = active_medium ? find_medium(medium) : nullptr;
+            UnpolarizedSpectrum constant_sigma_t(0.f);
+            if (constant_entry) {
+                MediumInteraction3f at = dr::zeros<MediumInteraction3f>();
+                at.wavelengths = ray.wavelengths;
+                at.p = ray.o;
+                if (!constant_entry->medium->constant_extinction(at, constant_sigma_t))
+                    constant_entry = nullptr;
+            }
+            if (constant_entry) {
+                if (needs_intersection)
+                    si = scene->ray_intersect(ray, true);
+                needs_intersection = false;
+                bool reaches_surface = si.is_valid() && si.t < remaining_dist;
+                transmittance *= dr::exp(-(reaches_surface ? si.t : remaining_dist) * constant_sigma_t);
+                if (!reaches_surface)
+                    break; // the emitter lies inside this medium
+                escaped_medium = true;
+                active_medium = false;
+            } else if (active_medium) {
                 mei = medium->sample_interaction(ray, sampler->next_1d(true), channel, true);
                 if (medium->is_homogeneous() && mei.is_valid())
                     ray.maxt = dr::minimum(mei.t, remaining_dist);

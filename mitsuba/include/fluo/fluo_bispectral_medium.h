@@ -88,6 +88,12 @@ public:
     virtual void reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
                                    rust::Slice<double> f) const = 0;
 
+    /// Whether the medium's extinction is the same everywhere (no density grid, a
+    /// constant σs); then `sigma_t` receives it at mei's wavelengths, inverse scene units
+    /// (fluo_volpath's shadow rays take its transmittance in closed form).
+    virtual bool constant_extinction(const MediumInteraction3f &mei,
+                                     typename MediumInteraction3f::UnpolarizedSpectrum &sigma_t) const = 0;
+
     /// The density at mei.p, 1 without a density grid.
     virtual Float density_at(const MediumInteraction3f &mei) const = 0;
 

@@ -110,6 +110,13 @@ public:
             v *= m_scale;
     }
 
+    bool constant_extinction(const MediumInteraction3f &mei, UnpolarizedSpectrum &sigma_t) const override {
+        if (!m_constant)
+            return false;
+        sigma_t = absorption(mei) * (Float) m_scale + m_sigma_s->eval(mei, true) * (Float) m_scale;
+        return true;
+    }
+
     Float density_at(const MediumInteraction3f &mei) const override {
         return m_bounded ? m_density->eval_1(mei, true) : Float(1.f);
     }
@@ -139,6 +146,7 @@ protected:
             Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", m_plugin,
                   m_max_sigma_s);
         m_has_spectral_extinction = true;
+        m_constant = !m_bounded && dr::all(m_sigma_s->resolution() == ScalarVector3i(1, 1, 1));
     }
 
     /// Adopt the plugin's Rust model and derive what the render needs from it.
@@ -281,6 +289,8 @@ private:
     double m_mu_a_max = 0.0, m_mu_f_max = 0.0;
     bool m_fluorescent = false;
     bool m_bounded = false;
+    /// No density grid and a constant σs: the extinction is the same everywhere.
+    bool m_constant = false;
     fluo::Range m_range{ 0, 0 };
     std::array<double, 3> m_mu_a_rgb{};
 };
