@@ -55,12 +55,12 @@ def test02_scene_uses_fluo_path_in_both_variants(scene):
     materials = scenes.fluorescent_materials(text)
     assert materials, "a demo scene should show fluorescence"
     if any(m in scenes.FLUORESCENT_MEDIA for m in materials):
-        # Fluorescent media: fluo_volpath, spectral only (no reduced RGB for media yet).
+        # Fluorescent media: fluo_volpath (wavelength shifting in scalar_spectral, reduced
+        # transport in scalar_rgb).
         assert integrators == ["fluo_volpath"], integrators
-        assert scene_variants(scene) == ("scalar_spectral",)
     else:
         assert integrators == ["fluo_path"], integrators
-        assert scene_variants(scene) == VARIANTS
+    assert scene_variants(scene) == VARIANTS
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
