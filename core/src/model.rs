@@ -333,6 +333,12 @@ impl MediumModel {
     pub fn sample_excitation(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> Option<(f64, f64)> {
         dispatch!(self, m => m.sample_excitation(lambda_o_nm, range, xi))
     }
+
+    /// μf(λo | R) and `sample_excitation(λo, R, xi)` together (what a fluorescent
+    /// collision asks of each wavelength; one call sharing the integrals).
+    pub fn shift_and_sample(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> (f64, Option<(f64, f64)>) {
+        dispatch!(self, m => m.shift_and_sample(lambda_o_nm, range, xi))
+    }
 }
 
 impl fmt::Display for MediumModel {

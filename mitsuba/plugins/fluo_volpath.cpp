@@ -643,14 +643,20 @@ private:
                                     UnpolarizedSpectrum &sigma_s) const {
         MediumShift shift;
         if constexpr (is_spectral_v<Spectrum>) {
-            std::array<float, 4> mu_f{};
-            e.medium->shift_coefficients(mei, e.range, mu_f);
+            std::array<Point2f, 4> us;
+            std::array<double, 4> xi{};
             for (size_t j = 0; j < 4; ++j) {
-                double lo = mei.wavelengths[j];
+                us[j] = sampler->next_2d();
+                xi[j] = (double) us[j].y();
+            }
+            std::array<float, 4> mu_f{};
+            std::array<fluo::Sample, 4> samples;
+            e.medium->shift_and_sample(mei, e.range, xi, mu_f, samples);
+            for (size_t j = 0; j < 4; ++j) {
                 double ss = std::max(0.0, (double) sigma_s[j]);
                 double sf = std::max(0.0, (double) mu_f[j]);
                 double total = ss + sf;
-                Point2f u = sampler->next_2d();
+                const Point2f &u = us[j];
                 if (!(total > 0.0) || !std::isfinite(total)) {
                     sigma_s[j] = 0.f;
                     continue;
@@ -658,7 +664,7 @@ private:
                 sigma_s[j] = (float) total;
                 if (u.x() * total < ss)
                     continue; // elastic: weight ss / pe = total
-                fluo::Sample s = e.medium->sample_excitation(lo, u.y(), e.range);
+                const fluo::Sample &s = samples[j];
                 if (!(s.pdf > 0.0)) {
                     sigma_s[j] = 0.f;
                     continue;

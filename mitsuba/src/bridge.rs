@@ -379,6 +379,16 @@ mod bridge {
         fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]);
         /// λi with density μa f / μf over the excitation interval of λo in R; pdf 0: none.
         fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample;
+        /// For each λo_j: mu_f[j] = μf(λo_j | R) (1/m) and samples[j] = the excitation
+        /// sample_excitation(λo_j, xis[j], R) gives (one call per fluorescent collision).
+        fn medium_shift_and_sample(
+            model: &FluoMedium,
+            lambdas: &[f32],
+            xis: &[f64],
+            range: &Range,
+            mu_f: &mut [f32],
+            samples: &mut [Sample],
+        );
         /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
         fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64;
         fn medium_to_string(model: &FluoMedium) -> String;
@@ -1314,6 +1324,21 @@ fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range,
 
 fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample {
     sample_of(model.model.sample_excitation(lambda_o, (range.lo, range.hi), xi))
+}
+
+fn medium_shift_and_sample(
+    model: &FluoMedium,
+    lambdas: &[f32],
+    xis: &[f64],
+    range: &Range,
+    mu_f: &mut [f32],
+    samples: &mut [Sample],
+) {
+    for (((l, xi), m), s) in lambdas.iter().zip(xis).zip(mu_f.iter_mut()).zip(samples.iter_mut()) {
+        let (f, sample) = model.model.shift_and_sample(f64::from(*l), (range.lo, range.hi), *xi);
+        *m = f as f32;
+        *s = sample_of(sample);
+    }
 }
 
 fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64 {

@@ -1144,6 +1144,11 @@ impl DyeMedium {
         }
         self.dye.sample_absorption(xi, range.0, range.1.min(lambda_o_nm))
     }
+
+    /// μf(λo | R) and [`DyeMedium::sample_excitation`] with `xi`.
+    pub fn shift_and_sample(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> (f64, Option<(f64, f64)>) {
+        (self.shift_coefficient_per_m(lambda_o_nm, range), self.sample_excitation(lambda_o_nm, range, xi))
+    }
 }
 
 impl fmt::Display for DyeMedium {

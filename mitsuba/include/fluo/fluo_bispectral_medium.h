@@ -73,6 +73,12 @@ public:
     virtual void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
                                     std::array<float, 4> &out) const = 0;
 
+    /// shift_coefficients and, for each wavelength j, sample_excitation(λo_j, xi[j], range)
+    /// in one call (a fluorescent collision's questions).
+    virtual void shift_and_sample(const MediumInteraction3f &mei, const fluo::Range &range,
+                                  const std::array<double, 4> &xi, std::array<float, 4> &mu_f,
+                                  std::array<fluo::Sample, 4> &samples) const = 0;
+
     /// An upper bound of shift_coefficients for any R (μf over the medium's whole range),
     /// cheap at every tentative collision (fluo_volpath's collision probabilities).
     virtual void source_bound(const MediumInteraction3f &mei, std::array<float, 4> &out) const = 0;

@@ -43,6 +43,12 @@ public:
         Base::traverse(cb);
     }
 
+    /// A traversed update (density grid, σs) invalidates the per-thread caches.
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        m_id = next_id();
+        Base::parameters_changed(keys);
+    }
+
     std::tuple<Mask, Float, Float> intersect_aabb(const Ray3f &ray) const override {
         if (!m_bounded)
             return { true, 0.f, dr::Infinity<Float> };
@@ -57,7 +63,7 @@ public:
     std::tuple<UnpolarizedSpectrum, UnpolarizedSpectrum, UnpolarizedSpectrum>
     get_scattering_coefficients(const MediumInteraction3f &mi, Mask active) const override {
         this->warn_if_unmanaged(m_plugin);
-        Float d = m_bounded ? m_density->eval_1(mi, active) : Float(1.f);
+        Float d = density(mi);
         UnpolarizedSpectrum mu_a = absorption(mi);
         UnpolarizedSpectrum sigma_s = m_sigma_s->eval(mi, active) * (Float) m_scale;
         UnpolarizedSpectrum sigma_t = mu_a * d * (Float) m_scale + sigma_s;
@@ -74,7 +80,7 @@ public:
                             std::array<float, 4> &out) const override {
         out.fill(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
+            double d = (double) density(mei);
             if (!(d > 0.0))
                 return;
             std::array<float, 4> lambda = fluo_detail::wavelengths_of(mei.wavelengths);
@@ -85,10 +91,26 @@ public:
         }
     }
 
+    void shift_and_sample(const MediumInteraction3f &mei, const fluo::Range &range, const std::array<double, 4> &xi,
+                          std::array<float, 4> &mu_f, std::array<fluo::Sample, 4> &samples) const override {
+        mu_f.fill(0.f);
+        samples.fill(fluo::Sample{ 0.0, 0.0 });
+        if constexpr (is_spectral_v<Spectrum>) {
+            double d = (double) density(mei);
+            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mei.wavelengths);
+            fluo::medium_shift_and_sample(**m_model, fluo_detail::slice(lambda),
+                                          rust::Slice<const double>(xi.data(), xi.size()), range,
+                                          fluo_detail::slice_mut(mu_f),
+                                          rust::Slice<fluo::Sample>(samples.data(), samples.size()));
+            for (float &v : mu_f)
+                v = d > 0.0 ? (float) (v * d * m_scale) : 0.f;
+        }
+    }
+
     void source_bound(const MediumInteraction3f &mei, std::array<float, 4> &out) const override {
         out.fill(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            double d = m_bounded ? (double) m_density->eval_1(mei, true) : 1.0;
+            double d = (double) density(mei);
             if (!(d > 0.0))
                 return;
             const Rates &r = rates(mei);
@@ -118,7 +140,7 @@ public:
     }
 
     Float density_at(const MediumInteraction3f &mei) const override {
-        return m_bounded ? m_density->eval_1(mei, true) : Float(1.f);
+        return density(mei);
     }
 
 protected:
@@ -237,6 +259,26 @@ private:
         return out;
     }
 
+    /// The density at mi.p (1 without a grid). A tentative collision asks for it up to
+    /// three times at one point (coefficients, source bound, shift): one grid lookup
+    /// per point, per thread.
+    Float density(const Interaction3f &mi) const {
+        if (!m_bounded)
+            return Float(1.f);
+        struct Last {
+            uint64_t owner = 0;
+            Point3f p;
+            Float d = 0.f;
+        };
+        thread_local Last last;
+        if (last.owner != m_id || dr::any(last.p != mi.p)) {
+            last.owner = m_id;
+            last.p = mi.p;
+            last.d = m_density->eval_1(mi, true);
+        }
+        return last.d;
+    }
+
     /// μa and μf (whole range) at a path's four wavelengths, 1/m at density 1. A flight
     /// keeps its wavelengths over all of its tentative collisions, each of which asks
     /// for them 2-3 times: one Rust call per new set of wavelengths, per thread.
@@ -274,8 +316,8 @@ private:
     }
 
     const char *m_plugin;
-    /// Unique per medium object (the key of the per-thread Rates cache).
-    const uint64_t m_id = next_id();
+    /// Unique per medium object and parameter state (the key of the per-thread caches).
+    uint64_t m_id = next_id(); ///< renewed by parameters_changed (its caches' key)
     static uint64_t next_id() {
         static std::atomic<uint64_t> counter{ 0 };
         return ++counter;

@@ -204,7 +204,7 @@ impl QdMedium {
     /// outside).
     pub fn absorption_per_m(&self, lambda_nm: f64) -> f64 {
         match self.locate(lambda_nm) {
-            Some((i, t)) => self.mu_a[i] + t * (self.mu_a[i + 1] - self.mu_a[i]),
+            Some((i, t)) => self.mu_a_at(i, t),
             None if lambda_nm.is_finite() && lambda_nm > 0.0 => {
                 self.params.concentration_um * PER_M_PER_UM_NM2 * self.volume.absorption_cross_section_nm2(lambda_nm)
             }
@@ -212,15 +212,22 @@ impl QdMedium {
         }
     }
 
+    /// μa in cell i at fraction t of it (the table's linear interpolation), 1/m.
+    #[inline]
+    fn mu_a_at(&self, i: usize, t: f64) -> f64 {
+        self.mu_a[i] + t * (self.mu_a[i + 1] - self.mu_a[i])
+    }
+
     /// ∫ μa from λmin to λ (λ clamped to the range), nm/m.
     fn cumulative(&self, lambda_nm: f64) -> f64 {
         let (lo, hi) = self.lambda_range();
         let l = lambda_nm.clamp(lo, hi);
+        if l == lo {
+            return 0.0;
+        }
         match self.locate(l) {
-            Some((i, _)) => {
-                let m = self.absorption_per_m(l);
-                self.cum[i] + 0.5 * (l - self.grid[i]) * (self.mu_a[i] + m)
-            }
+            // one cell lookup: μa(l) from the same cell
+            Some((i, t)) => self.cum[i] + 0.5 * (l - self.grid[i]) * (self.mu_a[i] + self.mu_a_at(i, t)),
             None => 0.0,
         }
     }
@@ -271,7 +278,25 @@ impl QdMedium {
     /// of the piecewise-linear μa); (λi, pdf per nm), or None where μf(λo) = 0.
     pub fn sample_excitation(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> Option<(f64, f64)> {
         let (a, b) = self.excitation_interval(lambda_o_nm, range)?;
+        self.sample_between(a, b, self.cumulative(a), self.cumulative(b), xi)
+    }
+
+    /// μf(λo | R) and a λi sampled as [`QdMedium::sample_excitation`] with `xi`, sharing
+    /// the integrals (one call per shifted wavelength at a fluorescent collision).
+    pub fn shift_and_sample(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> (f64, Option<(f64, f64)>) {
+        let e = self.emission_per_nm(lambda_o_nm);
+        if !(e > 0.0) {
+            return (0.0, None);
+        }
+        let Some((a, b)) = self.excitation_interval(lambda_o_nm, range) else {
+            return (0.0, None);
+        };
         let (ca, cb) = (self.cumulative(a), self.cumulative(b));
+        (e * (cb - ca).max(0.0), self.sample_between(a, b, ca, cb, xi))
+    }
+
+    /// λi ∝ μa on [a, b], whose running integrals are ca and cb (exact inverse CDF).
+    fn sample_between(&self, a: f64, b: f64, ca: f64, cb: f64, xi: f64) -> Option<(f64, f64)> {
         let total = cb - ca;
         if !(total > 0.0 && total.is_finite()) {
             return None;
@@ -288,7 +313,13 @@ impl QdMedium {
         let denom = f0 + disc.sqrt();
         let u = if denom > 0.0 { (2.0 * s / denom).min(h) } else { 0.0 };
         let lambda_i = (x0 + u).clamp(a, b);
-        let pdf = self.absorption_per_m(lambda_i) / total;
+        // μa(λi) from the cell just found (a lookup only if the clamp left it)
+        let mu = if lambda_i >= x0 && lambda_i <= x1 {
+            self.mu_a_at(i, ((lambda_i - x0) / h).clamp(0.0, 1.0))
+        } else {
+            self.absorption_per_m(lambda_i)
+        };
+        let pdf = mu / total;
         (pdf > 0.0 && pdf.is_finite()).then_some((lambda_i, pdf))
     }
 
