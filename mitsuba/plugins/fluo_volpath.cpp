@@ -133,8 +133,9 @@ throughput t until the first fluorescent event, then the 3×K matrix R). A fluor
 medium acts on the K basis coefficients through two K×K operators that Rust reduces at
 render start from its spectra (``fluo::medium_reduced``): its absorption A (the
 reduction of the diagonal μa(λ)) and its reradiation F (of μa(λi) f(λi → λo)), per
-unit density. Tracking uses the medium's majorant μ̄ (in RGB the maximum of μa over the
-whole spectrum, so that it bounds every band) with matrix weights, exact for the
+unit density. Tracking uses the medium's majorant μ̄ (in RGB: over the bands, the largest
+diagonal entry of A, at least μa's RGB channels; any μ̄ > 0 would do) with matrix
+weights, exact for the
 reduced operators: a null collision multiplies R by (μ̄ − σs − d·A)/(μ̄ p_null), a
 real one by the collision's source σs·p + d·F/(4π) over μ̄ p_real (p: the phase
 function's value, or weight with the sampled direction; d: the density there), with the
@@ -387,6 +388,14 @@ public:
                     scale(sigma_s / real_scatter_prob);
                 if (not_spectral)
                     scale(sigma_s / mei.sigma_t);
+                if constexpr (!IsReduced) {
+                    // In a fluorescent medium, a collision that absorbed every wavelength for
+                    // good (none scatters or shifts) ends the path here, before an emitter
+                    // sample it could only weigh by 0 (volpath's own media keep volpath's
+                    // steps, random numbers included).
+                    if (fluo_entry && !dr::any(unpolarized_spectrum(path.throughput()) != 0.f))
+                        break;
+                }
 
                 PhaseFunctionContext phase_ctx(sampler);
                 const auto *phase = mei.medium->phase_function();
@@ -397,7 +406,7 @@ public:
                 specular_chain = !sample_emitters;
                 if (sample_emitters) {
                     Shadow shadow;
-                    auto [emitted, ds] = sample_emitter(mei, scene, sampler, medium, channel, &shadow);
+                    auto [emitted, ds] = sample_emitter(mei, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
                     auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, mei, ds.d, true);
                     Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
                     if constexpr (IsReduced) {
@@ -479,12 +488,12 @@ public:
                 em.active = has_flag(bsdf->flags(), BSDFFlags::Smooth) && (depth + 1 < (uint32_t) m_max_depth);
                 Shadow shadow;
                 if (em.active) {
-                    auto [emitted, ds] = sample_emitter(si, scene, sampler, medium, channel, &shadow);
+                    auto [emitted, ds] = sample_emitter(si, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
                     em.ds = ds;
                     em.weight = emitted;
                     em.wo = si.to_local(ds.d);
                 }
-                Coeffs light{};
+                Coeffs light;
                 if constexpr (IsReduced) {
                     if (shadow.active)
                         light = shadow_light(shadow, m_reduced.light_coefficients(em.ds.emitter, em.weight));
@@ -558,7 +567,7 @@ private:
         size_t n = 0;
         std::array<Op, Capacity> ops;
         bool folded = false; ///< p holds the operators before ops
-        Square p{};
+        Square p;            ///< (set when folded)
     };
 
     /// The per-wavelength choice at a real collision in a fluorescent medium.
@@ -842,9 +851,13 @@ private:
                 ReducedMedium r{ b, {}, {}, {} };
                 b->reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
                                      rust::Slice<double>(r.f.data(), k * k));
-                for (size_t i = 0; i < k; ++i)
+                double a_max = 0.0;
+                for (size_t i = 0; i < k; ++i) {
+                    a_max = std::max(a_max, r.a[i * k + i]);
                     for (size_t j = 0; j < k; ++j)
                         r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
+                }
+                b->set_band_absorption_max(a_max);
                 m_rmedia.emplace(static_cast<const void *>(dynamic_cast<const Medium *>(b)), r);
             }
             m_reduced.prepare(scene, m_wrappers, !media.empty());
@@ -940,7 +953,7 @@ private:
                     mei.t = dr::Infinity<Float>;
                 needs_intersection = false;
 
-                const ReducedMedium *rmed = m_use_reduced ? find_reduced(medium) : nullptr;
+                const ReducedMedium *rmed = shadow && m_use_reduced ? find_reduced(medium) : nullptr;
                 Bool is_spectral = medium->has_spectral_extinction();
                 Bool not_spectral = !is_spectral;
                 if (is_spectral && !rmed) {

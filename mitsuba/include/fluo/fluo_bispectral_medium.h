@@ -107,6 +107,12 @@ public:
     /// integrator renders absorption without re-emission and says so once per scene.
     void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
 
+    /// scalar_rgb: the largest diagonal entry of the reduced absorption operator A of the
+    /// transport fluo_volpath prepared (per scene unit, density 1; 0: none). The RGB
+    /// majorant then bounds the bands it transports, not the whole spectrum (a narrower
+    /// majorant, fewer null collisions; the tracking's weights are exact either way).
+    void set_band_absorption_max(double a) const { m_band_mu_a_max.store(a, std::memory_order_relaxed); }
+
 protected:
     void warn_if_unmanaged(const char *plugin) const {
         if (m_managed.load(std::memory_order_relaxed) || !fluorescent())
@@ -122,6 +128,12 @@ protected:
 
 private:
     mutable std::atomic<bool> m_managed{ false };
+
+protected:
+    double band_absorption_max() const { return m_band_mu_a_max.load(std::memory_order_relaxed); }
+
+private:
+    mutable std::atomic<double> m_band_mu_a_max{ 0.0 };
 };
 
 NAMESPACE_END(mitsuba)

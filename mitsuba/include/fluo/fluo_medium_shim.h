@@ -230,8 +230,14 @@ private:
     /// leaving their collisions (and fluorescence) to rare, huge weights.
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &mu_a) const {
         UnpolarizedSpectrum m = (mu_a * (Float) m_max_density + (Float) m_max_sigma_s) * (Float) m_scale;
-        if constexpr (is_rgb_v<Spectrum>) // the spectrum's maximum: it bounds the bands of any reduced transport
-            m = dr::maximum(m, UnpolarizedSpectrum((Float) ((m_mu_a_max * m_max_density + m_max_sigma_s) * m_scale)));
+        if constexpr (is_rgb_v<Spectrum>) {
+            // the spectrum's maximum bounds the bands of any reduced transport; once
+            // fluo_volpath has prepared one, the maximum over its bands (and μa's RGB)
+            double band = this->band_absorption_max();
+            double rgb = std::max({ m_mu_a_rgb[0], m_mu_a_rgb[1], m_mu_a_rgb[2] }) * m_scale;
+            double mu = band > 0.0 ? std::max(band, rgb) : m_mu_a_max * m_scale;
+            m = dr::maximum(m, UnpolarizedSpectrum((Float) (mu * m_max_density + m_max_sigma_s * m_scale)));
+        }
         return UnpolarizedSpectrum(dr::maximum(dr::max(m), (Float) m_majorant_floor));
     }
 
