@@ -270,18 +270,7 @@ public:
         /// (A: its reduced absorption), without forming the K×K operator.
         void multiply_null(const Square &a, double d, const Coeffs &g, double s) {
             to_reduced();
-            m_t.with_k([&](auto kc) {
-                constexpr size_t K = decltype(kc)::value;
-                std::array<double, 3 * K> out;
-                for (size_t row = 0; row < 3; ++row)
-                    for (size_t j = 0; j < K; ++j) {
-                        double acc = 0.0;
-                        for (size_t l = 0; l < K; ++l)
-                            acc += m_R[row * K + l] * a[l * K + j];
-                        out[row * K + j] = (m_R[row * K + j] * g[j] - d * acc) * s;
-                    }
-                std::copy(out.begin(), out.end(), m_R.begin());
-            });
+            m_t.multiply_diag_plus(m_R, &g, a, -d, s);
         }
 
         /// result += R·(M·c)·s (RGB form: diag(t)·O·(M·c)·s) for light c.
@@ -532,7 +521,10 @@ private:
     }
 
     /// R ← R · M · s
-    void multiply(Row3 &r, const Square &m, double s) const {
+    void multiply(Row3 &r, const Square &m, double s) const { multiply_diag_plus(r, nullptr, m, 1.0, s); }
+
+    /// R ← (R·diag(g) + c·R·M)·s (without g: c·R·M·s).
+    void multiply_diag_plus(Row3 &r, const Coeffs *g, const Square &m, double c, double s) const {
         with_k([&](auto kc) {
             constexpr size_t K = decltype(kc)::value;
             std::array<double, 3 * K> out;
@@ -541,7 +533,7 @@ private:
                     double acc = 0.0;
                     for (size_t k = 0; k < K; ++k)
                         acc += r[row * K + k] * m[k * K + j];
-                    out[row * K + j] = acc * s;
+                    out[row * K + j] = ((g ? r[row * K + j] * (*g)[j] : 0.0) + c * acc) * s;
                 }
             std::copy(out.begin(), out.end(), r.begin());
         });
