@@ -11,6 +11,8 @@
 * test05: scalar_rgb's reduced transport in fluorescent media against the spectral
   reference (thin cube of dots under D65: the light and the glow alone), fluorescent
   surfaces with media (as fluo_path without them), hard cases and warnings.
+* test06: fluo_path warns once that it ignores media.
+* test07: invalid basis, method and lambda_min: errors name the parameter and its range.
 """
 
 from __future__ import annotations
@@ -452,3 +454,12 @@ def test06_fluo_path_warns_once_that_it_ignores_media(variant, mitsuba_log):
         plain[key].pop("interior")
     mi.render(mi.load_dict(plain))
     assert not [l for l in mitsuba_log if "participating media" in l], mitsuba_log
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("name, value, range_", [("basis", "x9", "rgb, xyzu, x7"), ("method", "exact", "ours, naive"),
+                                                 ("lambda_min", 100.0, r"\[200, 360\]")])
+def test07_invalid_parameters_name_the_parameter_and_range(variant, name, value, range_):
+    mi.set_variant(variant)
+    with pytest.raises(RuntimeError, match=rf"fluo_volpath: invalid parameter \"?{name}\"?.*{range_}"):
+        mi.load_dict({"type": "fluo_volpath", name: value})
