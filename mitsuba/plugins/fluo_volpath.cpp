@@ -151,7 +151,7 @@ thick media (τ ≳ 1 over their colour) lose their transmission windows as nati
 media do (the same cube at thirty times that density, τ ≈ 1 in the green: 8 % under
 the spectral red). Under narrow UV lamps one UV band averages the absorption over
 300-400 nm (the basis's warning applies; the cuvettes of blue- to red-emitting dots under
-a 300-380 nm lamp came out within 5-15 % of the spectral render here, but a narrow
+a 300-380 nm lamp came out within 16 % of the spectral render here, but a narrow
 365 nm line can be off several-fold).
 
 **Variants.** ``scalar_spectral`` (wavelength shifting) and ``scalar_rgb`` (reduced
