@@ -525,6 +525,11 @@ private:
 
     /// R ← (R·diag(g) + c·R·M)·s (without g: c·R·M·s).
     void multiply_diag_plus(Row3 &r, const Coeffs *g, const Square &m, double c, double s) const {
+        Coeffs gs{}; // g·s, or 0
+        if (g)
+            for (size_t j = 0; j < KMax; ++j)
+                gs[j] = (*g)[j] * s;
+        double cs = c * s;
         with_k([&](auto kc) {
             constexpr size_t K = decltype(kc)::value;
             std::array<double, 3 * K> out;
@@ -533,7 +538,7 @@ private:
                     double acc = 0.0;
                     for (size_t k = 0; k < K; ++k)
                         acc += r[row * K + k] * m[k * K + j];
-                    out[row * K + j] = ((g ? r[row * K + j] * (*g)[j] : 0.0) + c * acc) * s;
+                    out[row * K + j] = r[row * K + j] * gs[j] + cs * acc;
                 }
             std::copy(out.begin(), out.end(), r.begin());
         });
