@@ -279,11 +279,12 @@ public:
             if (active_medium) {
                 is_spectral = medium->has_spectral_extinction();
                 not_spectral = !is_spectral;
-                bool fluorescent_here;
+                // A fluorescent medium: its entry in the spectral or the reduced transport.
                 if constexpr (IsReduced)
-                    fluorescent_here = find_reduced(medium) != nullptr;
+                    rmed = find_reduced(medium);
                 else
-                    fluorescent_here = find_medium(medium) != nullptr;
+                    fluo_entry = find_medium(medium);
+                bool fluorescent_here = fluo_entry || rmed;
                 if (fluorescent_here && needs_intersection) {
                     si = scene->ray_intersect(ray, true);
                     needs_intersection = false;
@@ -306,8 +307,6 @@ public:
                 needs_intersection = false;
                 if (si.t < mei.t)
                     mei.t = dr::Infinity<Float>;
-                if constexpr (IsReduced)
-                    rmed = find_reduced(medium);
                 // (a fluorescent medium's majorant is one for all bands: weight 1 to escape,
                 // 1/μ̄ at a tentative collision, applied below)
                 if (is_spectral && !rmed) {
@@ -321,11 +320,10 @@ public:
                 not_spectral &= active_medium;
                 if (active_medium) {
                     // Null or real: volpath's rule (the hero wavelengths' mean null
-                    // probability), or spectral tracking in fluorescent media.
-                    fluo_entry = find_medium(mei.medium);
+                    // probability), or spectral tracking in fluorescent media (over the
+                    // bands' columns of R in the reduced transport).
                     if constexpr (IsReduced) {
                         if (rmed) {
-                            // Null or real by spectral tracking over the bands' columns of R.
                             path.to_reduced();
                             col = collision(*rmed, mei);
                             std::tie(null_scatter_prob, real_scatter_prob) =
@@ -333,7 +331,7 @@ public:
                         }
                     }
                     if (rmed) {
-                        // (the probabilities are set)
+                        // (set above)
                     } else if (fluo_entry && is_spectral) {
                         if constexpr (!IsReduced) {
                             std::array<float, 4> bound{};
@@ -406,13 +404,14 @@ public:
                 specular_chain = !sample_emitters;
                 if (sample_emitters) {
                     Shadow shadow;
-                    auto [emitted, ds] = sample_emitter(mei, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
+                    auto [emitted, ds] =
+                        sample_emitter(mei, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
                     auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, mei, ds.d, true);
                     Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
                     if constexpr (IsReduced) {
                         Coeffs c{};
                         if (shadow.active || rmed)
-                            c = shadow_light(shadow, m_reduced.light_coefficients(ds.emitter, emitted));
+                            c = shadow_light(shadow, m_reduced.emitter_coefficients(ds.emitter, emitted));
                         if (rmed)
                             path.add(source_matrix(*rmed, col, phase_val, InvFourPi), c, real_scale * (double) mis);
                         else
@@ -488,7 +487,8 @@ public:
                 em.active = has_flag(bsdf->flags(), BSDFFlags::Smooth) && (depth + 1 < (uint32_t) m_max_depth);
                 Shadow shadow;
                 if (em.active) {
-                    auto [emitted, ds] = sample_emitter(si, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
+                    auto [emitted, ds] =
+                        sample_emitter(si, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
                     em.ds = ds;
                     em.weight = emitted;
                     em.wo = si.to_local(ds.d);
@@ -496,7 +496,7 @@ public:
                 Coeffs light;
                 if constexpr (IsReduced) {
                     if (shadow.active)
-                        light = shadow_light(shadow, m_reduced.light_coefficients(em.ds.emitter, em.weight));
+                        light = shadow_light(shadow, m_reduced.emitter_coefficients(em.ds.emitter, em.weight));
                     path.set_light(shadow.active ? &light : nullptr);
                 }
 
@@ -625,10 +625,17 @@ private:
         for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum> && j < 4; ++j) {
             if (!(t[j] > 0.f))
                 continue;
-            double source = std::max(0.0, (double) mei.sigma_s[j]) + std::max(0.0, (double) source_bound[j]);
-            kappa = std::max(kappa, inv_len > 0.0 ? std::min(source, inv_len) : source);
+            kappa = std::max(kappa, source_rate(std::max(0.0, (double) mei.sigma_s[j]) +
+                                                    std::max(0.0, (double) source_bound[j]),
+                                                inv_len));
         }
         return collision_probabilities(q_null, q_real, kappa, (double) dr::max(mei.combined_extinction));
+    }
+
+    /// The rate at which a flight samples a source (σs + μf) for its real collisions: the
+    /// source capped at 1/ℓ (inv_len), uncapped without a surface ahead (inv_len = 0).
+    static double source_rate(double source, double inv_len) {
+        return inv_len > 0.0 ? std::min(source, inv_len) : source;
     }
 
     /// (p_null, p_real) from the tracking weights q_null, q_real and the source rate κ
@@ -712,7 +719,7 @@ private:
         Collision c;
         c.density = std::max(0.0, (double) r.medium->density_at(mei));
         c.majorant = (double) dr::max(mei.combined_extinction);
-        c.sigma_s = m_reduced.band_factors(Spectrum(mei.sigma_s));
+        c.sigma_s = m_reduced.band_albedo(Spectrum(mei.sigma_s));
         return c;
     }
 
@@ -731,8 +738,7 @@ private:
             double st = std::max(0.0, c.density * r.a[i * k + i] + c.sigma_s[i]);
             q_null = std::max(q_null, w[i] * std::abs(c.majorant - st));
             q_real = std::max(q_real, w[i] * st);
-            double source = std::max(0.0, c.sigma_s[i]) + c.density * r.f_rows[i];
-            kappa = std::max(kappa, inv_len > 0.0 ? std::min(source, inv_len) : source);
+            kappa = std::max(kappa, source_rate(std::max(0.0, c.sigma_s[i]) + c.density * r.f_rows[i], inv_len));
         }
         return collision_probabilities(q_null, q_real, kappa, c.majorant);
     }
@@ -741,7 +747,7 @@ private:
     /// value or weight) and the isotropic re-emission's iso (1/4π, over the pdf if sampled).
     Square source_matrix(const ReducedMedium &r, const Collision &c, const Spectrum &p, double iso) const {
         size_t k = m_reduced.bands();
-        Coeffs pk = m_reduced.band_factors(p);
+        Coeffs pk = m_reduced.band_albedo(p);
         Square w{};
         for (size_t i = 0; i < k * k; ++i)
             w[i] = c.density * r.f[i] * iso;
@@ -770,7 +776,7 @@ private:
         shadow.active = true;
         if (dr::all(t == 1.f))
             return;
-        push(shadow, typename Shadow::Op{ nullptr, 0.0, m_reduced.band_factors(t) });
+        push(shadow, typename Shadow::Op{ nullptr, 0.0, m_reduced.band_albedo(t) });
         t = Spectrum(1.f);
     }
 

@@ -377,10 +377,9 @@ mod bridge {
         fn medium_lambda_range(model: &FluoMedium) -> Range;
         /// out[j] = μf(λo_j) = ∫_R μa(λi) f(λi → λo_j) dλi, 1/m.
         fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range, out: &mut [f32]);
-        /// λi with density μa f / μf over the excitation interval of λo in R; pdf 0: none.
-        fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample;
-        /// For each λo_j: mu_f[j] = μf(λo_j | R) (1/m) and samples[j] = the excitation
-        /// sample_excitation(λo_j, xis[j], R) gives (one call per fluorescent collision).
+        /// For each λo_j: mu_f[j] = μf(λo_j | R) (1/m) and samples[j] = λi with density
+        /// μa f / μf over the excitation interval of λo_j in R, drawn with xis[j] (pdf 0:
+        /// none); one call per fluorescent collision.
         fn medium_shift_and_sample(
             model: &FluoMedium,
             lambdas: &[f32],
@@ -1320,10 +1319,6 @@ fn medium_shift_coefficients(model: &FluoMedium, lambdas: &[f32], range: &Range,
     for (o, &l) in out.iter_mut().zip(lambdas) {
         *o = model.model.shift_coefficient_per_m(f64::from(l), (range.lo, range.hi)) as f32;
     }
-}
-
-fn medium_sample_excitation(model: &FluoMedium, lambda_o: f64, xi: f64, range: &Range) -> Sample {
-    sample_of(model.model.sample_excitation(lambda_o, (range.lo, range.hi), xi))
 }
 
 fn medium_shift_and_sample(

@@ -1,17 +1,19 @@
 // The bispectral interface of fluo's fluorescent participating media, next to
 // Mitsuba's Medium interface, which the fluo_volpath integrator discovers at render
 // start with dynamic_cast (Mitsuba itself is unchanged). Any volumetric fluorophore
-// (fluo_qd_medium; a dye medium would implement the same four methods) plugs into
+// (fluo_qd_medium, fluo_dye_medium: both through FluoMediumShim) plugs into
 // fluo_volpath through it:
 //
 //   absorption μa(x, λ)            part of the Medium's σt (Mitsuba's interface)
-//   μf(x, λo | R)                  shift_coefficients(): the source coefficient a camera
+//   μf(x, λo | R) and λi           shift_and_sample(): the source coefficient a camera
 //                                  path at λo sees from excitations λi in R,
 //                                  ∫_R μa(x, λi) f(λi → λo) dλi (f: re-emitted power per
-//                                  nm of λo per unit absorbed power at λi, ∫ f dλo ≤ yield)
-//   λi ~ p(λi | λo, R)             sample_excitation(), with p = μa f / μf exactly, so a
-//                                  shift's weight is μf (the medium must guarantee this)
+//                                  nm of λo per unit absorbed power at λi, ∫ f dλo ≤ yield),
+//                                  with λi ~ p = μa f / μf exactly, so that a shift's
+//                                  weight is μf (the medium must guarantee this)
+//   μf(x, λo | all)                source_bound(): a bound for any R, at every collision
 //   [λmin, λmax]                   lambda_range(): where it absorbs-to-re-emit and emits
+//   A, F, density                  reduced_operators(), density_at(): scalar_rgb
 //
 // Re-emission is isotropic. The medium's σs is its elastic scattering only; its
 // absorption is all of σa (fluorescent or not), so σt = σa + σs and the fluorescent
@@ -68,24 +70,18 @@ public:
     /// [λmin, λmax], nm: absorption outside it is not re-emitted, emission lies inside.
     virtual fluo::Range lambda_range() const = 0;
 
-    /// μf(x, λo | R) in inverse scene units at mei.p (density and scale included), for
-    /// each of mei.wavelengths (out[j]; only the first N are written, N = their count).
-    virtual void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
-                                    std::array<float, 4> &out) const = 0;
-
-    /// shift_coefficients and, for each wavelength j, sample_excitation(λo_j, xi[j], range)
-    /// in one call (a fluorescent collision's questions).
+    /// For each of mei's wavelengths λo_j: mu_f[j] = μf(x, λo_j | R) in inverse scene
+    /// units at mei.p (density and scale included), and samples[j] = λi ~ μa(λi)
+    /// f(λi → λo_j) / μf over R drawn with xi[j] (pdf 0 where μf = 0; the density does
+    /// not depend on x: a density grid scales μa uniformly in λ). A fluorescent
+    /// collision's questions, in one call.
     virtual void shift_and_sample(const MediumInteraction3f &mei, const fluo::Range &range,
                                   const std::array<double, 4> &xi, std::array<float, 4> &mu_f,
                                   std::array<fluo::Sample, 4> &samples) const = 0;
 
-    /// An upper bound of shift_coefficients for any R (μf over the medium's whole range),
-    /// cheap at every tentative collision (fluo_volpath's collision probabilities).
+    /// An upper bound of shift_and_sample's μf for any R (μf over the medium's whole
+    /// range), cheap at every tentative collision (fluo_volpath's collision probabilities).
     virtual void source_bound(const MediumInteraction3f &mei, std::array<float, 4> &out) const = 0;
-
-    /// λi ~ μa(λi) f(λi → λo) / μf over R; pdf 0 when μf(λo) = 0. The density does not
-    /// depend on x (a density grid scales μa uniformly in λ).
-    virtual fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const = 0;
 
     /// scalar_rgb (fluo_volpath's reduced transport): the medium's absorption A and
     /// reradiation F reduced for the transport `t` (fluo::medium_reduced), K×K row major
@@ -126,13 +122,10 @@ protected:
         }
     }
 
-private:
-    mutable std::atomic<bool> m_managed{ false };
-
-protected:
     double band_absorption_max() const { return m_band_mu_a_max.load(std::memory_order_relaxed); }
 
 private:
+    mutable std::atomic<bool> m_managed{ false };
     mutable std::atomic<double> m_band_mu_a_max{ 0.0 };
 };
 

@@ -76,21 +76,6 @@ public:
     bool fluorescent() const override { return m_fluorescent; }
     fluo::Range lambda_range() const override { return m_range; }
 
-    void shift_coefficients(const MediumInteraction3f &mei, const fluo::Range &range,
-                            std::array<float, 4> &out) const override {
-        out.fill(0.f);
-        if constexpr (is_spectral_v<Spectrum>) {
-            double d = (double) density(mei);
-            if (!(d > 0.0))
-                return;
-            std::array<float, 4> lambda = fluo_detail::wavelengths_of(mei.wavelengths);
-            fluo::medium_shift_coefficients(**m_model, fluo_detail::slice(lambda), range,
-                                            fluo_detail::slice_mut(out));
-            for (float &v : out)
-                v = (float) (v * d * m_scale);
-        }
-    }
-
     void shift_and_sample(const MediumInteraction3f &mei, const fluo::Range &range, const std::array<double, 4> &xi,
                           std::array<float, 4> &mu_f, std::array<fluo::Sample, 4> &samples) const override {
         mu_f.fill(0.f);
@@ -117,10 +102,6 @@ public:
             for (size_t j = 0; j < 4; ++j)
                 out[j] = (float) (r.mu_f[j] * d * m_scale);
         }
-    }
-
-    fluo::Sample sample_excitation(double lambda_o, double xi, const fluo::Range &range) const override {
-        return fluo::medium_sample_excitation(**m_model, lambda_o, xi, range);
     }
 
     void reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,

@@ -190,7 +190,8 @@ public:
                     Float mis_em = dr::select(em.ds.delta, 1.f,
                                               fluo_detail::mis_weight(em.ds.pdf, bsdf->pdf(bsdf_ctx, si, em.wo)));
                     // R·(M·c): a K×K matrix-vector product instead of the 3K×K product R·M.
-                    Coeffs mc = m_t.vertex_apply(*fl, si, em.wo, light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight), m_m);
+                    Coeffs c = light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight);
+                    Coeffs mc = m_t.vertex_apply(*fl, si, em.wo, c, m_m);
                     m_t.accumulate(m_result, m_reduced ? m_R : m_t.rows_scaled(m_rgb), mc, mis_em);
                 } else {
                     auto [val, bsdf_pdf] = bsdf->eval_pdf(bsdf_ctx, si, em.wo);
@@ -198,7 +199,8 @@ public:
                     if (m_reduced || light) {
                         Row3 rm = m_reduced ? m_R : m_t.rows_scaled(m_rgb);
                         m_t.scale_columns(rm, m_t.band_albedo(val));
-                        m_t.accumulate(m_result, rm, light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight), mis_em);
+                        Coeffs c = light ? *light : m_t.emitter_coefficients(em.ds.emitter, em.weight);
+                        m_t.accumulate(m_result, rm, c, mis_em);
                     } else {
                         m_result = dr::fmadd(m_rgb, val * em.weight * mis_em, m_result);
                     }
@@ -241,7 +243,7 @@ public:
             m_rgb /= rr_prob;
         }
 
-        // ------------- fluo_volpath's media (fluo_volpath_reduced.h) -------------
+        // ---------------- fluo_volpath's fluorescent media (scalar_rgb) ----------------
 
         /// The next scatter()'s emitter sample reached the vertex through a fluorescent
         /// medium: its light is given as basis coefficients `c` (the shadow ray's transfer
@@ -313,30 +315,8 @@ public:
         const Coeffs *m_light = nullptr; // set_light()
     };
 
-    /// Coefficients of an emitter's radiance `rgb` (see emitter_coefficients below).
-    Coeffs light_coefficients(const Emitter *e, const Spectrum &rgb) const { return emitter_coefficients(e, rgb); }
     /// The transport basis (to reduce other operators for it).
     const fluo::TransportBasis &basis() const { return *m_transport; }
-    /// Per-band factors of an RGB weight (see band_albedo below).
-    Coeffs band_factors(const Spectrum &v) const { return band_albedo(v); }
-
-private:
-    struct EmitterSource {
-        const Emitter *emitter;
-        Coeffs coeffs;    // basis coefficients of its spectrum (as the texture is defined)
-        double luminance; // luminance of the texture's RGB, to rescale by the emitter's
-    };
-
-    const Entry *find(const BSDF *bsdf) const { return m_entries.find(bsdf); }
-
-    static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
-
-    static double luminance_of(const Spectrum &v) {
-        if constexpr (is_rgb_v<Spectrum>)
-            return 0.212671 * v[0] + 0.715160 * v[1] + 0.072169 * v[2];
-        else
-            return 0.0;
-    }
 
     /// Basis coefficients of an emitter's radiance: its spectrum's own coefficients
     /// (rescaled to the radiance's luminance) for a fluo_illuminant, else F times its RGB.
@@ -357,20 +337,9 @@ private:
         return c;
     }
 
-    /// Calls f(std::integral_constant<size_t, K>{}) with the transport's K, so that the
-    /// matrix loops below have compile-time bounds (unrolled, vectorised, no reloads of
-    /// m_k through the aliasing the build flags allow). The constructor admits only
-    /// these three sizes.
-    template <typename F> void with_k(F &&f) const {
-        switch (m_k) {
-            case 3: f(std::integral_constant<size_t, 3>{}); break;
-            case 4: f(std::integral_constant<size_t, 4>{}); break;
-            default: f(std::integral_constant<size_t, KMax>{}); break;
-        }
-    }
-
     /// Per-band albedo a_k = (from_rgb · v)_k / (from_rgb · 1)_k of an RGB value: how a
-    /// native (wavelength-preserving) BSDF acts on the K coefficients.
+    /// native (wavelength-preserving) BSDF, medium or phase weight acts on the K
+    /// coefficients.
     Coeffs band_albedo(const Spectrum &v) const {
         Coeffs d{};
         if constexpr (is_rgb_v<Spectrum>) {
@@ -383,6 +352,37 @@ private:
         }
         return d;
     }
+
+private:
+    struct EmitterSource {
+        const Emitter *emitter;
+        Coeffs coeffs;    // basis coefficients of its spectrum (as the texture is defined)
+        double luminance; // luminance of the texture's RGB, to rescale by the emitter's
+    };
+
+    const Entry *find(const BSDF *bsdf) const { return m_entries.find(bsdf); }
+
+    static fluo::Vec3 vec(const Vector3f &v) { return fluo::Vec3{ v.x(), v.y(), v.z() }; }
+
+    static double luminance_of(const Spectrum &v) {
+        if constexpr (is_rgb_v<Spectrum>)
+            return 0.212671 * v[0] + 0.715160 * v[1] + 0.072169 * v[2];
+        else
+            return 0.0;
+    }
+
+    /// Calls f(std::integral_constant<size_t, K>{}) with the transport's K, so that the
+    /// matrix loops below have compile-time bounds (unrolled, vectorised, no reloads of
+    /// m_k through the aliasing the build flags allow). The constructor admits only
+    /// these three sizes.
+    template <typename F> void with_k(F &&f) const {
+        switch (m_k) {
+            case 3: f(std::integral_constant<size_t, 3>{}); break;
+            case 4: f(std::integral_constant<size_t, 4>{}); break;
+            default: f(std::integral_constant<size_t, KMax>{}); break;
+        }
+    }
+
     /// M · c.
     Coeffs apply(const Square &m, const Coeffs &c) const {
         Coeffs out{};

@@ -120,6 +120,22 @@ impl Default for QdMediumParams {
     }
 }
 
+/// The excitation of one λo (QdMedium::excitation).
+struct Excitation {
+    e: f64,
+    a: f64,
+    b: f64,
+    ca: f64,
+    cb: f64,
+}
+
+impl Excitation {
+    /// μf = e(λo) ∫_a^b μa, 1/m.
+    fn mu_f(&self) -> f64 {
+        self.e * (self.cb - self.ca).max(0.0)
+    }
+}
+
 /// A validated, baked QD medium.
 #[derive(Debug, Clone)]
 pub struct QdMedium {
@@ -264,14 +280,18 @@ impl QdMedium {
     /// μf(λo) = ∫_R μa(λi) f(λi → λo) dλi, 1/m: the source coefficient a camera path
     /// at λo sees from excitations in R (nm).
     pub fn shift_coefficient_per_m(&self, lambda_o_nm: f64, range: (f64, f64)) -> f64 {
+        self.excitation(lambda_o_nm, range).map_or(0.0, |x| x.mu_f())
+    }
+
+    /// What λo re-emits from R: its emission e(λo) and the excitation interval [a, b] with
+    /// the running integrals of μa at its ends; None where nothing is re-emitted.
+    fn excitation(&self, lambda_o_nm: f64, range: (f64, f64)) -> Option<Excitation> {
         let e = self.emission_per_nm(lambda_o_nm);
         if !(e > 0.0) {
-            return 0.0;
+            return None;
         }
-        match self.excitation_interval(lambda_o_nm, range) {
-            Some((a, b)) => e * (self.cumulative(b) - self.cumulative(a)).max(0.0),
-            None => 0.0,
-        }
+        let (a, b) = self.excitation_interval(lambda_o_nm, range)?;
+        Some(Excitation { e, a, b, ca: self.cumulative(a), cb: self.cumulative(b) })
     }
 
     /// Sample λi ∝ μa(λi) over the excitation interval of λo in R (exact inverse CDF
@@ -284,15 +304,10 @@ impl QdMedium {
     /// μf(λo | R) and a λi sampled as [`QdMedium::sample_excitation`] with `xi`, sharing
     /// the integrals (one call per shifted wavelength at a fluorescent collision).
     pub fn shift_and_sample(&self, lambda_o_nm: f64, range: (f64, f64), xi: f64) -> (f64, Option<(f64, f64)>) {
-        let e = self.emission_per_nm(lambda_o_nm);
-        if !(e > 0.0) {
-            return (0.0, None);
+        match self.excitation(lambda_o_nm, range) {
+            Some(x) => (x.mu_f(), self.sample_between(x.a, x.b, x.ca, x.cb, xi)),
+            None => (0.0, None),
         }
-        let Some((a, b)) = self.excitation_interval(lambda_o_nm, range) else {
-            return (0.0, None);
-        };
-        let (ca, cb) = (self.cumulative(a), self.cumulative(b));
-        (e * (cb - ca).max(0.0), self.sample_between(a, b, ca, cb, xi))
     }
 
     /// λi ∝ μa on [a, b], whose running integrals are ca and cb (exact inverse CDF).
