@@ -286,6 +286,8 @@ const BUCKETS_PER_NODE: usize = 2;
 /// buckets over the grid, each holding the cells it overlaps, so that a lookup is one
 /// division and, in the rare bucket spanning several nodes (the refinement near λQD
 /// for δλ < 8 nm), a bisection over those few. The result is the plain bisection's.
+/// It also indexes the running integral of μa (non-decreasing, flat where μa = 0), which
+/// inverts the excitation CDF: the buckets are then equal in probability.
 #[derive(Debug, Clone, PartialEq)]
 pub(super) struct LambdaIndex {
     start: f64,
@@ -301,12 +303,13 @@ impl LambdaIndex {
         self.first.len() * std::mem::size_of::<u32>()
     }
 
-    /// Index `grid` (strictly increasing, ≥ 2 nodes).
+    /// Index `grid` (non-decreasing, ≥ 2 nodes; an empty span leaves every lookup to the
+    /// bisection).
     pub(super) fn new(grid: &[f64]) -> Self {
         let n = grid.len();
         let (start, end) = (grid[0], grid[n - 1]);
         let buckets = BUCKETS_PER_NODE * n;
-        let inv_width = buckets as f64 / (end - start);
+        let inv_width = if end > start { buckets as f64 / (end - start) } else { 0.0 };
         let first =
             (0..=buckets).map(|b| bisect(grid, start + (end - start) * (b as f64 / buckets as f64)) as u32).collect();
         Self { start, inv_width, first }
@@ -362,6 +365,28 @@ mod tests {
             }
             for x in xs {
                 assert_eq!(index.cell(&grid, x), bisect(&grid, x), "x = {x}");
+            }
+        }
+    }
+
+    #[test]
+    fn lambda_index_of_a_running_integral_is_the_bisection() {
+        // Non-decreasing tables with flat runs (a running integral of a function that is 0
+        // over whole cells, at the start, inside and at the end), and an empty span.
+        let f = |i: usize| if (40..90).contains(&i) || i < 5 || i > 170 { 0.0 } else { (i as f64 * 0.37).sin().abs() };
+        let mut cum = vec![0.0];
+        for i in 0..200 {
+            cum.push(cum[i] + 0.5 * (f(i) + f(i + 1)));
+        }
+        for table in [cum, vec![0.0; 7], vec![1.0, 1.0, 2.0, 2.0, 2.0, 3.0]] {
+            let index = LambdaIndex::new(&table);
+            let (lo, hi) = (table[0], table[table.len() - 1]);
+            let mut xs: Vec<f64> = (0..=20_000).map(|i| lo - 1.0 + (hi - lo + 2.0) * i as f64 / 20_000.0).collect();
+            for &g in &table {
+                xs.extend([g, g - 1e-12, g + 1e-12]);
+            }
+            for x in xs {
+                assert_eq!(index.cell(&table, x), bisect(&table, x), "x = {x}");
             }
         }
     }

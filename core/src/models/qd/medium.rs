@@ -147,6 +147,8 @@ pub struct QdMedium {
     mu_a: Vec<f64>,
     /// ∫ μa from grid[0] to each node (piecewise linear, exact), nm/m.
     cum: Vec<f64>,
+    /// Cell lookup in `cum` (inverting the excitation CDF).
+    cum_index: LambdaIndex,
     /// I of eq. 13.
     emission_norm: f64,
 }
@@ -155,7 +157,10 @@ impl QdMedium {
     /// Bytes the medium occupies at render time: the struct and its tables (λ grid, μa,
     /// its running integral, the grid's index).
     pub fn bytes_at_render_time(&self) -> usize {
-        std::mem::size_of::<Self>() + 8 * (self.grid.len() + self.mu_a.len() + self.cum.len()) + self.index.heap_bytes()
+        std::mem::size_of::<Self>()
+            + 8 * (self.grid.len() + self.mu_a.len() + self.cum.len())
+            + self.index.heap_bytes()
+            + self.cum_index.heap_bytes()
     }
 
     /// Validate and bake (errors name the parameter, its value and the valid range).
@@ -178,8 +183,9 @@ impl QdMedium {
             cum.push(acc);
         }
         let index = LambdaIndex::new(&grid);
+        let cum_index = LambdaIndex::new(&cum);
         let emission_norm = volume.emission_normalisation();
-        Ok(Self { params, volume, grid, index, mu_a, cum, emission_norm })
+        Ok(Self { params, volume, grid, index, mu_a, cum, cum_index, emission_norm })
     }
 
     /// The parameters it was built from.
@@ -317,8 +323,8 @@ impl QdMedium {
             return None;
         }
         let target = ca + xi.clamp(0.0, 1.0) * total;
-        // The cell holding `target`: cum is non-decreasing.
-        let i = self.cum.partition_point(|&c| c <= target).clamp(1, self.grid.len() - 1) - 1;
+        // The cell holding `target` (the last i with cum[i] ≤ target: cum is non-decreasing).
+        let i = self.cum_index.cell(&self.cum, target);
         let (x0, x1) = (self.grid[i], self.grid[i + 1]);
         let (f0, f1) = (self.mu_a[i], self.mu_a[i + 1]);
         let s = (target - self.cum[i]).max(0.0);
@@ -356,7 +362,7 @@ impl QdMedium {
 
     /// Bytes held by the tables.
     pub fn table_bytes(&self) -> usize {
-        (self.grid.len() + self.mu_a.len() + self.cum.len()) * 8 + self.index.len() * 4
+        (self.grid.len() + self.mu_a.len() + self.cum.len()) * 8 + (self.index.len() + self.cum_index.len()) * 4
     }
 }
 
