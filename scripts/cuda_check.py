@@ -3,7 +3,8 @@
     python scripts/cuda_check.py [--out report.json] [--spp 256] [--res 48]
 
 For each scene (the Jung bench box under D65 from 300 nm, the demo objects under a UV
-lamp, sigmoid coefficients) it renders the scalar variant and the cuda variant, each in
+lamp, sigmoid coefficients, the measured materials: matrices and a Gaussian mixture) it
+renders the scalar variant and the cuda variant, each in
 its own process (Mitsuba 3.8 cannot start a JIT variant in a process that has rendered
 in a scalar one), with two seeds each, and prints per-channel means with a z-score
 against the scalar mean (per-pixel variance from the two scalar images), the render
@@ -22,8 +23,11 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+MATRICES = REPO / "data" / "matrices"
 SCENES = [("bench/jung_box.xml", {"basis": "x7"}), ("fluo_path_uv.xml", {"basis": "x7"}),
-          ("jung_spheres.xml", {})]
+          ("jung_spheres.xml", {}),
+          ("fluo_measured.xml", {"matrix_a": str(MATRICES / "jung_yellow.csv"),
+                                 "matrix_b": str(MATRICES / "jung_brightener.csv")})]
 
 
 def worker(variant: str, spp: int, res: int) -> dict:
@@ -35,7 +39,8 @@ def worker(variant: str, spp: int, res: int) -> dict:
 
     out = {}
     for scene, params in SCENES:
-        kw = {"res": str(res), "spp": str(spp), **(params if "rgb" in variant else {})}
+        kw = {"res": str(res), "spp": str(spp),
+              **{k: v for k, v in params.items() if k != "basis" or "rgb" in variant}}
         s = mi.load_file(str(REPO / "scenes" / scene), **kw)
         images, times = [], []
         for seed in (0, 1, 2):

@@ -52,6 +52,14 @@ physics lives in the Rust core, ``core/src/models/matrix.rs``.
   (under Mitsuba's ``path`` the absorbed light is lost).
 - ``scalar_rgb``: the albedo under an equal-energy light, ρ(λ) + ∫ P(λi, λ) dλi over
   360–830 nm, in Mitsuba's sRGB convention.
+- Vectorised variants (``llvm_ad_rgb``, ``llvm_ad_spectral``, and the cuda ones from the
+  same code; ``fluo_measured_jit.cpp``): Rust loads and validates the file and hands over
+  the diagonal, P and the running integrals of its rows; per lane the shim finds cells by
+  binary search and inverts the row CDF with the same quadratic root, in float (the tables
+  are f64 in Rust: a float CDF resolves about 1e-7 of a row's mass, far below the noise).
+  In ``llvm_ad_rgb`` ``fluo_path`` uses the same reduced matrix as ``scalar_rgb``. Images
+  equal the scalar variants' within noise (``test_llvm.py``). Several files selected by
+  an ``index`` texture are not available there yet (a clear error says so).
 
 A malformed file (truncated, a NaN, a wrong header, a wavelength off its grid) raises
 an error naming the file and the line and column.

@@ -80,8 +80,9 @@ mod bridge {
 
     extern "Rust" {
         /// Record a plugin the library registers with Mitsuba (`kind`: `bsdf`,
-        /// `integrator`, `texture`, `medium`), for `fluo_plugin_list`.
-        fn note_plugin(name: &str, kind: &str);
+        /// `integrator`, `texture`, `medium`; `vectorised`: also served in the llvm/cuda
+        /// variants), for `fluo_plugin_list`.
+        fn note_plugin(name: &str, kind: &str, vectorised: bool);
     }
 
     // -------------------------------------------------------------- fluo_illuminant
@@ -395,6 +396,31 @@ mod bridge {
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
 
+    /// A measured material's tables for the vectorised variants, which evaluate them per
+    /// lane (Dr.Jit cannot call Rust at render time): the diagonal always, then either
+    /// the matrix's tables (`fluo_matrix`) or the mixture (`fluo_gmm`). See
+    /// `core/src/models/matrix.rs` and `gmm.rs` for the functions they define.
+    struct MeasuredTables {
+        /// "matrix" or "gmm".
+        kind: String,
+        /// ρ at `diagonal_nm` (interpolated linearly, constant beyond the ends).
+        diagonal_nm: Vec<f64>,
+        diagonal: Vec<f64>,
+        /// matrix: the λi and λo grids, nm.
+        lambda_i: Vec<f64>,
+        lambda_o: Vec<f64>,
+        /// matrix: P at the nodes, nm⁻¹, `p[j·n_i + k]` = P(λi_k, λo_j) (bilinear between
+        /// nodes, zero for λi > λo), and the running integrals of its rows over λi.
+        p: Vec<f64>,
+        row_cdf: Vec<f64>,
+        /// gmm: S, nm.
+        scale: f64,
+        /// gmm: the measured rectangle [λi_min, λi_max, λo_min, λo_max], nm.
+        rect: Vec<f64>,
+        /// gmm: six numbers per component, π, μi, μo, σii, σio, σoo (σio symmetrised).
+        components: Vec<f64>,
+    }
+
     extern "Rust" {
         /// A measured material (`fluo_matrix`, `fluo_gmm`): the diagonal (reflectance)
         /// plus reradiation, diffuse in direction.
@@ -421,6 +447,8 @@ mod bridge {
         /// The longest wavelength it re-emits at (0 if it never does), to pick a
         /// representative among several materials.
         fn measured_emission_max(model: &MeasuredModel) -> f64;
+        /// The tables the vectorised variants evaluate (see `MeasuredTables`).
+        fn measured_tables(model: &MeasuredModel) -> MeasuredTables;
     }
 
     // ------------------------------------------- fluo_path: generic handle, reduced RGB
@@ -508,8 +536,8 @@ mod bridge {
 }
 
 pub use bridge::{
-    DyeMediumConfig, JungConfig, JungRgbParts, QdConfig, QdConstants, QdMediumConfig, Range, Rgb, Sample,
-    SampledSpectrum, Vec3,
+    DyeMediumConfig, JungConfig, JungRgbParts, MeasuredTables, QdConfig, QdConstants, QdMediumConfig, Range, Rgb,
+    Sample, SampledSpectrum, Vec3,
 };
 
 // ---------------------------------------------------------------- shared value types
@@ -1401,6 +1429,52 @@ fn measured_emission_max(model: &MeasuredModel) -> f64 {
     fluo::Bispectral::emission_range(&model.0.model).map_or(0.0, |r| r.1)
 }
 
+fn measured_tables(model: &MeasuredModel) -> MeasuredTables {
+    let mut t = MeasuredTables {
+        kind: String::new(),
+        diagonal_nm: Vec::new(),
+        diagonal: Vec::new(),
+        lambda_i: Vec::new(),
+        lambda_o: Vec::new(),
+        p: Vec::new(),
+        row_cdf: Vec::new(),
+        scale: 0.0,
+        rect: Vec::new(),
+        components: Vec::new(),
+    };
+    match &model.0.model {
+        Model::Matrix(m) => {
+            let (nm, d) = m.diagonal();
+            let (p, row_cdf) = m.row_tables();
+            t = MeasuredTables {
+                kind: "matrix".into(),
+                diagonal_nm: nm.to_vec(),
+                diagonal: d.to_vec(),
+                lambda_i: m.lambda_i().to_vec(),
+                lambda_o: m.lambda_o().to_vec(),
+                p: p.to_vec(),
+                row_cdf: row_cdf.to_vec(),
+                ..t
+            };
+        }
+        Model::Gmm(g) => {
+            let f = g.file();
+            t.kind = "gmm".into();
+            t.diagonal_nm.clone_from(&f.diagonal.wavelengths_nm);
+            t.diagonal.clone_from(&f.diagonal.values);
+            t.scale = f.scale;
+            t.rect =
+                vec![f.lambda_i_range_nm[0], f.lambda_i_range_nm[1], f.lambda_o_range_nm[0], f.lambda_o_range_nm[1]];
+            for c in &f.components {
+                let [[aa, ab], [ba, bb]] = c.covariance;
+                t.components.extend([c.weight, c.mean[0], c.mean[1], aa, 0.5 * (ab + ba), bb]);
+            }
+        }
+        _ => {}
+    }
+    t
+}
+
 fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
     &model.0
 }
@@ -1642,18 +1716,18 @@ pub extern "C" fn fluo_plugins_built() -> u32 {
     1
 }
 
-/// The plugins registered so far, as `name:kind` pairs (the shims register themselves
-/// when the library is loaded).
+/// The plugins registered so far, as `name:kind:variants` (`scalar` or `scalar,jit`; the
+/// shims register themselves when the library is loaded).
 static PLUGINS: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
 static PLUGIN_LIST: std::sync::OnceLock<std::ffi::CString> = std::sync::OnceLock::new();
 
-fn note_plugin(name: &str, kind: &str) {
+fn note_plugin(name: &str, kind: &str, vectorised: bool) {
     if let Ok(mut list) = PLUGINS.lock() {
-        list.push(format!("{name}:{kind}"));
+        list.push(format!("{name}:{kind}:{}", if vectorised { "scalar,jit" } else { "scalar" }));
     }
 }
 
-/// Every plugin the library registered, one `name:kind` per line (read once, after
+/// Every plugin the library registered, one `name:kind:variants` per line (read once, after
 /// loading, by `fluo.PLUGINS`): the names are written once, in the shims.
 #[no_mangle]
 pub extern "C" fn fluo_plugin_list() -> *const std::ffi::c_char {

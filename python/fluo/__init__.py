@@ -45,6 +45,7 @@ from pathlib import Path
 
 __all__ = [
     "BUILT_FOR",
+    "JIT_PLUGINS",
     "PLUGINS",
     "PLUGIN_KINDS",
     "data_dir",
@@ -235,16 +236,18 @@ _LIBRARY: ctypes.CDLL | None = globals().get("_LIBRARY")
 _LIBRARY = _load_library()
 
 
-def _registered() -> dict[str, str]:
-    """name -> kind (``bsdf``, ``integrator``, ``texture``, ``medium``) of every plugin the library
-    registered, as its shims recorded them when it was loaded."""
+def _registered() -> list[tuple[str, str, str]]:
+    """(name, kind, variants) of every plugin the library registered, as its shims recorded
+    them when it was loaded: kind ``bsdf``, ``integrator``, ``texture`` or ``medium``;
+    variants ``scalar`` or ``scalar,jit``."""
     listing = _LIBRARY.fluo_plugin_list
     listing.restype = ctypes.c_char_p
-    pairs = (line.split(":", 1) for line in (listing() or b"").decode().split())
-    return dict(sorted((name, kind) for name, kind in pairs))
+    return sorted(tuple(line.split(":", 2)) for line in (listing() or b"").decode().split())
 
 
 #: Kind of each Mitsuba plugin ``libfluo_mitsuba.so`` registers, by ``type="..."`` name.
-PLUGIN_KINDS: dict[str, str] = _registered()
+PLUGIN_KINDS: dict[str, str] = {name: kind for name, kind, _ in _registered()}
+#: The plugins also served in the vectorised variants (llvm_ad_*, cuda_ad_*).
+JIT_PLUGINS: tuple[str, ...] = tuple(name for name, _, variants in _registered() if "jit" in variants.split(","))
 #: Names of the Mitsuba plugins ``libfluo_mitsuba.so`` registers (``type="..."`` in XML).
 PLUGINS: tuple[str, ...] = tuple(PLUGIN_KINDS)

@@ -10,7 +10,8 @@ or ``{"variant", "bsdf" (a plugin dict), "points": [[wi, wo, wavelengths], ...]}
 evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths, or
 ``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
 derivative of the image mean by automatic differentiation and by central differences
-(same seed) for each parameter of ``mi.traverse``.
+(same seed) for each parameter of ``mi.traverse``, or ``{"variant", "load": a plugin
+dict}`` to instantiate one plugin (an error says why it cannot be).
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
 per-pixel image (``"image": true`` in the job), the BSDF values, or the error message.
 """
@@ -30,6 +31,9 @@ def run(job: dict) -> dict:
 
     if "bsdf" in job:
         return {"values": eval_bsdf(mi.load_dict(job["bsdf"]), job["points"])}
+    if "load" in job:
+        mi.load_dict(job["load"])
+        return {"loaded": True}
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0))}
     params = job.get("params", {})

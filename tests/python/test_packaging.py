@@ -56,7 +56,7 @@ def test04_the_wheel_carries_every_data_folder_the_package_looks_up():
 
 
 #: The plugins that also run in llvm_ad_rgb and llvm_ad_spectral.
-LLVM_PLUGINS = ("fluo_illuminant", "fluo_jung", "fluo_path")
+LLVM_PLUGINS = fluo.JIT_PLUGINS
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral", "scalar_spectral_polarized"])

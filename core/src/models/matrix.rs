@@ -822,6 +822,11 @@ impl MatrixModel {
     pub fn diagonal(&self) -> (&[f64], &[f64]) {
         (&self.diagonal_nm, &self.diagonal)
     }
+    /// P at the nodes (nm⁻¹, `p[j·n_i + k]` = P(λi_k, λo_j)) and the running integrals of
+    /// its rows over λi (same layout): what the vectorised variants sample λi | λo from.
+    pub fn row_tables(&self) -> (&[f64], &[f64]) {
+        (&self.p, &self.row_cdf)
+    }
     /// Whether any light is reradiated.
     pub fn is_fluorescent(&self) -> bool {
         self.excitation_range.is_some()

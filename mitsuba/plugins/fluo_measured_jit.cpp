@@ -1,0 +1,397 @@
+// fluo_matrix and fluo_gmm in the vectorised variants (llvm_ad_rgb, llvm_ad_spectral and the
+// cuda ones). Their documentation, and the reference implementation the tests hold this one
+// against, are in fluo_matrix.cpp, fluo_gmm.cpp and fluo_measured.h; what differs here is
+// said there under "Vectorised variants".
+//
+// Rust loads and validates the file and hands over its tables (fluo::measured_tables): the
+// diagonal, and the matrix's P and row integrals or the mixture's components. Per lane the
+// shim evaluates the same functions with Dr.Jit types in float:
+// - ρ(λ): the diagonal, linear between nodes, constant beyond its ends.
+// - fluo_matrix: λi | λo by inverting the bilinear interpolant's row CDF exactly (binary
+//   search over the row integrals, then the cell's quadratic root), as matrix.rs does.
+// - fluo_gmm: λi | λo from the mixture of truncated conditional normals: the component by its
+//   weight π_k N(λo | μo, σoo) M_k (M_k its mass on the interval), then the truncated normal
+//   by inverting its CDF (Φ from an erfc accurate to ~1e-7 relative in the tails, Φ⁻¹ by
+//   Acklam's approximation and one Newton step), on the side of the interval where Φ is
+//   small. Lanes where every component's weight underflows float (the given λo ~13
+//   standard deviations from every component) take the elastic event: their reradiation is
+//   then below float resolution of the elastic part.
+// The RGB variants use the reduced matrix Rust computes for the transport basis, as the scalar
+// fluo_path does.
+#include <mitsuba/core/fresolver.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+
+#include <cmath>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "fluo_common.h"
+#include "fluo_jit.h"
+#include "fluo_lambertian.h"
+
+NAMESPACE_BEGIN(mitsuba)
+
+template <typename Float, typename Spectrum>
+class FluoMeasuredJit : public BSDF<Float, Spectrum>, public fluo_detail::JitBispectral<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(BSDF, m_flags, m_components)
+    MI_IMPORT_TYPES()
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using FloatStorage = DynamicBuffer<Float>;
+    using Factory = rust::Box<fluo::MeasuredModel> (*)(rust::Str);
+    using fluo_detail::JitBispectral<Float, Spectrum>::MaxTerms;
+    using Choice = typename fluo_detail::JitBispectral<Float, Spectrum>::Choice;
+
+    FluoMeasuredJit(const Properties &props, const char *plugin, Factory factory) : Base(props), m_plugin(plugin) {
+        if (props.has_property("index") || props.has_property("filename0"))
+            Throw("%s: several files selected by a material-index texture (\"filename0\", ..., \"index\") are not "
+                  "available in the vectorised variants yet (they are in scalar_rgb and scalar_spectral); give one "
+                  "\"filename\"",
+                  plugin);
+        if (!props.has_property("filename"))
+            Throw("%s: parameter \"filename\" is required", plugin);
+        std::string name(props.get<std::string_view>("filename"));
+        fs::path path = file_resolver()->resolve(name);
+        if (!fs::exists(path))
+            Throw("%s: invalid parameter \"filename\" = \"%s\": file not found", plugin, name);
+        m_filename = path.string();
+        m_model = fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filename)); });
+        fluo::MeasuredTables t = fluo::measured_tables(**m_model);
+        m_gmm = std::string(t.kind) == "gmm";
+        m_diag_nm = storage(t.diagonal_nm);
+        m_diag = storage(t.diagonal);
+        m_nd = (uint32_t) t.diagonal_nm.size();
+        m_diag_lo = (float) t.diagonal_nm.front();
+        m_diag_hi = (float) t.diagonal_nm.back();
+        if (m_gmm) {
+            m_scale = (float) t.scale;
+            for (size_t i = 0; i < 4; ++i)
+                m_rect[i] = (float) t.rect[i];
+            for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
+                const double *v = t.components.data() + c;
+                double det = v[3] * v[5] - v[4] * v[4];
+                // N(λo | μo, σoo) and the conditional λi | λo: mean μi + σio/σoo (λo − μo),
+                // standard deviation √(det/σoo).
+                m_comps.push_back({ (float) v[0], (float) v[1], (float) v[2], (float) (-0.5 / v[5]),
+                                    (float) (v[0] / std::sqrt(2.0 * dr::Pi<double> * v[5])), (float) (v[4] / v[5]),
+                                    (float) std::sqrt(det / v[5]) });
+            }
+        } else {
+            m_li = storage(t.lambda_i);
+            m_lo = storage(t.lambda_o);
+            m_p = storage(t.p);
+            m_rcdf = storage(t.row_cdf);
+            m_ni = (uint32_t) t.lambda_i.size();
+            m_no = (uint32_t) t.lambda_o.size();
+            m_li_lo = (float) t.lambda_i.front();
+            m_li_hi = (float) t.lambda_i.back();
+            m_lo_lo = (float) t.lambda_o.front();
+            m_lo_hi = (float) t.lambda_o.back();
+        }
+        if constexpr (is_rgb_v<Spectrum>) {
+            fluo::Rgb a = fluo::measured_rgb_albedo(**m_model), e = fluo::measured_rgb_elastic(**m_model);
+            m_rgb_albedo = Color3f((ScalarFloat) a.r, (ScalarFloat) a.g, (ScalarFloat) a.b);
+            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
+        }
+        m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
+        m_components.push_back(m_flags);
+    }
+
+    FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), (void) 0)
+
+    // ------------------------------------------------ fluo_path's interface (fluo_jit.h)
+    bool jit_fluorescent() const override { return fluo::measured_is_fluorescent(**m_model); }
+    fluo::Range jit_emission_range() const override {
+        return fluo::fluo_emission_range(fluo::measured_fluorescence(**m_model));
+    }
+    /// The whole operator ρ·diag + P, reduced by Rust (as the scalar fluo_path).
+    bool jit_reduced_matrices(const fluo::TransportBasis &transport,
+                              std::array<std::vector<double>, MaxTerms> &m) const override {
+        auto reduced = fluo::reduced_new(fluo::measured_fluorescence(**m_model), transport);
+        if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(m[0].data(), m[0].size())))
+            Throw("%s: no Lambertian reduced operator", m_plugin);
+        return fluo::reduced_includes_elastic(*reduced);
+    }
+    std::array<Float, MaxTerms> jit_reduced_weights() const override { return { Float(1.f), Float(0.f), Float(0.f) }; }
+
+    UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
+        if constexpr (is_rgb_v<Spectrum>) {
+            (void) si;
+            (void) active;
+            return m_rgb_elastic;
+        } else {
+            UnpolarizedSpectrum out;
+            for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
+                out[w] = reflectance(si.wavelengths[w], active);
+            return out;
+        }
+    }
+
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
+                      double range_hi, Mask active) const override {
+        const Wavelength &lambda_o = si.wavelengths;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
+        } else {
+            UnpolarizedSpectrum we = dr::maximum(jit_elastic_albedo(si, active), 0.f);
+            Wavelength lambda_i = lambda_o;
+            UnpolarizedSpectrum scale(0.f), rerad(0.f);
+            WMask shifted(false);
+            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                // The excitation interval [a, b] (λi ≤ λo) and its mass; the shift's value
+                // and pdf once sampled with u2.
+                Float lo = lambda_o[w];
+                Float a = dr::maximum((float) range_lo, m_gmm ? m_rect[0] : m_li_lo),
+                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_gmm ? m_rect[1] : m_li_hi);
+                Mask ok = active && b > a && lo >= (m_gmm ? m_rect[2] : m_lo_lo) && lo <= (m_gmm ? m_rect[3] : m_lo_hi);
+                auto [mass, x, value] = m_gmm ? gmm_shift(lo, a, b, u2[w], ok) : matrix_shift(lo, a, b, u2[w], ok);
+                Float total = we[w] + mass;
+                Mask valid = active && total > 0.f && dr::isfinite(total);
+                Float pe = dr::select(valid, we[w] / total, 1.f);
+                Mask sh = valid && u1[w] >= pe && mass > 0.f;
+                Float pdf = value / mass;
+                Float sc = dr::select(sh, dr::rcp((1.f - pe) * pdf), dr::rcp(pe));
+                sh &= pdf > 0.f && dr::isfinite(pdf);
+                sc = dr::select(valid && dr::isfinite(sc) && (sh || u1[w] < pe), sc, 0.f);
+                lambda_i[w] = dr::select(sh, x, lo);
+                scale[w] = sc;
+                shifted[w] = sh;
+                rerad[w] = dr::select(sh, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
+            }
+            return { lambda_i, scale, shifted, rerad };
+        }
+    }
+
+    std::string to_string() const override {
+        std::ostringstream oss;
+        oss << this->class_name() << "[" << std::endl
+            << "  filename = \"" << m_filename << "\"," << std::endl
+            << "  model = " << std::string(fluo::measured_to_string(**m_model)) << "," << std::endl
+            << "  variant = vectorised (tables per lane)" << std::endl
+            << "]";
+        return oss.str();
+    }
+
+protected:
+    /// One mixture component as the lanes read it: π, μi, μo, −1/(2σoo), π/√(2π σoo),
+    /// σio/σoo and the conditional standard deviation √(det Σ/σoo).
+    struct Comp {
+        float weight, mu_i, mu_o, half_inv_var_o, marginal_norm, slope, cond_sd;
+    };
+
+    static FloatStorage storage(const rust::Vec<double> &v) {
+        std::vector<float> f(v.begin(), v.end());
+        return dr::load<FloatStorage>(f.data(), f.size());
+    }
+
+    /// Last node j ∈ [0, n − 2] with g[j] ≤ x (a binary search per lane).
+    static UInt32 cell(const FloatStorage &g, uint32_t n, const Float &x) {
+        return dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) { return dr::gather<Float>(g, i) <= x; }) -
+               1;
+    }
+
+    /// ρ(λ): linear between the diagonal's nodes, constant beyond its ends (0 for λ not finite).
+    Float reflectance(const Float &lambda, const Mask &active) const {
+        Float x = dr::clip(lambda, m_diag_lo, m_diag_hi);
+        UInt32 j = cell(m_diag_nm, m_nd, x);
+        Float x0 = dr::gather<Float>(m_diag_nm, j, active), x1 = dr::gather<Float>(m_diag_nm, j + 1, active);
+        Float t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
+        Float v = dr::lerp(dr::gather<Float>(m_diag, j, active), dr::gather<Float>(m_diag, j + 1, active), t);
+        return dr::select(active && dr::isfinite(lambda), v, 0.f);
+    }
+
+    /// The albedo served to Mitsuba: the diagonal (spectral), or in RGB the albedo under
+    /// equal-energy light (diagonal plus reradiation), as the scalar variants.
+    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if constexpr (is_rgb_v<Spectrum>) {
+            (void) si;
+            (void) active;
+            return m_rgb_albedo;
+        } else {
+            return jit_elastic_albedo(si, active);
+        }
+    }
+
+    /// fluo_matrix: given λo, the row slice P(·, λo) = lerp of rows j, j+1 (weight t) over
+    /// λi; its mass on [a, b], a λi sampled ∝ the slice there with u, and P at that λi.
+    std::tuple<Float, Float, Float> matrix_shift(const Float &lambda_o, const Float &a, const Float &b,
+                                                 const Float &u, const Mask &ok) const {
+        Float lo = dr::clip(lambda_o, m_lo_lo, m_lo_hi);
+        UInt32 j = cell(m_lo, m_no, lo);
+        Float o0 = dr::gather<Float>(m_lo, j, ok), o1 = dr::gather<Float>(m_lo, j + 1, ok);
+        Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
+        UInt32 r0 = j * m_ni, r1 = r0 + m_ni;
+        auto v = [&](const UInt32 &k) {
+            return dr::lerp(dr::gather<Float>(m_p, r0 + k, ok), dr::gather<Float>(m_p, r1 + k, ok), t);
+        };
+        auto c = [&](const UInt32 &k) {
+            return dr::lerp(dr::gather<Float>(m_rcdf, r0 + k, ok), dr::gather<Float>(m_rcdf, r1 + k, ok), t);
+        };
+        // ∫ from λi_0 to x of the slice, and x's cell.
+        auto cdf = [&](const Float &x) {
+            UInt32 k = cell(m_li, m_ni, x);
+            Float x0 = dr::gather<Float>(m_li, k, ok), x1 = dr::gather<Float>(m_li, k + 1, ok);
+            Float s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), f0 = v(k);
+            return std::make_pair(c(k) + .5f * (x - x0) * (f0 + dr::lerp(f0, v(k + 1), s)), k);
+        };
+        Float a_ = dr::select(ok, a, m_li_lo), b_ = dr::select(ok, b, m_li_lo);
+        auto [c_lo, k_lo] = cdf(a_);
+        auto [c_hi, k_hi] = cdf(b_);
+        Float mass = dr::select(ok, dr::maximum(c_hi - c_lo, 0.f), 0.f);
+        // The cell: the last node whose integral is ≤ the target, within [a, b]'s cells;
+        // then the root of the cell's quadratic (cancellation-free form, as matrix.rs).
+        Float target = c_lo + u * mass;
+        UInt32 k = dr::binary_search<UInt32>(1, m_ni - 1, [&](const UInt32 &i) { return c(i) <= target; }) - 1;
+        k = dr::clip(k, k_lo, k_hi);
+        Float x0 = dr::gather<Float>(m_li, k, ok), x1 = dr::gather<Float>(m_li, k + 1, ok), h = x1 - x0;
+        Float f0 = v(k), f1 = v(k + 1);
+        Float delta = dr::clip(target - c(k), 0.f, .5f * h * (f0 + f1));
+        Float disc = dr::maximum(dr::fmadd(f0, f0, 2.f * (f1 - f0) / h * delta), 0.f);
+        Float denom = f0 + dr::sqrt(disc);
+        Float step = dr::select(denom > 0.f, 2.f * delta / denom, 0.f);
+        Float x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
+        Float value = dr::lerp(f0, f1, dr::clip((x - x0) / h, 0.f, 1.f));
+        return { mass, x, dr::select(ok, value, 0.f) };
+    }
+
+    /// erfc(x) to ~1.2e-7 relative for every x (Numerical Recipes' Chebyshev fit; Dr.Jit's
+    /// erf alone loses the tails to cancellation in float).
+    static Float erfc(const Float &x) {
+        Float z = dr::abs(x), t = dr::rcp(dr::fmadd(.5f, z, 1.f));
+        Float p = 0.17087277f;
+        for (float c : { -0.82215223f, 1.48851587f, -1.13520398f, 0.27886807f, -0.18628806f, 0.09678418f,
+                         0.37409196f, 1.00002368f, -1.26551223f })
+            p = dr::fmadd(p, t, c);
+        Float r = t * dr::exp(dr::fmadd(-z, z, p));
+        return dr::select(x >= 0.f, r, 2.f - r);
+    }
+
+    /// Φ(z), the standard normal CDF, accurate in relative terms for z < 0.
+    static Float phi_cdf(const Float &z) { return .5f * erfc(-z * dr::InvSqrtTwo<float>); }
+
+    /// Φ⁻¹(p) for p ∈ (0, 1): Acklam's rational approximation, then one Newton step.
+    static Float phi_inv(const Float &p_) {
+        Float p = dr::clip(p_, 1e-37f, 1.f - 6e-8f);
+        auto poly = [](const Float &x, std::initializer_list<float> c) {
+            Float r = 0.f;
+            for (float v : c)
+                r = dr::fmadd(r, x, v);
+            return r;
+        };
+        // Lower tail (p < 0.02425; the upper tail by symmetry), central region.
+        Mask upper = p > 1.f - 0.02425f;
+        Float pt = dr::select(upper, 1.f - p, p);
+        Float q = dr::sqrt(-2.f * dr::log(pt));
+        Float tail = poly(q, { -7.784894002430293e-03f, -3.223964580411365e-01f, -2.400758277161838e+00f,
+                               -2.549732539343734e+00f, 4.374664141464968e+00f, 2.938163982698783e+00f }) /
+                     poly(q, { 7.784695709041462e-03f, 3.224671290700398e-01f, 2.445134137142996e+00f,
+                               3.754408661907416e+00f, 1.f });
+        tail = dr::select(upper, -tail, tail);
+        Float c = p - .5f, r = c * c;
+        Float central = c *
+                        poly(r, { -3.969683028665376e+01f, 2.209460984245205e+02f, -2.759285104469687e+02f,
+                                  1.383577518672690e+02f, -3.066479806614716e+01f, 2.506628277459239e+00f }) /
+                        poly(r, { -5.447609879822406e+01f, 1.615858368580409e+02f, -1.556989798598866e+02f,
+                                  6.680131188771972e+01f, -1.328068155288572e+01f, 1.f });
+        Mask in_tail = p < 0.02425f || upper;
+        Float z = dr::select(in_tail, tail, central);
+        // Newton on Φ(z) = p (relative to the smaller tail).
+        Float density = dr::exp(-.5f * z * z) * dr::InvSqrtTwoPi<float>;
+        Float err = dr::select(z > 0.f, (1.f - p) - phi_cdf(-z), phi_cdf(z) - p); // Φ(z) − p
+        Float step = err / density;
+        return dr::select(density > 0.f && dr::isfinite(step), z - step, z);
+    }
+
+    /// fluo_gmm: the conditional mixture given λo on [a, b] (see the file's header): its
+    /// mass S Σ_k π_k N(λo) M_k, a λi sampled from it with u, and P(λi, λo) there.
+    std::tuple<Float, Float, Float> gmm_shift(const Float &lambda_o, const Float &a, const Float &b,
+                                              const Float &u, const Mask &ok) const {
+        size_t n = m_comps.size();
+        std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n);
+        std::vector<Mask> mirror(n);
+        Float total = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            const Comp &c = m_comps[k];
+            Float d = lambda_o - c.mu_o;
+            Float marginal = c.marginal_norm * dr::exp(c.half_inv_var_o * d * d);
+            mean[k] = dr::fmadd(c.slope, d, c.mu_i);
+            Float lo = (a - mean[k]) / c.cond_sd, hi = (b - mean[k]) / c.cond_sd;
+            // On the side where Φ is small: an interval above the mean is mirrored.
+            mirror[k] = lo > 0.f;
+            za[k] = dr::select(mirror[k], -hi, lo);
+            zb[k] = dr::select(mirror[k], -lo, hi);
+            pa[k] = phi_cdf(za[k]);
+            pb[k] = phi_cdf(zb[k]);
+            w[k] = dr::select(ok, marginal * dr::maximum(pb[k] - pa[k], 0.f), 0.f);
+            total += w[k];
+        }
+        // The component: the first k with u·total < Σ_{≤k} w (the last one with w > 0 if
+        // rounding leaves none); u rescaled within it.
+        Float target = u * total, run = 0.f, ca = 0.f, cb = 0.f, cmean = 0.f, csd = 1.f, cu = 0.f;
+        Mask done = !ok || !(total > 0.f), cmirror = false;
+        for (size_t k = 0; k < n; ++k) {
+            Mask take = !done && w[k] > 0.f;
+            ca = dr::select(take, pa[k], ca);
+            cb = dr::select(take, pb[k], cb);
+            cmean = dr::select(take, mean[k], cmean);
+            csd = dr::select(take, Float(m_comps[k].cond_sd), csd);
+            cmirror = dr::select(take, mirror[k], cmirror);
+            cu = dr::select(take, dr::clip((target - run) / w[k], 0.f, 1.f), cu);
+            done |= take && target < run + w[k];
+            run += w[k];
+        }
+        Float z = phi_inv(dr::fmadd(cu, cb - ca, ca));
+        // (clamped to the interval in the mirrored coordinate)
+        Float x = dr::clip(cmean + csd * dr::select(cmirror, -z, z), a, b);
+        // P(x, λo) = S Σ_k π_k N(λo | μo, σoo) N(x | mean_k, sd_k²).
+        Float value = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            const Comp &c = m_comps[k];
+            Float d = lambda_o - c.mu_o, e = (x - mean[k]) / c.cond_sd;
+            value += c.marginal_norm * dr::exp(c.half_inv_var_o * d * d) *
+                     (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / c.cond_sd));
+        }
+        Mask good = ok && total > 0.f;
+        return { dr::select(good, m_scale * total, 0.f), x, dr::select(good, m_scale * value, 0.f) };
+    }
+
+    const char *m_plugin;
+    std::string m_filename;
+    std::optional<rust::Box<fluo::MeasuredModel>> m_model;
+    bool m_gmm = false;
+    FloatStorage m_diag_nm, m_diag;
+    uint32_t m_nd = 0;
+    float m_diag_lo = 0.f, m_diag_hi = 0.f;
+    // fluo_matrix
+    FloatStorage m_li, m_lo, m_p, m_rcdf;
+    uint32_t m_ni = 0, m_no = 0;
+    float m_li_lo = 0.f, m_li_hi = 0.f, m_lo_lo = 0.f, m_lo_hi = 0.f;
+    // fluo_gmm
+    float m_scale = 0.f;
+    float m_rect[4] = { 0.f, 0.f, 0.f, 0.f };
+    std::vector<Comp> m_comps;
+    Color3f m_rgb_albedo = 0.f, m_rgb_elastic = 0.f;
+
+    MI_TRAVERSE_CB(Base, m_diag_nm, m_diag, m_li, m_lo, m_p, m_rcdf, m_rgb_albedo, m_rgb_elastic)
+};
+
+template <typename Float, typename Spectrum> class FluoMatrixJit final : public FluoMeasuredJit<Float, Spectrum> {
+public:
+    FluoMatrixJit(const Properties &props)
+        : FluoMeasuredJit<Float, Spectrum>(props, "fluo_matrix", &fluo::matrix_new) {}
+    MI_DECLARE_CLASS(FluoMatrixJit)
+};
+
+template <typename Float, typename Spectrum> class FluoGmmJit final : public FluoMeasuredJit<Float, Spectrum> {
+public:
+    FluoGmmJit(const Properties &props) : FluoMeasuredJit<Float, Spectrum>(props, "fluo_gmm", &fluo::gmm_new) {}
+    MI_DECLARE_CLASS(FluoGmmJit)
+};
+
+static const bool fluo_measured_jit_registered =
+    (fluo_detail::register_jit_plugin<FluoMatrixJit>("fluo_matrix", ObjectType::BSDF),
+     fluo_detail::register_jit_plugin<FluoGmmJit>("fluo_gmm", ObjectType::BSDF), true);
+
+NAMESPACE_END(mitsuba)
