@@ -373,7 +373,13 @@ mod tests {
     fn lambda_index_of_a_running_integral_is_the_bisection() {
         // Non-decreasing tables with flat runs (a running integral of a function that is 0
         // over whole cells, at the start, inside and at the end), and an empty span.
-        let f = |i: usize| if (40..90).contains(&i) || i < 5 || i > 170 { 0.0 } else { (i as f64 * 0.37).sin().abs() };
+        let f = |i: usize| {
+            if (40..90).contains(&i) || !(5..=170).contains(&i) {
+                0.0
+            } else {
+                (i as f64 * 0.37).sin().abs()
+            }
+        };
         let mut cum = vec![0.0];
         for i in 0..200 {
             cum.push(cum[i] + 0.5 * (f(i) + f(i + 1)));
