@@ -58,8 +58,14 @@ the Rust core, ``core/src/models/gmm.rs``.
   step), so no lane loses a tail to float cancellation. Where every component's weight
   underflows float (λo ~13 standard deviations from every mean) the lane takes the
   elastic event; the reradiation lost there is below float resolution of the elastic part.
-  Images equal the scalar variants' within noise (``test_llvm.py``). The mixture is not a
-  differentiable parameter yet; ``index`` textures are not available there yet.
+  Images equal the scalar variants' within noise (``test_llvm.py``). ``mi.traverse``
+  exposes the mixture as differentiable arrays ``weights`` (renormalised to sum 1 when
+  used), ``means_excitation`` and ``means_emission`` (μi, μo per component, nm); in
+  ``llvm_ad_spectral`` gradients reach them through the reradiation's value (the sampling
+  is detached), in ``llvm_ad_rgb`` the mixture is baked into the reduced matrix per render
+  and gets no gradient. An update is validated by Rust as a fit file is (a negative weight,
+  a mean out of range: an error naming it, and the previous mixture stays).
+  ``index`` textures are not available there yet.
 
 A malformed fit file (bad JSON, weights not summing to 1, a covariance that is not
 symmetric positive definite, non-finite numbers) raises an error naming the field.

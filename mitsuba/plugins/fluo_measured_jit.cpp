@@ -60,43 +60,86 @@ public:
         m_model = fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filename)); });
         fluo::MeasuredTables t = fluo::measured_tables(**m_model);
         m_gmm = std::string(t.kind) == "gmm";
-        m_diag_nm = storage(t.diagonal_nm);
+        m_gd = grid(t.diagonal_nm);
         m_diag = storage(t.diagonal);
-        m_nd = (uint32_t) t.diagonal_nm.size();
-        m_diag_lo = (float) t.diagonal_nm.front();
-        m_diag_hi = (float) t.diagonal_nm.back();
         if (m_gmm) {
             m_scale = (float) t.scale;
             for (size_t i = 0; i < 4; ++i)
                 m_rect[i] = (float) t.rect[i];
+            std::vector<float> weight, mean_i, mean_o;
             for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
                 const double *v = t.components.data() + c;
                 double det = v[3] * v[5] - v[4] * v[4];
                 // N(λo | μo, σoo) and the conditional λi | λo: mean μi + σio/σoo (λo − μo),
                 // standard deviation √(det/σoo).
-                m_comps.push_back({ (float) v[0], (float) v[1], (float) v[2], (float) (-0.5 / v[5]),
-                                    (float) (v[0] / std::sqrt(2.0 * dr::Pi<double> * v[5])), (float) (v[4] / v[5]),
-                                    (float) std::sqrt(det / v[5]) });
+                m_comps.push_back({ (float) (-0.5 / v[5]), (float) (1.0 / std::sqrt(2.0 * dr::Pi<double> * v[5])),
+                                    (float) (v[4] / v[5]), (float) std::sqrt(det / v[5]) });
+                weight.push_back((float) v[0]);
+                mean_i.push_back((float) v[1]);
+                mean_o.push_back((float) v[2]);
             }
+            m_weights = dr::load<Float>(weight.data(), weight.size());
+            m_means_i = dr::load<Float>(mean_i.data(), mean_i.size());
+            m_means_o = dr::load<Float>(mean_o.data(), mean_o.size());
         } else {
-            m_li = storage(t.lambda_i);
-            m_lo = storage(t.lambda_o);
+            m_gi = grid(t.lambda_i);
+            m_go = grid(t.lambda_o);
             m_p = storage(t.p);
             m_rcdf = storage(t.row_cdf);
-            m_ni = (uint32_t) t.lambda_i.size();
-            m_no = (uint32_t) t.lambda_o.size();
-            m_li_lo = (float) t.lambda_i.front();
-            m_li_hi = (float) t.lambda_i.back();
-            m_lo_lo = (float) t.lambda_o.front();
-            m_lo_hi = (float) t.lambda_o.back();
         }
-        if constexpr (is_rgb_v<Spectrum>) {
-            fluo::Rgb a = fluo::measured_rgb_albedo(**m_model), e = fluo::measured_rgb_elastic(**m_model);
-            m_rgb_albedo = Color3f((ScalarFloat) a.r, (ScalarFloat) a.g, (ScalarFloat) a.b);
-            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
-        }
+        update_rgb();
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
+    }
+
+    void traverse(TraversalCallback *cb) override {
+        Base::traverse(cb);
+        if (m_gmm) {
+            cb->put("weights", m_weights, ParamFlags::Differentiable);
+            cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
+            cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
+        }
+    }
+
+    /// fluo_gmm: Rust validates the updated mixture (weights renormalised to sum 1, means
+    /// within range) and bakes the RGB parts and reduced matrices again; a rejected update
+    /// restores the previous values, so the material keeps working.
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        if (m_gmm) {
+            auto host = [](const Float &v) {
+                Float d = dr::detach(v);
+                dr::eval(d);
+                std::vector<float> f(dr::width(d));
+                dr::store(f.data(), d);
+                return std::vector<double>(f.begin(), f.end());
+            };
+            std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
+            try {
+                if (w.size() != m_comps.size() || mi.size() != m_comps.size() || mo.size() != m_comps.size())
+                    Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
+                          m_plugin, m_comps.size());
+                auto updated = fluo_detail::rust_call(m_plugin, [&] {
+                    return fluo::gmm_updated(**m_model, rust::Slice<const double>(w.data(), w.size()),
+                                             rust::Slice<const double>(mi.data(), mi.size()),
+                                             rust::Slice<const double>(mo.data(), mo.size()));
+                });
+                m_model = std::move(updated);
+                update_rgb();
+            } catch (...) {
+                fluo::MeasuredTables t = fluo::measured_tables(**m_model); // the previous mixture
+                std::vector<float> pw, pi, po;
+                for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
+                    pw.push_back((float) t.components[c]);
+                    pi.push_back((float) t.components[c + 1]);
+                    po.push_back((float) t.components[c + 2]);
+                }
+                m_weights = dr::load<Float>(pw.data(), pw.size());
+                m_means_i = dr::load<Float>(pi.data(), pi.size());
+                m_means_o = dr::load<Float>(po.data(), po.size());
+                throw;
+            }
+        }
+        Base::parameters_changed(keys);
     }
 
     FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), (void) 0)
@@ -139,19 +182,22 @@ public:
             Wavelength lambda_i = lambda_o;
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
+            Mixture mix;
+            if (m_gmm)
+                mix = mixture();
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo) and its mass; the shift's value
                 // and pdf once sampled with u2.
                 Float lo = lambda_o[w];
-                Float a = dr::maximum((float) range_lo, m_gmm ? m_rect[0] : m_li_lo),
-                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_gmm ? m_rect[1] : m_li_hi);
-                Mask ok = active && b > a && lo >= (m_gmm ? m_rect[2] : m_lo_lo) && lo <= (m_gmm ? m_rect[3] : m_lo_hi);
-                auto [mass, x, value] = m_gmm ? gmm_shift(lo, a, b, u2[w], ok) : matrix_shift(lo, a, b, u2[w], ok);
+                Float a = dr::maximum((float) range_lo, m_gmm ? m_rect[0] : m_gi.lo),
+                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_gmm ? m_rect[1] : m_gi.hi);
+                Mask ok = active && b > a && lo >= (m_gmm ? m_rect[2] : m_go.lo) && lo <= (m_gmm ? m_rect[3] : m_go.hi);
+                auto [mass, x, value] = m_gmm ? gmm_shift(mix, lo, a, b, u2[w], ok) : matrix_shift(lo, a, b, u2[w], ok);
                 Float total = we[w] + mass;
                 Mask valid = active && total > 0.f && dr::isfinite(total);
                 Float pe = dr::select(valid, we[w] / total, 1.f);
                 Mask sh = valid && u1[w] >= pe && mass > 0.f;
-                Float pdf = value / mass;
+                Float pdf = dr::detach(value) / mass;
                 Float sc = dr::select(sh, dr::rcp((1.f - pe) * pdf), dr::rcp(pe));
                 sh &= pdf > 0.f && dr::isfinite(pdf);
                 sc = dr::select(valid && dr::isfinite(sc) && (sh || u1[w] < pe), sc, 0.f);
@@ -175,28 +221,68 @@ public:
     }
 
 protected:
-    /// One mixture component as the lanes read it: π, μi, μo, −1/(2σoo), π/√(2π σoo),
-    /// σio/σoo and the conditional standard deviation √(det Σ/σoo).
+    /// A mixture component's fixed numbers (its covariance): −1/(2σoo), 1/√(2π σoo),
+    /// σio/σoo and the conditional standard deviation √(det Σ/σoo). Its weight and mean
+    /// are differentiable arrays (m_weights, m_means_i, m_means_o).
     struct Comp {
-        float weight, mu_i, mu_o, half_inv_var_o, marginal_norm, slope, cond_sd;
+        float half_inv_var_o, norm, slope, cond_sd;
     };
+
+    /// RGB variants: the albedos under equal-energy light, from Rust (as the scalar variants).
+    void update_rgb() {
+        if constexpr (is_rgb_v<Spectrum>) {
+            fluo::Rgb a = fluo::measured_rgb_albedo(**m_model), e = fluo::measured_rgb_elastic(**m_model);
+            m_rgb_albedo = Color3f((ScalarFloat) a.r, (ScalarFloat) a.g, (ScalarFloat) a.b);
+            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
+        }
+    }
 
     static FloatStorage storage(const rust::Vec<double> &v) {
         std::vector<float> f(v.begin(), v.end());
         return dr::load<FloatStorage>(f.data(), f.size());
     }
 
-    /// Last node j ∈ [0, n − 2] with g[j] ≤ x (a binary search per lane).
-    static UInt32 cell(const FloatStorage &g, uint32_t n, const Float &x) {
-        return dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) { return dr::gather<Float>(g, i) <= x; }) -
-               1;
+    /// A wavelength grid (strictly increasing, ≥ 2 nodes, checked by Rust): its nodes, and
+    /// whether they are uniform (BFC files and most CSV ones), where a cell is one
+    /// multiplication instead of a binary search per lane.
+    struct Grid {
+        FloatStorage nodes;
+        uint32_t n = 0;
+        float lo = 0.f, hi = 0.f, step = 0.f;
+        bool uniform = false;
+
+        /// The cell j ∈ [0, n − 2] holding x ∈ [lo, hi] (the last node ≤ x), and its ends.
+        std::tuple<UInt32, Float, Float> cell(const Float &x, const Mask &active) const {
+            if (uniform) {
+                UInt32 j = UInt32(dr::clip(dr::floor((x - lo) * (1.f / step)), 0.f, (float) (n - 2)));
+                Float x0 = dr::fmadd(Float(j), step, lo);
+                return { j, x0, x0 + step };
+            }
+            UInt32 j =
+                dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) { return dr::gather<Float>(nodes, i) <= x; }) -
+                1;
+            return { j, dr::gather<Float>(nodes, j, active), dr::gather<Float>(nodes, j + 1, active) };
+        }
+    };
+
+    static Grid grid(const rust::Vec<double> &v) {
+        Grid g;
+        g.nodes = storage(v);
+        g.n = (uint32_t) v.size();
+        g.lo = (float) v.front();
+        g.hi = (float) v.back();
+        double h = (v.back() - v.front()) / (double) (v.size() - 1);
+        g.step = (float) h;
+        g.uniform = true;
+        for (size_t i = 0; i < v.size(); ++i)
+            g.uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
+        return g;
     }
 
     /// ρ(λ): linear between the diagonal's nodes, constant beyond its ends (0 for λ not finite).
     Float reflectance(const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, m_diag_lo, m_diag_hi);
-        UInt32 j = cell(m_diag_nm, m_nd, x);
-        Float x0 = dr::gather<Float>(m_diag_nm, j, active), x1 = dr::gather<Float>(m_diag_nm, j + 1, active);
+        Float x = dr::clip(lambda, m_gd.lo, m_gd.hi);
+        auto [j, x0, x1] = m_gd.cell(x, active);
         Float t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
         Float v = dr::lerp(dr::gather<Float>(m_diag, j, active), dr::gather<Float>(m_diag, j + 1, active), t);
         return dr::select(active && dr::isfinite(lambda), v, 0.f);
@@ -214,45 +300,53 @@ protected:
         }
     }
 
-    /// fluo_matrix: given λo, the row slice P(·, λo) = lerp of rows j, j+1 (weight t) over
-    /// λi; its mass on [a, b], a λi sampled ∝ the slice there with u, and P at that λi.
+    /// fluo_matrix: given λo, the row slice P(·, λo) = (1 − t)·row_j + t·row_{j+1} over λi;
+    /// its mass on [a, b], a λi sampled ∝ the slice there with u, and P at that λi. The
+    /// slice is sampled as the mixture it is: row j or j+1 with probability ∝ its weight
+    /// times its mass on [a, b], then λi ∝ that row by inverting its CDF exactly (the last
+    /// node whose running integral is ≤ the target, then the cell's quadratic root in the
+    /// cancellation-free form of matrix.rs). The density is the slice's own, P/mass.
     std::tuple<Float, Float, Float> matrix_shift(const Float &lambda_o, const Float &a, const Float &b,
                                                  const Float &u, const Mask &ok) const {
-        Float lo = dr::clip(lambda_o, m_lo_lo, m_lo_hi);
-        UInt32 j = cell(m_lo, m_no, lo);
-        Float o0 = dr::gather<Float>(m_lo, j, ok), o1 = dr::gather<Float>(m_lo, j + 1, ok);
+        Float lo = dr::clip(lambda_o, m_go.lo, m_go.hi);
+        auto [j, o0, o1] = m_go.cell(lo, ok);
         Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
-        UInt32 r0 = j * m_ni, r1 = r0 + m_ni;
-        auto v = [&](const UInt32 &k) {
-            return dr::lerp(dr::gather<Float>(m_p, r0 + k, ok), dr::gather<Float>(m_p, r1 + k, ok), t);
-        };
-        auto c = [&](const UInt32 &k) {
-            return dr::lerp(dr::gather<Float>(m_rcdf, r0 + k, ok), dr::gather<Float>(m_rcdf, r1 + k, ok), t);
-        };
-        // ∫ from λi_0 to x of the slice, and x's cell.
+        UInt32 r0 = j * m_gi.n, r1 = r0 + m_gi.n;
+        auto p = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_p, r + k, ok); };
+        auto c = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_rcdf, r + k, ok); };
+        // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Float &x) {
-            UInt32 k = cell(m_li, m_ni, x);
-            Float x0 = dr::gather<Float>(m_li, k, ok), x1 = dr::gather<Float>(m_li, k + 1, ok);
-            Float s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), f0 = v(k);
-            return std::make_pair(c(k) + .5f * (x - x0) * (f0 + dr::lerp(f0, v(k + 1), s)), k);
+            auto [k, x0, x1] = m_gi.cell(x, ok);
+            Float s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), half = .5f * (x - x0);
+            Float f0 = p(r0, k), g0 = p(r1, k);
+            return std::make_tuple(c(r0, k) + half * (f0 + dr::lerp(f0, p(r0, k + 1), s)),
+                                   c(r1, k) + half * (g0 + dr::lerp(g0, p(r1, k + 1), s)), k);
         };
-        Float a_ = dr::select(ok, a, m_li_lo), b_ = dr::select(ok, b, m_li_lo);
-        auto [c_lo, k_lo] = cdf(a_);
-        auto [c_hi, k_hi] = cdf(b_);
-        Float mass = dr::select(ok, dr::maximum(c_hi - c_lo, 0.f), 0.f);
-        // The cell: the last node whose integral is ≤ the target, within [a, b]'s cells;
-        // then the root of the cell's quadratic (cancellation-free form, as matrix.rs).
-        Float target = c_lo + u * mass;
-        UInt32 k = dr::binary_search<UInt32>(1, m_ni - 1, [&](const UInt32 &i) { return c(i) <= target; }) - 1;
+        Float a_ = dr::select(ok, a, m_gi.lo), b_ = dr::select(ok, b, m_gi.lo);
+        auto [ca0, ca1, k_lo] = cdf(a_);
+        auto [cb0, cb1, k_hi] = cdf(b_);
+        Float m0 = (1.f - t) * dr::maximum(cb0 - ca0, 0.f), m1 = t * dr::maximum(cb1 - ca1, 0.f);
+        Float mass = dr::select(ok, m0 + m1, 0.f);
+        // The row, and u rescaled within its share.
+        Float split = u * mass;
+        Mask second = (split >= m0 && m1 > 0.f) || !(m0 > 0.f);
+        UInt32 r = dr::select(second, r1, r0);
+        Float m_row = dr::select(second, cb1 - ca1, cb0 - ca0);
+        Float u_row = dr::clip(dr::select(second, (split - m0) / m1, split / m0), 0.f, 1.f);
+        Float target = dr::select(second, ca1, ca0) + u_row * dr::maximum(m_row, 0.f);
+        UInt32 k = dr::binary_search<UInt32>(1, m_gi.n - 1, [&](const UInt32 &i) { return c(r, i) <= target; }) - 1;
         k = dr::clip(k, k_lo, k_hi);
-        Float x0 = dr::gather<Float>(m_li, k, ok), x1 = dr::gather<Float>(m_li, k + 1, ok), h = x1 - x0;
-        Float f0 = v(k), f1 = v(k + 1);
-        Float delta = dr::clip(target - c(k), 0.f, .5f * h * (f0 + f1));
-        Float disc = dr::maximum(dr::fmadd(f0, f0, 2.f * (f1 - f0) / h * delta), 0.f);
-        Float denom = f0 + dr::sqrt(disc);
+        Float x0 = m_gi.uniform ? dr::fmadd(Float(k), m_gi.step, m_gi.lo) : dr::gather<Float>(m_gi.nodes, k, ok);
+        Float x1 = m_gi.uniform ? x0 + m_gi.step : dr::gather<Float>(m_gi.nodes, k + 1, ok), h = x1 - x0;
+        Float f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
+        Float e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
+        Float delta = dr::clip(target - c(r, k), 0.f, .5f * h * (e0 + e1));
+        Float disc = dr::maximum(dr::fmadd(e0, e0, 2.f * (e1 - e0) / h * delta), 0.f);
+        Float denom = e0 + dr::sqrt(disc);
         Float step = dr::select(denom > 0.f, 2.f * delta / denom, 0.f);
         Float x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
-        Float value = dr::lerp(f0, f1, dr::clip((x - x0) / h, 0.f, 1.f));
+        Float s = dr::clip((x - x0) / h, 0.f, 1.f);
+        Float value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
         return { mass, x, dr::select(ok, value, 0.f) };
     }
 
@@ -305,26 +399,51 @@ protected:
     }
 
     /// fluo_gmm: the conditional mixture given λo on [a, b] (see the file's header): its
-    /// mass S Σ_k π_k N(λo) M_k, a λi sampled from it with u, and P(λi, λo) there.
-    std::tuple<Float, Float, Float> gmm_shift(const Float &lambda_o, const Float &a, const Float &b,
-                                              const Float &u, const Mask &ok) const {
+    /// mass S Σ_k π_k N(λo) M_k, a λi sampled from it with u, and P(λi, λo) there. The
+    /// weights (renormalised) and means are read from their arrays: the mass and the sample
+    /// are detached, P carries their gradients.
+    /// The mixture's weights (renormalised, times the normalisation of N(λo)) and means,
+    /// read once per vertex from the differentiable arrays.
+    struct Mixture {
+        std::vector<Float> weight, mu_i, mu_o;
+    };
+    Mixture mixture() const {
         size_t n = m_comps.size();
-        std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n);
+        Mixture m{ std::vector<Float>(n), std::vector<Float>(n), std::vector<Float>(n) };
+        Float wsum = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            UInt32 index((uint32_t) k);
+            m.weight[k] = dr::gather<Float>(m_weights, index);
+            m.mu_i[k] = dr::gather<Float>(m_means_i, index);
+            m.mu_o[k] = dr::gather<Float>(m_means_o, index);
+            wsum += m.weight[k];
+        }
+        Float inv_wsum = dr::rcp(wsum);
+        for (size_t k = 0; k < n; ++k)
+            m.weight[k] *= inv_wsum * m_comps[k].norm;
+        return m;
+    }
+
+    std::tuple<Float, Float, Float> gmm_shift(const Mixture &mix, const Float &lambda_o, const Float &a,
+                                              const Float &b, const Float &u, const Mask &ok) const {
+        size_t n = m_comps.size();
+        std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n), marginal(n);
         std::vector<Mask> mirror(n);
         Float total = 0.f;
         for (size_t k = 0; k < n; ++k) {
             const Comp &c = m_comps[k];
-            Float d = lambda_o - c.mu_o;
-            Float marginal = c.marginal_norm * dr::exp(c.half_inv_var_o * d * d);
-            mean[k] = dr::fmadd(c.slope, d, c.mu_i);
-            Float lo = (a - mean[k]) / c.cond_sd, hi = (b - mean[k]) / c.cond_sd;
+            Float d = lambda_o - mix.mu_o[k];
+            marginal[k] = mix.weight[k] * dr::exp(c.half_inv_var_o * d * d);
+            mean[k] = dr::fmadd(c.slope, d, mix.mu_i[k]);
+            Float mean_d = dr::detach(mean[k]);
+            Float lo = (a - mean_d) * (1.f / c.cond_sd), hi = (b - mean_d) * (1.f / c.cond_sd);
             // On the side where Φ is small: an interval above the mean is mirrored.
             mirror[k] = lo > 0.f;
             za[k] = dr::select(mirror[k], -hi, lo);
             zb[k] = dr::select(mirror[k], -lo, hi);
             pa[k] = phi_cdf(za[k]);
             pb[k] = phi_cdf(zb[k]);
-            w[k] = dr::select(ok, marginal * dr::maximum(pb[k] - pa[k], 0.f), 0.f);
+            w[k] = dr::select(ok, dr::detach(marginal[k]) * dr::maximum(pb[k] - pa[k], 0.f), 0.f);
             total += w[k];
         }
         // The component: the first k with u·total < Σ_{≤k} w (the last one with w > 0 if
@@ -335,7 +454,7 @@ protected:
             Mask take = !done && w[k] > 0.f;
             ca = dr::select(take, pa[k], ca);
             cb = dr::select(take, pb[k], cb);
-            cmean = dr::select(take, mean[k], cmean);
+            cmean = dr::select(take, dr::detach(mean[k]), cmean);
             csd = dr::select(take, Float(m_comps[k].cond_sd), csd);
             cmirror = dr::select(take, mirror[k], cmirror);
             cu = dr::select(take, dr::clip((target - run) / w[k], 0.f, 1.f), cu);
@@ -348,10 +467,8 @@ protected:
         // P(x, λo) = S Σ_k π_k N(λo | μo, σoo) N(x | mean_k, sd_k²).
         Float value = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            const Comp &c = m_comps[k];
-            Float d = lambda_o - c.mu_o, e = (x - mean[k]) / c.cond_sd;
-            value += c.marginal_norm * dr::exp(c.half_inv_var_o * d * d) *
-                     (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / c.cond_sd));
+            Float e = (x - mean[k]) * (1.f / m_comps[k].cond_sd);
+            value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / m_comps[k].cond_sd));
         }
         Mask good = ok && total > 0.f;
         return { dr::select(good, m_scale * total, 0.f), x, dr::select(good, m_scale * value, 0.f) };
@@ -361,20 +478,20 @@ protected:
     std::string m_filename;
     std::optional<rust::Box<fluo::MeasuredModel>> m_model;
     bool m_gmm = false;
-    FloatStorage m_diag_nm, m_diag;
-    uint32_t m_nd = 0;
-    float m_diag_lo = 0.f, m_diag_hi = 0.f;
-    // fluo_matrix
-    FloatStorage m_li, m_lo, m_p, m_rcdf;
-    uint32_t m_ni = 0, m_no = 0;
-    float m_li_lo = 0.f, m_li_hi = 0.f, m_lo_lo = 0.f, m_lo_hi = 0.f;
+    Grid m_gd;            ///< the diagonal's wavelengths
+    FloatStorage m_diag;  ///< ρ at them
+    // fluo_matrix: its λi and λo grids, P and the rows' running integrals
+    Grid m_gi, m_go;
+    FloatStorage m_p, m_rcdf;
     // fluo_gmm
     float m_scale = 0.f;
     float m_rect[4] = { 0.f, 0.f, 0.f, 0.f };
     std::vector<Comp> m_comps;
+    Float m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)
     Color3f m_rgb_albedo = 0.f, m_rgb_elastic = 0.f;
 
-    MI_TRAVERSE_CB(Base, m_diag_nm, m_diag, m_li, m_lo, m_p, m_rcdf, m_rgb_albedo, m_rgb_elastic)
+    MI_TRAVERSE_CB(Base, m_gd.nodes, m_diag, m_gi.nodes, m_go.nodes, m_p, m_rcdf, m_weights, m_means_i, m_means_o,
+                   m_rgb_albedo, m_rgb_elastic)
 };
 
 template <typename Float, typename Spectrum> class FluoMatrixJit final : public FluoMeasuredJit<Float, Spectrum> {

@@ -75,11 +75,12 @@ trace participating media: a scene with media gets one warning per scene pointin
 the same estimators run inside Mitsuba's ``dr::while_loop`` (one kernel per render): per
 lane and hero wavelength the elastic/shift choice, or the 3×K matrix throughput with
 Mitsuba's RGB throughput until the first fluorescent vertex, as below. The fluorescent
-materials (``fluo_jung``) are reached through ``dr::dispatch``; their probabilities are
-detached, their values differentiable, so ``mi.render`` with ``params`` gives gradients of
-dye parameters. The scene is scanned once per render as below. Not yet in these variants:
-fluorescent materials inside wrappers (``twosided``, ``blendbsdf``, ``mask``: refused at
-render start with an error) and the other ``fluo_*`` materials (refused at load).
+materials (``fluo_jung``, ``fluo_matrix``, ``fluo_gmm``) are reached through
+``dr::dispatch``; their probabilities are detached, their values differentiable, so
+``mi.render`` with ``params`` gives gradients of dye parameters. The scene is scanned once
+per render as below. Not yet in these variants: fluorescent materials inside wrappers
+(``twosided``, ``blendbsdf``, ``mask``: refused at render start with an error) and
+``fluo_qd`` (refused at load).
 
 **Simulate only what the scene calls for.** At the start of each render the scene is
 scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface

@@ -449,6 +449,15 @@ mod bridge {
         fn measured_emission_max(model: &MeasuredModel) -> f64;
         /// The tables the vectorised variants evaluate (see `MeasuredTables`).
         fn measured_tables(model: &MeasuredModel) -> MeasuredTables;
+        /// `fluo_gmm` after an update through `mi.traverse`: the same fit with these
+        /// component weights (renormalised to sum 1) and means (λi, λo), validated as a
+        /// fit file is.
+        fn gmm_updated(
+            model: &MeasuredModel,
+            weights: &[f64],
+            means_excitation: &[f64],
+            means_emission: &[f64],
+        ) -> Result<Box<MeasuredModel>>;
     }
 
     // ------------------------------------------- fluo_path: generic handle, reduced RGB
@@ -1473,6 +1482,36 @@ fn measured_tables(model: &MeasuredModel) -> MeasuredTables {
         _ => {}
     }
     t
+}
+
+fn gmm_updated(
+    model: &MeasuredModel,
+    weights: &[f64],
+    means_excitation: &[f64],
+    means_emission: &[f64],
+) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| {
+        let Model::Gmm(g) = &model.0.model else {
+            return Err(fluo::Error::data("not a Gaussian-mixture material".to_string()));
+        };
+        let mut file = g.file().clone();
+        let n = file.components.len();
+        if weights.len() != n || means_excitation.len() != n || means_emission.len() != n {
+            return Err(fluo::Error::param("weights", weights.len(), format!("{n} entries (one per component)")));
+        }
+        let total: f64 = weights.iter().sum();
+        if let Some(w) = weights.iter().find(|w| !(w.is_finite() && **w >= 0.0)) {
+            return Err(fluo::Error::param("weights", w, "[0, ∞) (renormalised to sum 1)"));
+        }
+        if !(total > 0.0 && total.is_finite()) {
+            return Err(fluo::Error::param("weights", format!("sum {total}"), "a positive sum"));
+        }
+        for (k, c) in file.components.iter_mut().enumerate() {
+            c.weight = weights[k] / total;
+            c.mean = [means_excitation[k], means_emission[k]];
+        }
+        Ok(MeasuredModel::new(Model::Gmm(Arc::new(fluo::models::gmm::GmmModel::new(file)?))))
+    })
 }
 
 fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {

@@ -44,7 +44,11 @@ Methods are declared in :func:`methods`: how to turn a bench scene into the meth
 scene (variant, integrator, material rewrite). A method named "(fluo_path)" renders with
 the scene's own fluo integrator: ``fluo_volpath`` in the scene with fluorescent media
 (``qd_cuvette``), whose rows without fluorescence set the media's ``quantum_yield`` to 0
-(the same absorption) under Mitsuba's ``volpath``. ``scripts/bench_readme.py`` turns a
+(the same absorption) under Mitsuba's ``volpath``. Rows named "llvm ..." render in the
+vectorised variants (``llvm_ad_spectral``, ``llvm_ad_rgb``) on the scenes whose materials
+those serve (:data:`JIT_KINDS`), each method in a fresh process; their times exclude the
+first render of each rung, which traces and compiles the kernels (``compile_s``: its
+extra time at the lowest rung). ``scripts/bench_readme.py`` turns a
 ``results.json`` into the README's table and its reading (:func:`readme_region`). The table goes to stdout (Markdown),
 ``results.json`` and ``accuracy_vs_time.png`` to the output folder.
 """
@@ -278,10 +282,14 @@ class Method:
     knob: str = ""
     #: scene stems the method is restricted to; None: every scene it applies to
     scenes: set[str] | None = None
+    #: material kinds the method can render at all (the vectorised variants serve fewer
+    #: plugins): a scene with any other kind is skipped; None: every kind
+    serves: set[str] | None = None
 
     def applies(self, scene: str, kinds: set[str]) -> bool:
         return ((self.kinds is None or bool(self.kinds & kinds))
-                and (self.scenes is None or scene in self.scenes))
+                and (self.scenes is None or scene in self.scenes)
+                and (self.serves is None or kinds <= self.serves))
 
 
 def methods(cache: Path) -> list[Method]:
@@ -306,6 +314,15 @@ def methods(cache: Path) -> list[Method]:
                   lambda _: 0.0, note="what a user gets today"),
            Method("spectral native path, nearest material", "scalar_spectral", lambda t: _to_native(_to_path(t)),
                   lambda _: 0.0, note="the cost floor")]
+    # The vectorised variants, on the scenes whose materials they serve (each in its own
+    # process, timed after a first render that compiles the kernels).
+    ms += [Method(f"llvm {SPECTRAL}", "llvm_ad_spectral", lambda t: t, _material_bytes, serves=JIT_KINDS),
+           Method("llvm spectral GMM-8 (fluo_path)", "llvm_ad_spectral", _gmm(8, cache), _material_bytes,
+                  {"matrix"}, serves=JIT_KINDS),
+           Method("llvm rgb ours-x7 (fluo_path)", "llvm_ad_rgb", _reduced("x7", "ours"), _reduced_bytes(7),
+                  serves=JIT_KINDS),
+           Method("llvm spectral native path, nearest material", "llvm_ad_spectral",
+                  lambda t: _to_native(_to_path(t)), lambda _: 0.0, serves=JIT_KINDS, note="llvm's cost floor")]
     return ms
 
 
@@ -327,6 +344,9 @@ class Row:
     floor_de: float = 0.0
     material_bytes: float = 0.0
     knob: str = ""
+    #: vectorised variants: the first render's time beyond a timed one (tracing and
+    #: kernel compilation, excluded from ``seconds``), at the lowest rung
+    compile_s: float | None = None
 
 
 def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: Path,
@@ -350,6 +370,69 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
         if img is None:
             img = np.array(out, dtype=np.float64)[..., :3]
     return img, seconds
+
+
+#: Material kinds (:func:`_material_kinds`) the vectorised variants serve
+#: (``fluo.JIT_PLUGINS``: fluo_jung with its ``color``, fluo_matrix, fluo_gmm).
+JIT_KINDS = {"jung", "cube", "matrix", "gmm"}
+
+
+def _render_ladder_jit(text: str, variant: str, res: int, ladder: list[int], seed: int, cache: Path,
+                       repeats: int) -> tuple[list[np.ndarray], list[list[float]], float]:
+    """:func:`_render_text` at every rung of ``ladder`` in a vectorised variant, in a fresh
+    process (Mitsuba 3.8 cannot start a JIT variant after a scalar render in one process):
+    per rung the image and the times of ``repeats`` renders after a first one that
+    compiles (evaluated and waited for inside the timing); and that first render's extra
+    time at the lowest rung."""
+    import subprocess
+    import sys
+
+    digest = hashlib.sha1(f"{text}|{variant}|{res}|{ladder}|{repeats}".encode()).hexdigest()[:12]
+    scene = cache / f"scene_{digest}.xml"
+    scene.write_text(text)
+    job = cache / f"jit_{digest}.json"
+    job.write_text(json.dumps({"scene": str(scene), "variant": variant, "res": res, "ladder": ladder,
+                               "seed": seed, "repeats": repeats, "out": str(cache / f"jit_{digest}.npz")}))
+    proc = subprocess.run([sys.executable, "-m", "fluo.bench", str(job)], capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"fluo bench: {variant} render failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
+    done = json.loads(job.with_suffix(".done.json").read_text())
+    data = np.load(done["out"])
+    return [data[f"rung{i}"] for i in range(len(ladder))], done["seconds"], done["compile_s"]
+
+
+def _jit_worker(job_file: str) -> None:
+    """The fresh process of :func:`_render_ladder_jit`."""
+    import drjit as dr
+    import mitsuba as mi
+
+    job = json.loads(Path(job_file).read_text())
+    mi.set_variant(job["variant"])
+    import fluo  # noqa: F401  (plugins)
+
+    scene = mi.load_file(job["scene"], res=job["res"], spp=job["ladder"][0])
+
+    def render(spp: int) -> tuple[np.ndarray, float]:
+        t0 = time.perf_counter()
+        img = mi.render(scene, spp=spp, seed=job["seed"])
+        dr.eval(img)
+        dr.sync_thread()
+        return img, time.perf_counter() - t0
+
+    images, seconds, compile_s = {}, [], 0.0
+    for i, spp in enumerate(job["ladder"]):
+        first = render(spp)[1]
+        times = []
+        for _ in range(max(1, job["repeats"])):
+            img, t = render(spp)
+            times.append(t)
+        images[f"rung{i}"] = np.array(img, dtype=np.float64)[..., :3]
+        seconds.append(times)
+        if i == 0:
+            compile_s = max(0.0, first - float(np.median(times)))
+    np.savez(job["out"], **images)
+    Path(job_file).with_suffix(".done.json").write_text(json.dumps(
+        {"out": job["out"], "seconds": seconds, "compile_s": compile_s}))
 
 
 def _absolutise_includes(text: str, scene_dir: Path) -> str:
@@ -429,8 +512,12 @@ def run(quick: bool = True, out: Path | None = None, scenes: list[Path] | None =
                 continue
             text = m.rewrite(base)
             row = Row(scene_path.stem, m.name, material_bytes=m.bytes(text), knob=m.knob)
-            for spp in ladder:
-                img, ts = _render_text(text, m.variant, res, spp, 1, cache, repeats)
+            if m.variant.startswith("scalar_"):
+                rendered = (_render_text(text, m.variant, res, spp, 1, cache, repeats) for spp in ladder)
+            else:
+                images, times, row.compile_s = _render_ladder_jit(text, m.variant, res, ladder, 1, cache, repeats)
+                rendered = zip(images, times)
+            for spp, (img, ts) in zip(ladder, rendered):
                 de = delta_e_map(np.maximum(img, 0), np.maximum(ref, 0))
                 row.spp.append(spp)
                 row.seconds.append(float(np.median(ts)))
@@ -560,7 +647,20 @@ def claims(result: dict) -> dict:
                       "time_ratio": r["seconds"][-1] / s["seconds"][-1] if s else None,
                       "bytes": r["material_bytes"], "own_bytes": s["material_bytes"] if s else None,
                       "reaches": r["equal_error_time"] is not None})
-    return {"scenes": scenes, "target": result["target_de"], "repeats": result.get("repeats", 1),
+    # the vectorised variants against the scalar ones, same method, same scene
+    llvm = []
+    for jit_name, scalar_name in ((f"llvm {SPECTRAL}", SPECTRAL), ("llvm rgb ours-x7 (fluo_path)",
+                                                                   "rgb ours-x7 (fluo_path)")):
+        scalar_rows = {r["scene"]: r for r in methods_rows if r["method"] == scalar_name}
+        for r in methods_rows:
+            s = scalar_rows.get(r["scene"])
+            if r["method"] == jit_name and s is not None:
+                a, b = s["equal_error_time"], r["equal_error_time"]
+                llvm.append({"method": jit_name, "scene": r["scene"],
+                             "eet_ratio": a / b if a is not None and b is not None else None,
+                             "time_ratio": s["seconds"][-1] / r["seconds"][-1],
+                             "compile_s": r.get("compile_s")})
+    return {"scenes": scenes, "target": result["target_de"], "repeats": result.get("repeats", 1), "llvm": llvm,
             "ratios": ratios, "ratio_cases": ratio_cases, "ours_cases": len(ours), "ours_missing": ours_missing,
             "unconverged": unconverged,
             "ours_floors": [r["floor_de"] for r in ours],
@@ -635,6 +735,19 @@ def reading(result: dict) -> str:
                    + "; ".join(f"{_short(k['method']).replace('spectral, ', '')}: ΔE00 {k['mean_de']:.2f}, "
                                f"{k['time_ratio']:.2f}× the time, {k['bytes']:.0f} B"
                                for k in ks) + ".")
+    if c["llvm"]:
+        for name, variant in ((f"llvm {SPECTRAL}", "llvm_ad_spectral"), ("llvm rgb ours-x7 (fluo_path)",
+                                                                          "llvm_ad_rgb")):
+            ls = [x for x in c["llvm"] if x["method"] == name]
+            if not ls:
+                continue
+            eet = [x["eet_ratio"] for x in ls if x["eet_ratio"] is not None]
+            out.append(f"In `{variant}` {_short(name.replace('llvm ', '')).replace('spectral, ', '')} renders the "
+                       f"top rung {_range([x['time_ratio'] for x in ls], '{:.2f}')}× as fast as the scalar "
+                       f"variant on {', '.join(x['scene'] for x in ls)}"
+                       + (f" (equal-error time {_range(eet, '{:.2f}')}× shorter)" if eet else "")
+                       + "; kernel compilation, excluded from those times, takes "
+                       + _range([x["compile_s"] or 0.0 for x in ls], "{:.1f}", " s") + ".")
     if c["spreads"]:
         sp = sorted(c["spreads"])
         out.append(f"Times are medians of {c['repeats']} renders; at the top rung the spread (max − min) / "
@@ -719,3 +832,9 @@ def plot(result: dict, path: Path) -> None:
     fig.tight_layout(rect=(0, 0.9 / (4.6 * nrows + 1.0) + 0.05, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+if __name__ == "__main__":  # the vectorised variants' render process (_render_ladder_jit)
+    import sys
+
+    _jit_worker(sys.argv[1])
