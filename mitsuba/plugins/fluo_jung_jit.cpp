@@ -36,8 +36,10 @@ public:
     /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
     /// (in the b-spline coordinate, mapped to λ per lane: the table does not depend on the
     /// dye, so parameter updates reuse the compiled kernels; the values weighting a sample
-    /// are the closed forms, the table shapes only the variance).
-    static constexpr size_t BsplineNodes = 601;
+    /// are the closed forms, the table shapes only the variance). 61 nodes: the linear
+    /// interpolant stays within 0.1 % of b's peak (|b''| ≤ 2/3, step 0.1), and a sample's
+    /// binary search takes 6 steps (601 nodes took 10, for 7 % of a fluorescent render).
+    static constexpr size_t BsplineNodes = 61;
 
     FluoJungJit(const Properties &props) : Base(props) {
         using namespace fluo_detail;

@@ -340,7 +340,8 @@ def test09_measured_materials_equal_scalar_within_noise():
     """fluo_matrix (tabulated rows: binary search and the cell's quadratic root per lane) and
     fluo_gmm (truncated conditional normals with float erfc/Φ⁻¹) render in llvm what the
     scalar variants render: close-ups filling the view under D65 from 300 nm and under a
-    flat 300-380 nm lamp (the glow alone) in both variants, and the measured demo scenes.
+    flat 300-380 nm lamp (the glow alone) in both variants, the measured demo scenes and
+    the measured bench box.
     The glow's estimator is heavy-tailed (a per-pixel variance from a few images
     underestimates the variance of the image mean), so the test compares image means with
     the spread of the means themselves: 4 llvm and 6 scalar seeds, a pooled two-sample z."""
@@ -356,9 +357,11 @@ def test09_measured_materials_equal_scalar_within_noise():
                 xml = MEASURED_SCENE.format(basis=basis, light=light, plugin=plugin, file=MATRICES / file)
                 cases.append((f"{plugin} {file} {'uv' if light is uv else 'd65'}", v,
                               {"variant": v, "xml": xml, "spp": 256}))
-    for scene in ("fluo_measured.xml", "fluo_measured_uv.xml"):
+    for scene in ("fluo_measured.xml", "fluo_measured_uv.xml", "bench/measured_box.xml"):
         for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
             params = {"matrix_a": MATRICES / "jung_yellow.csv", "matrix_b": MATRICES / "jung_brightener.csv"}
+            if scene.startswith("bench/"):
+                params["basis"] = "x7"
             cases.append((scene, v, scene_job(SCENES / scene, v, spp=256, **params)))
     llvm_seeds, scalar_seeds = 4, 6
     results = run_llvm([{**job, "seed": 11 + s} for _, _, job in cases for s in range(llvm_seeds)])
