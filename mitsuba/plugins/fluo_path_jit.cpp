@@ -374,7 +374,6 @@ private:
     };
 
     template <size_t K> using Coeffs = dr::Array<Float, K>;
-    template <size_t K> using Square = dr::Array<Float, K * K>;
     template <size_t K> using Rows = dr::Array<Float, 3 * K>;
 
     /// Per-band albedo a_k = (F·v)_k / (F·1)_k of an RGB value (a native BSDF on the K
@@ -415,18 +414,6 @@ private:
         return c;
     }
 
-    /// R·M (3×K times K×K).
-    template <size_t K> static Rows<K> mul(const Rows<K> &R, const Square<K> &M) {
-        Rows<K> out;
-        for (size_t r = 0; r < 3; ++r)
-            for (size_t j = 0; j < K; ++j) {
-                Float acc = R[r * K] * M[j];
-                for (size_t k = 1; k < K; ++k)
-                    acc = dr::fmadd(R[r * K + k], M[k * K + j], acc);
-                out[r * K + j] = acc;
-            }
-        return out;
-    }
     /// R·c (3×K times K).
     template <size_t K> static Color3f apply(const Rows<K> &R, const Coeffs<K> &c) {
         Color3f out;
@@ -488,28 +475,46 @@ private:
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
 
+                    Rows<K> R; // the matrix throughput, diag(t)·O on first entering it
+                    for (size_t r = 0; r < 3; ++r)
+                        for (size_t k = 0; k < K; ++k)
+                            R[r * K + k] = dr::select(ls.reduced, ls.R[r * K + k], O[r * K + k] * ls.t[r]);
+
                     // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
-                    // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian).
-                    auto [is_fl, A] = fluo_detail::dispatch_any(
+                    // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian). R·A is
+                    // formed in the call, one column of A at a time (the M_i are the material's
+                    // constants): K·K values of A never live at once, which at K = 7 spilled
+                    // registers (a third of the render time).
+                    auto [is_fl, RA] = fluo_detail::dispatch_any(
                         bsdf,
-                        [this](const BSDF *b, const SurfaceInteraction3f &si_, const Mask &on) {
-                            Square<K> a = dr::zeros<Square<K>>();
+                        [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
+                            Rows<K> ra = dr::zeros<Rows<K>>();
                             const Entry *e = find(b);
                             if (!e)
-                                return std::make_pair(Mask(false), a);
+                                return std::make_pair(Mask(false), ra);
                             auto w = e->bispectral->jit_reduced_weights();
-                            for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
-                                for (size_t i = 0; i < K * K; ++i)
-                                    if (e->m[t][i] != 0.0)
-                                        a[i] = dr::fmadd(w[t], (float) e->m[t][i], a[i]);
-                            if (!e->full) {
-                                Coeffs<K> d = band_albedo<K>(e->bispectral->jit_elastic_albedo(si_, on));
-                                for (size_t k = 0; k < K; ++k)
-                                    a[k * K + k] += d[k];
+                            Coeffs<K> d = dr::zeros<Coeffs<K>>();
+                            if (!e->full)
+                                d = band_albedo<K>(e->bispectral->jit_elastic_albedo(si_, on));
+                            for (size_t j = 0; j < K; ++j) {
+                                Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
+                                for (size_t k = 0; k < K; ++k) {
+                                    for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                                        if (e->m[t][k * K + j] != 0.0)
+                                            col[k] = dr::fmadd(w[t], (float) e->m[t][k * K + j], col[k]);
+                                    if (!e->full && k == j)
+                                        col[k] += d[k];
+                                }
+                                for (size_t r = 0; r < 3; ++r) {
+                                    Float acc = R_[r * K] * col[0];
+                                    for (size_t k = 1; k < K; ++k)
+                                        acc = dr::fmadd(R_[r * K + k], col[k], acc);
+                                    ra[r * K + j] = acc;
+                                }
                             }
-                            return std::make_pair(Mask(true), a);
+                            return std::make_pair(Mask(true), ra);
                         },
-                        si, active_next);
+                        si, R, active_next);
                     is_fl &= active_next;
                     Float cos_i = Frame3f::cos_theta(si.wi);
                     auto lambert = [&](const Vector3f &w) {
@@ -517,12 +522,6 @@ private:
                                           Frame3f::cos_theta(w) * dr::InvPi<Float>, 0.f);
                     };
                     Mask matrix = ls.reduced || is_fl;
-                    Rows<K> R; // the matrix throughput, diag(t)·O on first entering it
-                    for (size_t r = 0; r < 3; ++r)
-                        for (size_t k = 0; k < K; ++k)
-                            R[r * K + k] = dr::select(ls.reduced, ls.R[r * K + k], O[r * K + k] * ls.t[r]);
-
-                    Rows<K> RA = mul<K>(R, A); // once for both directions
                     if (dr::any_or<true>(active_em)) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                         Coeffs<K> c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
