@@ -11,6 +11,7 @@ one. Same estimator, same physics: only the random numbers differ.
 
 from __future__ import annotations
 
+import csv
 import json
 import subprocess
 import sys
@@ -336,26 +337,43 @@ MEASURED_SCENE = """<scene version="3.0.0">
 </scene>"""
 
 
-def test09_measured_materials_equal_scalar_within_noise():
+def irregular_matrix(path: Path) -> Path:
+    """jung_yellow.csv on an irregular grid (steps of 10 and 20 nm on both axes), so that
+    cells are found by binary search rather than by the uniform grids' multiplication."""
+    rows = [r for r in csv.reader((MATRICES / "jung_yellow.csv").open()) if r and not r[0].startswith("#")]
+    keep = lambda w: int(float(w)) // 10 % 3 != 1  # noqa: E731
+    cols = [0] + [i for i in range(1, len(rows[0])) if keep(rows[0][i])]
+    with path.open("w", newline="") as f:
+        out = csv.writer(f)
+        out.writerow([rows[0][i] for i in cols])
+        for r in rows[1:]:
+            if keep(r[0]):
+                out.writerow([r[i] for i in cols])
+    return path
+
+
+def test09_measured_materials_equal_scalar_within_noise(tmp_path):
     """fluo_matrix (tabulated rows: binary search and the cell's quadratic root per lane) and
     fluo_gmm (truncated conditional normals with float erfc/Φ⁻¹) render in llvm what the
     scalar variants render: close-ups filling the view under D65 from 300 nm and under a
-    flat 300-380 nm lamp (the glow alone) in both variants, the measured demo scenes and
-    the measured bench box.
+    flat 300-380 nm lamp (the glow alone) in both variants (also a matrix on an irregular
+    grid: binary searches instead of the uniform grids' index), the measured demo scenes
+    and the measured bench box.
     The glow's estimator is heavy-tailed (a per-pixel variance from a few images
     underestimates the variance of the image mean), so the test compares image means with
     the spread of the means themselves: 4 llvm and 6 scalar seeds, a pooled two-sample z."""
     d65 = '<string name="illuminant" value="D65"/>'
     uv = f'<string name="filename" value="{SCENES / "spectra" / "uv_flat_300_380.csv"}"/>'
     cases = []
+    irregular = irregular_matrix(tmp_path / "irregular.csv")
     for plugin, file in (("fluo_matrix", "jung_yellow.csv"), ("fluo_matrix", "jung_brightener.csv"),
-                         ("fluo_gmm", "jung_orange.gmm.json")):
+                         ("fluo_gmm", "jung_orange.gmm.json"), ("fluo_matrix", irregular)):
         for light in (d65, uv):
             for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
                 if light is uv and v == "llvm_ad_rgb":
                     continue  # UV-only light in RGB: the reduced transport's known limit (warned)
                 xml = MEASURED_SCENE.format(basis=basis, light=light, plugin=plugin, file=MATRICES / file)
-                cases.append((f"{plugin} {file} {'uv' if light is uv else 'd65'}", v,
+                cases.append((f"{plugin} {Path(file).name} {'uv' if light is uv else 'd65'}", v,
                               {"variant": v, "xml": xml, "spp": 256}))
     for scene in ("fluo_measured.xml", "fluo_measured_uv.xml", "bench/measured_box.xml"):
         for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
@@ -389,7 +407,7 @@ def test09_measured_materials_equal_scalar_within_noise():
     assert not bad, "llvm differs from scalar beyond noise:\n" + "\n".join(bad)
 
 
-def test10_measured_bsdf_values_equal_the_rust_reference():
+def test10_measured_bsdf_values_equal_the_rust_reference(tmp_path):
     """The diagonal ρ(λ) per lane (spectral) and the RGB albedos equal the scalar variants'
     Rust values at random directions and wavelengths, including beyond the diagonal's ends."""
     rng = np.random.default_rng(9)
@@ -400,6 +418,7 @@ def test10_measured_bsdf_values_equal_the_rust_reference():
         points.append([list(wi / np.linalg.norm(wi)), list(wo / np.linalg.norm(wo)),
                        list(rng.uniform(250.0, 900.0, size=4))])
     bsdfs = [{"type": "fluo_matrix", "filename": str(MATRICES / "jung_yellow.csv")},
+             {"type": "fluo_matrix", "filename": str(irregular_matrix(tmp_path / "irregular.csv"))},
              {"type": "fluo_gmm", "filename": str(MATRICES / "jung_orange.gmm.json")}]
     jobs = [{"variant": v, "bsdf": b, "points": points} for v in ("llvm_ad_spectral", "llvm_ad_rgb") for b in bsdfs]
     for job, res in zip(jobs, run_llvm(jobs)):
