@@ -144,7 +144,7 @@ public:
                       double range_hi, Mask active) const override {
         const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
-            return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
+            return this->elastic_only(lambda_o);
         } else {
             // Probabilities are detached: gradients flow through the values only.
             Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };

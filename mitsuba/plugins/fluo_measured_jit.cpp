@@ -176,7 +176,7 @@ public:
                       double range_hi, Mask active) const override {
         const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
-            return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
+            return this->elastic_only(lambda_o);
         } else {
             UnpolarizedSpectrum we = dr::maximum(jit_elastic_albedo(si, active), 0.f);
             Wavelength lambda_i = lambda_o;

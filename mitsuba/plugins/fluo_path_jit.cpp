@@ -303,8 +303,7 @@ private:
                                              const Wavelength &u2_, const Mask &on) {
                             if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
                                 return f->jit_choose(si_, u1_, u2_, range_lo, range_hi, on);
-                            return typename Bispectral::Choice(si_.wavelengths, UnpolarizedSpectrum(1.f),
-                                                               WMask(false), UnpolarizedSpectrum(0.f));
+                            return Bispectral::elastic_only(si_.wavelengths);
                         },
                         si, u1, u2, active_next);
                     Mask has_bsdf = active_next && bsdf != nullptr;

@@ -162,6 +162,11 @@ public:
     /// reradiation π·f_fl(λi, λo) (differentiable). The reradiation lobe is Lambertian
     /// (f_fl·cos θo = that value·cos θo/π), so one call per vertex serves both directions.
     using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum>;
+    /// The choice that keeps every wavelength (RGB variants, where fluo_path does not call
+    /// jit_choose, and materials that do not re-emit).
+    static Choice elastic_only(const Wavelength &lambda_o) {
+        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
+    }
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 };
