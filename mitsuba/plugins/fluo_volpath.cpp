@@ -64,6 +64,13 @@ Wavelength-shifting volumetric path tracer (:monosp:`fluo_volpath`)
    - |string|
    - ``scalar_rgb`` only: reduction, ``ours`` or ``naive``, as for ``fluo_path``.
      (Default: ``ours``)
+ * - closed_form_shadows
+   - |bool|
+   - ``scalar_rgb`` only: shadow rays through a fluorescent medium of constant density
+     and scattering take its reduced transfer exp(−(d·A + σs)·t) in closed form
+     (diagonalised once per render) instead of ratio tracking it; ``false`` tracks it
+     (the reference the tests compare with). Media whose operator cannot be diagonalised
+     well (complex or repeated eigenvalues) are tracked either way. (Default: true)
 
 Mitsuba's ``volpath`` (delta tracking with null collisions, next-event estimation
 through media with ratio-tracked transmittance, MIS between emitter and phase/BSDF
@@ -188,7 +195,8 @@ public:
     FluoVolpath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
           m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
-                    fluo_detail::get_string(props, "method", "ours")) {}
+                    fluo_detail::get_string(props, "method", "ours")),
+          m_closed_shadows(props.get<bool>("closed_form_shadows", true)) {}
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
@@ -557,10 +565,12 @@ private:
     struct Shadow {
         using Coeffs = typename ReducedTransport<Float, Spectrum>::Coeffs;
         using Square = typename ReducedTransport<Float, Spectrum>::Square;
+        /// diag(g) − d·A; or, with v set, the closed-form transfer V·diag(g)·V⁻¹.
         struct Op {
             const Square *a; ///< nullptr: diagonal only
             double d;
             Coeffs g;
+            const Square *v = nullptr, *v_inv = nullptr;
         };
         static constexpr size_t Capacity = 32;
         bool active = false; ///< a fluorescent medium was met: the light is light(c)
@@ -701,6 +711,11 @@ private:
         const BMedium *medium;
         Square a{}, f{};
         Coeffs f_rows{}; ///< Σ_i |F_ki| / (4π): the re-emission into band k per unit density
+        /// Constant density and scattering: d·A + diag(σs) = V·diag(λ)·V⁻¹, so that a
+        /// shadow ray's transfer over t is V·diag(e^{−λt})·V⁻¹ (closed_form_shadows).
+        bool closed = false;
+        Square v{}, v_inv{};
+        Coeffs lambda{};
     };
     /// A tentative collision in a fluorescent medium: density, per-band σs, majorant μ̄.
     struct Collision {
@@ -794,10 +809,17 @@ private:
             for (size_t i = 0; i < shadow.n; ++i) {
                 const auto &o = shadow.ops[i];
                 Square m{};
-                for (size_t j = 0; j < k * k; ++j)
-                    m[j] = o.a ? -o.d * (*o.a)[j] : 0.0;
-                for (size_t j = 0; j < k; ++j)
-                    m[j * k + j] += o.g[j];
+                if (o.v) {
+                    for (size_t r = 0; r < k; ++r)
+                        for (size_t c = 0; c < k; ++c)
+                            for (size_t j = 0; j < k; ++j)
+                                m[r * k + c] += (*o.v)[r * k + j] * o.g[j] * (*o.v_inv)[j * k + c];
+                } else {
+                    for (size_t j = 0; j < k * k; ++j)
+                        m[j] = o.a ? -o.d * (*o.a)[j] : 0.0;
+                    for (size_t j = 0; j < k; ++j)
+                        m[j * k + j] += o.g[j];
+                }
                 multiply(shadow.p, m, 1.0);
             }
             shadow.n = 0;
@@ -811,6 +833,19 @@ private:
         for (size_t i = shadow.n; i-- > 0;) {
             const auto &o = shadow.ops[i];
             Coeffs out{};
+            if (o.v) { // V·diag(g)·V⁻¹·c
+                Coeffs y{};
+                for (size_t r = 0; r < k; ++r) {
+                    for (size_t j = 0; j < k; ++j)
+                        y[r] += (*o.v_inv)[r * k + j] * c[j];
+                    y[r] *= o.g[r];
+                }
+                for (size_t r = 0; r < k; ++r)
+                    for (size_t j = 0; j < k; ++j)
+                        out[r] += (*o.v)[r * k + j] * y[j];
+                c = out;
+                continue;
+            }
             for (size_t r = 0; r < k; ++r) {
                 double acc = o.g[r] * c[r];
                 if (o.a)
@@ -864,7 +899,25 @@ private:
                         r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
                 }
                 b->set_band_absorption_max(a_max);
-                m_rmedia.emplace(static_cast<const void *>(dynamic_cast<const Medium *>(b)), r);
+                MediumInteraction3f at = dr::zeros<MediumInteraction3f>();
+                UnpolarizedSpectrum sigma_t;
+                const Medium *medium = dynamic_cast<const Medium *>(b);
+                if (m_closed_shadows && b->constant_extinction(at, sigma_t)) {
+                    auto [sigma_s, sigma_n, sigma_tt] = medium->get_scattering_coefficients(at, true);
+                    double d = std::max(0.0, (double) b->density_at(at));
+                    Coeffs s = m_reduced.band_albedo(Spectrum(sigma_s));
+                    Square m{};
+                    for (size_t i = 0; i < k; ++i) {
+                        for (size_t j = 0; j < k; ++j)
+                            m[i * k + j] = d * r.a[i * k + j];
+                        m[i * k + i] += s[i];
+                    }
+                    r.closed = fluo::reduced_eigen(rust::Slice<const double>(m.data(), k * k),
+                                                   rust::Slice<double>(r.v.data(), k * k),
+                                                   rust::Slice<double>(r.v_inv.data(), k * k),
+                                                   rust::Slice<double>(r.lambda.data(), k));
+                }
+                m_rmedia.emplace(static_cast<const void *>(medium), r);
             }
             m_reduced.prepare(scene, m_wrappers, !media.empty());
             m_use_reduced = m_reduced.active() || !m_rmedia.empty();
@@ -939,12 +992,26 @@ private:
                 if (!constant_entry->medium->constant_extinction(at, constant_sigma_t))
                     constant_entry = nullptr;
             }
-            if (constant_entry) {
+            // The same in reduced transport: the K×K transfer V·diag(e^{−λt})·V⁻¹.
+            const ReducedMedium *closed = shadow && m_use_reduced && active_medium ? find_reduced(medium) : nullptr;
+            if (closed && !closed->closed)
+                closed = nullptr;
+
+            if (constant_entry || closed) {
                 if (needs_intersection)
                     si = scene->ray_intersect(ray, true);
                 needs_intersection = false;
                 bool reaches_surface = si.is_valid() && si.t < remaining_dist;
-                transmittance *= dr::exp(-(reaches_surface ? si.t : remaining_dist) * constant_sigma_t);
+                double t = (double) (reaches_surface ? si.t : remaining_dist);
+                if (closed) {
+                    flush(*shadow, transmittance);
+                    typename Shadow::Op op{ nullptr, 0.0, {}, &closed->v, &closed->v_inv };
+                    for (size_t j = 0; j < m_reduced.bands(); ++j)
+                        op.g[j] = std::exp(-closed->lambda[j] * t);
+                    push(*shadow, op);
+                } else {
+                    transmittance *= dr::exp(-(Float) t * constant_sigma_t);
+                }
                 if (!reaches_surface)
                     break; // the emitter lies inside this medium
                 escaped_medium = true;
@@ -1033,6 +1100,7 @@ private:
     Spectral m_spectral;
     Reduced m_reduced; ///< scalar_rgb with fluorescence (the basis is checked in both variants)
     bool m_use_reduced = false;
+    bool m_closed_shadows = true; ///< closed_form_shadows
     std::unordered_map<const void *, ReducedMedium> m_rmedia;
     fluo_detail::FluoWrappers<Float, Spectrum> m_wrappers;
     std::unordered_map<const void *, MediumEntry> m_media;

@@ -508,6 +508,10 @@ mod bridge {
         /// the diagonal μa(λ)) and `reradiation` F (of the density μa(λi) f(λi → λo)), so
         /// that light with coefficients c re-emits F·c/(4π) per unit length and steradian.
         fn medium_reduced(model: &FluoMedium, t: &TransportBasis, absorption: &mut [f64], reradiation: &mut [f64]);
+        /// M = V·diag(λ)·V⁻¹ for a K×K row-major `m` with real, distinct, non-negative
+        /// eigenvalues and well-conditioned V (`fluo::reduce::RealEigen`): a constant reduced
+        /// medium's transfer exp(−M t) in closed form. False (nothing written) otherwise.
+        fn reduced_eigen(m: &[f64], v: &mut [f64], v_inv: &mut [f64], lambda: &mut [f64]) -> bool;
         /// max of μa over the wavelengths reduced transport covers (its grid), 1/m: the
         /// RGB variants' majorant.
         fn medium_grid_absorption_max(model: &FluoMedium) -> f64;
@@ -1611,6 +1615,22 @@ fn medium_grid_source_max(model: &FluoMedium) -> f64 {
     let m = &model.model;
     let range = m.lambda_range();
     fluo::reduce::grid().into_iter().map(|l| m.shift_coefficient_per_m(l, range)).fold(0.0, f64::max)
+}
+
+fn reduced_eigen(m: &[f64], v: &mut [f64], v_inv: &mut [f64], lambda: &mut [f64]) -> bool {
+    let k = lambda.len();
+    if v.len() != k * k || v_inv.len() != k * k {
+        return false;
+    }
+    match fluo::reduce::RealEigen::new(m, k) {
+        Some(e) => {
+            v.copy_from_slice(&e.v);
+            v_inv.copy_from_slice(&e.v_inv);
+            lambda.copy_from_slice(&e.lambda);
+            true
+        }
+        None => false,
+    }
 }
 
 fn medium_reduced(model: &FluoMedium, t: &TransportBasis, absorption: &mut [f64], reradiation: &mut [f64]) {

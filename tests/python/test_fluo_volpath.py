@@ -378,6 +378,30 @@ def test05_rgb_reduced_media_match_the_spectral_reference(basis):
     assert abs(glow_rgb[1]) < 0.03 and abs(glow_rgb[2]) < 0.03, glow_rgb
 
 
+def test05d_rgb_closed_form_shadows_equal_tracked_ones():
+    """scalar_rgb: shadow rays through a fluorescent medium of constant density take the
+    reduced transfer V·diag(e^{-λt})·V⁻¹ in closed form; images equal those with the
+    transfer ratio-tracked (closed_form_shadows = false) within noise, for dots that make
+    the cube thin and 30x denser (τ ≈ 1 in the green), and with less noise."""
+    mi.set_variant("scalar_rgb")
+    for concentration in (0.01, 0.3):
+        medium = medium_dict(radius=2.7, width=15.0, quantum_yield=0.8, concentration=concentration, scale=0.01,
+                             phase={"type": "isotropic"})
+        means = {}
+        for closed in (True, False):
+            scene = d65_cube_scene("scalar_rgb", medium, res=16, spp=64)
+            scene["integrator"]["closed_form_shadows"] = closed
+            loaded = mi.load_dict(scene)
+            means[closed] = np.array([np.array(mi.render(loaded, seed=s), dtype=np.float64)[..., :3].mean(axis=(0, 1))
+                                      for s in range(6)])
+        a, b = means[True], means[False]
+        se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
+        z = (a.mean(axis=0) - b.mean(axis=0)) / np.maximum(se, 1e-12)
+        print(concentration, a.mean(axis=0), b.mean(axis=0), "z", z)
+        assert np.all(np.abs(z) < 4.5) and np.allclose(a.mean(axis=0), b.mean(axis=0), rtol=0.02), (a, b)
+        assert a.std(axis=0).sum() < b.std(axis=0).sum()
+
+
 def test05b_rgb_fluorescent_surfaces_with_media_render_as_fluo_path():
     """Without media, fluo_volpath's reduced transport is fluo_path's: a fluo_jung floor
     renders the same image mean with either integrator; with a native medium, a null
