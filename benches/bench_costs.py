@@ -46,7 +46,9 @@ checkerboards (``TEXTURED_JUNG``: concentration and emission peak, two dye shape
 ``TEXTURED_QD``: radius and density, four baked coatings) against the uniform material
 with the first value of each; both render with ``fluo_path``.
 
-The llvm rows render ``LLVM_SPP_FACTOR`` (8) times the samples of the others and run in
+The medium rows render ``MEDIA_SPP_FACTOR`` (4) times the samples of the others (a 16-spp
+cuvette render is too short to time on a shared machine). The llvm rows render
+``LLVM_SPP_FACTOR`` (8) times the samples of the others and run in
 a fresh process each (Mitsuba 3.8 cannot start an llvm variant in a
 process that has rendered in a scalar one): A and B are interleaved there as everywhere
 else; their first render, which traces and compiles the kernels, is reported as
@@ -238,6 +240,12 @@ def load_row(res: int, rounds: int) -> dict:
     return {**r, "per_material_ms": per_ms, "per_material_mb": grown / COLOURED}
 
 
+#: The medium rows render this many times the samples of the others: at 16 spp a cuvette
+#: render takes ~0.1 s, where the scheduling of 9 image blocks on a shared 2-core machine
+#: moved single paired ratios by ±0.2 (the no-fluorescence row, the very code path of
+#: volpath, came out 0.90-1.21).
+MEDIA_SPP_FACTOR = 4
+
 #: The llvm rows render this many times the samples of the others: a vectorised render of
 #: a 96² image at 16 spp takes milliseconds, where kernel launches and thread start-up
 #: would be what is timed.
@@ -391,18 +399,18 @@ ROWS = {
                                           a.spp, a.rounds)),
     "volpath_plain": ("no fluorescence: fluo_volpath / volpath, homogeneous medium", 1.05,
                       lambda a: render_pair("scalar_spectral", cuvette(a.res, "fluo_volpath", HOMOGENEOUS),
-                                            cuvette(a.res, "volpath", HOMOGENEOUS), a.spp, a.rounds)),
+                                            cuvette(a.res, "volpath", HOMOGENEOUS), a.spp * MEDIA_SPP_FACTOR, a.rounds)),
     "volpath_qd": ("QD cuvette: fluo_volpath (Q 0.8) / volpath (Q 0), spectral", 1.5,
                    lambda a: render_pair("scalar_spectral", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
-                                         cuvette(a.res, "volpath", qd_medium(0.0)), a.spp, a.rounds)),
+                                         cuvette(a.res, "volpath", qd_medium(0.0)), a.spp * MEDIA_SPP_FACTOR, a.rounds)),
     "volpath_qd_grid": ("QD cuvette, density grid: fluo_volpath (Q 0.8) / volpath (Q 0)", 1.5,
                         lambda a: render_pair("scalar_spectral",
                                               cuvette(a.res, "fluo_volpath", qd_medium(0.8, density_grid(GRID))),
                                               cuvette(a.res, "volpath", qd_medium(0.0, density_grid(GRID))),
-                                              a.spp, a.rounds)),
+                                              a.spp * MEDIA_SPP_FACTOR, a.rounds)),
     "volpath_qd_rgb": ("QD cuvette: fluo_volpath reduced x7 (Q 0.8) / volpath (Q 0), scalar_rgb", 1.5,
                        lambda a: render_pair("scalar_rgb", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
-                                             cuvette(a.res, "volpath", qd_medium(0.0)), a.spp, a.rounds)),
+                                             cuvette(a.res, "volpath", qd_medium(0.0)), a.spp * MEDIA_SPP_FACTOR, a.rounds)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
     "llvm_plain": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_spectral)", 1.05,
