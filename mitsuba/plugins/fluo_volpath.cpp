@@ -255,6 +255,11 @@ public:
         Bool needs_intersection = true;
         Float last_scatter_direction_pdf = 1.f;
         double flight_inv_len = 0.0;
+        // A flight through a fluorescent medium: its surface hit, not yet a full interaction
+        // (si.t alone is kept, as volpath keeps it, until the flight reaches the surface).
+        PreliminaryIntersection3f pending_pi = dr::zeros<PreliminaryIntersection3f>();
+        Ray3f pending_ray = ray;
+        bool pending = false;
 
         while (active) {
             // ----------------- Russian roulette, max_depth -----------------
@@ -298,7 +303,13 @@ public:
                     fluo_entry = find_medium(medium);
                 bool fluorescent_here = fluo_entry || rmed;
                 if (fluorescent_here && needs_intersection) {
-                    si = scene->ray_intersect(ray, true);
+                    // Only the distance is read until the flight ends at the surface: the
+                    // full interaction is computed then (most flights end in the medium).
+                    pending_pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, true);
+                    pending_ray = ray;
+                    pending = true;
+                    si = dr::zeros<SurfaceInteraction3f>();
+                    si.t = pending_pi.t;
                     needs_intersection = false;
                     // 1/ℓ for the flight that starts here (ℓ: its length to the next
                     // surface; 0 without one): the fluorescent source is sampled at rate
@@ -461,6 +472,14 @@ public:
 
             // ----------------------- Surface interactions ------------------
             active_surface |= escaped_medium;
+            if (pending && active_surface && !needs_intersection) {
+                Float t = si.t; // (shortened by the flight's null collisions)
+                si = pending_pi.compute_surface_interaction(pending_ray, +RayFlags::All, true);
+                si.t = t;
+                pending = false;
+            }
+            if (needs_intersection) // a new ray: the flight ended at a collision
+                pending = false;
             Bool intersected = active_surface && needs_intersection;
             if (intersected)
                 si = scene->ray_intersect(ray, true);
