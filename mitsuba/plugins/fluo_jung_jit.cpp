@@ -165,18 +165,14 @@ public:
             Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
             UnpolarizedSpectrum wf =
                 dr::select(mass > 0.f, dr::detach(t.conc * t.yield) * dye.emission(lambda_o) * (mass * jacobian), 0.f);
-            UnpolarizedSpectrum total = we + wf;
-            WMask valid = WMask(active) && total > 0.f && dr::isfinite(total);
-            UnpolarizedSpectrum pe = dr::select(valid, we / total, 1.f);
-            WMask shifted = valid && u1 >= pe && wf > 0.f;
+            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
+            WMask &shifted = choice.shifted;
             // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
             // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
             Wavelength v = m_bspline.sample((cdf_a + u2 * mass) * m_bspline.normalization(), shifted);
             Wavelength lambda_i = dye.lambda_of(v);
             UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
-            UnpolarizedSpectrum scale = dr::select(shifted, dr::rcp((1.f - pe) * pdf_i), dr::rcp(pe));
-            shifted &= pdf_i > 0.f;
-            scale = dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
+            UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
             // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
             Dye exact(t.peak, t.shift);
             UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);

@@ -66,7 +66,6 @@ public:
             m_scale = (float) t.scale;
             for (size_t i = 0; i < 4; ++i)
                 m_rect[i] = (float) t.rect[i];
-            std::vector<float> weight, mean_i, mean_o;
             for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
                 const double *v = t.components.data() + c;
                 double det = v[3] * v[5] - v[4] * v[4];
@@ -74,18 +73,14 @@ public:
                 // standard deviation √(det/σoo).
                 m_comps.push_back({ (float) (-0.5 / v[5]), (float) (1.0 / std::sqrt(2.0 * dr::Pi<double> * v[5])),
                                     (float) (v[4] / v[5]), (float) std::sqrt(det / v[5]) });
-                weight.push_back((float) v[0]);
-                mean_i.push_back((float) v[1]);
-                mean_o.push_back((float) v[2]);
             }
-            m_weights = dr::load<Float>(weight.data(), weight.size());
-            m_means_i = dr::load<Float>(mean_i.data(), mean_i.size());
-            m_means_o = dr::load<Float>(mean_o.data(), mean_o.size());
+            load_mixture(t);
         } else {
             m_gi = grid(t.lambda_i);
             m_go = grid(t.lambda_o);
             m_p = storage(t.p);
             m_rcdf = storage(t.row_cdf);
+            m_rect = { m_gi.lo, m_gi.hi, m_go.lo, m_go.hi };
         }
         update_rgb();
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
@@ -126,16 +121,7 @@ public:
                 m_model = std::move(updated);
                 update_rgb();
             } catch (...) {
-                fluo::MeasuredTables t = fluo::measured_tables(**m_model); // the previous mixture
-                std::vector<float> pw, pi, po;
-                for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
-                    pw.push_back((float) t.components[c]);
-                    pi.push_back((float) t.components[c + 1]);
-                    po.push_back((float) t.components[c + 2]);
-                }
-                m_weights = dr::load<Float>(pw.data(), pw.size());
-                m_means_i = dr::load<Float>(pi.data(), pi.size());
-                m_means_o = dr::load<Float>(po.data(), po.size());
+                load_mixture(fluo::measured_tables(**m_model)); // the previous mixture
                 throw;
             }
         }
@@ -189,22 +175,15 @@ public:
                 // The excitation interval [a, b] (λi ≤ λo) and its mass; the shift's value
                 // and pdf once sampled with u2.
                 Float lo = lambda_o[w];
-                Float a = dr::maximum((float) range_lo, m_gmm ? m_rect[0] : m_gi.lo),
-                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_gmm ? m_rect[1] : m_gi.hi);
-                Mask ok = active && b > a && lo >= (m_gmm ? m_rect[2] : m_go.lo) && lo <= (m_gmm ? m_rect[3] : m_go.hi);
+                Float a = dr::maximum((float) range_lo, m_rect[0]),
+                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_rect[1]);
+                Mask ok = active && b > a && lo >= m_rect[2] && lo <= m_rect[3];
                 auto [mass, x, value] = m_gmm ? gmm_shift(mix, lo, a, b, u2[w], ok) : matrix_shift(lo, a, b, u2[w], ok);
-                Float total = we[w] + mass;
-                Mask valid = active && total > 0.f && dr::isfinite(total);
-                Float pe = dr::select(valid, we[w] / total, 1.f);
-                Mask sh = valid && u1[w] >= pe && mass > 0.f;
-                Float pdf = dr::detach(value) / mass;
-                Float sc = dr::select(sh, dr::rcp((1.f - pe) * pdf), dr::rcp(pe));
-                sh &= pdf > 0.f && dr::isfinite(pdf);
-                sc = dr::select(valid && dr::isfinite(sc) && (sh || u1[w] < pe), sc, 0.f);
-                lambda_i[w] = dr::select(sh, x, lo);
-                scale[w] = sc;
-                shifted[w] = sh;
-                rerad[w] = dr::select(sh, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
+                fluo_detail::ShiftChoice<Float> choice(we[w], mass, u1[w], active);
+                scale[w] = choice.weight(dr::detach(value) / mass, u1[w]);
+                shifted[w] = choice.shifted;
+                lambda_i[w] = dr::select(choice.shifted, x, lo);
+                rerad[w] = dr::select(choice.shifted, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
             }
             return { lambda_i, scale, shifted, rerad };
         }
@@ -235,6 +214,19 @@ protected:
             m_rgb_albedo = Color3f((ScalarFloat) a.r, (ScalarFloat) a.g, (ScalarFloat) a.b);
             m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
         }
+    }
+
+    /// fluo_gmm: the differentiable weights and means from Rust's components.
+    void load_mixture(const fluo::MeasuredTables &t) {
+        std::vector<float> weight, mean_i, mean_o;
+        for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
+            weight.push_back((float) t.components[c]);
+            mean_i.push_back((float) t.components[c + 1]);
+            mean_o.push_back((float) t.components[c + 2]);
+        }
+        m_weights = dr::load<Float>(weight.data(), weight.size());
+        m_means_i = dr::load<Float>(mean_i.data(), mean_i.size());
+        m_means_o = dr::load<Float>(mean_o.data(), mean_o.size());
     }
 
     static FloatStorage storage(const rust::Vec<double> &v) {
@@ -492,7 +484,9 @@ protected:
     FloatStorage m_p, m_rcdf;
     // fluo_gmm
     float m_scale = 0.f;
-    float m_rect[4] = { 0.f, 0.f, 0.f, 0.f };
+    /// where P can be non-zero: [λi_min, λi_max, λo_min, λo_max] (the mixture's measured
+    /// rectangle, the matrix's grids)
+    std::array<float, 4> m_rect{};
     std::vector<Comp> m_comps;
     Float m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)
     Color3f m_rgb_albedo = 0.f, m_rgb_elastic = 0.f;

@@ -153,8 +153,8 @@ coefficients at the end (K² per collision); through a medium of constant densit
 scattering the segment's transfer is exp(−(d·A + diag σs)·t) = V·diag(e^{−λt})·V⁻¹ in
 closed form instead (``closed_form_shadows``; Rust diagonalises the operator once per
 render and refuses complex, repeated or negative eigenvalues and ill-conditioned V, where
-tracking stays): the same expectation (test05d) with less noise, ~6 % faster. Native media and null interfaces act on R
-through their RGB weights' per-band factors, as native BSDFs do in fluo_path.
+tracking stays): the same expectation (test05d) with less noise, ~6 % faster. Native
+media and null interfaces act on R through their RGB weights' per-band factors, as native BSDFs do in fluo_path.
 Accuracy: that of the basis (the dots' glow in a thin 2 cm cube under D65 within 3 %
 of the spectral reference with ``x7`` and ``xyzu``, test05), plus the reduction of
 attenuation itself: exp(−d·A·t) is not the reduction of exp(−μa(λ) t), so optically

@@ -246,8 +246,9 @@ def _registered() -> list[tuple[str, str, str]]:
 
 
 #: Kind of each Mitsuba plugin ``libfluo_mitsuba.so`` registers, by ``type="..."`` name.
-PLUGIN_KINDS: dict[str, str] = {name: kind for name, kind, _ in _registered()}
+_REGISTERED = _registered()
+PLUGIN_KINDS: dict[str, str] = {name: kind for name, kind, _ in _REGISTERED}
 #: The plugins also served in the vectorised variants (llvm_ad_*, cuda_ad_*).
-JIT_PLUGINS: tuple[str, ...] = tuple(name for name, _, variants in _registered() if "jit" in variants.split(","))
+JIT_PLUGINS: tuple[str, ...] = tuple(name for name, _, variants in _REGISTERED if "jit" in variants.split(","))
 #: Names of the Mitsuba plugins ``libfluo_mitsuba.so`` registers (``type="..."`` in XML).
 PLUGINS: tuple[str, ...] = tuple(PLUGIN_KINDS)

@@ -71,7 +71,6 @@ def test02b_vectorised_methods_render_their_bench_scenes(tmp_path):
     vectorised variants do not serve."""
     import sys
     sys.path.insert(0, str(Path(__file__).parent))
-    from llvm_worker import main  # noqa: F401  (the worker exists)
     from test_llvm import run_llvm
 
     jobs, names = [], []

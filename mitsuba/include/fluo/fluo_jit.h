@@ -122,6 +122,32 @@ template <typename Value> struct JungDye {
     }
 };
 
+/// The elastic/shift choice at a fluorescent vertex, per hero wavelength (the estimator of
+/// every material's jit_choose): with elastic weight `we` and shift weight `wf` ≥ 0 (any
+/// positive value where the shift integrand is, so the estimate stays unbiased), the shift
+/// is taken with probability 1 − pe, pe = we/(we + wf), decided by u1.
+template <typename Value> struct ShiftChoice {
+    using VMask = dr::mask_t<Value>;
+    VMask valid, shifted;
+    Value pe;
+
+    template <typename ActiveMask>
+    ShiftChoice(const Value &we, const Value &wf, const Value &u1, const ActiveMask &active) {
+        Value total = we + wf;
+        valid = VMask(active) && total > 0.f && dr::isfinite(total);
+        pe = dr::select(valid, we / total, 1.f);
+        shifted = valid && u1 >= pe && wf > 0.f;
+    }
+
+    /// 1/probability of the event taken, given the sampled shift's density `pdf` (0 where
+    /// nothing valid was taken); lanes whose pdf is 0 or not finite leave `shifted`.
+    Value weight(const Value &pdf, const Value &u1) {
+        Value scale = dr::select(shifted, dr::rcp((1.f - pe) * pdf), dr::rcp(pe));
+        shifted &= pdf > 0.f && dr::isfinite(pdf);
+        return dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
+    }
+};
+
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
 /// (core/src/sigmoid.rs).
 template <typename Value, typename Coeff>

@@ -359,11 +359,6 @@ impl QdMedium {
             0.0
         }
     }
-
-    /// Bytes held by the tables.
-    pub fn table_bytes(&self) -> usize {
-        (self.grid.len() + self.mu_a.len() + self.cum.len()) * 8 + (self.index.len() + self.cum_index.len()) * 4
-    }
 }
 
 impl fmt::Display for QdMedium {
