@@ -28,6 +28,7 @@ llvm: fluorescent box, ``llvm_ad_spectral``       ``fluo_path`` / ``path`` (dyes
 llvm: reduced RGB ``x7``, ``llvm_ad_rgb``         ``fluo_path`` / ``path`` (dyes removed)      1.50
 llvm: measured matrix / mixture box (spectral)    ``fluo_matrix``, ``fluo_gmm`` / ``diffuse``  1.50
 llvm: measured matrix box, reduced ``x7``         ``fluo_matrix`` / ``diffuse``                1.50
+llvm: quantum-dot coating (both variants)         ``fluo_qd`` / ``roughconductor``             1.50
 llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``fluo_path``    report
 ================================================  ===========================================  ======
 
@@ -338,6 +339,14 @@ WORKER_ROWS = {
                                           box(a.res, "path", bsdf=diffuse), a.spp, a.rounds),
     "llvm_matrix_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=measured("fluo_matrix"), basis="x7"),
                                                  box(a.res, "path", bsdf=diffuse), a.spp, a.rounds),
+    "llvm_qd": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=lambda r: {"type": "fluo_qd", "density": 0.8,
+                                                                                      **ROUGH}),
+                                         box(a.res, "path", bsdf=lambda r: {"type": "roughconductor", **ROUGH}),
+                                         a.spp, a.rounds),
+    "llvm_qd_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=lambda r: {"type": "fluo_qd", "density": 0.8,
+                                                                                     **ROUGH}, basis="x7"),
+                                             box(a.res, "path", bsdf=lambda r: {"type": "roughconductor", **ROUGH}),
+                                             a.spp, a.rounds),
     "speedup_scalar_spectral": lambda a: render_times("scalar_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_llvm_spectral": lambda a: render_times("llvm_ad_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_scalar_rgb": lambda a: render_times("scalar_rgb", box(a.res, bsdf=jung, basis="x7"), a.spp, a.rounds),
@@ -427,6 +436,10 @@ ROWS = {
                  lambda a: in_worker("llvm_gmm", a)),
     "llvm_matrix_rgb": ("llvm: measured matrix box, reduced x7 / path (diffuse), llvm_ad_rgb", 1.5,
                         lambda a: in_worker("llvm_matrix_rgb", a)),
+    "llvm_qd": ("llvm: quantum-dot box: fluo_path fluo_qd / path roughconductor, llvm_ad_spectral", 1.5,
+                lambda a: in_worker("llvm_qd", a)),
+    "llvm_qd_rgb": ("llvm: quantum-dot box, reduced x7 / path roughconductor, llvm_ad_rgb", 1.5,
+                    lambda a: in_worker("llvm_qd_rgb", a)),
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,

@@ -3,7 +3,8 @@
     python scripts/cuda_check.py [--out report.json] [--spp 256] [--res 48]
 
 For each scene (the Jung bench box under D65 from 300 nm, the demo objects under a UV
-lamp, sigmoid coefficients, the measured materials: matrices and a Gaussian mixture) it
+lamp, sigmoid coefficients, the measured materials: matrices and a Gaussian mixture, the
+quantum-dot bench box) it
 renders the scalar variant and the cuda variant, each in
 its own process (Mitsuba 3.8 cannot start a JIT variant in a process that has rendered
 in a scalar one), with two seeds each, and prints per-channel means with a z-score
@@ -27,7 +28,8 @@ MATRICES = REPO / "data" / "matrices"
 SCENES = [("bench/jung_box.xml", {"basis": "x7"}), ("fluo_path_uv.xml", {"basis": "x7"}),
           ("jung_spheres.xml", {}),
           ("fluo_measured.xml", {"matrix_a": str(MATRICES / "jung_yellow.csv"),
-                                 "matrix_b": str(MATRICES / "jung_brightener.csv")})]
+                                 "matrix_b": str(MATRICES / "jung_brightener.csv")}),
+          ("bench/qd_box.xml", {"basis": "x7"})]
 
 
 def worker(variant: str, spp: int, res: int) -> dict:

@@ -100,6 +100,10 @@ private:
         const Bispectral *bispectral;
         bool full = false; ///< the operator includes the elastic part
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
+        /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
+        /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
+        DynamicBuffer<Float> nodes;
+        uint32_t n_nodes = 0;
     };
 
     /// A fluo_illuminant emitter's basis coefficients (RGB variants).
@@ -116,6 +120,7 @@ private:
         fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
         m_entries.clear();
         m_sources.clear();
+        bool directional = false;
         std::unordered_set<const Object *> direct;
         for (const auto &shape : scene->shapes())
             direct.insert(shape->bsdf());
@@ -146,10 +151,19 @@ private:
                       "use it directly, or render in scalar_spectral/scalar_rgb", Plugin);
             Entry e{ dynamic_cast<const BSDF *>(o), b };
             hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
+            directional |= !b->jit_lambertian();
             if constexpr (is_rgb_v<Spectrum>) {
                 for (auto &m : e.m)
                     m.assign(m_k * m_k, 0.0);
                 e.full = fluo_detail::rust_call(Plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
+                std::vector<double> nodes;
+                if (!b->jit_lambertian())
+                    e.n_nodes = (uint32_t) fluo_detail::rust_call(
+                        Plugin, [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
+                if (e.n_nodes > 0) {
+                    std::vector<float> f(nodes.begin(), nodes.end());
+                    e.nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+                }
             }
             m_entries.push_back(std::move(e));
         }
@@ -165,6 +179,7 @@ private:
         m_range_hi = hi;
         if (scene->emitters().empty())
             m_entries.clear();
+        m_directional = directional && !m_entries.empty();
     }
 
     const Entry *find(const BSDF *b) const {
@@ -265,12 +280,12 @@ private:
                          Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                          dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
         ls.pi = camera_intersection(scene, ls.ray, ls.active);
-        const bool fluorescent = is_spectral_v<Spectrum> && !m_entries.empty();
+        const bool fluorescent = is_spectral_v<Spectrum> && !m_entries.empty(), directional = m_directional;
         const double range_lo = m_range_lo, range_hi = m_range_hi;
 
         dr::tie(ls) = dr::while_loop(
             dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
-            [this, scene, fluorescent, range_lo, range_hi](LoopState &ls) {
+            [this, scene, fluorescent, directional, range_lo, range_hi](LoopState &ls) {
                 BSDFContext bsdf_ctx;
                 SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
 
@@ -323,13 +338,23 @@ private:
                     bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
 
                 if (fluorescent) {
-                    // Shifted wavelengths: the (Lambertian) reradiation lobe, π·f_fl·cos θo/π.
-                    Float cos_i = Frame3f::cos_theta(si.wi);
-                    auto lambert = [&](const Vector3f &w) {
-                        return dr::select(cos_i > 0.f && Frame3f::cos_theta(w) > 0.f,
-                                          Frame3f::cos_theta(w) * dr::InvPi<Float>, 0.f);
-                    };
-                    UnpolarizedSpectrum v_em = rerad * lambert(wo), v_bs = rerad * lambert(bsdf_sample.wo);
+                    // Shifted wavelengths: the reradiation lobe, Lambertian (π·f_fl·cos θo/π)
+                    // unless the scene holds a direction-dependent one (asked per direction).
+                    UnpolarizedSpectrum v_em, v_bs;
+                    if (directional) {
+                        std::tie(v_em, v_bs) = fluo_detail::dispatch_any(
+                            bsdf,
+                            [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_,
+                               const Vector3f &wa, const Vector3f &wb, const Mask &on) {
+                                if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                                    return f->jit_reradiation(si_, rr_, wa, wb, on);
+                                return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                            },
+                            si, rerad, wo, bsdf_sample.wo, active_next && dr::any(shifted));
+                    } else {
+                        v_em = rerad * Bispectral::lambert(si, wo);
+                        v_bs = rerad * Bispectral::lambert(si, bsdf_sample.wo);
+                    }
                     bsdf_val = dr::select(shifted, v_em, bsdf_val) * scale;
                     UnpolarizedSpectrum w_bs = dr::select(bsdf_sample.pdf > 0.f, v_bs / bsdf_sample.pdf, 0.f);
                     bsdf_weight = dr::select(shifted, w_bs, bsdf_weight) * scale;
@@ -432,6 +457,85 @@ private:
         return R;
     }
 
+    /// R·A for a Lambertian fluorescent vertex, A = Σ w_t·M_t (+ the elastic band albedos
+    /// when A lacks them).
+    template <size_t K>
+    Rows<K> lambertian_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Mask &on) const {
+        return operator_product<K>(e, si, R, e.bispectral->jit_reduced_weights(), !e.full, on);
+    }
+
+    /// R·A with A = Σ w_t·M_t (the entry's M_t) plus, if `elastic`, the elastic band albedos
+    /// on the diagonal, formed one column of A at a time (the M_t are the material's
+    /// constants): K·K values of A never live at once, which at K = 7 spilled registers (a
+    /// third of the render time).
+    template <size_t K>
+    Rows<K> operator_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R,
+                             const std::array<Float, Bispectral::MaxTerms> &w, bool elastic, const Mask &on) const {
+        Rows<K> ra;
+        Coeffs<K> d = dr::zeros<Coeffs<K>>();
+        if (elastic)
+            d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
+        for (size_t j = 0; j < K; ++j) {
+            Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
+            for (size_t k = 0; k < K; ++k) {
+                for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                    if (e.m[t][k * K + j] != 0.0)
+                        col[k] = dr::fmadd(w[t], (float) e.m[t][k * K + j], col[k]);
+                if (elastic && k == j)
+                    col[k] += d[k];
+            }
+            for (size_t r = 0; r < 3; ++r) {
+                Float acc = R[r * K] * col[0];
+                for (size_t k = 1; k < K; ++k)
+                    acc = dr::fmadd(R[r * K + k], col[k], acc);
+                ra[r * K + j] = acc;
+            }
+        }
+        return ra;
+    }
+
+    /// R·A(ωo)·cos θo towards two directions for a direction-dependent lobe:
+    /// lobe·w_0·R·Σ_t s_t(cos θ)·M_t, the s_t linear between the entry's nodes
+    /// (Bispectral::jit_reduced_nodes, jit_lobe). Each R·M_t column serves both directions.
+    template <size_t K>
+    std::pair<Rows<K>, Rows<K>> directional_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R,
+                                                     const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
+        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms;
+        using Weights = std::array<Float, Bispectral::MaxTerms>;
+        auto weights = [&](const Vector3f &wo) {
+            auto [lobe, c] = e.bispectral->jit_lobe(si, wo, on);
+            Float scale = lobe * e.bispectral->jit_reduced_weights()[0];
+            Float x = dr::clip(c, 0.f, 1.f) * (float) (e.n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
+            Float f = x - Float(j);
+            Mask live = on && lobe != 0.f;
+            Weights w;
+            for (uint32_t t = 0; t < T; ++t)
+                w[t] = dr::lerp(dr::gather<Float>(e.nodes, j * T + t, live),
+                                dr::gather<Float>(e.nodes, (j + 1) * T + t, live), f) * scale;
+            return w;
+        };
+        Weights w_a = weights(wa), w_b = weights(wb);
+        Rows<K> out_a = dr::zeros<Rows<K>>(), out_b = dr::zeros<Rows<K>>();
+        for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+            for (size_t j = 0; j < K; ++j) {
+                for (size_t r = 0; r < 3; ++r) {
+                    Float acc = 0.f; // (R·M_t)[r, j]
+                    bool any = false;
+                    for (size_t k = 0; k < K; ++k)
+                        if (double m = e.m[t][k * K + j]; m != 0.0) {
+                            acc = any ? dr::fmadd(R[r * K + k], (float) m, acc) : R[r * K + k] * (float) m;
+                            any = true;
+                        }
+                    if (!any)
+                        continue;
+                    out_a[r * K + j] = dr::fmadd(w_a[t], acc, out_a[r * K + j]);
+                    out_b[r * K + j] = dr::fmadd(w_b[t], acc, out_b[r * K + j]);
+                }
+            }
+        return { out_a, out_b };
+    }
+
     template <size_t K>
     std::pair<Spectrum, Bool> sample_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
                                              Bool active) const {
@@ -481,58 +585,68 @@ private:
 
                     // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
                     // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian). R·A is
-                    // formed in the call, one column of A at a time (the M_i are the material's
-                    // constants): K·K values of A never live at once, which at K = 7 spilled
-                    // registers (a third of the render time).
-                    auto [is_fl, RA] = fluo_detail::dispatch_any(
-                        bsdf,
-                        [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
-                            Rows<K> ra = dr::zeros<Rows<K>>();
-                            const Entry *e = find(b);
-                            if (!e)
-                                return std::make_pair(Mask(false), ra);
-                            auto w = e->bispectral->jit_reduced_weights();
-                            Coeffs<K> d = dr::zeros<Coeffs<K>>();
-                            if (!e->full)
-                                d = band_albedo<K>(e->bispectral->jit_elastic_albedo(si_, on));
-                            for (size_t j = 0; j < K; ++j) {
-                                Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
-                                for (size_t k = 0; k < K; ++k) {
-                                    for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
-                                        if (e->m[t][k * K + j] != 0.0)
-                                            col[k] = dr::fmadd(w[t], (float) e->m[t][k * K + j], col[k]);
-                                    if (!e->full && k == j)
-                                        col[k] += d[k];
+                    // formed in the call (lambertian_product). A direction-dependent lobe
+                    // (only in scenes that hold one: `directional`) gives R·A(ωo)·cos θo per
+                    // direction instead, its elastic part being the BSDF's own value.
+                    Mask is_fl, native_elastic = false;
+                    Rows<K> RA_em, RA_bs;
+                    Float em_factor = 1.f, bs_factor;
+                    if (!m_directional) {
+                        auto [f, RA] = fluo_detail::dispatch_any(
+                            bsdf,
+                            [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
+                                const Entry *e = find(b);
+                                if (!e)
+                                    return std::make_pair(Mask(false), dr::zeros<Rows<K>>());
+                                return std::make_pair(Mask(true), lambertian_product<K>(*e, si_, R_, on));
+                            },
+                            si, R, active_next);
+                        is_fl = f;
+                        RA_em = RA_bs = RA;
+                        em_factor = Bispectral::lambert(si, wo);
+                        bs_factor = dr::select(bs.pdf > 0.f, Bispectral::lambert(si, bs.wo) / bs.pdf, 0.f);
+                    } else {
+                        auto [f, native, ra_em, ra_bs] = fluo_detail::dispatch_any(
+                            bsdf,
+                            [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_,
+                                   const Vector3f &wa, const Vector3f &wb, const Mask &on) {
+                                const Entry *e = find(b);
+                                if (!e)
+                                    return std::make_tuple(Mask(false), Mask(false), dr::zeros<Rows<K>>(),
+                                                           dr::zeros<Rows<K>>());
+                                if (e->n_nodes == 0) {
+                                    Rows<K> ra = lambertian_product<K>(*e, si_, R_, on);
+                                    return std::make_tuple(Mask(true), Mask(false), ra * Bispectral::lambert(si_, wa),
+                                                           ra * Bispectral::lambert(si_, wb));
                                 }
-                                for (size_t r = 0; r < 3; ++r) {
-                                    Float acc = R_[r * K] * col[0];
-                                    for (size_t k = 1; k < K; ++k)
-                                        acc = dr::fmadd(R_[r * K + k], col[k], acc);
-                                    ra[r * K + j] = acc;
-                                }
-                            }
-                            return std::make_pair(Mask(true), ra);
-                        },
-                        si, R, active_next);
+                                auto [ra, rb] = directional_products<K>(*e, si_, R_, wa, wb, on);
+                                return std::make_tuple(Mask(true), Mask(true), ra, rb);
+                            },
+                            si, R, wo, bs.wo, active_next);
+                        is_fl = f;
+                        native_elastic = native;
+                        RA_em = ra_em;
+                        RA_bs = ra_bs;
+                        bs_factor = dr::select(bs.pdf > 0.f, dr::rcp(bs.pdf), 0.f);
+                    }
                     is_fl &= active_next;
-                    Float cos_i = Frame3f::cos_theta(si.wi);
-                    auto lambert = [&](const Vector3f &w) {
-                        return dr::select(cos_i > 0.f && Frame3f::cos_theta(w) > 0.f,
-                                          Frame3f::cos_theta(w) * dr::InvPi<Float>, 0.f);
-                    };
+                    native_elastic &= is_fl;
                     Mask matrix = ls.reduced || is_fl;
                     if (dr::any_or<true>(active_em)) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                         Coeffs<K> c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
-                        Color3f v_fl = apply<K>(RA, c) * lambert(wo);
                         Color3f v_red = apply<K>(scale_columns<K>(R, band_albedo<K>(bsdf_val)), c);
+                        Color3f v_fl = apply<K>(RA_em, c) * em_factor;
+                        if (m_directional)
+                            v_fl += dr::select(native_elastic, v_red, 0.f);
                         Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));
                         ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
                     }
 
-                    Float f_bs = dr::select(bs.pdf > 0.f, lambert(bs.wo) / bs.pdf, 0.f);
-                    Rows<K> R_fl = RA * f_bs;
                     Rows<K> R_red = scale_columns<K>(R, band_albedo<K>(bsdf_weight));
+                    Rows<K> R_fl = RA_bs * bs_factor;
+                    if (m_directional)
+                        R_fl += dr::select(native_elastic, R_red, 0.f);
                     ls.R = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
                     ls.t = dr::select(matrix, ls.t, ls.t * bsdf_weight);
                     ls.reduced = matrix;
@@ -561,6 +675,7 @@ private:
     double m_range_lo = 0.0, m_range_hi = 0.0;
     const Scene *m_uv_warned = nullptr;    ///< the scene last warned of a UV emitter
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media
+    bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
 };
 
 static const bool fluo_path_jit_registered =

@@ -15,6 +15,7 @@
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
 #include "fluo_param_texture.h"
+#include "fluo_qd_setup.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -162,6 +163,28 @@ models per hit): exact at every texel, and a filtered lookup between two texels 
 different roughness snaps the reradiation to the nearer one while the elastic lobe
 takes the filtered α.
 
+**Vectorised variants** (``llvm_ad_rgb``, ``llvm_ad_spectral``, and the cuda ones from the
+same code; ``fluo_qd_jit.cpp``). The same material, evaluated per lane with Dr.Jit types:
+Rust validates the parameters, builds the coating model and bakes, at load and after every
+``mi.traverse`` update, A_tot(θ, λ) with its running integral along λ and the coating's
+R_spe and (T_spe(1 − A_tf))² on the model's λ grid at 129 cosines; the shim interpolates
+them bilinearly (within 7e-4 of A_tot's peak and 1.3e-4 of R_spe, the Rust test
+``jit_tables_interpolate_the_model``), evaluates the substrate's Fresnel factor, the
+microfacet lobe and the logistic emission in closed form, samples λi | λo from the A_tot
+row nearest cos θi (exact inverse CDF) and forms the reradiation towards each direction
+from the half vector, as the scalar variants do. In ``llvm_ad_rgb`` ``fluo_path`` uses
+the scalar variant's reduced reradiation matrices at the microfacet cosines, written by
+Rust as at most three terms s_t(cos θ)·B_t (a truncated SVD, within 1e-5 of the largest
+entry for every coating tested; a warning names the error where it is not), so a lane
+interpolates three weights instead of two K×K matrices. Images equal the scalar
+variants' within noise (``test_llvm.py``). Cost against ``roughconductor`` under llvm
+``path``: the ``llvm_qd`` rows of ``benches/bench_costs.py`` (README).
+``quantum_yield`` is differentiable (the reradiation is linear in it); ``radius``,
+``density``, ``alpha`` and ``width`` can be updated through ``mi.traverse`` (the tables
+are baked again) but carry no gradient. Not yet available in these variants (a clear error
+at load): spatially varying (textured) ``radius``, ``density``, ``quantum_yield`` and
+``alpha``.
+
 Invalid parameters raise an error naming the parameter, its value and the valid range.
 Directions are always sampled from the visible normals.
 
@@ -191,15 +214,12 @@ public:
     MI_IMPORT_TYPES(Texture, MicrofacetDistribution)
 
     static constexpr const char *Plugin = "fluo_qd";
-    /// Wavelengths standing for the RGB channels (dominant wavelengths of the sRGB primaries).
-    static constexpr float RgbWavelengths[3] = { 611.f, 549.f, 464.f };
-    /// Step of the grid on which spectral substrate and dot indices are sampled for Rust, nm.
-    static constexpr double SpectrumStepNm = 1.0;
+    using Samples = fluo_detail::QdSamples;
+    static constexpr const float *RgbWavelengths = fluo_detail::QdSetup<Float, Spectrum>::RgbWavelengths;
 
     FluoQd(const Properties &props) : Base(props) {
         using namespace fluo_detail;
         fluo::QdConfig &c = m_config; // starts as fluo::qd_default_config(): the defaults live in Rust
-        fluo::QdConstants &k = c.constants;
         // radius, density, quantum_yield, alpha: a float (the uniform fast path) or a float
         // texture; a texture that does not vary is read once as its float.
         double *textured_fields[NParams] = { &c.radius, &c.density, &c.quantum_yield, &c.alpha };
@@ -214,63 +234,8 @@ public:
                 *textured_fields[i] = (double) tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true);
             props.mark_queried(name);
         }
-        for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
-                 { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
-                 { "density", &c.density }, { "ext_ior", &c.ext_ior }, { "lambda_min", &c.lambda_min },
-                 { "lambda_max", &c.lambda_max }, { "alpha", &c.alpha }, { "table_step", &c.table_step },
-                 { "gap_energy", &k.gap_energy }, { "elementary_charge", &k.elementary_charge },
-                 { "planck", &k.planck }, { "light_speed", &k.light_speed }, { "boltzmann", &k.boltzmann },
-                 { "electron_mass", &k.electron_mass }, { "hole_mass", &k.hole_mass },
-                 { "vacuum_permittivity", &k.vacuum_permittivity },
-                 { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
-            if (!is_textured(name))
-                *field = get_double(props, name, *field);
-        if (props.has_property("table_cos_nodes")) {
-            int64_t rows = props.get<int64_t>("table_cos_nodes");
-            if (rows < 2 || rows > 1025)
-                Throw("%s: invalid parameter \"table_cos_nodes\" = %d: valid range is [2, 1025]", Plugin, rows);
-            m_config.table_cos_nodes = (size_t) rows;
-        }
-
-        std::string distr = string::to_lower(std::string(props.get<std::string_view>("distribution", "beckmann")));
-        if (distr == "ggx")
-            m_config.ggx = true;
-        else if (distr != "beckmann")
-            Throw("%s: invalid parameter \"distribution\" = \"%s\": valid values are \"beckmann\", \"ggx\"",
-                  Plugin, distr);
+        m_setup.parse(props, m_config, [&](const char *name) { return is_textured(name); });
         m_type = m_config.ggx ? MicrofacetType::GGX : MicrofacetType::Beckmann;
-
-        // Substrate: a named conductor, eta/k, or a dielectric int_ior (exactly one kind).
-        bool has_material = props.has_property("material"), has_eta = props.has_property("eta") || props.has_property("k"),
-             has_int = props.has_property("int_ior");
-        if ((int) has_material + (int) has_eta + (int) has_int > 1)
-            Throw("%s: specify one substrate: \"material\", \"eta\"/\"k\" or \"int_ior\"", Plugin);
-        if (has_int) {
-            double int_ior = lookup_ior(props, "int_ior", 1.5046f);
-            if (!(int_ior > 0.0) || !std::isfinite(int_ior))
-                Throw("%s: invalid parameter \"int_ior\" = %f: valid range is (0, inf)", Plugin, int_ior);
-            m_eta = constant_texture(int_ior / m_config.ext_ior);
-            m_k = constant_texture(0.0);
-        } else if (has_material) {
-            std::string material(props.get<std::string_view>("material"));
-            m_material = material;
-            try {
-                std::tie(m_eta, m_k) = conductor_textures(material);
-            } catch (const std::exception &e) {
-                Throw("%s: invalid parameter \"material\" = \"%s\": no conductor data for it (Mitsuba's "
-                      "data/ior/%s.eta.spd and .k.spd; give \"eta\"/\"k\" spectra instead): %s",
-                      Plugin, material, material, e.what());
-            }
-        } else {
-            m_eta = props.get_unbounded_texture<Texture>("eta", 0.f);
-            m_k   = props.get_unbounded_texture<Texture>("k", 1.f);
-        }
-        if (props.has_property("qd_eta") != props.has_property("qd_k"))
-            Throw("%s: specify both \"qd_eta\" and \"qd_k\" (the dot material's n and k) or neither", Plugin);
-        if (props.has_property("qd_eta")) {
-            m_qd_eta = props.get_unbounded_texture<Texture>("qd_eta");
-            m_qd_k   = props.get_unbounded_texture<Texture>("qd_k");
-        }
 
         m_flags = BSDFFlags::GlossyReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
@@ -286,8 +251,8 @@ public:
                 cb->put(ParamNames[i], *values[i], ParamFlags::NonDifferentiable);
         }
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
-        cb->put("eta", m_eta, ParamFlags::NonDifferentiable);
-        cb->put("k", m_k, ParamFlags::NonDifferentiable);
+        cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
+        cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
     }
 
     void parameters_changed(const std::vector<std::string> &keys) override {
@@ -444,8 +409,8 @@ public:
                 << m_density_levels.size() << " densities" << (m_density_grid ? ", a grid" : "") << " x "
                 << m_alpha_levels.size() << " alphas)," << std::endl;
         oss
-            << "  eta = " << string::indent(m_eta) << "," << std::endl
-            << "  k = " << string::indent(m_k) << std::endl
+            << "  eta = " << string::indent(m_setup.eta) << "," << std::endl
+            << "  k = " << string::indent(m_setup.k) << std::endl
             << "]";
         return oss.str();
     }
@@ -453,128 +418,16 @@ public:
     MI_DECLARE_CLASS(FluoQd)
 
 private:
-    /// A spectrum sampled for Rust: one value is a constant, several a table (nm, value).
-    struct Samples {
-        std::vector<double> wavelengths, values;
-        fluo::SampledSpectrum view() const {
-            return { rust::Slice<const double>(wavelengths.data(), wavelengths.size()),
-                     rust::Slice<const double>(values.data(), values.size()) };
-        }
-    };
-
-    /// A double property (the constants span 1e-34..1e8, beyond a float's comfort).
-    static double get_double(const Properties &props, const char *name, double def) {
-        if (!props.has_property(name))
-            return def;
-        try {
-            return props.get<double>(name);
-        } catch (const std::exception &e) {
-            Throw("%s: parameter \"%s\" must be a number (%s)", Plugin, name, e.what());
-        }
-    }
-
-    /// eta and k of a named conductor, taken from a native roughconductor built with the
-    /// same `material` (so both read Mitsuba's data identically in every variant).
-    static std::pair<ref<Texture>, ref<Texture>> conductor_textures(std::string_view material) {
-        Properties p("roughconductor");
-        p.set("material", std::string(material));
-        ref<Base> rc = PluginManager::instance()->create_object<Base>(p);
-        struct Grab : TraversalCallback {
-            ref<Texture> eta, k;
-            void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
-            void put_object(std::string_view name, Object *o, uint32_t) override {
-                if (name == "eta")
-                    eta = dynamic_cast<Texture *>(o);
-                else if (name == "k")
-                    k = dynamic_cast<Texture *>(o);
-            }
-        } grab;
-        rc->traverse(&grab);
-        if (!grab.eta || !grab.k)
-            Throw("%s: could not read the conductor data of material \"%s\"", Plugin, material);
-        return { grab.eta, grab.k };
-    }
-
-    static ref<Texture> constant_texture(double value) {
-        Properties p("uniform");
-        p.set("value", value);
-        return PluginManager::instance()->create_object<Texture>(p);
-    }
-
-    /// The substrate's spectral eta and k (each on its own grid, interpolated in Rust),
-    /// for the coating's absorption tables: the eta/k textures in spectral variants; in
-    /// RGB variants a named material's data files, else the piecewise-linear spectrum
-    /// through the channel values at RgbWavelengths (what the per-channel elastic
-    /// evaluation sees).
-    void sample_substrate(Samples &eta, Samples &k) const {
-        if constexpr (!is_spectral_v<Spectrum>) {
-            if (!m_material.empty()) {
-                spectrum_from_file("data/ior/" + m_material + ".eta.spd", eta.wavelengths, eta.values);
-                spectrum_from_file("data/ior/" + m_material + ".k.spd", k.wavelengths, k.values);
-                return;
-            }
-            for (auto [tex, out] : { std::pair{ m_eta.get(), &eta }, std::pair{ m_k.get(), &k } }) {
-                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-                UnpolarizedSpectrum v = tex->eval(si, true);
-                out->wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
-                out->values = { (double) v[2], (double) v[1], (double) v[0] };
-            }
-            return;
-        }
-        sample_texture(m_eta.get(), eta);
-        sample_texture(m_k.get(), k);
-    }
-
-    /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
-    void sample_texture(const Texture *tex, Samples &out) const {
-        std::vector<double> &wavelengths = out.wavelengths, &values = out.values;
-        wavelengths.clear();
-        values.clear();
-        if constexpr (is_spectral_v<Spectrum>) {
-            size_t n = (size_t) std::ceil((m_config.lambda_max - m_config.lambda_min) / SpectrumStepNm) + 1;
-            if (!(m_config.lambda_max > m_config.lambda_min) || n > 100000)
-                n = 2; // invalid range: Rust rejects lambda_min/max with a proper message
-            for (size_t i = 0; i < n; i += 4) {
-                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-                for (size_t j = 0; j < 4; ++j) {
-                    double l = m_config.lambda_min + (double) std::min(i + j, n - 1) * SpectrumStepNm;
-                    si.wavelengths[j] = (float) std::min(l, std::max(m_config.lambda_max, m_config.lambda_min + 1.0));
-                }
-                UnpolarizedSpectrum v = tex->eval(si, true);
-                for (size_t j = 0; j < 4 && i + j < n; ++j) {
-                    double l = si.wavelengths[j];
-                    if (!wavelengths.empty() && !(l > wavelengths.back()))
-                        continue;
-                    wavelengths.push_back(l);
-                    values.push_back(v[j]);
-                }
-            }
-            if (wavelengths.size() < 2) { // degenerate grid: a constant
-                values.resize(1);
-                wavelengths.resize(1);
-            }
-        } else {
-            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-            UnpolarizedSpectrum v = tex->eval(si, true);
-            wavelengths.push_back(0.0);
-            values.push_back(dr::mean(v));
-        }
-    }
-
     /// Validate the configuration in Rust and bake the model (tables included).
     void rebuild() {
         Samples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
-        sample_substrate(eta, k);
-        if (m_qd_eta) {
-            sample_texture(m_qd_eta.get(), qd_eta);
-            sample_texture(m_qd_k.get(), qd_k);
-        }
+        m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
         init_param_textures(eta, k, qd_eta, qd_k);
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
         if (fluo::qd_is_fluorescent(*model) &&
-            (m_eta->is_spatially_varying() || m_k->is_spatially_varying()))
+            !m_setup.uniform_substrate())
             Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
                   "with a fluorescent coating: the coating's absorption tables are baked for one "
                   "substrate (the elastic part alone is evaluated per hit); give constant "
@@ -590,7 +443,7 @@ private:
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
         // ρ = 0: no coating, the elastic part is exactly roughconductor's.
         m_coated = m_config.density > 0.0 || (!m_grid.empty() && m_density_levels.back() > 0.f);
-        m_uniform_substrate = !m_eta->is_spatially_varying() && !m_k->is_spatially_varying();
+        m_uniform_substrate = m_setup.uniform_substrate();
         m_build = fluo_detail::WavelengthMemo::next_build();
     }
 
@@ -732,16 +585,16 @@ private:
                 // once for the wavelengths a vertex evaluates up to three times.
                 std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths);
                 const std::array<float, 4> &eta = fluo_detail::WavelengthMemo::get(
-                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_eta->eval(si, active), v); });
+                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_setup.eta->eval(si, active), v); });
                 const std::array<float, 4> &k = fluo_detail::WavelengthMemo::get(
-                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_k->eval(si, active), v); });
+                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_setup.k->eval(si, active), v); });
                 eta_c = dr::Complex<UnpolarizedSpectrum>(UnpolarizedSpectrum(eta[0], eta[1], eta[2], eta[3]),
                                                          UnpolarizedSpectrum(k[0], k[1], k[2], k[3]));
             } else {
-                eta_c = dr::Complex<UnpolarizedSpectrum>(m_eta->eval(si, active), m_k->eval(si, active));
+                eta_c = dr::Complex<UnpolarizedSpectrum>(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
             }
         } else {
-            eta_c = dr::Complex<UnpolarizedSpectrum>(m_eta->eval(si, active), m_k->eval(si, active));
+            eta_c = dr::Complex<UnpolarizedSpectrum>(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
         }
         UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
         if (!m_coated)
@@ -785,8 +638,7 @@ private:
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
     std::optional<rust::Box<fluo::QdModel>> m_model; ///< set by rebuild() in the constructor
     MicrofacetType m_type = MicrofacetType::Beckmann;
-    ref<Texture> m_eta, m_k, m_qd_eta, m_qd_k;
-    std::string m_material; ///< named conductor substrate, or empty
+    fluo_detail::QdSetup<Float, Spectrum> m_setup; ///< substrate, dot index
     ScalarFloat m_radius = 0.f, m_width = 0.f, m_quantum_yield = 0.f, m_density = 0.f, m_alpha = 0.f;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;

@@ -373,8 +373,8 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
 
 
 #: Material kinds (:func:`_material_kinds`) the vectorised variants serve
-#: (``fluo.JIT_PLUGINS``: fluo_jung with its ``color``, fluo_matrix, fluo_gmm).
-JIT_KINDS = {"jung", "cube", "matrix", "gmm"}
+#: (``fluo.JIT_PLUGINS``: fluo_jung with its ``color``, fluo_matrix, fluo_gmm, fluo_qd).
+JIT_KINDS = {"jung", "cube", "matrix", "gmm", "qd"}
 
 
 def _render_ladder_jit(text: str, variant: str, res: int, ladder: list[int], seed: int, cache: Path,

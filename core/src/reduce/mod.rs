@@ -547,6 +547,61 @@ impl RealEigen {
     }
 }
 
+/// A family of matrices M_j (flattened, all of one length) written as
+/// M_j = Σ_t w[j][t]·B_t with few terms: the truncated singular value decomposition of the
+/// rows M_j. A direction-dependent reduced operator tabulated at cosines (fluo_qd's
+/// microfacet lobe) is then, between nodes, Σ_t w_t(cos θ)·B_t with w_t linear between
+/// the nodes' weights: per lane a few weights instead of whole matrices.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LowRank {
+    /// B_t, each as long as an M_j.
+    pub basis: Vec<Vec<f64>>,
+    /// w[j][t], per node j.
+    pub weights: Vec<Vec<f64>>,
+    /// max_j max_i |M_j,i − Σ_t w[j][t] B_t,i| / max |M|: the error of the truncation.
+    pub error: f64,
+}
+
+impl LowRank {
+    /// The fewest terms (at most `max_rank`) whose relative error is ≤ `tolerance`, or, if
+    /// none, `max_rank` terms (the caller reads `error`). An all-zero family has no terms.
+    pub fn new(rows: &[Vec<f64>], max_rank: usize, tolerance: f64) -> Self {
+        let (n, len) = (rows.len(), rows.first().map_or(0, Vec::len));
+        let scale = rows.iter().flatten().fold(0.0f64, |a, v| a.max(v.abs()));
+        if n == 0 || len == 0 || !(scale > 0.0) || rows.iter().any(|r| r.len() != len) {
+            return Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: 0.0 };
+        }
+        let x = DMatrix::from_fn(n, len, |j, i| rows[j][i]);
+        let svd = x.clone().svd(true, true);
+        let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+            return Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: f64::INFINITY };
+        };
+        let sigma = &svd.singular_values;
+        let mut order: Vec<usize> = (0..sigma.len()).collect();
+        order.sort_by(|&a, &b| sigma[b].total_cmp(&sigma[a]));
+        let mut best = None;
+        for rank in 1..=max_rank.min(order.len()) {
+            let terms = &order[..rank];
+            let basis: Vec<Vec<f64>> =
+                terms.iter().map(|&t| (0..len).map(|i| sigma[t] * v_t[(t, i)]).collect()).collect();
+            let weights: Vec<Vec<f64>> = (0..n).map(|j| terms.iter().map(|&t| u[(j, t)]).collect()).collect();
+            let mut error = 0.0f64;
+            for j in 0..n {
+                for i in 0..len {
+                    let approx: f64 = (0..rank).map(|t| weights[j][t] * basis[t][i]).sum();
+                    error = error.max((approx - x[(j, i)]).abs() / scale);
+                }
+            }
+            let done = error <= tolerance;
+            best = Some(Self { basis, weights, error });
+            if done {
+                break;
+            }
+        }
+        best.unwrap_or(Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: f64::INFINITY })
+    }
+}
+
 /// The K×K identity, row major.
 fn identity_rows(k: usize) -> Vec<f64> {
     (0..k * k).map(|i| if i % (k + 1) == 0 { 1.0 } else { 0.0 }).collect()
@@ -710,5 +765,32 @@ mod tests {
         assert!(RealEigen::new(&[-1.0, 0.0, 0.0, 2.0], 2).is_none()); // negative: would grow
         assert!(RealEigen::new(&[1.0, f64::NAN, 0.0, 2.0], 2).is_none());
         assert_eq!(RealEigen::new(&[0.0; 4], 2).unwrap().lambda, vec![0.0, 0.0]);
+    }
+
+    #[test]
+    fn low_rank_reconstructs_a_family_of_matrices() {
+        // Rank 2 exactly: M_j = a_j·P + b_j·Q.
+        let (p, q) = ([1.0, 2.0, 0.0, -1.0], [0.5, 0.0, 3.0, 1.0]);
+        let rows: Vec<Vec<f64>> = (0..5)
+            .map(|j| {
+                let (a, b) = (1.0 + j as f64, (j as f64 * 0.7).sin());
+                p.iter().zip(q).map(|(x, y)| a * x + b * y).collect()
+            })
+            .collect();
+        let lr = LowRank::new(&rows, 3, 1e-12);
+        assert_eq!(lr.basis.len(), 2);
+        assert!(lr.error < 1e-12, "{}", lr.error);
+        for (j, row) in rows.iter().enumerate() {
+            for (i, v) in row.iter().enumerate() {
+                let approx: f64 = (0..2).map(|t| lr.weights[j][t] * lr.basis[t][i]).sum();
+                assert!((approx - v).abs() < 1e-12);
+            }
+        }
+        // One term cannot hold it: the error of the best rank-1 truncation is reported.
+        let one = LowRank::new(&rows, 1, 1e-12);
+        assert_eq!(one.basis.len(), 1);
+        assert!(one.error > 1e-3);
+        // All zero: no terms.
+        assert!(LowRank::new(&vec![vec![0.0; 4]; 3], 3, 1e-6).basis.is_empty());
     }
 }

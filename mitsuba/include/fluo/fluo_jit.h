@@ -195,6 +195,45 @@ public:
     }
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
+
+    // A reradiation lobe that depends on the directions (fluo_qd's microfacet lobe)
+    // overrides the three methods below; fluo_path then calls them per vertex (and only
+    // in scenes holding such a material: the Lambertian ones keep the calls above).
+
+    /// Host: whether the reradiation lobe is Lambertian (f_fl·cos θo = rerad·cos θo/π).
+    virtual bool jit_lambertian() const { return true; }
+
+    /// cos θo/π where both directions are above the surface, else 0.
+    static Float lambert(const SurfaceInteraction3f &si, const Vector3f &wo) {
+        return dr::select(Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f,
+                          Frame3f::cos_theta(wo) * dr::InvPi<Float>, 0.f);
+    }
+
+    /// Spectral: f_fl·cos θo towards wo_a and wo_b, given jit_choose's `rerad` for the
+    /// shifted wavelengths, with si.wavelengths = λi.
+    virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    jit_reradiation(const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad, const Vector3f &wo_a,
+                    const Vector3f &wo_b, Mask /* active */) const {
+        return { rerad * lambert(si, wo_a), rerad * lambert(si, wo_b) };
+    }
+
+    /// RGB: a direction-dependent reradiation operator lobe(ωi, ωo)·w_0·M(cos θ) (cos θ = ωi·h
+    /// and the lobe from jit_lobe, w_0 from jit_reduced_weights) written as
+    /// M(cos θ) = Σ_t s_t(cos θ)·B_t, s_t linear between n nodes at cos θ = j/(n − 1): the
+    /// K×K matrices B_t into `m` (host, row major, sized K·K by the caller; as
+    /// jit_reduced_matrices) and s into `nodes` ([n][MaxTerms], sized by the callee). Returns
+    /// n; 0 for a Lambertian material (jit_reduced_matrices serves it). The elastic part is
+    /// the BSDF's own value, reduced as a native BSDF's.
+    virtual size_t jit_reduced_nodes(const fluo::TransportBasis & /* transport */,
+                                     std::array<std::vector<double>, MaxTerms> & /* m */,
+                                     std::vector<double> & /* nodes */) const {
+        return 0;
+    }
+    /// The lobe factor and cos θ of a direction-dependent operator for direction wo.
+    virtual std::pair<Float, Float> jit_lobe(const SurfaceInteraction3f &si, const Vector3f &wo,
+                                             Mask /* active */) const {
+        return { lambert(si, wo), Float(0.f) };
+    }
 };
 
 NAMESPACE_END(fluo_detail)

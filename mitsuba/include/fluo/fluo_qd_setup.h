@@ -1,0 +1,257 @@
+// fluo_qd's parameters, substrate and dot index, parsed and sampled for Rust once for the
+// scalar shim (fluo_qd.cpp) and the vectorised one (fluo_qd_jit.cpp).
+#pragma once
+
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/core/properties.h>
+#include <mitsuba/core/spectrum.h>
+#include <mitsuba/render/interaction.h>
+#include <mitsuba/render/ior.h>
+#include <mitsuba/render/texture.h>
+
+#include <algorithm>
+#include <cmath>
+#include <functional>
+#include <initializer_list>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "fluo_common.h"
+#include "fluo_jit.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// A spectrum sampled for Rust: one value is a constant, several a table (nm, value).
+struct QdSamples {
+    std::vector<double> wavelengths, values;
+    fluo::SampledSpectrum view() const {
+        return { rust::Slice<const double>(wavelengths.data(), wavelengths.size()),
+                 rust::Slice<const double>(values.data(), values.size()) };
+    }
+};
+
+/// fluo_qd's substrate (a named conductor, eta/k, or a dielectric int_ior) and optional dot
+/// index (qd_eta/qd_k), as Mitsuba textures of the variant, and their spectra for Rust.
+template <typename Float, typename Spectrum> struct QdSetup {
+    MI_IMPORT_TYPES(Texture)
+    static constexpr const char *Plugin = "fluo_qd";
+    /// Wavelengths standing for the RGB channels (dominant wavelengths of the sRGB primaries).
+    static constexpr float RgbWavelengths[3] = { 611.f, 549.f, 464.f };
+    /// Step of the grid on which spectral substrate and dot indices are sampled for Rust, nm.
+    static constexpr double SpectrumStepNm = 1.0;
+
+    ref<Texture> eta, k, qd_eta, qd_k;
+    std::string material; ///< named conductor substrate, or empty
+
+    /// Read the numeric parameters (those `textured` names are skipped: the caller reads
+    /// their textures), table_cos_nodes, distribution, the substrate and the dot index.
+    void parse(const Properties &props, fluo::QdConfig &c, const std::function<bool(const char *)> &textured) {
+        fluo::QdConstants &kc = c.constants;
+        for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
+                 { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
+                 { "density", &c.density }, { "ext_ior", &c.ext_ior }, { "lambda_min", &c.lambda_min },
+                 { "lambda_max", &c.lambda_max }, { "alpha", &c.alpha }, { "table_step", &c.table_step },
+                 { "gap_energy", &kc.gap_energy }, { "elementary_charge", &kc.elementary_charge },
+                 { "planck", &kc.planck }, { "light_speed", &kc.light_speed }, { "boltzmann", &kc.boltzmann },
+                 { "electron_mass", &kc.electron_mass }, { "hole_mass", &kc.hole_mass },
+                 { "vacuum_permittivity", &kc.vacuum_permittivity },
+                 { "relative_permittivity", &kc.relative_permittivity }, { "temperature", &kc.temperature } })
+            if (!textured(name))
+                *field = get_double(props, name, *field);
+        if (props.has_property("table_cos_nodes")) {
+            int64_t rows = props.get<int64_t>("table_cos_nodes");
+            if (rows < 2 || rows > 1025)
+                Throw("%s: invalid parameter \"table_cos_nodes\" = %d: valid range is [2, 1025]", Plugin, rows);
+            c.table_cos_nodes = (size_t) rows;
+        }
+
+        std::string distr = string::to_lower(std::string(props.get<std::string_view>("distribution", "beckmann")));
+        if (distr == "ggx")
+            c.ggx = true;
+        else if (distr != "beckmann")
+            Throw("%s: invalid parameter \"distribution\" = \"%s\": valid values are \"beckmann\", \"ggx\"",
+                  Plugin, distr);
+
+        // Substrate: a named conductor, eta/k, or a dielectric int_ior (exactly one kind).
+        bool has_material = props.has_property("material"),
+             has_eta = props.has_property("eta") || props.has_property("k"), has_int = props.has_property("int_ior");
+        if ((int) has_material + (int) has_eta + (int) has_int > 1)
+            Throw("%s: specify one substrate: \"material\", \"eta\"/\"k\" or \"int_ior\"", Plugin);
+        if (has_int) {
+            double int_ior = lookup_ior(props, "int_ior", 1.5046f);
+            if (!(int_ior > 0.0) || !std::isfinite(int_ior))
+                Throw("%s: invalid parameter \"int_ior\" = %f: valid range is (0, inf)", Plugin, int_ior);
+            eta = constant_texture(int_ior / c.ext_ior);
+            k = constant_texture(0.0);
+        } else if (has_material) {
+            material = std::string(props.get<std::string_view>("material"));
+            try {
+                std::tie(eta, k) = conductor_textures(material);
+            } catch (const std::exception &e) {
+                Throw("%s: invalid parameter \"material\" = \"%s\": no conductor data for it (Mitsuba's "
+                      "data/ior/%s.eta.spd and .k.spd; give \"eta\"/\"k\" spectra instead): %s",
+                      Plugin, material, material, e.what());
+            }
+        } else {
+            eta = props.get_unbounded_texture<Texture>("eta", 0.f);
+            k = props.get_unbounded_texture<Texture>("k", 1.f);
+        }
+        if (props.has_property("qd_eta") != props.has_property("qd_k"))
+            Throw("%s: specify both \"qd_eta\" and \"qd_k\" (the dot material's n and k) or neither", Plugin);
+        if (props.has_property("qd_eta")) {
+            qd_eta = props.get_unbounded_texture<Texture>("qd_eta");
+            qd_k = props.get_unbounded_texture<Texture>("qd_k");
+        }
+    }
+
+    bool uniform_substrate() const { return !eta->is_spatially_varying() && !k->is_spatially_varying(); }
+
+    /// The spectra Rust builds a model from: the substrate's eta and k (sample_substrate)
+    /// and the dot index (empty: built-in CdSe).
+    void sample_all(const fluo::QdConfig &c, QdSamples &eta_s, QdSamples &k_s, QdSamples &qd_eta_s,
+                    QdSamples &qd_k_s) const {
+        sample_substrate(c, eta_s, k_s);
+        if (qd_eta) {
+            sample_texture(c, qd_eta.get(), qd_eta_s);
+            sample_texture(c, qd_k.get(), qd_k_s);
+        }
+    }
+
+    /// The substrate's spectral eta and k (each on its own grid, interpolated in Rust),
+    /// for the coating's absorption tables: the eta/k textures in spectral variants; in
+    /// RGB variants a named material's data files, else the piecewise-linear spectrum
+    /// through the channel values at RgbWavelengths (what the per-channel elastic
+    /// evaluation sees).
+    void sample_substrate(const fluo::QdConfig &c, QdSamples &eta_s, QdSamples &k_s) const {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            if (!material.empty()) {
+                spectrum_from_file("data/ior/" + material + ".eta.spd", eta_s.wavelengths, eta_s.values);
+                spectrum_from_file("data/ior/" + material + ".k.spd", k_s.wavelengths, k_s.values);
+                return;
+            }
+            for (auto [tex, out] : { std::pair{ eta.get(), &eta_s }, std::pair{ k.get(), &k_s } }) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                UnpolarizedSpectrum v = tex->eval(si, true);
+                out->wavelengths = { RgbWavelengths[2], RgbWavelengths[1], RgbWavelengths[0] };
+                out->values = { host_value(v[2]), host_value(v[1]), host_value(v[0]) };
+            }
+            return;
+        }
+        sample_texture(c, eta.get(), eta_s);
+        sample_texture(c, k.get(), k_s);
+    }
+
+    /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
+    /// In the vectorised variants the wavelengths are evaluated as one wide call.
+    static void sample_texture(const fluo::QdConfig &c, const Texture *tex, QdSamples &out) {
+        std::vector<double> &wavelengths = out.wavelengths, &values = out.values;
+        wavelengths.clear();
+        values.clear();
+        if constexpr (is_spectral_v<Spectrum>) {
+            size_t n = (size_t) std::ceil((c.lambda_max - c.lambda_min) / SpectrumStepNm) + 1;
+            if (!(c.lambda_max > c.lambda_min) || n > 100000)
+                n = 2; // invalid range: Rust rejects lambda_min/max with a proper message
+            std::vector<float> lambda(n);
+            for (size_t i = 0; i < n; ++i)
+                lambda[i] = (float) std::min(c.lambda_min + (double) i * SpectrumStepNm,
+                                             std::max(c.lambda_max, c.lambda_min + 1.0));
+            std::vector<float> v = eval_at(tex, lambda);
+            for (size_t i = 0; i < n; ++i) {
+                double l = lambda[i];
+                if (!wavelengths.empty() && !(l > wavelengths.back()))
+                    continue;
+                wavelengths.push_back(l);
+                values.push_back(v[i]);
+            }
+            if (wavelengths.size() < 2) { // degenerate grid: a constant
+                values.resize(1);
+                wavelengths.resize(1);
+            }
+        } else {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+            UnpolarizedSpectrum v = tex->eval(si, true);
+            wavelengths.push_back(0.0);
+            values.push_back(host_value(dr::mean(v)));
+        }
+    }
+
+    /// A texture's values at the wavelengths `lambda` (spectral variants), four per
+    /// interaction: one call per four wavelengths in scalar, one wide call in JIT variants.
+    static std::vector<float> eval_at(const Texture *tex, const std::vector<float> &lambda) {
+        constexpr size_t W = dr::size_v<Wavelength>;
+        size_t n = lambda.size(), m = (n + W - 1) / W;
+        std::vector<float> out(n);
+        if constexpr (dr::is_jit_v<Float>) {
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(m);
+            for (size_t j = 0; j < W; ++j) {
+                std::vector<float> w(m);
+                for (size_t i = 0; i < m; ++i)
+                    w[i] = lambda[std::min(i * W + j, n - 1)];
+                si.wavelengths[j] = dr::load<Float>(w.data(), m);
+            }
+            UnpolarizedSpectrum v = tex->eval(si, true);
+            for (size_t j = 0; j < W; ++j) {
+                std::vector<float> w(m);
+                Float vj = dr::zeros<Float>(m) + dr::detach(v[j]); // a uniform texture returns one value
+                dr::eval(vj);
+                dr::store(w.data(), vj);
+                for (size_t i = 0; i * W + j < n; ++i)
+                    out[i * W + j] = w[i];
+            }
+        } else {
+            for (size_t i = 0; i < n; i += W) {
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                for (size_t j = 0; j < W; ++j)
+                    si.wavelengths[j] = lambda[std::min(i + j, n - 1)];
+                UnpolarizedSpectrum v = tex->eval(si, true);
+                for (size_t j = 0; j < W && i + j < n; ++j)
+                    out[i + j] = v[j];
+            }
+        }
+        return out;
+    }
+
+    /// A double property (the constants span 1e-34..1e8, beyond a float's comfort).
+    static double get_double(const Properties &props, const char *name, double def) {
+        if (!props.has_property(name))
+            return def;
+        try {
+            return props.get<double>(name);
+        } catch (const std::exception &e) {
+            Throw("%s: parameter \"%s\" must be a number (%s)", Plugin, name, e.what());
+        }
+    }
+
+    /// eta and k of a named conductor, taken from a native roughconductor built with the
+    /// same `material` (so both read Mitsuba's data identically in every variant).
+    static std::pair<ref<Texture>, ref<Texture>> conductor_textures(std::string_view name) {
+        Properties p("roughconductor");
+        p.set("material", std::string(name));
+        ref<BSDF<Float, Spectrum>> rc = PluginManager::instance()->create_object<BSDF<Float, Spectrum>>(p);
+        struct Grab : TraversalCallback {
+            ref<Texture> eta, k;
+            void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+            void put_object(std::string_view name, Object *o, uint32_t) override {
+                if (name == "eta")
+                    eta = dynamic_cast<Texture *>(o);
+                else if (name == "k")
+                    k = dynamic_cast<Texture *>(o);
+            }
+        } grab;
+        rc->traverse(&grab);
+        if (!grab.eta || !grab.k)
+            Throw("%s: could not read the conductor data of material \"%s\"", Plugin, name);
+        return { grab.eta, grab.k };
+    }
+
+    static ref<Texture> constant_texture(double value) {
+        Properties p("uniform");
+        p.set("value", value);
+        return PluginManager::instance()->create_object<Texture>(p);
+    }
+};
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)
