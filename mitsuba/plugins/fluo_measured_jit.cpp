@@ -9,13 +9,15 @@
 // - ρ(λ): the diagonal, linear between nodes, constant beyond its ends.
 // - fluo_matrix: λi | λo by inverting the bilinear interpolant's row CDF exactly (binary
 //   search over the row integrals, then the cell's quadratic root), as matrix.rs does.
-// - fluo_gmm: λi | λo from the mixture of truncated conditional normals: the component by its
-//   weight π_k N(λo | μo, σoo) M_k (M_k its mass on the interval), then the truncated normal
-//   by inverting its CDF (Φ from an erfc accurate to ~1e-7 relative in the tails, Φ⁻¹ by
-//   Acklam's approximation and one Newton step), on the side of the interval where Φ is
-//   small. Lanes where every component's weight underflows float (the given λo ~13
-//   standard deviations from every component) take the elastic event: their reradiation is
-//   then below float resolution of the elastic part.
+// - fluo_gmm: λi | λo from the mixture of truncated conditional normals, one component at a
+//   time: the component by its marginal π_k N(λo | μo, σoo), then its normal truncated to the
+//   excitation interval by inverting its CDF (Φ from an erfc accurate to ~1e-7 relative in
+//   the tails, Φ⁻¹ by Acklam's approximation and one Newton step), on the side of the
+//   interval where Φ is small; the elastic/shift choice given the component weighs the
+//   shift by that component's share (gmm_shift says why this is unbiased; the scalar
+//   variants sample the whole truncated mixture). Lanes where every component's marginal
+//   underflows float (the given λo ~13 standard deviations from every component) take the
+//   elastic event: their reradiation is then below float resolution of the elastic part.
 // The RGB variants use the reduced matrix Rust computes for the transport basis, as the scalar
 // fluo_path does.
 #include <mitsuba/core/fresolver.h>
@@ -416,7 +418,74 @@ protected:
         return m;
     }
 
+    /// fluo_gmm's shift given λo on [a, b]: (the shift's weight in the elastic/shift choice,
+    /// λi, the value whose ratio to that weight is the density of λi). Without gradients
+    /// through the mixture one component at a time (gmm_shift_split: two erfc per
+    /// wavelength); with them the whole truncated mixture (gmm_shift_mixture), whose
+    /// estimate of d/dθ has the image's variance (measured: the split estimator's weights
+    /// gradient scattered 2x more per seed). Both are unbiased (test_llvm.py test09, test12).
     std::tuple<Float, Float, Float> gmm_shift(const Mixture &mix, const Float &lambda_o, const Float &a,
+                                              const Float &b, const Float &u, const Mask &ok) const {
+        if (dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o))
+            return gmm_shift_mixture(mix, lambda_o, a, b, u, ok);
+        return gmm_shift_split(mix, lambda_o, a, b, u, ok);
+    }
+
+    /// fluo_gmm, given λo on [a, b]: P(λi, λo) = S Σ_k π_k N(λo | μo_k, σoo_k) N(λi | m_k, s_k²)
+    /// = Σ_k f_k(λi) (the conditional form of each bivariate component). A component k is
+    /// drawn ∝ its marginal π_k N(λo) (probability p_k), then λi from its normal truncated to
+    /// [a, b] (density q_k = N/M_k, M_k its mass there) with u rescaled; the shift's value
+    /// and density are f_k(λi) and p_k q_k(λi), whose ratio is S·W·M_k (W = Σ_k π_k N(λo)):
+    /// that is also the weight the elastic/shift choice uses given k. Conditioned on k the
+    /// vertex estimates the elastic part plus f_k/p_k, so over k it is unbiased for the
+    /// elastic part plus ∫P, with one truncated mass (two erfc) per wavelength instead of
+    /// one per component. Returns (S·W·M_k, λi, S·W·M_k): value/weight = 1 as the density
+    /// gives the estimate f_k/(p_k q_k) = S·W·M_k without evaluating f_k. Renders without
+    /// gradients take this path (gmm_shift).
+    std::tuple<Float, Float, Float> gmm_shift_split(const Mixture &mix, const Float &lambda_o, const Float &a,
+                                              const Float &b, const Float &u, const Mask &ok) const {
+        size_t n = m_comps.size();
+        std::vector<Float> marginal(n);
+        Float total = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            Float d = lambda_o - mix.mu_o[k];
+            marginal[k] = mix.weight[k] * dr::exp(m_comps[k].half_inv_var_o * d * d);
+            total += dr::detach(marginal[k]);
+        }
+        // The component: the first k with u·W < Σ_{≤k} marginal (the last one with a
+        // positive marginal if rounding leaves none); u rescaled within it.
+        Float target = u * total, run = 0.f, cu = 0.f, cslope = 0.f, cmu_i = 0.f, cmu_o = 0.f, csd = 1.f;
+        Mask done = !ok || !(total > 0.f);
+        for (size_t k = 0; k < n; ++k) {
+            Float w = dr::detach(marginal[k]);
+            Mask take = !done && w > 0.f;
+            cu = dr::select(take, dr::clip((target - run) / w, 0.f, 1.f), cu);
+            cmu_i = dr::select(take, mix.mu_i[k], cmu_i);
+            cmu_o = dr::select(take, mix.mu_o[k], cmu_o);
+            cslope = dr::select(take, Float(m_comps[k].slope), cslope);
+            csd = dr::select(take, Float(m_comps[k].cond_sd), csd);
+            done |= take && target < run + w;
+            run += w;
+        }
+        Float mean = dr::fmadd(cslope, lambda_o - cmu_o, cmu_i), mean_d = dr::detach(mean), inv_sd = dr::rcp(csd);
+        Float lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
+        // On the side where Φ is small: an interval above the mean is mirrored.
+        Mask mirror = lo > 0.f;
+        Float za = dr::select(mirror, -hi, lo), zb = dr::select(mirror, -lo, hi);
+        Float pa = phi_cdf(za), pb = phi_cdf(zb), mass_k = dr::maximum(pb - pa, 0.f);
+        Float z = phi_inv(dr::fmadd(cu, pb - pa, pa));
+        // (clamped to the interval in the mirrored coordinate)
+        Float x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
+        Float estimate = m_scale * total * mass_k;
+        Mask good = ok && total > 0.f && mass_k > 0.f;
+        estimate = dr::select(good, estimate, 0.f);
+        return { estimate, x, estimate };
+    }
+
+    /// fluo_gmm, given λo on [a, b], the whole truncated mixture: the component by its share
+    /// π_k N(λo) M_k, then its truncated normal; returns (S Σ_k π_k N(λo) M_k, λi, P(λi, λo)),
+    /// P differentiable in the weights and means (the scalar variants' estimator).
+    std::tuple<Float, Float, Float> gmm_shift_mixture(const Mixture &mix, const Float &lambda_o, const Float &a,
                                               const Float &b, const Float &u, const Mask &ok) const {
         size_t n = m_comps.size();
         std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n), marginal(n);
@@ -456,18 +525,12 @@ protected:
         Float z = phi_inv(dr::fmadd(cu, cb - ca, ca));
         // (clamped to the interval in the mirrored coordinate)
         Float x = dr::clip(cmean + csd * dr::select(cmirror, -z, z), a, b);
-        // P(x, λo) = S Σ_k π_k N(λo | μo, σoo) N(x | mean_k, sd_k²). x is drawn with density
-        // exactly P/mass, so the estimate P/pdf is the mass itself: P is evaluated only where
-        // gradients flow through it (the mixture's parameters have AD enabled); otherwise the
-        // value returned is the mass, and pdf = value/mass = 1 gives the same estimate for
-        // 8 fewer exponentials per wavelength.
-        Float value = total;
-        if (dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o)) {
-            value = 0.f;
-            for (size_t k = 0; k < n; ++k) {
-                Float e = (x - mean[k]) * (1.f / m_comps[k].cond_sd);
-                value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / m_comps[k].cond_sd));
-            }
+        // P(x, λo) = S Σ_k π_k N(λo | μo, σoo) N(x | mean_k, sd_k²), differentiable; x is
+        // drawn with density exactly P/mass (detached).
+        Float value = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            Float e = (x - mean[k]) * (1.f / m_comps[k].cond_sd);
+            value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / m_comps[k].cond_sd));
         }
         Mask good = ok && total > 0.f;
         return { dr::select(good, m_scale * total, 0.f), x, dr::select(good, m_scale * value, 0.f) };
