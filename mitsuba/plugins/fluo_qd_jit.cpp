@@ -25,6 +25,7 @@
 
 #include <algorithm>
 #include <optional>
+#include <string>
 #include <vector>
 
 #include "fluo_common.h"
@@ -161,6 +162,21 @@ public:
     /// it is not).
     size_t jit_reduced_nodes(const fluo::TransportBasis &transport, std::array<std::vector<double>, MaxTerms> &m,
                              std::vector<double> &nodes) const override {
+        // fluo_path asks once per render; the reduction (17 operators) is kept per basis
+        // until the model is rebuilt.
+        std::string key = std::string(fluo::transport_label(transport)) + "/" + std::to_string(m_build);
+        if (key != m_reduced_key) {
+            m_reduced_m = m;
+            m_reduced_n = reduce_nodes(transport, m_reduced_m, m_reduced_nodes);
+            m_reduced_key = key;
+        }
+        m = m_reduced_m;
+        nodes = m_reduced_nodes;
+        return m_reduced_n;
+    }
+
+    size_t reduce_nodes(const fluo::TransportBasis &transport, std::array<std::vector<double>, MaxTerms> &m,
+                        std::vector<double> &nodes) const {
         size_t kk = m[0].size(), n = fluo::reduced_microfacet_nodes();
         std::vector<double> basis(MaxTerms * kk);
         nodes.assign(n * MaxTerms, 0.0);
@@ -480,6 +496,7 @@ private:
         // Mitsuba's own clamp of a zero roughness.
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
         m_coated = m_config.density > 0.0;
+        ++m_build;
     }
 
     /// The bucket index of the λ grid: buckets as wide as its narrowest cell (refined near
@@ -525,6 +542,12 @@ private:
     // the tables ([rows][λ] row major) and their grid
     FloatStorage m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass;
     uint32_t m_n = 2, m_rows = 2;
+    uint64_t m_build = 0; ///< counts rebuilds: keys the reduction below
+    // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes)
+    mutable std::string m_reduced_key;
+    mutable std::array<std::vector<double>, MaxTerms> m_reduced_m;
+    mutable std::vector<double> m_reduced_nodes;
+    mutable size_t m_reduced_n = 0;
     std::vector<double> m_lambda_host;
     // the bucket index of the λ grid (build_buckets)
     static constexpr size_t MaxBuckets = 1 << 16;

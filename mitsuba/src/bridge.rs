@@ -531,6 +531,9 @@ mod bridge {
         /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
         fn transport_white(t: &TransportBasis, out: &mut [f64]);
         fn transport_name(t: &TransportBasis) -> &'static str;
+        /// The basis and the reduction method ("x7/Ours"): two transports with the same
+        /// label reduce a material alike (a key for caching reductions).
+        fn transport_label(t: &TransportBasis) -> String;
         /// A fluorescent medium's operators reduced for a transport (`fluo_volpath` in
         /// scalar_rgb), K×K row major, 1/m at density 1: `absorption` A (the reduction of
         /// the diagonal μa(λ)) and `reradiation` F (of the density μa(λi) f(λi → λo)), so
@@ -1676,6 +1679,9 @@ fn transport_white(t: &TransportBasis, out: &mut [f64]) {
 }
 fn transport_name(t: &TransportBasis) -> &'static str {
     t.0.name
+}
+fn transport_label(t: &TransportBasis) -> String {
+    format!("{}/{:?}", t.0.name, t.0.method)
 }
 
 fn medium_grid_absorption_max(model: &FluoMedium) -> f64 {
