@@ -334,10 +334,7 @@ protected:
         Float x1 = m_gi.uniform ? x0 + m_gi.step : dr::gather<Float>(m_gi.nodes, k + 1, ok), h = x1 - x0;
         Float f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
         Float e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
-        Float delta = dr::clip(target - c(r, k), 0.f, .5f * h * (e0 + e1));
-        Float disc = dr::maximum(dr::fmadd(e0, e0, 2.f * (e1 - e0) / h * delta), 0.f);
-        Float denom = e0 + dr::sqrt(disc);
-        Float step = dr::select(denom > 0.f, 2.f * delta / denom, 0.f);
+        Float step = fluo_detail::linear_cell_inverse(e0, e1, h, target - c(r, k));
         Float x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
         Float s = dr::clip((x - x0) / h, 0.f, 1.f);
         Float value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);

@@ -222,9 +222,7 @@ public:
             Float cos_i = Frame3f::cos_theta(si.wi);
             // The cells of λo serve the elastic weight and, where λo is below the range's top,
             // the excitation interval's upper end; its lower end is the same for every lane.
-            Cells cells;
-            for (size_t w = 0; w < cells.size(); ++w)
-                cells[w] = cell(lambda_o[w], active);
+            Cells cells = cells_of(si, active); // fluorescent: coated
             // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
             // weight positive where the elastic lobe is keeps the estimator unbiased; this one
             // spares the substrate's eta/k lookups).
@@ -262,11 +260,8 @@ public:
                 Float x0 = dr::gather<Float>(m_lambda, k, ok), x1 = dr::gather<Float>(m_lambda, k + 1, ok);
                 Float f0 = dr::gather<Float>(m_a_tot, row + k, ok), f1 = dr::gather<Float>(m_a_tot, row + k + 1, ok);
                 Float h = x1 - x0;
-                Float delta = dr::clip(target - dr::gather<Float>(m_cdf, row + k, ok), 0.f, .5f * h * (f0 + f1));
-                Float disc = dr::maximum(dr::fmadd(f0, f0, 2.f * (f1 - f0) / h * delta), 0.f);
-                Float denom = f0 + dr::sqrt(disc);
-                Float x = dr::clip(x0 + dr::select(denom > 0.f, 2.f * delta / denom, 0.f), dr::maximum(a, x0),
-                                   dr::minimum(b, x1));
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h, target - dr::gather<Float>(m_cdf, row + k, ok));
+                Float x = dr::clip(x0 + step, dr::maximum(a, x0), dr::minimum(b, x1));
                 Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h, 0.f, 1.f)) / mass, 0.f);
                 scale[w] = choice.weight(pdf, u1[w]);
                 shifted[w] = choice.shifted;

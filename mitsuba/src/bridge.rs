@@ -279,13 +279,10 @@ mod bridge {
         emission_peak_nm: f64,
         emission_scale_nm: f64,
         emission_norm: f64,
-        quantum_yield: f64,
         lambda_min: f64,
         lambda_max: f64,
         excitation_lo: f64,
         excitation_hi: f64,
-        /// The microfacet roughness the reradiation lobe uses (clamped as the model's).
-        alpha: f64,
     }
 
     /// `fluo_qd` parameters as parsed from Mitsuba `Properties` by the shim:
@@ -1314,12 +1311,10 @@ fn qd_jit_tables(model: &QdModel, rows: usize, extra_nm: &[f64]) -> QdJitTables 
         emission_peak_nm: t.emission_peak_nm,
         emission_scale_nm: t.emission_scale_nm,
         emission_norm: t.emission_norm,
-        quantum_yield: p.quantum_yield,
         lambda_min: p.lambda_min_nm,
         lambda_max: p.lambda_max_nm,
         excitation_lo,
         excitation_hi,
-        alpha: m.microfacet().alpha,
     }
 }
 

@@ -148,6 +148,17 @@ template <typename Value> struct ShiftChoice {
     }
 };
 
+/// Inverse CDF within a cell of width h where a density is linear from f0 to f1: the offset
+/// whose integral from the cell's start is delta (clamped to the cell's mass), the
+/// quadratic's root in the cancellation-free form 2δ/(f0 + √(f0² + 2(f1 − f0)δ/h)) (as
+/// matrix.rs and the QD model's row sampling).
+template <typename Value> Value linear_cell_inverse(const Value &f0, const Value &f1, const Value &h, const Value &delta) {
+    Value d = dr::clip(delta, 0.f, .5f * h * (f0 + f1));
+    Value disc = dr::maximum(dr::fmadd(f0, f0, 2.f * (f1 - f0) / h * d), 0.f);
+    Value denom = f0 + dr::sqrt(disc);
+    return dr::select(denom > 0.f, 2.f * d / denom, 0.f);
+}
+
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
 /// (core/src/sigmoid.rs).
 template <typename Value, typename Coeff>

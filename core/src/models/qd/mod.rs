@@ -686,29 +686,29 @@ impl QdModel {
             excitation: self.excitation,
             lambda: Vec::new(),
         };
-        let elastic = |c: f64, l: f64| {
-            let co = self.coating(c, l);
-            let pass = co.t_spe * (1.0 - co.a_tf);
-            (co.r_spe, pass * pass)
-        };
+        // R_spe and pass = (T_spe (1 − A_tf))² of the coating at (c, λ).
+        let elastic = |co: &Coating| (co.r_spe, (co.t_spe * (1.0 - co.a_tf)).powi(2));
         for j in 0..rows {
             let c = j as f64 / (rows - 1) as f64;
             let mut acc = 0.0;
             for k in 0..n {
-                let a = self.a_tot(c, lambda[k]);
+                // one coating and substrate evaluation per node ([`Self::a_tot`], [`Self::r_tot`])
+                let co = self.coating(c, lambda[k]);
+                let r = self.substrate_reflectance(c, lambda[k]);
+                let a = co.a_tot(r);
                 if k > 0 {
                     acc += 0.5 * (lambda[k] - lambda[k - 1]) * (a + t.a_tot[j * n + k - 1]);
                 }
                 t.a_tot.push(a);
                 t.cdf.push(acc);
-                let (r, p) = elastic(c, lambda[k]);
-                t.r_spe.push(r);
+                let (rs, p) = elastic(&co);
+                t.r_spe.push(rs);
                 t.pass.push(p);
-                t.r_tot.push(self.r_tot(c, lambda[k]));
+                t.r_tot.push(co.r_tot(r));
             }
             for &l in extra_nm {
-                let (r, p) = elastic(c, l);
-                t.extra_r_spe.push(r);
+                let (rs, p) = elastic(&self.coating(c, l));
+                t.extra_r_spe.push(rs);
                 t.extra_pass.push(p);
             }
         }
