@@ -303,30 +303,9 @@ private:
                 BSDFPtr bsdf = si.bsdf(ls.ray);
 
                 // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
-                UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
-                WMask shifted = false;
-                if (fluorescent) {
-                    Wavelength u1, u2;
-                    for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
-                        Point2f u = ls.sampler->next_2d(active_next);
-                        u1[j] = u.x();
-                        u2[j] = u.y();
-                    }
-                    auto [li, sc, sh, rr] = fluo_detail::dispatch_any(
-                        bsdf,
-                        [range_lo, range_hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
-                                             const Wavelength &u2_, const Mask &on) {
-                            if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
-                                return f->jit_choose(si_, u1_, u2_, range_lo, range_hi, on);
-                            return Bispectral::elastic_only(si_.wavelengths);
-                        },
-                        si, u1, u2, active_next);
-                    Mask has_bsdf = active_next && bsdf != nullptr;
-                    si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
-                    scale = dr::select(has_bsdf, sc, 1.f);
-                    shifted = WMask(has_bsdf) && sh;
-                    rerad = dr::select(shifted, rr, 0.f);
-                }
+                fluo_detail::JitSurfaceShift<Float, Spectrum> shift;
+                if (fluorescent)
+                    shift.choose(bsdf, si, ls.sampler, active_next, range_lo, range_hi);
 
                 // ---------------------- Emitter sampling ----------------------
                 auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
@@ -337,28 +316,8 @@ private:
                 auto [bsdf_val, bsdf_pdf, bsdf_sample, bsdf_weight] =
                     bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
 
-                if (fluorescent) {
-                    // Shifted wavelengths: the reradiation lobe, Lambertian (π·f_fl·cos θo/π)
-                    // unless the scene holds a direction-dependent one (asked per direction).
-                    UnpolarizedSpectrum v_em, v_bs;
-                    if (directional) {
-                        std::tie(v_em, v_bs) = fluo_detail::dispatch_any(
-                            bsdf,
-                            [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_,
-                               const Vector3f &wa, const Vector3f &wb, const Mask &on) {
-                                if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
-                                    return f->jit_reradiation(si_, rr_, wa, wb, on);
-                                return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
-                            },
-                            si, rerad, wo, bsdf_sample.wo, active_next && dr::any(shifted));
-                    } else {
-                        v_em = rerad * Bispectral::lambert(si, wo);
-                        v_bs = rerad * Bispectral::lambert(si, bsdf_sample.wo);
-                    }
-                    bsdf_val = dr::select(shifted, v_em, bsdf_val) * scale;
-                    UnpolarizedSpectrum w_bs = dr::select(bsdf_sample.pdf > 0.f, v_bs / bsdf_sample.pdf, 0.f);
-                    bsdf_weight = dr::select(shifted, w_bs, bsdf_weight) * scale;
-                }
+                if (fluorescent)
+                    shift.apply(bsdf, si, directional, wo, bsdf_sample, active_next, bsdf_val, bsdf_weight);
 
                 if (dr::any_or<true>(active_em)) {
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));

@@ -5,6 +5,9 @@
 // include/fluo/fluo_medium_shim.h, shared with fluo_dye_medium.
 #include <initializer_list>
 
+#include <type_traits>
+
+#include "fluo_medium_jit.h"
 #include "fluo_medium_shim.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -80,14 +83,17 @@ piecewise linear between them, within 0.5 % of the formula); that table is the
 medium's absorption everywhere, including fluo_volpath's excitation sampling, which
 inverts its CDF exactly.
 
-**Rendering.** With ``fluo_volpath`` in ``scalar_spectral`` the medium fluoresces (the
-integrator's docs have the estimator). Mitsuba's own ``volpath`` (and any other
+**Rendering.** With ``fluo_volpath`` in ``scalar_spectral`` or ``llvm_ad_spectral`` the
+medium fluoresces (the integrator's docs have the estimator; in the vectorised variants
+the medium interpolates Rust's tables: μa linear between the model's own table nodes,
+exactly as above, extended at 0.5 nm steps to 200-1200 nm (within 5e-5 of its peak),
+and the emission line between nodes that hold it within 1e-5 of its peak). Mitsuba's own ``volpath`` (and any other
 integrator) renders it as an absorbing, scattering medium without re-emission — exactly
-its Q = 0 limit — and warns once per scene when Q > 0. In ``scalar_rgb`` the absorption
-is μa's linear sRGB as Mitsuba converts any spectrum (CIE 1931, white = 1; negative
-channels clipped to 0), elastic only: ``fluo_volpath`` refuses a fluorescent medium in
-``scalar_rgb`` (no reduced transport for media yet) rather than render it without its
-glow.
+its Q = 0 limit — and warns once per scene when Q > 0. In the RGB variants the absorption
+other integrators see is μa's linear sRGB as Mitsuba converts any spectrum (CIE 1931,
+white = 1; negative channels clipped to 0); ``fluo_volpath`` in ``scalar_rgb`` carries
+the medium's reduced operators instead (its docs), and in ``llvm_ad_rgb`` refuses a
+fluorescent medium rather than render it without its glow.
 
 .. tabs::
     .. code-tab:: xml
@@ -104,28 +110,38 @@ glow.
             <ref name="interior" id="dots"/>
         </shape>
 */
+/// The Rust model of a fluo_qd_medium from its properties (every variant).
+inline rust::Box<fluo::FluoMedium> qd_medium_model(const Properties &props, const char *plugin) {
+    fluo::QdMediumConfig c = fluo::qd_medium_default_config(); // the defaults live in Rust
+    fluo::QdConstants &k = c.constants;
+    for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
+             { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
+             { "concentration", &c.concentration }, { "ext_ior", &c.ext_ior },
+             { "lambda_min", &c.lambda_min }, { "lambda_max", &c.lambda_max }, { "table_step", &c.table_step },
+             { "gap_energy", &k.gap_energy }, { "elementary_charge", &k.elementary_charge },
+             { "planck", &k.planck }, { "light_speed", &k.light_speed }, { "boltzmann", &k.boltzmann },
+             { "electron_mass", &k.electron_mass }, { "hole_mass", &k.hole_mass },
+             { "vacuum_permittivity", &k.vacuum_permittivity },
+             { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
+        *field = fluo_detail::medium_double(props, plugin, name, *field);
+    return fluo_detail::rust_call(plugin, [&] { return fluo::qd_medium_new(c); });
+}
+
+/// The plugin over either shim: Rust per collision (scalar variants) or its tables
+/// (vectorised variants, fluo_medium_jit.h).
 template <typename Float, typename Spectrum>
-class FluoQdMedium final : public FluoMediumShim<Float, Spectrum> {
+using QdMediumBase = std::conditional_t<dr::is_jit_v<Float>, FluoMediumJit<Float, Spectrum>,
+                                        FluoMediumShim<Float, Spectrum>>;
+
+template <typename Float, typename Spectrum> class FluoQdMedium final : public QdMediumBase<Float, Spectrum> {
 public:
-    MI_IMPORT_BASE(FluoMediumShim, get_double, init, describe)
+    using Base = QdMediumBase<Float, Spectrum>;
+    using Base::init;
+    using Base::describe;
 
     static constexpr const char *Plugin = "fluo_qd_medium";
 
-    FluoQdMedium(const Properties &props) : Base(props, Plugin) {
-        fluo::QdMediumConfig c = fluo::qd_medium_default_config(); // the defaults live in Rust
-        fluo::QdConstants &k = c.constants;
-        for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
-                 { "radius", &c.radius }, { "width", &c.width }, { "quantum_yield", &c.quantum_yield },
-                 { "concentration", &c.concentration }, { "ext_ior", &c.ext_ior },
-                 { "lambda_min", &c.lambda_min }, { "lambda_max", &c.lambda_max }, { "table_step", &c.table_step },
-                 { "gap_energy", &k.gap_energy }, { "elementary_charge", &k.elementary_charge },
-                 { "planck", &k.planck }, { "light_speed", &k.light_speed }, { "boltzmann", &k.boltzmann },
-                 { "electron_mass", &k.electron_mass }, { "hole_mass", &k.hole_mass },
-                 { "vacuum_permittivity", &k.vacuum_permittivity },
-                 { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
-            *field = get_double(props, name, *field);
-        init(fluo_detail::rust_call(Plugin, [&] { return fluo::qd_medium_new(c); }));
-    }
+    FluoQdMedium(const Properties &props) : Base(props, Plugin) { init(qd_medium_model(props, Plugin)); }
 
     std::string to_string() const override { return describe("FluoQdMedium"); }
 
@@ -133,6 +149,7 @@ public:
 };
 
 static const bool fluo_qd_medium_registered =
-    (fluo_detail::register_scalar_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium), true);
+    (fluo_detail::register_scalar_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium),
+     fluo_detail::register_jit_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium), true);
 
 NAMESPACE_END(mitsuba)

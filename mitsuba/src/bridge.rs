@@ -285,6 +285,16 @@ mod bridge {
         excitation_hi: f64,
     }
 
+    /// `fluo_qd_medium` / `fluo_dye_medium` in the vectorised variants: what the shim
+    /// interpolates per lane (`fluo::model::MediumJitTables`, whose docs say what each holds).
+    struct MediumJitTables {
+        lambda: Vec<f64>,
+        mu_a: Vec<f64>,
+        cum: Vec<f64>,
+        emission_lambda: Vec<f64>,
+        emission: Vec<f64>,
+    }
+
     /// `fluo_qd` parameters as parsed from Mitsuba `Properties` by the shim:
     /// `fluo::models::qd::QdParams` under the plugin's parameter names.
     struct QdConfig {
@@ -417,6 +427,8 @@ mod bridge {
         /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
         fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64;
         fn medium_to_string(model: &FluoMedium) -> String;
+        /// The tables of [`MediumJitTables`] (vectorised variants).
+        fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables;
     }
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm
@@ -593,8 +605,8 @@ mod bridge {
 }
 
 pub use bridge::{
-    DyeMediumConfig, JungConfig, JungRgbParts, MeasuredTables, QdConfig, QdConstants, QdJitTables, QdMediumConfig,
-    Range, Rgb, Sample, SampledSpectrum, Vec3,
+    DyeMediumConfig, JungConfig, JungRgbParts, MeasuredTables, MediumJitTables, QdConfig, QdConstants, QdJitTables,
+    QdMediumConfig, Range, Rgb, Sample, SampledSpectrum, Vec3,
 };
 
 // ---------------------------------------------------------------- shared value types
@@ -1448,6 +1460,17 @@ fn medium_shift_and_sample(
 
 fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64 {
     model.model.reradiation_per_nm(lambda_i, lambda_o)
+}
+
+fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables {
+    let t = model.model.jit_tables();
+    MediumJitTables {
+        lambda: t.lambda,
+        mu_a: t.mu_a,
+        cum: t.cum,
+        emission_lambda: t.emission_lambda,
+        emission: t.emission,
+    }
 }
 
 fn medium_to_string(model: &FluoMedium) -> String {

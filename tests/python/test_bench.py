@@ -83,7 +83,7 @@ def test02b_vectorised_methods_render_their_bench_scenes(tmp_path):
             assert kinds <= bench.JIT_KINDS, (scene.stem, m.name, kinds)
             jobs.append({"variant": m.variant, "xml": m.rewrite(base), "params": {"res": "8", "spp": "1"}, "spp": 1})
             names.append(f"{scene.stem}: {m.name}")
-    assert len(jobs) >= 14, names  # jung_box, highlighter_box, measured_box, qd_box, blacklight_box
+    assert len(jobs) >= 16, names  # jung_box, highlighter_box, measured_box, qd_box, blacklight_box, qd_cuvette
     for name, res in zip(names, run_llvm(jobs)):
         assert "error" not in res and res["finite"], f"{name}: {res}"
 

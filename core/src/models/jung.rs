@@ -1056,6 +1056,11 @@ impl Default for DyeMediumParams {
     }
 }
 
+/// Cells of a dye medium's μa table in the vectorised variants ([`DyeMedium::absorption_nodes`]):
+/// the b-spline's linear interpolation at support/4096 (≈ 0.01-0.05 nm) is within 1e-5 of
+/// its peak (test `jit_tables_follow_the_media` in model.rs).
+pub const DYE_JIT_CELLS: usize = 4096;
+
 /// A fluorescent dye dissolved in a participating medium ([`DyeMedium`], `fluo_dye_medium`):
 /// Jung et al.'s spectra (b-spline emission e(λ), its mirrored absorption a(λ), eqs. 3-6 of
 /// Jung et al. 2019, as [`JungFluorescence`]) as volume coefficients.
@@ -1125,6 +1130,18 @@ impl DyeMedium {
         } else {
             0.0
         }
+    }
+
+    /// The emission peak λe, nm.
+    pub fn emission_peak_nm(&self) -> f64 {
+        self.params.emission_peak_nm
+    }
+
+    /// Nodes for a piecewise-linear table of μa (the vectorised variants'):
+    /// [`DYE_JIT_CELLS`] equal cells over the absorption support (zero outside it).
+    pub fn absorption_nodes(&self) -> Vec<f64> {
+        let (lo, hi) = self.dye.absorption_support();
+        (0..=DYE_JIT_CELLS).map(|i| lo + (hi - lo) * i as f64 / DYE_JIT_CELLS as f64).collect()
     }
 
     /// μf(λo | R), 1/m.

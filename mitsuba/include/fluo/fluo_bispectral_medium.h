@@ -57,11 +57,40 @@ struct ScopedSourceRate {
 };
 } // namespace fluo_detail
 
-template <typename Float, typename Spectrum> class BispectralMedium {
+/// What every fluorescent medium shares in every variant: whether fluo_volpath transports
+/// its fluorescence this render, and the once-per-scene warning when no integrator does.
+class ManagedMedium {
+public:
+    ManagedMedium() { fluo_detail::unmanaged_medium_warning_armed().store(true, std::memory_order_relaxed); }
+    virtual ~ManagedMedium() = default;
+
+    /// fluo_volpath marks the media it transports when it prepares a render; any other
+    /// integrator renders absorption without re-emission and says so once per scene.
+    void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
+
+protected:
+    /// Warn (once per scene) when `fluorescent` and no fluo_volpath manages the medium.
+    void warn_if_unmanaged(const char *plugin, bool fluorescent) const {
+        if (m_managed.load(std::memory_order_relaxed) || !fluorescent)
+            return;
+        if (fluo_detail::unmanaged_medium_warning_armed().exchange(false, std::memory_order_relaxed)) {
+            constexpr const char *ClassName = "fluo";
+            Log(Warn, "%s: this medium fluoresces, but the scene's integrator does not transport "
+                      "fluorescence in media: it absorbs without re-emitting. Use "
+                      "<integrator type=\"fluo_volpath\"/> (in scalar_spectral, scalar_rgb or "
+                      "llvm_ad_spectral) to render its fluorescence. (This warning is printed once per scene.)",
+                plugin);
+        }
+    }
+
+private:
+    mutable std::atomic<bool> m_managed{ false };
+};
+
+template <typename Float, typename Spectrum> class BispectralMedium : public ManagedMedium {
 public:
     using MediumInteraction3f = MediumInteraction<Float, Spectrum>;
 
-    BispectralMedium() { fluo_detail::unmanaged_medium_warning_armed().store(true, std::memory_order_relaxed); }
     virtual ~BispectralMedium() = default;
 
     /// Whether the medium ever re-emits (yield > 0, fluorophores present).
@@ -99,10 +128,6 @@ public:
     /// The density at mei.p, 1 without a density grid.
     virtual Float density_at(const MediumInteraction3f &mei) const = 0;
 
-    /// fluo_volpath marks the media it transports when it prepares a render; any other
-    /// integrator renders absorption without re-emission and says so once per scene.
-    void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
-
     /// scalar_rgb: the largest diagonal entry of the reduced absorption operator A of the
     /// transport fluo_volpath prepared (per scene unit, density 1; 0: none). The RGB
     /// majorant then bounds the bands it transports, not the whole spectrum (a narrower
@@ -110,22 +135,11 @@ public:
     void set_band_absorption_max(double a) const { m_band_mu_a_max.store(a, std::memory_order_relaxed); }
 
 protected:
-    void warn_if_unmanaged(const char *plugin) const {
-        if (m_managed.load(std::memory_order_relaxed) || !fluorescent())
-            return;
-        if (fluo_detail::unmanaged_medium_warning_armed().exchange(false, std::memory_order_relaxed)) {
-            constexpr const char *ClassName = "fluo";
-            Log(Warn, "%s: this medium fluoresces, but the scene's integrator does not transport "
-                      "fluorescence in media: it absorbs without re-emitting. Use "
-                      "<integrator type=\"fluo_volpath\"/> (in scalar_spectral) to render its "
-                      "fluorescence. (This warning is printed once per scene.)", plugin);
-        }
-    }
+    void warn_if_unmanaged(const char *plugin) const { ManagedMedium::warn_if_unmanaged(plugin, fluorescent()); }
 
     double band_absorption_max() const { return m_band_mu_a_max.load(std::memory_order_relaxed); }
 
 private:
-    mutable std::atomic<bool> m_managed{ false };
     mutable std::atomic<double> m_band_mu_a_max{ 0.0 };
 };
 

@@ -190,7 +190,8 @@ inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
 /// The plugins that also run in the vectorised variants (fluo_jit.h registers them).
 inline bool jit_plugin(std::string_view name) {
     return name == "fluo_illuminant" || name == "fluo_jung" || name == "fluo_path" || name == "fluo_matrix" ||
-           name == "fluo_gmm" || name == "fluo_qd";
+           name == "fluo_gmm" || name == "fluo_qd" || name == "fluo_qd_medium" || name == "fluo_dye_medium" ||
+           name == "fluo_volpath";
 }
 
 /// Whether plugin `name` serves `variant`; every other variant of the wheel gets a stub.
@@ -223,7 +224,8 @@ inline void register_unavailable(const char *name, ObjectType type) {
                 auto *u = static_cast<const Unavailable *>(payload);
                 Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb and "
                       "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\"), and "
-                      "fluo_illuminant, fluo_jung, fluo_matrix, fluo_gmm, fluo_qd and fluo_path also in llvm_ad_rgb, "
+                      "fluo_illuminant, fluo_jung, fluo_matrix, fluo_gmm, fluo_qd, fluo_qd_medium, fluo_dye_medium, fluo_volpath and "
+                      "fluo_path also in llvm_ad_rgb, "
                       "llvm_ad_spectral, cuda_ad_rgb and "
                       "cuda_ad_spectral",
                       u->name, u->variant);

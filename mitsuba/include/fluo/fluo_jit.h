@@ -247,5 +247,71 @@ public:
     }
 };
 
+/// A fluorescent surface vertex of the vectorised spectral integrators (fluo_path,
+/// fluo_volpath): per lane and hero wavelength the elastic event or a shift (the material's
+/// jit_choose), then the shifted wavelengths' reradiation lobe in place of the BSDF's value
+/// and weight. The estimator is fluo_path.cpp's (its docs).
+template <typename Float, typename Spectrum> struct JitSurfaceShift {
+    MI_IMPORT_TYPES(BSDF, BSDFPtr, Sampler)
+    using Bispectral = JitBispectral<Float, Spectrum>;
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+
+    UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
+    WMask shifted = false;
+
+    /// Choose per hero wavelength (four 2D numbers from `sampler`); si.wavelengths become
+    /// the wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range.
+    void choose(const BSDFPtr &bsdf, SurfaceInteraction3f &si, Sampler *sampler, const Mask &active, double lo,
+                double hi) {
+        Wavelength u1, u2;
+        for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
+            Point2f u = sampler->next_2d(active);
+            u1[j] = u.x();
+            u2[j] = u.y();
+        }
+        auto [li, sc, sh, rr] = dispatch_any(
+            bsdf,
+            [lo, hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_, const Wavelength &u2_,
+                     const Mask &on) {
+                if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                    return f->jit_choose(si_, u1_, u2_, lo, hi, on);
+                return Bispectral::elastic_only(si_.wavelengths);
+            },
+            si, u1, u2, active);
+        Mask has_bsdf = active && bsdf != nullptr;
+        si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
+        scale = dr::select(has_bsdf, sc, 1.f);
+        shifted = WMask(has_bsdf) && sh;
+        rerad = dr::select(shifted, rr, 0.f);
+    }
+
+    /// The vertex's f·cos towards the emitter sample `wo` (`val`, the BSDF's value on entry)
+    /// and its weight for the sampled direction `bs` (`weight`, the BSDF's on entry): the
+    /// shifted wavelengths' reradiation lobe, Lambertian unless the scene holds a
+    /// direction-dependent one (`directional`: asked per direction), times the choice's weight.
+    void apply(const BSDFPtr &bsdf, const SurfaceInteraction3f &si, bool directional, const Vector3f &wo,
+               const BSDFSample3f &bs, const Mask &active, UnpolarizedSpectrum &val,
+               UnpolarizedSpectrum &weight) const {
+        UnpolarizedSpectrum v_em, v_bs;
+        if (directional) {
+            std::tie(v_em, v_bs) = dispatch_any(
+                bsdf,
+                [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_, const Vector3f &wa,
+                   const Vector3f &wb, const Mask &on) {
+                    if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                        return f->jit_reradiation(si_, rr_, wa, wb, on);
+                    return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                },
+                si, rerad, wo, bs.wo, active && dr::any(shifted));
+        } else {
+            v_em = rerad * Bispectral::lambert(si, wo);
+            v_bs = rerad * Bispectral::lambert(si, bs.wo);
+        }
+        val = dr::select(shifted, v_em, val) * scale;
+        UnpolarizedSpectrum w_bs = dr::select(bs.pdf > 0.f, v_bs / bs.pdf, 0.f);
+        weight = dr::select(shifted, w_bs, weight) * scale;
+    }
+};
+
 NAMESPACE_END(fluo_detail)
 NAMESPACE_END(mitsuba)

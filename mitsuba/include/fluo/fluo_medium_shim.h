@@ -24,18 +24,69 @@
 
 NAMESPACE_BEGIN(mitsuba)
 
+NAMESPACE_BEGIN(fluo_detail)
+
+/// A fluo medium's double property, rejecting non-numeric input with a message naming it.
+inline double medium_double(const Properties &props, const char *plugin, const char *name, double def) {
+    if (!props.has_property(name))
+        return def;
+    try {
+        return props.get<double>(name);
+    } catch (const std::exception &e) {
+        Throw("%s: parameter \"%s\" must be a number (%s)", plugin, name, e.what());
+    }
+}
+
+/// What every fluo medium parses in every variant: scale (metres per scene unit), the
+/// optional density grid and the host's scattering σs, with their maxima (the majorant's
+/// parts). Such a medium is never "homogeneous" to Mitsuba, even without a grid: volpath
+/// then clips the ray at each tentative collision (ray.maxt = t), which is exact only
+/// without null collisions, and these media have them (their majorant is shared by the
+/// hero wavelengths). `bounded`: whether the density grid bounds the medium.
+template <typename Float, typename Spectrum> struct MediumCommon {
+    MI_IMPORT_TYPES(Volume)
+    double scale = 1.0, max_density = 1.0, max_sigma_s = 0.0;
+    bool bounded = false;
+    /// No density grid and a constant σs: the extinction is the same everywhere.
+    bool constant = false;
+    ref<Volume> density, sigma_s;
+
+    MediumCommon(const Properties &props, const char *plugin) {
+        scale = medium_double(props, plugin, "scale", 1.0);
+        if (!(scale > 0.0) || !std::isfinite(scale))
+            Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)", plugin,
+                  scale);
+        bounded = props.has_property("density");
+        density = props.get_volume<Volume>("density", 1.f);
+        max_density = (double) density->max();
+        if (!(max_density >= 0.0) || !std::isfinite(max_density))
+            Throw("%s: invalid parameter \"density\": its maximum %g must be finite and >= 0", plugin, max_density);
+        sigma_s = props.get_volume<Volume>("sigma_s", 0.f);
+        max_sigma_s = (double) sigma_s->max();
+        if (!(max_sigma_s >= 0.0) || !std::isfinite(max_sigma_s))
+            Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", plugin,
+                  max_sigma_s);
+        constant = !bounded && dr::all(sigma_s->resolution() == ScalarVector3i(1, 1, 1));
+    }
+};
+
+/// The majorant's floor relative to its largest value over the spectrum: null collisions
+/// where the medium is (nearly) transparent, at most one per 10⁶ mean free paths of its
+/// most opaque wavelength.
+constexpr double MediumMajorantFloor = 1e-6;
+/// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
+constexpr double MediumMinMajorant = 1e-30;
+
+NAMESPACE_END(fluo_detail)
+
 template <typename Float, typename Spectrum>
 class FluoMediumShim : public Medium<Float, Spectrum>, public BispectralMedium<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(Medium, m_is_homogeneous, m_has_spectral_extinction, m_phase_function)
     MI_IMPORT_TYPES(Scene, Sampler, Texture, Volume)
 
-    /// The majorant's floor relative to its largest value over the spectrum: null
-    /// collisions where the medium is (nearly) transparent, at most one per 10⁶ mean
-    /// free paths of its most opaque wavelength.
-    static constexpr double MajorantFloor = 1e-6;
-    /// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
-    static constexpr double MinMajorant = 1e-30;
+    static constexpr double MajorantFloor = fluo_detail::MediumMajorantFloor;
+    static constexpr double MinMajorant = fluo_detail::MediumMinMajorant;
 
     void traverse(TraversalCallback *cb) override {
         cb->put("density", m_density, ParamFlags::NonDifferentiable);
@@ -125,31 +176,20 @@ public:
     }
 
 protected:
-    /// Parse what every fluo medium shares (scale, density, sigma_s); the phase
+    /// Parse what every fluo medium shares (fluo_detail::MediumCommon); the phase
     /// function is Medium's.
     FluoMediumShim(const Properties &props, const char *plugin) : Base(props), m_plugin(plugin) {
-        m_scale = get_double(props, "scale", 1.0);
-        if (!(m_scale > 0.0) || !std::isfinite(m_scale))
-            Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)",
-                  m_plugin, m_scale);
-        // Never "homogeneous" to Mitsuba, even without a grid: volpath then clips the ray
-        // at each tentative collision (ray.maxt = t), which is exact only without null
-        // collisions, and these media have them (their majorant is shared by the hero
-        // wavelengths). m_bounded: whether the density grid bounds the medium.
-        m_bounded = props.has_property("density");
+        fluo_detail::MediumCommon<Float, Spectrum> c(props, plugin);
+        m_scale = c.scale;
+        m_bounded = c.bounded;
+        m_density = c.density;
+        m_max_density = c.max_density;
+        m_sigma_s = c.sigma_s;
+        m_max_sigma_s = c.max_sigma_s;
+        m_constant = c.constant;
+        // Never "homogeneous" to Mitsuba, even without a grid (MediumCommon says why).
         m_is_homogeneous = false;
-        m_density = props.get_volume<Volume>("density", 1.f);
-        m_max_density = (double) m_density->max();
-        if (!(m_max_density >= 0.0) || !std::isfinite(m_max_density))
-            Throw("%s: invalid parameter \"density\": its maximum %g must be finite and >= 0", m_plugin,
-                  m_max_density);
-        m_sigma_s = props.get_volume<Volume>("sigma_s", 0.f);
-        m_max_sigma_s = (double) m_sigma_s->max();
-        if (!(m_max_sigma_s >= 0.0) || !std::isfinite(m_max_sigma_s))
-            Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", m_plugin,
-                  m_max_sigma_s);
         m_has_spectral_extinction = true;
-        m_constant = !m_bounded && dr::all(m_sigma_s->resolution() == ScalarVector3i(1, 1, 1));
     }
 
     /// Adopt the plugin's Rust model and derive what the render needs from it.
@@ -193,13 +233,7 @@ protected:
 
     /// A double property, rejecting non-numeric input with a message naming it.
     double get_double(const Properties &props, const char *name, double def) const {
-        if (!props.has_property(name))
-            return def;
-        try {
-            return props.get<double>(name);
-        } catch (const std::exception &e) {
-            Throw("%s: parameter \"%s\" must be a number (%s)", m_plugin, name, e.what());
-        }
+        return fluo_detail::medium_double(props, m_plugin, name, def);
     }
 
 private:
@@ -311,7 +345,7 @@ private:
     }
     std::optional<rust::Box<fluo::FluoMedium>> m_model;
     ref<Volume> m_density, m_sigma_s;
-    /// Metres per scene unit; the density's and σs's maxima (the majorant's parts).
+    /// MediumCommon's.
     double m_scale = 1.0, m_max_density = 1.0, m_max_sigma_s = 0.0, m_majorant_floor = MinMajorant;
     /// max of μa over reduced transport's wavelengths and of its RGB channels, 1/m: the RGB
     /// variants' majorant; and the max of μf there (collision_bound).

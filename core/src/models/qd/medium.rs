@@ -234,6 +234,12 @@ impl QdMedium {
         }
     }
 
+    /// The nodes of the μa table (the model's own grid over [λmin, λmax]; μa is linear
+    /// between them there).
+    pub fn absorption_nodes(&self) -> &[f64] {
+        &self.grid
+    }
+
     /// μa in cell i at fraction t of it (the table's linear interpolation), 1/m.
     #[inline]
     fn mu_a_at(&self, i: usize, t: f64) -> f64 {

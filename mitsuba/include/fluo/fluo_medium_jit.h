@@ -1,0 +1,394 @@
+// fluo's fluorescent participating media (fluo_qd_medium, fluo_dye_medium) in the
+// vectorised variants (llvm_ad_*, cuda_ad_*): a Mitsuba Medium with Dr.Jit types that
+// interpolates what Rust baked at load time (fluo::medium_jit_tables; the
+// MediumJitTables docs in core/src/model.rs hold the contract), and the interface
+// fluo_volpath's vectorised loop reaches it through (dr::dispatch over the media). The
+// scalar variants keep fluo_medium_shim.h (Rust per collision), the reference the tests
+// hold this one against.
+#pragma once
+
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/interaction.h>
+#include <mitsuba/render/medium.h>
+#include <mitsuba/render/phase.h>
+#include <mitsuba/render/volume.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <optional>
+#include <sstream>
+#include <string>
+#include <tuple>
+#include <vector>
+
+#include "fluo_bispectral_medium.h"
+#include "fluo_common.h"
+#include "fluo_jit.h"
+#include "fluo_medium_shim.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// What fluo_volpath needs of a fluorescent medium in the vectorised variants, per lane
+/// (spectral variants; in RGB ones fluo_volpath refuses fluorescent media).
+template <typename Float, typename Spectrum> class JitBispectralMedium : public ManagedMedium {
+public:
+    MI_IMPORT_TYPES()
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+
+    /// Host: whether the medium re-emits anything from [lo, hi] (the lights' range).
+    virtual bool jit_fluorescent(double lo, double hi) const = 0;
+    /// Host: [λmin, λmax], nm, where it absorbs-to-re-emit and emits.
+    virtual fluo::Range jit_range() const = 0;
+
+    /// A tentative collision along `ray` (Medium::sample_interaction's fields and delta
+    /// tracking with uniform number u), with a majorant that also covers the fluorescent
+    /// source μf(λo | [lo, hi]) up to `rate` (inverse scene units per lane; 0: none, +inf:
+    /// all of it). Returns the interaction and μf at its point and wavelengths (inverse
+    /// scene units, density and scale included).
+    virtual std::pair<MediumInteraction3f, UnpolarizedSpectrum>
+    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, double lo, double hi,
+                           Mask active) const = 0;
+
+    /// Per wavelength λo of mei: an excitation wavelength λi ∝ μa(λi) f(λi → λo) over
+    /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), and where one exists.
+    virtual std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u,
+                                                        double lo, double hi, Mask active) const = 0;
+};
+
+/// A piecewise-linear function's nodes on the device with a bucket index (one bucket per
+/// `step` nm, never wider than a cell: a node's cell is its bucket's or the next), else
+/// binary search.
+template <typename Float> struct JitGrid {
+    using UInt32 = dr::uint32_array_t<Float>;
+    using Mask = dr::mask_t<Float>;
+    static constexpr size_t MaxBuckets = 1 << 16;
+    /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f.
+    struct Cell {
+        UInt32 k;
+        Float f, x0, x1;
+    };
+
+    std::vector<double> host;
+    Float nodes;
+    UInt32 buckets;
+    float step = 1.f, l0 = 0.f, l1 = 1.f;
+    uint32_t n = 2, n_buckets = 0;
+    bool bucketed = false;
+
+    void set(const std::vector<double> &x) {
+        host = x;
+        n = (uint32_t) x.size();
+        std::vector<float> f(x.begin(), x.end());
+        nodes = dr::load<Float>(f.data(), f.size());
+        l0 = (float) x.front();
+        l1 = (float) x.back();
+        double narrowest = x.back() - x.front();
+        for (size_t k = 0; k + 1 < x.size(); ++k)
+            narrowest = std::min(narrowest, x[k + 1] - x[k]);
+        double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
+        size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
+        bucketed = count >= 1 && count <= MaxBuckets;
+        if (!bucketed)
+            return;
+        std::vector<uint32_t> b(count);
+        for (size_t i = 0, k = 0; i < count; ++i) {
+            double at = x.front() + (double) i * s;
+            while (k + 2 < x.size() && x[k + 1] <= at)
+                ++k;
+            b[i] = (uint32_t) k;
+        }
+        buckets = dr::load<UInt32>(b.data(), b.size());
+        step = (float) s;
+        n_buckets = (uint32_t) count;
+    }
+
+    Cell cell(const Float &lambda, const Mask &active) const {
+        Float x = dr::clip(lambda, l0, l1);
+        UInt32 k;
+        if (bucketed) {
+            UInt32 b = UInt32(dr::minimum(dr::floor((x - l0) * (1.f / step)), (float) (n_buckets - 1)));
+            k = dr::gather<UInt32>(buckets, b, active);
+            k = dr::select(k + 2 < n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
+        } else {
+            k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
+                    return dr::gather<Float>(nodes, i, active) <= x;
+                }) - 1;
+        }
+        Float x0 = dr::gather<Float>(nodes, k, active), x1 = dr::gather<Float>(nodes, k + 1, active);
+        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
+    }
+
+    /// The cell index of λ known on the host, and its fraction.
+    std::pair<size_t, double> host_cell(double lambda) const {
+        double x = std::clamp(lambda, host.front(), host.back());
+        size_t k = (size_t) (std::upper_bound(host.begin(), host.end(), x) - host.begin());
+        k = std::clamp(k, (size_t) 1, host.size() - 1) - 1;
+        return { k, std::clamp((x - host[k]) / (host[k + 1] - host[k]), 0.0, 1.0) };
+    }
+};
+
+NAMESPACE_END(fluo_detail)
+
+/// The Medium of fluo_qd_medium and fluo_dye_medium in the vectorised variants: the
+/// parameters of fluo_medium_shim.h (MediumCommon), μa and the emission from Rust's
+/// tables. A plugin parses its own physical parameters, builds the Rust model and hands
+/// it to init(). Spectral variants: μa at the path's wavelengths; RGB variants: μa's
+/// linear sRGB (as scalar_rgb).
+template <typename Float, typename Spectrum>
+class FluoMediumJit : public Medium<Float, Spectrum>, public fluo_detail::JitBispectralMedium<Float, Spectrum> {
+public:
+    MI_IMPORT_BASE(Medium, m_is_homogeneous, m_has_spectral_extinction, m_phase_function)
+    MI_IMPORT_TYPES(Scene, Sampler, Texture, Volume)
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using Grid = fluo_detail::JitGrid<Float>;
+    using Cell = typename Grid::Cell;
+    static constexpr size_t NW = dr::size_v<UnpolarizedSpectrum>;
+
+    void traverse(TraversalCallback *cb) override {
+        cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
+        cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
+        Base::traverse(cb);
+    }
+
+    std::tuple<Mask, Float, Float> intersect_aabb(const Ray3f &ray) const override {
+        if (!m_common.bounded)
+            return { true, 0.f, dr::Infinity<Float> };
+        return m_common.density->bbox().ray_intersect(ray);
+    }
+
+    UnpolarizedSpectrum get_majorant(const MediumInteraction3f &mi, Mask active) const override {
+        return majorant(absorption(mi.wavelengths, active), active);
+    }
+
+    std::tuple<UnpolarizedSpectrum, UnpolarizedSpectrum, UnpolarizedSpectrum>
+    get_scattering_coefficients(const MediumInteraction3f &mi, Mask active) const override {
+        this->warn_if_unmanaged(m_plugin, m_fluorescent);
+        UnpolarizedSpectrum mu_a = absorption(mi.wavelengths, active);
+        UnpolarizedSpectrum sigma_s = m_common.sigma_s->eval(mi, active) * (Float) m_common.scale;
+        UnpolarizedSpectrum sigma_t = mu_a * density(mi, active) * (Float) m_common.scale + sigma_s;
+        UnpolarizedSpectrum sigma_n = dr::maximum(majorant(mu_a, active) - sigma_t, 0.f);
+        return { sigma_s, sigma_n, sigma_t };
+    }
+
+    // ------------------------------------------------- the bispectral interface
+
+    bool jit_fluorescent(double lo, double hi) const override {
+        if constexpr (!is_spectral_v<Spectrum>)
+            return m_fluorescent && lo < hi;
+        return m_fluorescent && std::max(lo, m_range.lo) < std::min(hi, m_range.hi);
+    }
+    fluo::Range jit_range() const override { return m_range; }
+
+    std::pair<MediumInteraction3f, UnpolarizedSpectrum>
+    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, double lo, double hi,
+                           Mask active) const override {
+        MediumInteraction3f mi = dr::zeros<MediumInteraction3f>();
+        mi.wi = -ray.d;
+        mi.sh_frame = Frame3f(mi.wi);
+        mi.time = ray.time;
+        mi.wavelengths = ray.wavelengths;
+        auto [hit, mint, maxt] = intersect_aabb(ray);
+        active &= hit && (dr::isfinite(mint) || dr::isfinite(maxt));
+        mint = dr::select(active, dr::maximum(mint, 0.f), 0.f);
+        maxt = dr::select(active, dr::minimum(ray.maxt, maxt), dr::Infinity<Float>);
+
+        UnpolarizedSpectrum mu_a(0.f), mu_f(0.f), bound(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            auto [a, b] = excitation_interval(lo, hi);
+            // cap: the requested rate in 1/m at density 1
+            Float cap = rate * (float) (1.0 / std::max(m_common.max_density * m_common.scale, 1e-300));
+            for (size_t j = 0; j < NW; ++j) {
+                Cell c = m_grid.cell(mi.wavelengths[j], active);
+                mu_a[j] = mu_a_in(c, active);
+                mu_f[j] = source(mi.wavelengths[j], c, a, b, active);
+                bound[j] = dr::maximum(mu_a[j], dr::minimum(mu_f[j], cap));
+            }
+        }
+        UnpolarizedSpectrum m_bar = majorant(bound, active);
+        Float t = mint - dr::log(1.f - u) / m_bar[0];
+        Mask valid = active && t <= maxt;
+        mi.t = dr::select(valid, t, dr::Infinity<Float>);
+        mi.p = ray(t);
+        mi.medium = this;
+        mi.mint = mint;
+        Float d = density(mi, valid) * (float) m_common.scale;
+        mi.sigma_s = m_common.sigma_s->eval(mi, valid) * (Float) m_common.scale;
+        mi.sigma_t = mu_a * d + mi.sigma_s;
+        mi.sigma_n = dr::maximum(m_bar - mi.sigma_t, 0.f);
+        mi.combined_extinction = m_bar;
+        return { mi, dr::select(valid, mu_f * d, 0.f) };
+    }
+
+    std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u, double lo,
+                                                double hi, Mask active) const override {
+        Wavelength li = mei.wavelengths;
+        WMask ok = false;
+        if constexpr (is_spectral_v<Spectrum>) {
+            auto [a, b] = excitation_interval(lo, hi);
+            if (!(a < b))
+                return { li, ok };
+            Float ca = (Float) host_cumulative(a);
+            for (size_t j = 0; j < NW; ++j) {
+                Float top = dr::minimum(mei.wavelengths[j], (float) b);
+                Mask live = active && top > (float) a;
+                Float cb = cumulative(top, m_grid.cell(top, live), live);
+                Float target = dr::fmadd(u[j], cb - ca, ca);
+                // the cell holding `target`: the last k with cum[k] <= target
+                UInt32 k = dr::binary_search<UInt32>(1, m_grid.n - 1, [&](const UInt32 &i) {
+                               return dr::gather<Float>(m_cum, i, live) <= target;
+                           }) - 1;
+                Float x0 = dr::gather<Float>(m_grid.nodes, k, live), x1 = dr::gather<Float>(m_grid.nodes, k + 1, live);
+                Float f0 = dr::gather<Float>(m_mu_a, k, live), f1 = dr::gather<Float>(m_mu_a, k + 1, live);
+                Float off = fluo_detail::linear_cell_inverse(f0, f1, x1 - x0, target - dr::gather<Float>(m_cum, k, live));
+                li[j] = dr::clip(x0 + off, (float) a, top);
+                ok[j] = live && cb > ca && dr::isfinite(cb);
+            }
+        } else {
+            (void) u, (void) lo, (void) hi, (void) active;
+        }
+        return { li, ok };
+    }
+
+protected:
+    FluoMediumJit(const Properties &props, const char *plugin)
+        : Base(props), m_plugin(plugin), m_common(props, plugin) {
+        m_is_homogeneous = false; // MediumCommon says why
+        m_has_spectral_extinction = true;
+    }
+
+    /// Adopt the plugin's Rust model and bake its tables.
+    void init(rust::Box<fluo::FluoMedium> model) {
+        m_model = std::move(model);
+        m_fluorescent = fluo::medium_is_fluorescent(**m_model);
+        m_range = fluo::medium_lambda_range(**m_model);
+        fluo::Rgb rgb = fluo::medium_absorption_rgb(**m_model);
+        m_mu_a_rgb = { rgb.r, rgb.g, rgb.b };
+        fluo::MediumJitTables t = fluo::medium_jit_tables(**m_model);
+        if (t.lambda.size() < 2 || t.mu_a.size() != t.lambda.size() || t.cum.size() != t.lambda.size() ||
+            t.emission_lambda.size() < 2 || t.emission.size() != t.emission_lambda.size())
+            Throw("%s: the medium's tables have %zu nodes, %zu emission nodes (at least 2 each expected)", m_plugin,
+                  t.lambda.size(), t.emission_lambda.size());
+        m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
+        m_mu_a_host.assign(t.mu_a.begin(), t.mu_a.end());
+        m_cum_host.assign(t.cum.begin(), t.cum.end());
+        m_mu_a = load(t.mu_a);
+        m_cum = load(t.cum);
+        m_emission = load(t.emission);
+        m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
+        double mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
+        m_majorant_floor = std::max(fluo_detail::MediumMajorantFloor *
+                                        (mu_max * m_common.max_density + m_common.max_sigma_s) * m_common.scale,
+                                    fluo_detail::MediumMinMajorant);
+        m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
+                                  m_mu_a_rgb[2] });
+    }
+
+    /// "Name[ model, scale, density, sigma_s, phase ]".
+    std::string describe(const char *name) const {
+        std::ostringstream oss;
+        oss << name << "[" << std::endl
+            << "  model = " << std::string(fluo::medium_to_string(**m_model)) << "," << std::endl
+            << "  scale = " << m_common.scale << "," << std::endl
+            << "  density_grid = " << m_common.bounded << "," << std::endl
+            << "  density = " << string::indent(m_common.density) << "," << std::endl
+            << "  sigma_s = " << string::indent(m_common.sigma_s) << "," << std::endl
+            << "  phase_function = " << string::indent(m_phase_function) << "," << std::endl
+            << "  variant = vectorised (tables: " << m_grid.n << " absorption nodes, " << m_egrid.n
+            << " emission nodes)"
+            << std::endl
+            << "]";
+        return oss.str();
+    }
+
+    double get_double(const Properties &props, const char *name, double def) const {
+        return fluo_detail::medium_double(props, m_plugin, name, def);
+    }
+
+private:
+    static Float load(const rust::Vec<double> &v) {
+        std::vector<float> f(v.begin(), v.end());
+        return dr::load<Float>(f.data(), f.size());
+    }
+
+    Float density(const Interaction3f &mi, const Mask &active) const {
+        if (!m_common.bounded)
+            return Float(1.f);
+        return m_common.density->eval_1(mi, active);
+    }
+
+    Float mu_a_in(const Cell &c, const Mask &active) const {
+        return dr::lerp(dr::gather<Float>(m_mu_a, c.k, active), dr::gather<Float>(m_mu_a, c.k + 1, active), c.f);
+    }
+
+    /// μa at the wavelengths (spectral) or its sRGB (RGB), 1/m at density 1.
+    UnpolarizedSpectrum absorption(const Wavelength &lambda, const Mask &active) const {
+        UnpolarizedSpectrum out(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            for (size_t j = 0; j < NW; ++j)
+                out[j] = mu_a_in(m_grid.cell(lambda[j], active), active);
+        } else {
+            (void) lambda, (void) active;
+            for (size_t j = 0; j < NW && j < 3; ++j)
+                out[j] = (float) m_mu_a_rgb[j];
+        }
+        return out;
+    }
+
+    /// μ̄: the largest over the wavelengths of (max density · bound + max σs)·scale, at least
+    /// the floor, shared by the hero wavelengths (fluo_medium_shim.h's majorant says why);
+    /// in RGB the spectrum's maximum bounds every channel (as scalar_rgb).
+    UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */) const {
+        const double s = m_common.scale;
+        UnpolarizedSpectrum m = (bound * (float) m_common.max_density + (float) m_common.max_sigma_s) * (float) s;
+        if constexpr (is_rgb_v<Spectrum>)
+            m = dr::maximum(m, UnpolarizedSpectrum((float) ((m_rgb_mu_max * m_common.max_density + m_common.max_sigma_s) * s)));
+        return UnpolarizedSpectrum(dr::maximum(dr::max(m), (float) m_majorant_floor));
+    }
+
+    /// [a, b]: the lights' range within the medium's.
+    std::pair<double, double> excitation_interval(double lo, double hi) const {
+        return { std::max(lo, m_range.lo), std::min(hi, m_range.hi) };
+    }
+
+    /// ∫ μa from the grid's start to λ in cell c, nm/m.
+    Float cumulative(const Float &lambda, const Cell &c, const Mask &active) const {
+        Float x = dr::clip(lambda, c.x0, c.x1);
+        Float f0 = dr::gather<Float>(m_mu_a, c.k, active);
+        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), dr::gather<Float>(m_cum, c.k, active));
+    }
+    double host_cumulative(double lambda) const {
+        auto [k, f] = m_grid.host_cell(lambda);
+        double x0 = m_grid.host[k], x1 = m_grid.host[k + 1];
+        double mu = m_mu_a_host[k] + f * (m_mu_a_host[k + 1] - m_mu_a_host[k]);
+        return m_cum_host[k] + .5 * f * (x1 - x0) * (m_mu_a_host[k] + mu);
+    }
+
+    /// μf(λo | [a, b]) at density 1, 1/m: e(λo)·(C(min(λo, b)) − C(a))⁺, with c λo's cell.
+    Float source(const Float &lambda_o, const Cell &c, double a, double b, const Mask &active) const {
+        if (!m_fluorescent || !(a < b))
+            return Float(0.f);
+        Mask inside = active && lambda_o >= m_egrid.l0 && lambda_o <= m_egrid.l1;
+        Cell ce = m_egrid.cell(lambda_o, inside);
+        Float e = dr::lerp(dr::gather<Float>(m_emission, ce.k, inside),
+                           dr::gather<Float>(m_emission, ce.k + 1, inside), ce.f);
+        // C(min(λo, b)) from λo's own cell where λo < b
+        Float c_top = dr::select(lambda_o < (float) b, cumulative(lambda_o, c, inside), (float) host_cumulative(b));
+        Float mass = c_top - (float) host_cumulative(a);
+        return dr::select(inside && e > 0.f, e * dr::maximum(mass, 0.f), 0.f);
+    }
+
+    const char *m_plugin;
+    fluo_detail::MediumCommon<Float, Spectrum> m_common;
+    std::optional<rust::Box<fluo::FluoMedium>> m_model;
+    bool m_fluorescent = false;
+    fluo::Range m_range{ 0, 0 };
+    std::array<double, 3> m_mu_a_rgb{};
+    double m_rgb_mu_max = 0.0, m_majorant_floor = fluo_detail::MediumMinMajorant;
+    Grid m_grid, m_egrid; ///< μa's nodes, the emission's
+    Float m_mu_a, m_cum, m_emission;
+    std::vector<double> m_mu_a_host, m_cum_host;
+};
+
+NAMESPACE_END(mitsuba)
