@@ -169,24 +169,40 @@ private:
         return out;
     }
 
-    /// A tentative collision: fluorescent media through jit_sample_interaction (their
-    /// majorant covering the source up to `rate`), the others through Mitsuba's
-    /// sample_interaction. Returns it, μf there (0 for the others) and where it is fluorescent.
-    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask> sample_medium(const MediumPtr &medium, const Ray3f &ray,
-                                                                             const Float &u, const Float &rate,
-                                                                             const Mask &active) const {
+    /// μa and μf (1/m at density 1) of the fluorescent media at the wavelengths, once per flight.
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> rates(const MediumPtr &medium, const Wavelength &lambda,
+                                                              const Mask &active) const {
         const double lo = m_range_lo, hi = m_range_hi;
         return fluo_detail::dispatch_any(
             medium,
-            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const Float &rate_, const Mask &on) {
+            [lo, hi](const Medium *m, const Wavelength &lambda_, const Mask &on) {
+                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi))
+                    return f->jit_rates(lambda_, lo, hi, on);
+                return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+            },
+            lambda, active);
+    }
+
+    /// A tentative collision: fluorescent media through jit_sample_interaction with the
+    /// flight's rates (their majorant covering the source up to `rate`), the others through
+    /// Mitsuba's sample_interaction. Returns it, μf there (0 for the others) and where it is
+    /// fluorescent.
+    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask>
+    sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const Float &rate,
+                  const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f, const Mask &active) const {
+        const double lo = m_range_lo, hi = m_range_hi;
+        return fluo_detail::dispatch_any(
+            medium,
+            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const Float &rate_,
+                     const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
                 if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi)) {
-                    auto [mei, mu_f] = f->jit_sample_interaction(ray_, u_, rate_, lo, hi, on);
-                    return std::make_tuple(mei, mu_f, Mask(true));
+                    auto [mei, mf] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
+                    return std::make_tuple(mei, mf, Mask(true));
                 }
                 return std::make_tuple(m->sample_interaction(ray_, u_, UInt32(0), on), UnpolarizedSpectrum(0.f),
                                        Mask(false));
             },
-            ray, u, rate, active);
+            ray, u, rate, mu_a, mu_f, active);
     }
 
     /// Null and real collision probabilities in a fluorescent medium: spectral tracking
@@ -224,9 +240,12 @@ private:
         Float last_scatter_direction_pdf;
         Mask needs_intersection, specular_chain, valid_ray;
         Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
+        /// μa, μf of a fluorescent medium at the flight's wavelengths (density 1)
+        UnpolarizedSpectrum mu_a, mu_f;
         Sampler *sampler;
         DRJIT_STRUCT(LoopState, active, depth, ray, throughput, result, si, mei, medium, eta, last_scatter_event,
-                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, sampler)
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, mu_f,
+                     sampler)
     };
 
     /// volpath's loop with fluorescence (spectral variants with fluorescence only).
@@ -247,6 +266,8 @@ private:
                          Mask(active && !m_hide_emitters),
                          Mask(!m_hide_emitters && scene->environment() != nullptr),
                          Float(0.f),
+                         UnpolarizedSpectrum(0.f),
+                         UnpolarizedSpectrum(0.f),
                          sampler };
         const bool directional = m_directional, surfaces = !m_bsdfs.empty(), media = !m_media.empty();
         const double range_lo = m_range_lo, range_hi = m_range_hi;
@@ -286,10 +307,13 @@ private:
                         dr::masked(ls.inv_len, fluo_flight) =
                             dr::select(ls.si.is_valid(), dr::rcp(dr::maximum(ls.si.t, 1e-30f)), 0.f);
                         ls.needs_intersection &= !fluo_flight;
+                        auto [mu_a, mu_f_] = rates(ls.medium, ls.ray.wavelengths, fluo_flight);
+                        dr::masked(ls.mu_a, fluo_flight) = mu_a;
+                        dr::masked(ls.mu_f, fluo_flight) = mu_f_;
                     }
                     Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                    auto [mei, mf, fl] =
-                        sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), rate, active_medium);
+                    auto [mei, mf, fl] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), rate,
+                                                       ls.mu_a, ls.mu_f, active_medium);
                     dr::masked(ls.mei, active_medium) = mei;
                     mu_f = mf;
                     is_fluo = fl && active_medium;
@@ -499,8 +523,10 @@ private:
         SurfaceInteraction3f si;
         MediumInteraction3f mei;
         Spectrum transmittance;
+        UnpolarizedSpectrum mu_a; ///< μa of a fluorescent medium at the ray's wavelengths (density 1)
         Sampler *sampler;
-        DRJIT_STRUCT(ShadowState, active, ray, total_dist, needs_intersection, medium, si, mei, transmittance, sampler)
+        DRJIT_STRUCT(ShadowState, active, ray, total_dist, needs_intersection, medium, si, mei, transmittance, mu_a,
+                     sampler)
     };
 
     /// An emitter sample seen from `ref` (at ref.wavelengths) and its transmittance
@@ -528,6 +554,7 @@ private:
                            dr::zeros<SurfaceInteraction3f>(),
                            dr::zeros<MediumInteraction3f>(),
                            Spectrum(1.f),
+                           UnpolarizedSpectrum(0.f),
                            sampler };
         dr::tie(ss) = dr::while_loop(
             dr::make_tuple(ss), [](const ShadowState &ss) { return dr::detach(ss.active); },
@@ -541,8 +568,12 @@ private:
                 Mask active_medium = ss.active && ss.medium != nullptr;
                 Mask active_surface = ss.active && !active_medium;
                 if (dr::any_or<true>(active_medium)) {
-                    auto [mei, mu_f, fl] =
-                        sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium), Float(0.f), active_medium);
+                    // a fluorescent medium's μa, once per segment (the rate is 0: absorption alone)
+                    Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
+                    if (dr::any_or<true>(segment))
+                        dr::masked(ss.mu_a, segment) = rates(ss.medium, ss.ray.wavelengths, segment).first;
+                    auto [mei, mu_f, fl] = sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium),
+                                                         Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
                     (void) mu_f, (void) fl;
                     dr::masked(ss.mei, active_medium) = mei;
                     dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =

@@ -42,14 +42,20 @@ public:
     /// Host: [λmin, λmax], nm, where it absorbs-to-re-emit and emits.
     virtual fluo::Range jit_range() const = 0;
 
+    /// μa(λ) and μf(λ | [lo, hi]) at the wavelengths, 1/m at density 1: what a flight's
+    /// tentative collisions need (a flight keeps its wavelengths; fluo_volpath asks once per
+    /// flight).
+    virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> jit_rates(const Wavelength &lambda, double lo,
+                                                                          double hi, Mask active) const = 0;
+
     /// A tentative collision along `ray` (Medium::sample_interaction's fields and delta
-    /// tracking with uniform number u), with a majorant that also covers the fluorescent
-    /// source μf(λo | [lo, hi]) up to `rate` (inverse scene units per lane; 0: none, +inf:
-    /// all of it). Returns the interaction and μf at its point and wavelengths (inverse
-    /// scene units, density and scale included).
+    /// tracking with uniform number u) given the flight's jit_rates, with a majorant that
+    /// also covers the fluorescent source μf up to `rate` (inverse scene units per lane; 0:
+    /// none, +inf: all of it). Returns the interaction and μf at its point (inverse scene
+    /// units, density and scale included).
     virtual std::pair<MediumInteraction3f, UnpolarizedSpectrum>
-    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, double lo, double hi,
-                           Mask active) const = 0;
+    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
+                           const UnpolarizedSpectrum &mu_f, Mask active) const = 0;
 
     /// Per wavelength λo of mei: an excitation wavelength λi ∝ μa(λi) f(λi → λo) over
     /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), and where one exists.
@@ -181,9 +187,25 @@ public:
     }
     fluo::Range jit_range() const override { return m_range; }
 
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> jit_rates(const Wavelength &lambda, double lo, double hi,
+                                                                  Mask active) const override {
+        UnpolarizedSpectrum mu_a(0.f), mu_f(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            auto [a, b] = excitation_interval(lo, hi);
+            for (size_t j = 0; j < NW; ++j) {
+                Cell c = m_grid.cell(lambda[j], active);
+                mu_a[j] = mu_a_in(c, active);
+                mu_f[j] = source(lambda[j], c, a, b, active);
+            }
+        } else {
+            (void) lambda, (void) lo, (void) hi, (void) active;
+        }
+        return { mu_a, mu_f };
+    }
+
     std::pair<MediumInteraction3f, UnpolarizedSpectrum>
-    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, double lo, double hi,
-                           Mask active) const override {
+    jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
+                           const UnpolarizedSpectrum &mu_f, Mask active) const override {
         MediumInteraction3f mi = dr::zeros<MediumInteraction3f>();
         mi.wi = -ray.d;
         mi.sh_frame = Frame3f(mi.wi);
@@ -193,20 +215,9 @@ public:
         active &= hit && (dr::isfinite(mint) || dr::isfinite(maxt));
         mint = dr::select(active, dr::maximum(mint, 0.f), 0.f);
         maxt = dr::select(active, dr::minimum(ray.maxt, maxt), dr::Infinity<Float>);
-
-        UnpolarizedSpectrum mu_a(0.f), mu_f(0.f), bound(0.f);
-        if constexpr (is_spectral_v<Spectrum>) {
-            auto [a, b] = excitation_interval(lo, hi);
-            // cap: the requested rate in 1/m at density 1
-            Float cap = rate * (float) (1.0 / std::max(m_common.max_density * m_common.scale, 1e-300));
-            for (size_t j = 0; j < NW; ++j) {
-                Cell c = m_grid.cell(mi.wavelengths[j], active);
-                mu_a[j] = mu_a_in(c, active);
-                mu_f[j] = source(mi.wavelengths[j], c, a, b, active);
-                bound[j] = dr::maximum(mu_a[j], dr::minimum(mu_f[j], cap));
-            }
-        }
-        UnpolarizedSpectrum m_bar = majorant(bound, active);
+        // the requested rate in 1/m at density 1
+        Float cap = rate * (float) (1.0 / std::max(m_common.max_density * m_common.scale, 1e-300));
+        UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active);
         Float t = mint - dr::log(1.f - u) / m_bar[0];
         Mask valid = active && t <= maxt;
         mi.t = dr::select(valid, t, dr::Infinity<Float>);
