@@ -453,18 +453,20 @@ private:
         return ra;
     }
 
-    /// R·A(ωo)·cos θo towards two directions for a direction-dependent lobe:
-    /// lobe·w_0·R·Σ_t s_t(cos θ)·M_t, the s_t linear between the entry's nodes
-    /// (Bispectral::jit_reduced_nodes, jit_lobe). Each R·M_t column serves both directions.
+    /// For a direction-dependent lobe, R·A(ωo)·cos θo·c towards wa (the emitter sample, with
+    /// its coefficients c) and R·A(ωo)·cos θo towards wb: lobe·w_0·R·Σ_t s_t(cos θ)·M_t, the
+    /// s_t linear between the entry's nodes (Bispectral::jit_reduced_nodes, jit_lobe). Each
+    /// R·M_t column serves both directions.
     template <size_t K>
-    std::pair<Rows<K>, Rows<K>> directional_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R,
-                                                     const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
+    std::pair<Color3f, Rows<K>> directional_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R,
+                                                     const Coeffs<K> &c, const Vector3f &wa, const Vector3f &wb,
+                                                     const Mask &on) const {
         constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms;
         using Weights = std::array<Float, Bispectral::MaxTerms>;
         auto weights = [&](const Vector3f &wo) {
-            auto [lobe, c] = e.bispectral->jit_lobe(si, wo, on);
+            auto [lobe, cos_h] = e.bispectral->jit_lobe(si, wo, on);
             Float scale = lobe * e.bispectral->jit_reduced_weights()[0];
-            Float x = dr::clip(c, 0.f, 1.f) * (float) (e.n_nodes - 1);
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
             UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
             Float f = x - Float(j);
             Mask live = on && lobe != 0.f;
@@ -475,9 +477,11 @@ private:
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
-        Rows<K> out_a = dr::zeros<Rows<K>>(), out_b = dr::zeros<Rows<K>>();
+        Color3f out_a = dr::zeros<Color3f>();
+        Rows<K> out_b = dr::zeros<Rows<K>>();
         for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
             for (size_t j = 0; j < K; ++j) {
+                Float wc = w_a[t] * c[j];
                 for (size_t r = 0; r < 3; ++r) {
                     Float acc = 0.f; // (R·M_t)[r, j]
                     bool any = false;
@@ -488,7 +492,7 @@ private:
                         }
                     if (!any)
                         continue;
-                    out_a[r * K + j] = dr::fmadd(w_a[t], acc, out_a[r * K + j]);
+                    out_a[r] = dr::fmadd(wc, acc, out_a[r]);
                     out_b[r * K + j] = dr::fmadd(w_b[t], acc, out_b[r * K + j]);
                 }
             }
@@ -548,8 +552,13 @@ private:
                     // (only in scenes that hold one: `directional`) gives R·A(ωo)·cos θo per
                     // direction instead, its elastic part being the BSDF's own value.
                     Mask is_fl, native_elastic = false;
-                    Rows<K> RA_em, RA_bs;
-                    Float em_factor = 1.f, bs_factor;
+                    const bool any_em = dr::any_or<true>(active_em);
+                    Coeffs<K> c = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
+                    if (any_em)
+                        c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+                    Rows<K> RA_bs;
+                    Color3f v_fl; // R·A(ωo)·c·cos θo towards the emitter sample
+                    Float bs_factor;
                     if (!m_directional) {
                         auto [f, RA] = fluo_detail::dispatch_any(
                             bsdf,
@@ -561,41 +570,42 @@ private:
                             },
                             si, R, active_next);
                         is_fl = f;
-                        RA_em = RA_bs = RA;
-                        em_factor = Bispectral::lambert(si, wo);
+                        RA_bs = RA;
+                        if (any_em)
+                            v_fl = apply<K>(RA, c) * Bispectral::lambert(si, wo);
                         bs_factor = dr::select(bs.pdf > 0.f, Bispectral::lambert(si, bs.wo) / bs.pdf, 0.f);
                     } else {
-                        auto [f, native, ra_em, ra_bs] = fluo_detail::dispatch_any(
+                        // towards the emitter only R·A(ωo)·c is needed: 3 values leave the call, not 3K
+                        auto [f, native, va, ra_bs] = fluo_detail::dispatch_any(
                             bsdf,
-                            [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_,
+                            [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Coeffs<K> &c_,
                                    const Vector3f &wa, const Vector3f &wb, const Mask &on) {
                                 const Entry *e = find(b);
                                 if (!e)
-                                    return std::make_tuple(Mask(false), Mask(false), dr::zeros<Rows<K>>(),
+                                    return std::make_tuple(Mask(false), Mask(false), dr::zeros<Color3f>(),
                                                            dr::zeros<Rows<K>>());
                                 if (e->n_nodes == 0) {
                                     Rows<K> ra = lambertian_product<K>(*e, si_, R_, on);
-                                    return std::make_tuple(Mask(true), Mask(false), ra * Bispectral::lambert(si_, wa),
+                                    return std::make_tuple(Mask(true), Mask(false),
+                                                           apply<K>(ra, c_) * Bispectral::lambert(si_, wa),
                                                            ra * Bispectral::lambert(si_, wb));
                                 }
-                                auto [ra, rb] = directional_products<K>(*e, si_, R_, wa, wb, on);
-                                return std::make_tuple(Mask(true), Mask(true), ra, rb);
+                                auto [va_, rb] = directional_products<K>(*e, si_, R_, c_, wa, wb, on);
+                                return std::make_tuple(Mask(true), Mask(true), va_, rb);
                             },
-                            si, R, wo, bs.wo, active_next);
+                            si, R, c, wo, bs.wo, active_next);
                         is_fl = f;
                         native_elastic = native;
-                        RA_em = ra_em;
+                        v_fl = va;
                         RA_bs = ra_bs;
                         bs_factor = dr::select(bs.pdf > 0.f, dr::rcp(bs.pdf), 0.f);
                     }
                     is_fl &= active_next;
                     native_elastic &= is_fl;
                     Mask matrix = ls.reduced || is_fl;
-                    if (dr::any_or<true>(active_em)) {
+                    if (any_em) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
-                        Coeffs<K> c = emitter_coefficients<K>(ds.emitter, em_weight, active_em);
                         Color3f v_red = apply<K>(scale_columns<K>(R, band_albedo<K>(bsdf_val)), c);
-                        Color3f v_fl = apply<K>(RA_em, c) * em_factor;
                         if (m_directional)
                             v_fl += dr::select(native_elastic, v_red, 0.f);
                         Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));

@@ -420,6 +420,23 @@ private:
     /// coating R_tot = R_spe + pass·F/(1 − F·R_spe) (eq. 23).
     UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, const Float &cos_m, const Mask &active,
                                       const Cells &cells) const {
+        if (m_tabulated) {
+            // a uniform substrate under the coating: R_tot itself from Rust's table (the
+            // scalar lobe's r_tot at the nodes), no substrate lookups and Fresnel per lane
+            UnpolarizedSpectrum r_tot;
+            if constexpr (is_spectral_v<Spectrum>) {
+                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
+                    r_tot[w] = bilinear(m_r_tot, cos_m, cells[w], active);
+            } else {
+                auto [j, fc] = rows_at(cos_m);
+                for (size_t ch = 0; ch < 3; ++ch) {
+                    UInt32 i0 = j * 3 + (uint32_t) ch, i1 = i0 + 3;
+                    r_tot[ch] = dr::lerp(dr::gather<Float>(m_rgb_r_tot, i0, active),
+                                         dr::gather<Float>(m_rgb_r_tot, i1, active), fc);
+                }
+            }
+            return r_tot;
+        }
         dr::Complex<UnpolarizedSpectrum> eta_c(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
         UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
         if (!m_coated)
@@ -491,6 +508,24 @@ private:
         // Mitsuba's own clamp of a zero roughness.
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
         m_coated = m_config.density > 0.0;
+        m_tabulated = m_coated && m_setup.uniform_substrate();
+        if (m_tabulated && !is_spectral_v<Spectrum>) {
+            // RGB: R_tot per channel at the cosine nodes from the channels' R_spe and pass and
+            // the substrate's (uniform) eta/k, as fresnel_value computes it per lane
+            auto eta = m_setup.eta->eval(dr::zeros<SurfaceInteraction3f>(), true);
+            auto k = m_setup.k->eval(dr::zeros<SurfaceInteraction3f>(), true);
+            std::vector<double> r_tot(t.extra_r_spe.size());
+            for (size_t j = 0; j < t.rows; ++j)
+                for (size_t ch = 0; ch < 3; ++ch) {
+                    double cos_m = (double) j / (double) (t.rows - 1);
+                    dr::Complex<double> eta_c(fluo_detail::host_value(eta[ch]), fluo_detail::host_value(k[ch]));
+                    double f = fresnel_conductor(cos_m, eta_c), r = t.extra_r_spe[j * 3 + ch],
+                           pass = t.extra_pass[j * 3 + ch];
+                    r_tot[j * 3 + ch] = r + pass * f / std::max(1.0 - f * r, 1e-12);
+                }
+            std::vector<float> f(r_tot.begin(), r_tot.end());
+            m_rgb_r_tot = dr::load<FloatStorage>(f.data(), f.size());
+        }
         ++m_build;
     }
 
@@ -534,8 +569,10 @@ private:
     MicrofacetType m_type = MicrofacetType::Beckmann;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;
+    /// coated over a uniform substrate: the elastic lobe's R_tot from the tables (fresnel_value)
+    bool m_tabulated = false;
     // the tables ([rows][λ] row major) and their grid
-    FloatStorage m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass;
+    FloatStorage m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot;
     uint32_t m_n = 2, m_rows = 2;
     uint64_t m_build = 0; ///< counts rebuilds: keys the reduction below
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes)
@@ -555,7 +592,8 @@ private:
     Float m_q = 0.f; ///< Q (differentiable)
     ScalarFloat m_radius = 0.f, m_density = 0.f, m_alpha = 0.f, m_width = 0.f;
 
-    MI_TRAVERSE_CB(Base, m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_buckets, m_q)
+    MI_TRAVERSE_CB(Base, m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot,
+                   m_buckets, m_q)
 };
 
 static const bool fluo_qd_jit_registered =
