@@ -501,13 +501,7 @@ impl MediumModel {
         }
         lambda.dedup_by(|a, b| *a <= *b);
         let mu_a: Vec<f64> = lambda.iter().map(|&l| self.absorption_per_m(l)).collect();
-        let mut cum = Vec::with_capacity(lambda.len());
-        let mut acc = 0.0;
-        cum.push(0.0);
-        for (w, m) in lambda.windows(2).zip(mu_a.windows(2)) {
-            acc += 0.5 * (w[1] - w[0]) * (m[0] + m[1]);
-            cum.push(acc);
-        }
+        let cum = crate::spectrum::running_trapezoid(&lambda, &mu_a);
         let (lo, hi) = self.lambda_range();
         let e = |l: f64| dispatch!(self, m => m.emission_per_nm(l));
         let peak = match self {

@@ -16,7 +16,6 @@
 #include <sstream>
 #include <string>
 #include <unordered_map>
-#include <unordered_set>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -121,12 +120,6 @@ private:
         m_entries.clear();
         m_sources.clear();
         bool directional = false;
-        std::unordered_set<const Object *> direct;
-        for (const auto &shape : scene->shapes())
-            direct.insert(shape->bsdf());
-        fluo_detail::Collector c;
-        for (const auto &shape : scene->shapes())
-            c.visit(const_cast<Shape *>(shape.get()));
         fluo::Range lights = fluo_detail::emitters_range(scene);
         double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
         for (const auto &emitter : scene->emitters()) {
@@ -141,15 +134,8 @@ private:
                     m_sources.emplace(emitter.get(), s);
                 }
         }
-        for (Object *o : c.objects) {
-            auto *b = dynamic_cast<Bispectral *>(o);
-            if (!b || !b->jit_fluorescent())
-                continue;
-            if (!direct.count(o))
-                Throw("%s: a fluorescent material is wrapped in another BSDF (twosided, blendbsdf, mask, ...), "
-                      "which the vectorised variants cannot see through yet (its fluorescence would be lost): "
-                      "use it directly, or render in scalar_spectral/scalar_rgb", Plugin);
-            Entry e{ dynamic_cast<const BSDF *>(o), b };
+        for (Bispectral *b : fluo_detail::jit_fluorescent_bsdfs<Bispectral>(Plugin, scene)) {
+            Entry e{ dynamic_cast<const BSDF *>(b), b };
             hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
             directional |= !b->jit_lambertian();
             if constexpr (is_rgb_v<Spectrum>) {

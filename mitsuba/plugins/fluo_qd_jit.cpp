@@ -257,7 +257,7 @@ public:
                                return dr::gather<Float>(m_cdf, row + i, ok) <= target;
                            }) - 1;
                 k = dr::clip(k, ca.k, cb.k);
-                Float x0 = dr::gather<Float>(m_lambda, k, ok), x1 = dr::gather<Float>(m_lambda, k + 1, ok);
+                Float x0 = dr::gather<Float>(m_grid.nodes, k, ok), x1 = dr::gather<Float>(m_grid.nodes, k + 1, ok);
                 Float f0 = dr::gather<Float>(m_a_tot, row + k, ok), f1 = dr::gather<Float>(m_a_tot, row + k + 1, ok);
                 Float h = x1 - x0;
                 Float step = fluo_detail::linear_cell_inverse(f0, f1, h, target - dr::gather<Float>(m_cdf, row + k, ok));
@@ -308,38 +308,16 @@ public:
 
 private:
     /// λ in the table's cell k (λ_k = x0 ≤ λ ≤ λ_{k+1} = x1, clamped to the grid) at fraction f.
-    struct Cell {
-        UInt32 k;
-        Float f, x0, x1;
-    };
+    using Cell = typename fluo_detail::JitGrid<Float>::Cell;
     /// The cells of si.wavelengths (spectral; unused in RGB).
     using Cells = std::array<Cell, dr::size_v<UnpolarizedSpectrum>>;
 
-    /// The cell of λ: through the bucket index (one bucket per `m_bucket_step` nm, never
-    /// wider than a cell: the cell is the bucket's or the next), else by binary search.
-    Cell cell(const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, m_l0, m_l1);
-        UInt32 k;
-        if (m_bucketed) {
-            UInt32 b = UInt32(dr::minimum(dr::floor((x - m_l0) * (1.f / m_bucket_step)), (float) (m_n_buckets - 1)));
-            k = dr::gather<UInt32>(m_buckets, b, active);
-            k = dr::select(k + 2 < m_n && dr::gather<Float>(m_lambda, k + 1, active) <= x, k + 1, k);
-        } else {
-            k = dr::binary_search<UInt32>(1, m_n - 1, [&](const UInt32 &i) {
-                    return dr::gather<Float>(m_lambda, i, active) <= x;
-                }) - 1;
-        }
-        Float x0 = dr::gather<Float>(m_lambda, k, active), x1 = dr::gather<Float>(m_lambda, k + 1, active);
-        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
-    }
+    /// The cell of λ (the grid's bucket index, else binary search).
+    Cell cell(const Float &lambda, const Mask &active) const { return m_grid.cell(lambda, active); }
     /// The cell of a wavelength known on the host (the same for every lane).
     Cell host_cell(double lambda) const {
-        double x = std::clamp(lambda, m_lambda_host.front(), m_lambda_host.back());
-        size_t k = (size_t) (std::upper_bound(m_lambda_host.begin(), m_lambda_host.end(), x) - m_lambda_host.begin());
-        k = std::clamp(k, (size_t) 1, m_lambda_host.size() - 1) - 1;
-        double x0 = m_lambda_host[k], x1 = m_lambda_host[k + 1];
-        return { UInt32((uint32_t) k), Float((float) std::clamp((x - x0) / (x1 - x0), 0.0, 1.0)), Float((float) x0),
-                 Float((float) x1) };
+        auto [k, f] = m_grid.host_cell(lambda);
+        return { UInt32((uint32_t) k), Float((float) f), Float((float) m_grid.host[k]), Float((float) m_grid.host[k + 1]) };
     }
     Cells cells_of(const SurfaceInteraction3f &si, const Mask &active) const {
         Cells c;
@@ -484,13 +462,9 @@ private:
             Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)", Plugin,
                   t.lambda.size(), t.rows);
         m_model = std::move(model);
-        m_lambda = storage(t.lambda);
-        m_n = (uint32_t) t.lambda.size();
-        m_lambda_host.assign(t.lambda.begin(), t.lambda.end());
-        build_buckets();
+        m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
+        m_n = m_grid.n;
         m_rows = (uint32_t) t.rows;
-        m_l0 = (float) t.lambda.front();
-        m_l1 = (float) t.lambda.back();
         m_a_tot = storage(t.a_tot);
         m_cdf = storage(t.cdf);
         m_r_spe = storage(t.r_spe);
@@ -529,30 +503,6 @@ private:
         ++m_build;
     }
 
-    /// The bucket index of the λ grid: buckets as wide as its narrowest cell (refined near
-    /// λQD), at most MaxBuckets of them, else cells are found by binary search.
-    void build_buckets() {
-        const std::vector<double> &l = m_lambda_host;
-        double narrowest = l.back() - l.front();
-        for (size_t k = 0; k + 1 < l.size(); ++k)
-            narrowest = std::min(narrowest, l[k + 1] - l[k]);
-        double step = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
-        size_t count = step > 0.0 ? (size_t) std::ceil((l.back() - l.front()) / step) + 1 : 0;
-        m_bucketed = count >= 1 && count <= MaxBuckets;
-        if (!m_bucketed)
-            return;
-        std::vector<uint32_t> buckets(count);
-        for (size_t b = 0, k = 0; b < count; ++b) {
-            double x = l.front() + (double) b * step;
-            while (k + 2 < l.size() && l[k + 1] <= x)
-                ++k;
-            buckets[b] = (uint32_t) k;
-        }
-        m_buckets = dr::load<DynamicBuffer<UInt32>>(buckets.data(), buckets.size());
-        m_bucket_step = (float) step;
-        m_n_buckets = (uint32_t) count;
-    }
-
     /// The traversed members from the configuration (at load, and after a rejected update;
     /// an accepted one keeps Q's AD graph).
     void sync_members() {
@@ -572,28 +522,22 @@ private:
     /// coated over a uniform substrate: the elastic lobe's R_tot from the tables (fresnel_value)
     bool m_tabulated = false;
     // the tables ([rows][λ] row major) and their grid
-    FloatStorage m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot;
-    uint32_t m_n = 2, m_rows = 2;
+    FloatStorage m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot;
+    uint32_t m_n = 2, m_rows = 2; ///< m_n = m_grid.n, the table's row length
     uint64_t m_build = 0; ///< counts rebuilds: keys the reduction below
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes)
     mutable std::string m_reduced_key;
     mutable std::array<std::vector<double>, MaxTerms> m_reduced_m;
     mutable std::vector<double> m_reduced_nodes;
     mutable size_t m_reduced_n = 0;
-    std::vector<double> m_lambda_host;
-    // the bucket index of the λ grid (build_buckets)
-    static constexpr size_t MaxBuckets = 1 << 16;
-    DynamicBuffer<UInt32> m_buckets;
-    float m_bucket_step = 1.f;
-    uint32_t m_n_buckets = 0;
-    bool m_bucketed = false;
-    float m_l0 = 0.f, m_l1 = 1.f, m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
+    fluo_detail::JitGrid<Float> m_grid; ///< the λ grid and its bucket index
+    float m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
     float m_ex_lo = 0.f, m_ex_hi = 0.f;
     Float m_q = 0.f; ///< Q (differentiable)
     ScalarFloat m_radius = 0.f, m_density = 0.f, m_alpha = 0.f, m_width = 0.f;
 
-    MI_TRAVERSE_CB(Base, m_lambda, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot,
-                   m_buckets, m_q)
+    MI_TRAVERSE_CB(Base, m_grid.nodes, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot,
+                   m_grid.buckets, m_q)
 };
 
 static const bool fluo_qd_jit_registered =

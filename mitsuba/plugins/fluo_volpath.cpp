@@ -903,19 +903,9 @@ private:
         m_wrappers.clear();
         m_media.clear();
         std::vector<const BMedium *> media;
-        auto add = [&](const Medium *m) {
-            if (auto *b = dynamic_cast<const BMedium *>(m)) {
-                b->set_managed(true);
-                if (b->fluorescent() && std::find(media.begin(), media.end(), b) == media.end())
-                    media.push_back(b);
-            }
-        };
-        for (const auto &shape : scene->shapes()) {
-            add(shape->interior_medium());
-            add(shape->exterior_medium());
-        }
-        for (const auto &sensor : scene->sensors())
-            add(sensor->medium());
+        for (const BMedium *b : fluo_detail::managed_media<BMedium>(scene))
+            if (b->fluorescent())
+                media.push_back(b);
 
         if constexpr (is_rgb_v<Spectrum>) {
             // Reduced transport when anything fluoresces, else volpath.

@@ -19,7 +19,6 @@
 
 #include <sstream>
 #include <string>
-#include <unordered_set>
 #include <vector>
 
 #include "fluo_common.h"
@@ -101,38 +100,11 @@ private:
     void prepare(Scene *scene) {
         m_media.clear();
         m_bsdfs.clear();
-        std::vector<const BMedium *> media;
-        auto add = [&](const Medium *m) {
-            if (auto *b = dynamic_cast<const BMedium *>(m)) {
-                b->set_managed(true);
-                if (std::find(media.begin(), media.end(), b) == media.end())
-                    media.push_back(b);
-            }
-        };
-        for (const auto &shape : scene->shapes()) {
-            add(shape->interior_medium());
-            add(shape->exterior_medium());
-        }
-        for (const auto &sensor : scene->sensors())
-            add(sensor->medium());
-
+        std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
         fluo::Range lights = fluo_detail::emitters_range(scene);
         double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
-        std::unordered_set<const Object *> direct;
-        for (const auto &shape : scene->shapes())
-            direct.insert(shape->bsdf());
-        fluo_detail::Collector c;
-        for (const auto &shape : scene->shapes())
-            c.visit(const_cast<Shape *>(shape.get()));
         bool directional = false;
-        for (Object *o : c.objects) {
-            auto *b = dynamic_cast<Bispectral *>(o);
-            if (!b || !b->jit_fluorescent())
-                continue;
-            if (!direct.count(o))
-                Throw("%s: a fluorescent material is wrapped in another BSDF (twosided, blendbsdf, mask, ...), "
-                      "which the vectorised variants cannot see through yet (its fluorescence would be lost): "
-                      "use it directly, or render in scalar_spectral/scalar_rgb", Plugin);
+        for (Bispectral *b : fluo_detail::jit_fluorescent_bsdfs<Bispectral>(Plugin, scene)) {
             m_bsdfs.push_back(b);
             hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
             directional |= !b->jit_lambertian();

@@ -63,6 +63,19 @@ const GRID_TOLERANCE: f64 = 1e-9;
 /// against a tiny `step_nm` exhausting memory or time (1 pm steps over 10 µm).
 pub const MAX_GRID_SAMPLES: usize = 10_000_000;
 
+/// The running trapezoid integral of the piecewise-linear function with values `y` at the
+/// nodes `x` (the same length): ∫ from x[0] to each node, exact for that function.
+pub fn running_trapezoid(x: &[f64], y: &[f64]) -> Vec<f64> {
+    let mut cum = Vec::with_capacity(x.len());
+    let mut acc = 0.0;
+    cum.push(0.0);
+    for (w, m) in x.windows(2).zip(y.windows(2)) {
+        acc += 0.5 * (w[1] - w[0]) * (m[0] + m[1]);
+        cum.push(acc);
+    }
+    cum
+}
+
 /// A function of wavelength: anything that can be evaluated at `lambda_nm`.
 ///
 /// Implemented by [`RegularSpectrum`], [`IrregularSpectrum`] and every closure

@@ -16,7 +16,9 @@
 #include <mitsuba/core/plugin.h>
 #include <mitsuba/render/bsdf.h>
 
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <tuple>
 #include <vector>
 
@@ -158,6 +160,78 @@ template <typename Value> Value linear_cell_inverse(const Value &f0, const Value
     Value denom = f0 + dr::sqrt(disc);
     return dr::select(denom > 0.f, 2.f * d / denom, 0.f);
 }
+
+/// A piecewise-linear function's nodes on the device with a bucket index (one bucket per
+/// `step` nm, never wider than a cell: a node's cell is its bucket's or the next), else
+/// binary search.
+template <typename Float> struct JitGrid {
+    using UInt32 = dr::uint32_array_t<Float>;
+    using Mask = dr::mask_t<Float>;
+    static constexpr size_t MaxBuckets = 1 << 16;
+    /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f.
+    struct Cell {
+        UInt32 k;
+        Float f, x0, x1;
+    };
+
+    std::vector<double> host;
+    Float nodes;
+    UInt32 buckets;
+    float step = 1.f, l0 = 0.f, l1 = 1.f;
+    uint32_t n = 2, n_buckets = 0;
+    bool bucketed = false;
+
+    void set(const std::vector<double> &x) {
+        host = x;
+        n = (uint32_t) x.size();
+        std::vector<float> f(x.begin(), x.end());
+        nodes = dr::load<Float>(f.data(), f.size());
+        l0 = (float) x.front();
+        l1 = (float) x.back();
+        double narrowest = x.back() - x.front();
+        for (size_t k = 0; k + 1 < x.size(); ++k)
+            narrowest = std::min(narrowest, x[k + 1] - x[k]);
+        double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
+        size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
+        bucketed = count >= 1 && count <= MaxBuckets;
+        if (!bucketed)
+            return;
+        std::vector<uint32_t> b(count);
+        for (size_t i = 0, k = 0; i < count; ++i) {
+            double at = x.front() + (double) i * s;
+            while (k + 2 < x.size() && x[k + 1] <= at)
+                ++k;
+            b[i] = (uint32_t) k;
+        }
+        buckets = dr::load<UInt32>(b.data(), b.size());
+        step = (float) s;
+        n_buckets = (uint32_t) count;
+    }
+
+    Cell cell(const Float &lambda, const Mask &active) const {
+        Float x = dr::clip(lambda, l0, l1);
+        UInt32 k;
+        if (bucketed) {
+            UInt32 b = UInt32(dr::minimum(dr::floor((x - l0) * (1.f / step)), (float) (n_buckets - 1)));
+            k = dr::gather<UInt32>(buckets, b, active);
+            k = dr::select(k + 2 < n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
+        } else {
+            k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
+                    return dr::gather<Float>(nodes, i, active) <= x;
+                }) - 1;
+        }
+        Float x0 = dr::gather<Float>(nodes, k, active), x1 = dr::gather<Float>(nodes, k + 1, active);
+        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
+    }
+
+    /// The cell index of λ known on the host, and its fraction.
+    std::pair<size_t, double> host_cell(double lambda) const {
+        double x = std::clamp(lambda, host.front(), host.back());
+        size_t k = (size_t) (std::upper_bound(host.begin(), host.end(), x) - host.begin());
+        k = std::clamp(k, (size_t) 1, host.size() - 1) - 1;
+        return { k, std::clamp((x - host[k]) / (host[k + 1] - host[k]), 0.0, 1.0) };
+    }
+};
 
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
 /// (core/src/sigmoid.rs).

@@ -12,6 +12,7 @@
 #include <mitsuba/render/sampler.h>
 #include <mitsuba/render/texture.h>
 
+#include <algorithm>
 #include <string>
 #include <string_view>
 #include <unordered_map>
@@ -37,6 +38,50 @@ struct Collector : TraversalCallback {
     void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
     void put_object(std::string_view, Object *o, uint32_t) override { visit(o); }
 };
+
+/// The scene's media implementing interface M (shapes' interiors and exteriors, sensors'),
+/// each once, marked as managed by the integrator asking (fluo_volpath in every variant).
+template <typename M, typename Scene> std::vector<const M *> managed_media(const Scene *scene) {
+    std::vector<const M *> media;
+    auto add = [&](const auto *m) {
+        if (auto *b = dynamic_cast<const M *>(m)) {
+            b->set_managed(true);
+            if (std::find(media.begin(), media.end(), b) == media.end())
+                media.push_back(b);
+        }
+    };
+    for (const auto &shape : scene->shapes()) {
+        add(shape->interior_medium());
+        add(shape->exterior_medium());
+    }
+    for (const auto &sensor : scene->sensors())
+        add(sensor->medium());
+    return media;
+}
+
+/// The fluorescent BSDFs of the scene for a vectorised integrator (interface B, whose
+/// jit_fluorescent() holds), refusing one inside a wrapper BSDF (twosided, blendbsdf, mask):
+/// the vectorised loops cannot see through wrappers, and its fluorescence would be lost.
+template <typename B, typename Scene> std::vector<B *> jit_fluorescent_bsdfs(const char *plugin, const Scene *scene) {
+    std::unordered_set<const Object *> direct;
+    Collector c;
+    for (const auto &shape : scene->shapes()) {
+        direct.insert(shape->bsdf());
+        c.visit(const_cast<Object *>(static_cast<const Object *>(shape.get())));
+    }
+    std::vector<B *> out;
+    for (Object *o : c.objects) {
+        auto *b = dynamic_cast<B *>(o);
+        if (!b || !b->jit_fluorescent())
+            continue;
+        if (!direct.count(o))
+            Throw("%s: a fluorescent material is wrapped in another BSDF (twosided, blendbsdf, mask, ...), "
+                  "which the vectorised variants cannot see through yet (its fluorescence would be lost): "
+                  "use it directly, or render in scalar_spectral/scalar_rgb", plugin);
+        out.push_back(b);
+    }
+    return out;
+}
 
 /// Like Mitsuba's path, fluo_path does not trace participating media: say so once per
 /// scene (`warned` remembers the last one) when a shape or sensor has one (a fluorescent

@@ -175,13 +175,7 @@ impl QdMedium {
         let grid = lambda_grid(range, &band, params.table_step_nm);
         let k = params.concentration_um * PER_M_PER_UM_NM2;
         let mu_a: Vec<f64> = grid.iter().map(|&l| k * volume.absorption_cross_section_nm2(l)).collect();
-        let mut cum = Vec::with_capacity(grid.len());
-        let mut acc = 0.0;
-        cum.push(0.0);
-        for (w, m) in grid.windows(2).zip(mu_a.windows(2)) {
-            acc += 0.5 * (w[1] - w[0]) * (m[0] + m[1]);
-            cum.push(acc);
-        }
+        let cum = crate::spectrum::running_trapezoid(&grid, &mu_a);
         let index = LambdaIndex::new(&grid);
         let cum_index = LambdaIndex::new(&cum);
         let emission_norm = volume.emission_normalisation();
