@@ -242,7 +242,7 @@ private:
         return { rr_active, dr::rcp(dr::detach(rr_prob)) };
     }
 
-    static Float mis_weight(const Float &a, const Float &b) { return dr::detach<true>(fluo_detail::mis_weight(a, b)); }
+    static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::detached_mis_weight(a, b); }
 
     // ------------------------------------------------------------ spectral (and no fluorescence)
     struct LoopState {

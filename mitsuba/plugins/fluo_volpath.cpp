@@ -203,8 +203,7 @@ public:
     using Coeffs = typename Reduced::Coeffs;
 
     static constexpr const char *Plugin = "fluo_volpath";
-    /// Isotropic re-emission, 1/(4π) per steradian.
-    static constexpr float InvFourPi = (float) (0.25 * M_1_PI);
+    static constexpr float InvFourPi = fluo_detail::InvFourPi;
 
     FluoVolpath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),

@@ -40,8 +40,7 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
 
     static constexpr const char *Plugin = "fluo_volpath";
-    /// Isotropic re-emission, 1/(4π) per steradian.
-    static constexpr float InvFourPi = (float) (0.25 * M_1_PI);
+    static constexpr float InvFourPi = fluo_detail::InvFourPi;
 
     FluoVolpathJit(const Properties &props) : Base(props) {
         m_lambda_min = fluo_detail::lambda_min_of(Plugin, props);
@@ -131,7 +130,7 @@ private:
                   Plugin, m_media.size(), m_bsdfs.size());
     }
 
-    static Float mis_weight(const Float &a, const Float &b) { return dr::detach<true>(fluo_detail::mis_weight(a, b)); }
+    static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::detached_mis_weight(a, b); }
 
     /// Where `medium` is one of the scene's fluorescent media (a handful: compared by pointer).
     Mask is_fluorescent_medium(const MediumPtr &medium, const Mask &active) const {

@@ -23,6 +23,7 @@
 
 #include <array>
 #include <atomic>
+#include <cmath>
 
 #include <mitsuba/core/logger.h>
 #include <mitsuba/render/interaction.h>
@@ -32,6 +33,9 @@
 NAMESPACE_BEGIN(mitsuba)
 
 namespace fluo_detail {
+/// Isotropic re-emission, 1/(4π) per steradian (fluo_volpath, every variant).
+constexpr float InvFourPi = (float) (0.25 * M_1_PI);
+
 /// Armed when a fluorescent medium is constructed, disarmed by the first warning:
 /// one "needs fluo_volpath" warning per loaded scene.
 inline std::atomic<bool> &unmanaged_medium_warning_armed() {

@@ -217,32 +217,16 @@ protected:
         m_emission = load(t.emission);
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
         double mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
-        m_majorant_floor = std::max(fluo_detail::MediumMajorantFloor *
-                                        (mu_max * m_common.max_density + m_common.max_sigma_s) * m_common.scale,
-                                    fluo_detail::MediumMinMajorant);
+        m_majorant_floor = m_common.majorant_floor(mu_max);
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                   m_mu_a_rgb[2] });
     }
 
-    /// "Name[ model, scale, density, sigma_s, phase ]".
     std::string describe(const char *name) const {
-        std::ostringstream oss;
-        oss << name << "[" << std::endl
-            << "  model = " << std::string(fluo::medium_to_string(**m_model)) << "," << std::endl
-            << "  scale = " << m_common.scale << "," << std::endl
-            << "  density_grid = " << m_common.bounded << "," << std::endl
-            << "  density = " << string::indent(m_common.density) << "," << std::endl
-            << "  sigma_s = " << string::indent(m_common.sigma_s) << "," << std::endl
-            << "  phase_function = " << string::indent(m_phase_function) << "," << std::endl
-            << "  variant = vectorised (tables: " << m_grid.n << " absorption nodes, " << m_egrid.n
-            << " emission nodes)"
-            << std::endl
-            << "]";
-        return oss.str();
-    }
-
-    double get_double(const Properties &props, const char *name, double def) const {
-        return fluo_detail::medium_double(props, m_plugin, name, def);
+        std::ostringstream extra;
+        extra << "variant = vectorised (tables: " << m_grid.n << " absorption nodes, " << m_egrid.n
+              << " emission nodes)";
+        return m_common.describe(name, **m_model, m_phase_function.get(), extra.str());
     }
 
 private:

@@ -37,6 +37,13 @@ inline double medium_double(const Properties &props, const char *plugin, const c
     }
 }
 
+/// The majorant's floor relative to its largest value over the spectrum: null collisions
+/// where the medium is (nearly) transparent, at most one per 10⁶ mean free paths of its
+/// most opaque wavelength.
+constexpr double MediumMajorantFloor = 1e-6;
+/// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
+constexpr double MediumMinMajorant = 1e-30;
+
 /// What every fluo medium parses in every variant: scale (metres per scene unit), the
 /// optional density grid and the host's scattering σs, with their maxima (the majorant's
 /// parts). Such a medium is never "homogeneous" to Mitsuba, even without a grid: volpath
@@ -68,14 +75,31 @@ template <typename Float, typename Spectrum> struct MediumCommon {
                   max_sigma_s);
         constant = !bounded && dr::all(sigma_s->resolution() == ScalarVector3i(1, 1, 1));
     }
-};
 
-/// The majorant's floor relative to its largest value over the spectrum: null collisions
-/// where the medium is (nearly) transparent, at most one per 10⁶ mean free paths of its
-/// most opaque wavelength.
-constexpr double MediumMajorantFloor = 1e-6;
-/// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
-constexpr double MediumMinMajorant = 1e-30;
+    /// The majorant's floor for a medium whose μa peaks at mu_max (1/m at density 1): where
+    /// μa and σs vanish (beyond an absorption band) σt = 0, and volpath's mean null
+    /// probability σn/μ̄ would be 0/0 (NaN) without it.
+    double majorant_floor(double mu_max) const {
+        return std::max(MediumMajorantFloor * (mu_max * max_density + max_sigma_s) * scale, MediumMinMajorant);
+    }
+
+    /// "Name[ model, scale, density, sigma_s, phase(, extra) ]".
+    std::string describe(const char *name, const fluo::FluoMedium &model, const Object *phase,
+                         const std::string &extra) const {
+        std::ostringstream oss;
+        oss << name << "[" << std::endl
+            << "  model = " << std::string(fluo::medium_to_string(model)) << "," << std::endl
+            << "  scale = " << scale << "," << std::endl
+            << "  density_grid = " << bounded << "," << std::endl
+            << "  density = " << string::indent(density) << "," << std::endl
+            << "  sigma_s = " << string::indent(sigma_s) << "," << std::endl
+            << "  phase_function = " << string::indent(phase) << (extra.empty() ? "" : ",") << std::endl;
+        if (!extra.empty())
+            oss << "  " << extra << std::endl;
+        oss << "]";
+        return oss.str();
+    }
+};
 
 NAMESPACE_END(fluo_detail)
 
@@ -85,12 +109,11 @@ public:
     MI_IMPORT_BASE(Medium, m_is_homogeneous, m_has_spectral_extinction, m_phase_function)
     MI_IMPORT_TYPES(Scene, Sampler, Texture, Volume)
 
-    static constexpr double MajorantFloor = fluo_detail::MediumMajorantFloor;
     static constexpr double MinMajorant = fluo_detail::MediumMinMajorant;
 
     void traverse(TraversalCallback *cb) override {
-        cb->put("density", m_density, ParamFlags::NonDifferentiable);
-        cb->put("sigma_s", m_sigma_s, ParamFlags::NonDifferentiable);
+        cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
+        cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
         Base::traverse(cb);
     }
 
@@ -101,9 +124,9 @@ public:
     }
 
     std::tuple<Mask, Float, Float> intersect_aabb(const Ray3f &ray) const override {
-        if (!m_bounded)
+        if (!m_common.bounded)
             return { true, 0.f, dr::Infinity<Float> };
-        return m_density->bbox().ray_intersect(ray);
+        return m_common.density->bbox().ray_intersect(ray);
     }
 
     UnpolarizedSpectrum get_majorant(const MediumInteraction3f &mi, Mask active) const override {
@@ -116,8 +139,8 @@ public:
         this->warn_if_unmanaged(m_plugin);
         Float d = density(mi);
         UnpolarizedSpectrum mu_a = absorption(mi);
-        UnpolarizedSpectrum sigma_s = m_sigma_s->eval(mi, active) * (Float) m_scale;
-        UnpolarizedSpectrum sigma_t = mu_a * d * (Float) m_scale + sigma_s;
+        UnpolarizedSpectrum sigma_s = m_common.sigma_s->eval(mi, active) * (Float) m_common.scale;
+        UnpolarizedSpectrum sigma_t = mu_a * d * (Float) m_common.scale + sigma_s;
         UnpolarizedSpectrum sigma_n = dr::maximum(majorant(collision_bound(mi, mu_a)) - sigma_t, 0.f);
         return { sigma_s, sigma_n, sigma_t };
     }
@@ -139,7 +162,7 @@ public:
                                           fluo_detail::slice_mut(mu_f),
                                           rust::Slice<fluo::Sample>(samples.data(), samples.size()));
             for (float &v : mu_f)
-                v = d > 0.0 ? (float) (v * d * m_scale) : 0.f;
+                v = d > 0.0 ? (float) (v * d * m_common.scale) : 0.f;
         }
     }
 
@@ -151,7 +174,7 @@ public:
                 return;
             const Rates &r = rates(mei);
             for (size_t j = 0; j < 4; ++j)
-                out[j] = (float) (r.mu_f[j] * d * m_scale);
+                out[j] = (float) (r.mu_f[j] * d * m_common.scale);
         }
     }
 
@@ -159,15 +182,15 @@ public:
                            rust::Slice<double> f) const override {
         fluo::medium_reduced(**m_model, t, a, f);
         for (double &v : a)
-            v *= m_scale;
+            v *= m_common.scale;
         for (double &v : f)
-            v *= m_scale;
+            v *= m_common.scale;
     }
 
     bool constant_extinction(const MediumInteraction3f &mei, UnpolarizedSpectrum &sigma_t) const override {
-        if (!m_constant)
+        if (!m_common.constant)
             return false;
-        sigma_t = absorption(mei) * (Float) m_scale + m_sigma_s->eval(mei, true) * (Float) m_scale;
+        sigma_t = absorption(mei) * (Float) m_common.scale + m_common.sigma_s->eval(mei, true) * (Float) m_common.scale;
         return true;
     }
 
@@ -178,17 +201,9 @@ public:
 protected:
     /// Parse what every fluo medium shares (fluo_detail::MediumCommon); the phase
     /// function is Medium's.
-    FluoMediumShim(const Properties &props, const char *plugin) : Base(props), m_plugin(plugin) {
-        fluo_detail::MediumCommon<Float, Spectrum> c(props, plugin);
-        m_scale = c.scale;
-        m_bounded = c.bounded;
-        m_density = c.density;
-        m_max_density = c.max_density;
-        m_sigma_s = c.sigma_s;
-        m_max_sigma_s = c.max_sigma_s;
-        m_constant = c.constant;
-        // Never "homogeneous" to Mitsuba, even without a grid (MediumCommon says why).
-        m_is_homogeneous = false;
+    FluoMediumShim(const Properties &props, const char *plugin)
+        : Base(props), m_plugin(plugin), m_common(props, plugin) {
+        m_is_homogeneous = false; // MediumCommon says why
         m_has_spectral_extinction = true;
     }
 
@@ -199,9 +214,7 @@ protected:
         m_range = fluo::medium_lambda_range(**m_model);
         fluo::Rgb a = fluo::medium_absorption_rgb(**m_model);
         m_mu_a_rgb = { a.r, a.g, a.b };
-        // The majorant's floor: where μa and σs vanish (beyond an absorption band) σt = 0,
-        // and volpath's mean null probability σn/μ̄ would be 0/0 (NaN) without it.
-        double mu_max = 0.0;
+        double mu_max = 0.0; // μa's peak, for the majorant's floor
         std::array<float, 4> lambda{}, mu{};
         for (int l = 200; l <= 1200; l += 4) {
             for (size_t j = 0; j < 4; ++j)
@@ -210,31 +223,13 @@ protected:
             for (float v : mu)
                 mu_max = std::max(mu_max, (double) v);
         }
-        m_majorant_floor =
-            std::max(MajorantFloor * (mu_max * m_max_density + m_max_sigma_s) * m_scale, MinMajorant);
+        m_majorant_floor = m_common.majorant_floor(mu_max);
         m_mu_a_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                 m_mu_a_rgb[2] });
         m_mu_f_max = m_fluorescent ? fluo::medium_grid_source_max(**m_model) : 0.0;
     }
 
-    /// "Name[ model, scale, density, sigma_s, phase ]".
-    std::string describe(const char *name) const {
-        std::ostringstream oss;
-        oss << name << "[" << std::endl
-            << "  model = " << std::string(fluo::medium_to_string(**m_model)) << "," << std::endl
-            << "  scale = " << m_scale << "," << std::endl
-            << "  density_grid = " << m_bounded << "," << std::endl
-            << "  density = " << string::indent(m_density) << "," << std::endl
-            << "  sigma_s = " << string::indent(m_sigma_s) << "," << std::endl
-            << "  phase_function = " << string::indent(m_phase_function) << std::endl
-            << "]";
-        return oss.str();
-    }
-
-    /// A double property, rejecting non-numeric input with a message naming it.
-    double get_double(const Properties &props, const char *name, double def) const {
-        return fluo_detail::medium_double(props, m_plugin, name, def);
-    }
+    std::string describe(const char *name) const { return m_common.describe(name, **m_model, m_phase_function.get(), ""); }
 
 private:
     /// μ̄ = max over the hero wavelengths of (max density · μa + max σs) · scale (in RGB:
@@ -244,14 +239,14 @@ private:
     /// hero wavelength (which samples the distance) fly through where the others collide,
     /// leaving their collisions (and fluorescence) to rare, huge weights.
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &mu_a) const {
-        UnpolarizedSpectrum m = (mu_a * (Float) m_max_density + (Float) m_max_sigma_s) * (Float) m_scale;
+        UnpolarizedSpectrum m = (mu_a * (Float) m_common.max_density + (Float) m_common.max_sigma_s) * (Float) m_common.scale;
         if constexpr (is_rgb_v<Spectrum>) {
             // the spectrum's maximum bounds the bands of any reduced transport; once
             // fluo_volpath has prepared one, the maximum over its bands (and μa's RGB)
             double band = this->band_absorption_max();
-            double rgb = std::max({ m_mu_a_rgb[0], m_mu_a_rgb[1], m_mu_a_rgb[2] }) * m_scale;
-            double mu = band > 0.0 ? std::max(band, rgb) : m_mu_a_max * m_scale;
-            m = dr::maximum(m, UnpolarizedSpectrum((Float) (mu * m_max_density + m_max_sigma_s * m_scale)));
+            double rgb = std::max({ m_mu_a_rgb[0], m_mu_a_rgb[1], m_mu_a_rgb[2] }) * m_common.scale;
+            double mu = band > 0.0 ? std::max(band, rgb) : m_mu_a_max * m_common.scale;
+            m = dr::maximum(m, UnpolarizedSpectrum((Float) (mu * m_common.max_density + m_common.max_sigma_s * m_common.scale)));
         }
         return UnpolarizedSpectrum(dr::maximum(dr::max(m), (Float) m_majorant_floor));
     }
@@ -265,9 +260,9 @@ private:
     /// only where the path's wavelengths are not absorbed.
     UnpolarizedSpectrum collision_bound(const MediumInteraction3f &mi, const UnpolarizedSpectrum &mu_a) const {
         double rate = fluo_detail::source_rate_request();
-        if (!m_fluorescent || !(rate > 0.0) || !(m_max_density > 0.0))
+        if (!m_fluorescent || !(rate > 0.0) || !(m_common.max_density > 0.0))
             return mu_a;
-        Float cap = (Float) (rate / (m_max_density * m_scale)); // 1/m at density 1
+        Float cap = (Float) (rate / (m_common.max_density * m_common.scale)); // 1/m at density 1
         UnpolarizedSpectrum out = mu_a;
         if constexpr (is_spectral_v<Spectrum>) {
             const Rates &r = rates(mi);
@@ -284,7 +279,7 @@ private:
     /// three times at one point (coefficients, source bound, shift): one grid lookup
     /// per point, per thread.
     Float density(const Interaction3f &mi) const {
-        if (!m_bounded)
+        if (!m_common.bounded)
             return Float(1.f);
         struct Last {
             uint64_t owner = 0;
@@ -295,7 +290,7 @@ private:
         if (last.owner != m_id || dr::any(last.p != mi.p)) {
             last.owner = m_id;
             last.p = mi.p;
-            last.d = m_density->eval_1(mi, true);
+            last.d = m_common.density->eval_1(mi, true);
         }
         return last.d;
     }
@@ -344,16 +339,13 @@ private:
         return ++counter;
     }
     std::optional<rust::Box<fluo::FluoMedium>> m_model;
-    ref<Volume> m_density, m_sigma_s;
-    /// MediumCommon's.
-    double m_scale = 1.0, m_max_density = 1.0, m_max_sigma_s = 0.0, m_majorant_floor = MinMajorant;
+    /// scale, density grid, σs and their maxima
+    fluo_detail::MediumCommon<Float, Spectrum> m_common;
+    double m_majorant_floor = MinMajorant;
     /// max of μa over reduced transport's wavelengths and of its RGB channels, 1/m: the RGB
     /// variants' majorant; and the max of μf there (collision_bound).
     double m_mu_a_max = 0.0, m_mu_f_max = 0.0;
     bool m_fluorescent = false;
-    bool m_bounded = false;
-    /// No density grid and a constant σs: the extinction is the same everywhere.
-    bool m_constant = false;
     fluo::Range m_range{ 0, 0 };
     std::array<double, 3> m_mu_a_rgb{};
 };

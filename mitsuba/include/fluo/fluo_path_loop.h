@@ -47,6 +47,11 @@ template <typename Float> Float mis_weight(Float pdf_a, Float pdf_b) {
     return dr::select(dr::isfinite(w), w, 0.f);
 }
 
+/// mis_weight without gradients (the vectorised integrators' MIS weights).
+template <typename Float> Float detached_mis_weight(const Float &pdf_a, const Float &pdf_b) {
+    return dr::detach<true>(mis_weight(pdf_a, pdf_b));
+}
+
 /// Next-event estimation at a vertex: the emitter sample, valid when `active`
 /// (the BSDF is smooth and the sample has a positive pdf). `wo` is the sample's
 /// direction in the local frame (zero when no emitter was sampled).
