@@ -43,11 +43,11 @@ paper): a cubic b-spline emission e(λ) of unit integral around λe and its mirr
 absorption a(λ) ∈ [0, 1] peaking at λe − s. μa(λ) = σa a(λ); an absorbed photon is
 re-emitted isotropically with probability Q at λo ~ e (the supports never overlap, so
 always at a longer wavelength). With ``fluo_volpath`` in ``scalar_spectral``,
-``llvm_ad_spectral`` or (reduced transport) ``scalar_rgb`` the dye fluoresces (as
+``llvm_ad_spectral`` or (reduced transport) ``scalar_rgb`` and ``llvm_ad_rgb`` the dye fluoresces (as
 ``fluo_qd_medium``: both implement fluo's bispectral medium interface; in the vectorised
 variants μa is linear between 4096 nodes across the absorption band, within 3e-7 of its
 peak, and e between nodes within 1e-5 of its peak); elsewhere it absorbs only (native ``volpath`` warns once per
-scene), and ``fluo_volpath`` refuses it in ``llvm_ad_rgb``.
+scene).
 
 .. tabs::
     .. code-tab:: xml

@@ -84,16 +84,15 @@ medium's absorption everywhere, including fluo_volpath's excitation sampling, wh
 inverts its CDF exactly.
 
 **Rendering.** With ``fluo_volpath`` in ``scalar_spectral`` or ``llvm_ad_spectral`` the
-medium fluoresces (the integrator's docs have the estimator; in the vectorised variants
+medium fluoresces by wavelength shifting (the integrator's docs have the estimator; in the vectorised variants
 the medium interpolates Rust's tables: μa linear between the model's own table nodes,
 exactly as above, extended at 0.5 nm steps to 200-1200 nm (within 5e-5 of its peak),
 and the emission line between nodes that hold it within 1e-5 of its peak). Mitsuba's own ``volpath`` (and any other
 integrator) renders it as an absorbing, scattering medium without re-emission — exactly
 its Q = 0 limit — and warns once per scene when Q > 0. In the RGB variants the absorption
 other integrators see is μa's linear sRGB as Mitsuba converts any spectrum (CIE 1931,
-white = 1; negative channels clipped to 0); ``fluo_volpath`` in ``scalar_rgb`` carries
-the medium's reduced operators instead (its docs), and in ``llvm_ad_rgb`` refuses a
-fluorescent medium rather than render it without its glow.
+white = 1; negative channels clipped to 0); ``fluo_volpath`` in ``scalar_rgb`` and
+``llvm_ad_rgb`` carries the medium's reduced operators instead (its docs).
 
 .. tabs::
     .. code-tab:: xml

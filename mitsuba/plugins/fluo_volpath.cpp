@@ -167,16 +167,18 @@ a 300-380 nm lamp came out within 16 % of the spectral render here, but a narrow
 
 **Variants.** ``scalar_spectral`` (wavelength shifting) and ``scalar_rgb`` (reduced
 transport); without fluorescence both render exactly as ``volpath``. ``llvm_ad_spectral``
-(and ``cuda_ad_spectral``, the same code) runs the same estimator in one vectorised kernel
-(``fluo_volpath_jit.cpp``; the media interpolate Rust's tables of μa and the emission,
-``fluo_medium_jit.h``): the same images within noise (tests/python/test_llvm.py test16).
-Differences of that variant: the μa table of a dye medium is linear between 4096 nodes
-across its absorption band (within 3e-7 of its peak), shadow rays always ratio-track
-(``closed_form_shadows`` has no effect there), and a path's random numbers differ.
-``llvm_ad_rgb`` renders scenes without fluorescence (as ``volpath``, which it runs) and
-refuses fluorescent ones with an error naming the variants that render them: the reduced
-transport through media is ``scalar_rgb``'s only. Without fluorescence the vectorised
-variants hand the render to Mitsuba's own ``volpath`` (the same image, seed for seed).
+and ``llvm_ad_rgb`` (and ``cuda_ad_*``, the same code) run the same estimators in one
+vectorised kernel (``fluo_volpath_jit.cpp``; the media interpolate Rust's tables of μa and
+the emission, ``fluo_medium_jit.h``; the reduced transport and the fluorescent BSDFs'
+matrices are fluo_path's, ``fluo_jit_reduced.h``): the same images within noise
+(tests/python/test_llvm.py test16). Differences of those variants: the μa table of a dye
+medium is linear between 4096 nodes across its absorption band (within 3e-7 of its peak),
+shadow rays always ratio-track (``closed_form_shadows`` has no effect there; in RGB a
+shadow ray multiplies the vertex's 3×K row block by each null operator, 3K² per
+collision, instead of keeping the list), the RGB majorant is μa's largest value over
+the spectrum (not over the bands: more null collisions, the same expectation), and a
+path's random numbers differ. Without fluorescence the vectorised variants hand the
+render to Mitsuba's own ``volpath`` (the same image, seed for seed).
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.

@@ -1,12 +1,12 @@
 // fluo_volpath in the vectorised variants (llvm_ad_spectral, llvm_ad_rgb; cuda_ad_* the same
 // code): Mitsuba's volpath loop (dr::while_loop, one kernel) with the same fluorescence as
-// the scalar fluo_volpath in spectral variants: fluorescent media (fluo_qd_medium,
-// fluo_dye_medium through fluo_medium_jit.h) re-emit at real collisions, fluorescent
-// BSDFs shift at surfaces as in fluo_path. fluo_volpath.cpp documents the estimators and is
-// the reference the tests hold this one against. Without fluorescence the render is
-// Mitsuba's own volpath (the integrator hands the render to one), in both variants; with
-// fluorescence in an RGB variant it raises an error (the reduced transport through media is
-// scalar_rgb's only).
+// the scalar fluo_volpath: in spectral variants fluorescent media (fluo_qd_medium,
+// fluo_dye_medium through fluo_medium_jit.h) re-emit at real collisions and fluorescent
+// BSDFs shift at surfaces as in fluo_path; in RGB variants the path carries fluo_path's
+// reduced transport (fluo_jit_reduced.h), on which fluorescent media act through their
+// reduced operators. fluo_volpath.cpp documents the estimators and is the reference the
+// tests hold this one against. Without fluorescence the render is Mitsuba's own volpath
+// (the integrator hands the render to one), in both variants.
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/emitter.h>
@@ -23,6 +23,7 @@
 
 #include "fluo_common.h"
 #include "fluo_jit.h"
+#include "fluo_jit_reduced.h"
 #include "fluo_medium_jit.h"
 #include "fluo_path_loop.h"
 #include "fluo_path_scene.h"
@@ -38,16 +39,18 @@ public:
     using Bispectral = fluo_detail::JitBispectral<Float, Spectrum>;
     using BMedium = fluo_detail::JitBispectralMedium<Float, Spectrum>;
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using Reduced = fluo_detail::JitReduced<Float, Spectrum>;
+    template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
+    template <size_t K> using Rows = typename Reduced::template Rows<K>;
 
     static constexpr const char *Plugin = "fluo_volpath";
     static constexpr float InvFourPi = fluo_detail::InvFourPi;
 
-    FluoVolpathJit(const Properties &props) : Base(props) {
-        m_lambda_min = fluo_detail::lambda_min_of(Plugin, props);
-        // basis, method and closed_form_shadows are scalar_rgb's; validated here as there.
-        std::string basis = fluo_detail::get_string(props, "basis", "x7"),
-                    method = fluo_detail::get_string(props, "method", "ours");
-        fluo_detail::rust_call(Plugin, [&] { return fluo::transport_new(basis, method); });
+    FluoVolpathJit(const Properties &props)
+        : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
+          m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
+                    fluo_detail::get_string(props, "method", "ours")) {
+        // closed_form_shadows is scalar_rgb's (shadow rays ratio-track here); read as there.
         (void) props.get<bool>("closed_form_shadows", true);
         Properties vp("volpath");
         vp.set("max_depth", (int64_t) props.get<int64_t>("max_depth", -1));
@@ -68,7 +71,13 @@ public:
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium *medium, Float *aovs, Bool active) const override {
         if constexpr (!is_spectral_v<Spectrum>) {
-            return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
+            if (!m_fluorescent)
+                return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
+            if (m_reduced.bands() == 3)
+                return trace_reduced<3>(scene, sampler, ray, medium, active);
+            if (m_reduced.bands() == 4)
+                return trace_reduced<4>(scene, sampler, ray, medium, active);
+            return trace_reduced<Reduced::KMax>(scene, sampler, ray, medium, active);
         } else {
             if (!m_fluorescent)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
@@ -85,6 +94,7 @@ public:
             << "  fluorescent_bsdfs = " << m_bsdfs.size() << "," << std::endl
             << "  fluorescent_media = " << m_media.size() << "," << std::endl
             << "  excitation_range = [" << m_range_lo << ", " << m_range_hi << "]," << std::endl
+            << "  basis = " << m_reduced.name() << " (RGB variants)," << std::endl
             << "  variant = vectorised" << std::endl
             << "]";
         return oss.str();
@@ -95,16 +105,18 @@ public:
 private:
     /// Once per render: the fluorescent media and BSDFs (refusing wrapped BSDFs, which the
     /// vectorised loop cannot see through) and the emitters' spectral range; whether
-    /// anything fluoresces. RGB variants: fluorescence raises an error.
+    /// anything fluoresces. RGB variants: the reduced transport's matrices (the BSDFs' and
+    /// the media's operators) and the emitters' basis coefficients.
     void prepare(Scene *scene) {
         m_media.clear();
         m_bsdfs.clear();
+        m_rmedia.clear();
         std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
         fluo::Range lights = fluo_detail::emitters_range(scene);
         double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
         bool directional = false;
-        for (Bispectral *b : fluo_detail::jit_fluorescent_bsdfs<Bispectral>(Plugin, scene)) {
-            m_bsdfs.push_back(b);
+        std::vector<Bispectral *> bsdfs = fluo_detail::jit_fluorescent_bsdfs<Bispectral>(Plugin, scene);
+        for (Bispectral *b : bsdfs) {
             hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
             directional |= !b->jit_lambertian();
         }
@@ -114,20 +126,34 @@ private:
         m_range_lo = lo;
         m_range_hi = hi;
         if (scene->emitters().empty())
-            m_bsdfs.clear();
+            bsdfs.clear();
         else
             for (const BMedium *b : media)
                 if (b->jit_fluorescent(lo, hi))
                     m_media.push_back(b);
+        m_bsdfs.assign(bsdfs.begin(), bsdfs.end());
         m_directional = directional && !m_bsdfs.empty();
         m_fluorescent = !m_media.empty() || !m_bsdfs.empty();
-        if (is_rgb_v<Spectrum> && m_fluorescent)
-            Throw("%s: the scene fluoresces (%zu fluorescent media, %zu fluorescent materials), and in the "
-                  "vectorised RGB variants fluo_volpath renders scenes without fluorescence only (as volpath): "
-                  "the reduced transport through media is scalar_rgb's. Render it in llvm_ad_spectral "
-                  "(wavelength shifting), scalar_rgb or scalar_spectral; without media, fluo_path renders "
-                  "fluorescent materials in llvm_ad_rgb",
-                  Plugin, m_media.size(), m_bsdfs.size());
+        if constexpr (is_rgb_v<Spectrum>) {
+            m_reduced.prepare(scene, bsdfs, !m_media.empty());
+            size_t k = m_reduced.bands();
+            for (const BMedium *b : m_media) {
+                ReducedMedium r{ dynamic_cast<const Medium *>(b), std::vector<double>(k * k),
+                                 std::vector<double>(k * k), std::vector<double>(k, 0.0), { 0.0 }, { 0.0 } };
+                fluo_detail::rust_call(Plugin, [&] {
+                    b->jit_reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
+                                             rust::Slice<double>(r.f.data(), k * k));
+                    return 0;
+                });
+                for (size_t i = 0; i < k; ++i) {
+                    for (size_t j = 0; j < k; ++j)
+                        r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
+                    r.f_max[0] = std::max(r.f_max[0], r.f_rows[i]);
+                    r.a_max[0] = std::max(r.a_max[0], r.a[i * k + i]);
+                }
+                m_rmedia.push_back(std::move(r));
+            }
+        }
     }
 
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::detached_mis_weight(a, b); }
@@ -156,9 +182,9 @@ private:
 
     /// A tentative collision: fluorescent media through jit_sample_interaction with the
     /// flight's rates (their majorant covering the source up to `rate`), the others through
-    /// Mitsuba's sample_interaction. Returns it, μf there (0 for the others) and where it is
-    /// fluorescent.
-    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask>
+    /// Mitsuba's sample_interaction. Returns it, μf there (0 for the others), where it is
+    /// fluorescent and the factor d (density·scale: 1/m at density 1 to inverse scene units).
+    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask, Float>
     sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const Float &rate,
                   const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f, const Mask &active) const {
         const double lo = m_range_lo, hi = m_range_hi;
@@ -167,11 +193,11 @@ private:
             [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const Float &rate_,
                      const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
                 if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi)) {
-                    auto [mei, mf] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
-                    return std::make_tuple(mei, mf, Mask(true));
+                    auto [mei, mf, d] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
+                    return std::make_tuple(mei, mf, Mask(true), d);
                 }
                 return std::make_tuple(m->sample_interaction(ray_, u_, UInt32(0), on), UnpolarizedSpectrum(0.f),
-                                       Mask(false));
+                                       Mask(false), Float(0.f));
             },
             ray, u, rate, mu_a, mu_f, active);
     }
@@ -189,13 +215,111 @@ private:
             Float rate = dr::select(inv_len > 0.f, dr::minimum(source, inv_len), source);
             kappa = dr::select(t[j] > 0.f, dr::maximum(kappa, rate), kappa);
         }
-        Float total = q_null + q_real, majorant = mei.combined_extinction[0];
+        return collision_probabilities(q_null, q_real, kappa, mei.combined_extinction[0]);
+    }
+
+    /// (p_null, p_real) from the tracking weights q_null, q_real and the source rate κ
+    /// (fluo_volpath.cpp's collision_probabilities, per lane).
+    static std::pair<Float, Float> collision_probabilities(const Float &q_null, const Float &q_real,
+                                                           const Float &kappa, const Float &majorant) {
+        Float total = q_null + q_real;
         Mask ok = total > 0.f && dr::isfinite(total);
         Float p_real = dr::select(ok, q_real / total, 1.f);
         p_real = dr::select(ok && majorant > 0.f && dr::isfinite(majorant),
                             dr::maximum(p_real, dr::minimum(kappa / majorant, .5f)), p_real);
         p_real = dr::clip(p_real, 0.f, 1.f);
         return { 1.f - p_real, p_real };
+    }
+
+    /// At a surface the path reached (`intersect`: by a new ray): hidden area emitters on the
+    /// camera ray skipped (as the scalar variant does), then the emission found there with
+    /// its MIS weight (volpath's): the emitter, its radiance, the weight and where it counts.
+    template <typename State>
+    std::tuple<EmitterPtr, Spectrum, Float, Mask> surface_emission(const Scene *scene, State &ls,
+                                                                   const Mask &active_surface,
+                                                                   const Mask &intersect) const {
+        if (m_hide_emitters) {
+            Mask skip = intersect && ls.depth == 0u && ls.si.is_valid() && ls.si.shape->emitter() != nullptr;
+            if (dr::any_or<true>(skip)) {
+                Ray3f skip_ray = ls.si.spawn_ray(ls.ray.d);
+                PreliminaryIntersection3f pi = Base::skip_area_emitters(scene, skip_ray, true, skip);
+                dr::masked(ls.si, skip) = pi.compute_surface_interaction(skip_ray, +RayFlags::All, skip);
+            }
+        }
+        Mask count_direct = ls.depth == 0u || ls.specular_chain;
+        EmitterPtr emitter = ls.si.emitter(scene);
+        Mask active_e = active_surface && emitter != nullptr && !(ls.depth == 0u && m_hide_emitters);
+        Float weight = 1.f;
+        Spectrum emitted = 0.f;
+        if (dr::any_or<true>(active_e)) {
+            Float emitter_pdf = 1.f;
+            Mask mis_e = active_e && !count_direct;
+            if (dr::any_or<true>(mis_e)) {
+                DirectionSample3f ds(scene, ls.si, ls.last_scatter_event);
+                dr::masked(emitter_pdf, mis_e) = scene->pdf_emitter_direction(ls.last_scatter_event, ds, mis_e);
+            }
+            emitted = emitter->eval(ls.si, active_e);
+            weight = dr::select(count_direct, 1.f, mis_weight(ls.last_scatter_direction_pdf, emitter_pdf));
+        }
+        return { emitter, emitted, weight, active_e };
+    }
+
+    /// A new flight in a fluorescent medium (where `active` and the ray is new): its length to
+    /// the next surface first (the source rate of its tentative collisions is at most 1/ℓ).
+    /// Returns where a flight starts; the caller looks up its rates there.
+    template <typename State> Mask start_flight(const Scene *scene, State &ls, const Mask &active) const {
+        Mask flight = ls.needs_intersection && is_fluorescent_medium(ls.medium, active);
+        if (dr::any_or<true>(flight)) {
+            dr::masked(ls.si, flight) = scene->ray_intersect(ls.ray, flight);
+            dr::masked(ls.inv_len, flight) = dr::select(ls.si.is_valid(), dr::rcp(dr::maximum(ls.si.t, 1e-30f)), 0.f);
+            ls.needs_intersection &= !flight;
+        }
+        return flight;
+    }
+
+    /// A tentative collision `mei` sampled where `active`: kept, the ray clipped at it in
+    /// homogeneous media (as volpath), the surface ahead found, and a collision beyond it
+    /// dropped.
+    template <typename State>
+    void place_collision(const Scene *scene, State &ls, const MediumInteraction3f &mei, const Mask &active) const {
+        dr::masked(ls.mei, active) = mei;
+        dr::masked(ls.ray.maxt, active && ls.medium->is_homogeneous() && ls.mei.is_valid()) = ls.mei.t;
+        Mask intersect = ls.needs_intersection && active;
+        if (dr::any_or<true>(intersect))
+            dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
+        ls.needs_intersection &= !active;
+        dr::masked(ls.mei.t, active && ls.si.t < ls.mei.t) = dr::Infinity<Float>;
+    }
+
+    /// A real collision where `scatter`: valid ray, specular chain (as volpath); returns the
+    /// medium's phase function (nullptr elsewhere) and where emitters are sampled.
+    template <typename State> std::pair<PhaseFunctionPtr, Mask> begin_scatter(State &ls, const Mask &scatter) const {
+        PhaseFunctionPtr phase = ls.mei.medium->phase_function();
+        dr::masked(phase, !scatter) = nullptr;
+        Mask sample_emitters = ls.mei.medium->use_emitter_sampling();
+        ls.valid_ray |= scatter;
+        ls.specular_chain &= !scatter;
+        ls.specular_chain |= scatter && !sample_emitters;
+        return { phase, scatter && sample_emitters };
+    }
+
+    /// After a BSDF sample `bs` at si where `active`: the next ray (carrying the path's
+    /// wavelengths), η, the depth and the previous vertex for MIS, the specular chain and the
+    /// medium behind a transition (as volpath).
+    template <typename State>
+    void leave_surface(State &ls, const SurfaceInteraction3f &si, const BSDFSample3f &bs, const Mask &active) const {
+        dr::masked(ls.eta, active) *= bs.eta;
+        dr::masked(ls.ray, active) = si.spawn_ray(si.to_world(bs.wo));
+        ls.needs_intersection |= active;
+        Mask non_null = active && !has_flag(bs.sampled_type, BSDFFlags::Null);
+        dr::masked(ls.depth, non_null) += 1;
+        dr::masked(ls.last_scatter_event, non_null) = Interaction3f(si);
+        dr::masked(ls.last_scatter_direction_pdf, non_null) = bs.pdf;
+        ls.valid_ray |= non_null;
+        ls.specular_chain |= non_null && has_flag(bs.sampled_type, BSDFFlags::Delta);
+        ls.specular_chain &= !(active && has_flag(bs.sampled_type, BSDFFlags::Smooth));
+        Mask transition = active && si.is_medium_transition();
+        dr::masked(ls.medium, transition) = si.target_medium(ls.ray.d);
     }
 
     struct LoopState {
@@ -270,31 +394,19 @@ private:
                 if (dr::any_or<true>(active_medium)) {
                     is_spectral &= ls.medium->has_spectral_extinction();
                     not_spectral = !is_spectral && active_medium;
-                    // A new flight in a fluorescent medium: its length to the next surface first
-                    // (the source rate of its tentative collisions is at most 1/ℓ).
-                    Mask fluo_flight = ls.needs_intersection && is_fluorescent_medium(ls.medium, active_medium);
+                    Mask fluo_flight = start_flight(scene, ls, active_medium);
                     if (dr::any_or<true>(fluo_flight)) {
-                        dr::masked(ls.si, fluo_flight) = scene->ray_intersect(ls.ray, fluo_flight);
-                        dr::masked(ls.inv_len, fluo_flight) =
-                            dr::select(ls.si.is_valid(), dr::rcp(dr::maximum(ls.si.t, 1e-30f)), 0.f);
-                        ls.needs_intersection &= !fluo_flight;
                         auto [mu_a, mu_f_] = rates(ls.medium, ls.ray.wavelengths, fluo_flight);
                         dr::masked(ls.mu_a, fluo_flight) = mu_a;
                         dr::masked(ls.mu_f, fluo_flight) = mu_f_;
                     }
                     Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                    auto [mei, mf, fl] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), rate,
-                                                       ls.mu_a, ls.mu_f, active_medium);
-                    dr::masked(ls.mei, active_medium) = mei;
+                    auto [mei, mf, fl, d] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), rate,
+                                                          ls.mu_a, ls.mu_f, active_medium);
+                    (void) d;
+                    place_collision(scene, ls, mei, active_medium);
                     mu_f = mf;
                     is_fluo = fl && active_medium;
-                    dr::masked(ls.ray.maxt, active_medium && ls.medium->is_homogeneous() && ls.mei.is_valid()) =
-                        ls.mei.t;
-                    Mask intersect = ls.needs_intersection && active_medium;
-                    if (dr::any_or<true>(intersect))
-                        dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
-                    ls.needs_intersection &= !active_medium;
-                    dr::masked(ls.mei.t, active_medium && ls.si.t < ls.mei.t) = dr::Infinity<Float>;
                     if (dr::any_or<true>(is_spectral)) {
                         auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
                         Float tr_pdf = free_flight_pdf[0];
@@ -370,15 +482,9 @@ private:
                     act_scatter &= !dead;
 
                     PhaseFunctionContext phase_ctx(sampler);
-                    PhaseFunctionPtr phase = ls.mei.medium->phase_function();
-                    dr::masked(phase, !act_scatter) = nullptr;
+                    auto [phase, active_e] = begin_scatter(ls, act_scatter);
 
                     // ------------------------ Emitter sampling -----------------
-                    Mask sample_emitters = ls.mei.medium->use_emitter_sampling();
-                    ls.valid_ray |= act_scatter;
-                    ls.specular_chain &= !act_scatter;
-                    ls.specular_chain |= act_scatter && !sample_emitters;
-                    Mask active_e = act_scatter && sample_emitters;
                     if (dr::any_or<true>(active_e)) {
                         auto [emitted, ds] = sample_emitter(ls.mei, scene, sampler, ls.medium, active_e);
                         auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
@@ -408,32 +514,9 @@ private:
                 ls.needs_intersection &= !intersect;
 
                 if (dr::any_or<true>(active_surface)) {
-                    // Hidden area emitters on the camera ray are skipped, as the scalar variant does.
-                    if (m_hide_emitters) {
-                        Mask skip = intersect && ls.depth == 0u && ls.si.is_valid() &&
-                                    ls.si.shape->emitter() != nullptr;
-                        if (dr::any_or<true>(skip)) {
-                            Ray3f skip_ray = ls.si.spawn_ray(ls.ray.d);
-                            PreliminaryIntersection3f pi = Base::skip_area_emitters(scene, skip_ray, true, skip);
-                            dr::masked(ls.si, skip) = pi.compute_surface_interaction(skip_ray, +RayFlags::All, skip);
-                        }
-                    }
-                    Mask count_direct = ls.depth == 0u || ls.specular_chain;
-                    EmitterPtr emitter = ls.si.emitter(scene);
-                    Mask active_e = active_surface && emitter != nullptr && !(ls.depth == 0u && m_hide_emitters);
-                    if (dr::any_or<true>(active_e)) {
-                        Float emitter_pdf = 1.f;
-                        Mask mis_e = active_e && !count_direct;
-                        if (dr::any_or<true>(mis_e)) {
-                            DirectionSample3f ds(scene, ls.si, ls.last_scatter_event);
-                            dr::masked(emitter_pdf, mis_e) = scene->pdf_emitter_direction(ls.last_scatter_event, ds, mis_e);
-                        }
-                        Spectrum emitted = emitter->eval(ls.si, active_e);
-                        Spectrum contrib = dr::select(
-                            count_direct, throughput * emitted,
-                            throughput * mis_weight(ls.last_scatter_direction_pdf, emitter_pdf) * emitted);
-                        dr::masked(ls.result, active_e) += contrib;
-                    }
+                    auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
+                    (void) emitter;
+                    dr::masked(ls.result, active_e) += throughput * emitted * weight;
                 }
                 active_surface &= ls.si.is_valid();
                 if (dr::any_or<true>(active_surface)) {
@@ -466,26 +549,18 @@ private:
                     }
 
                     dr::masked(throughput, active_surface) *= bsdf_weight;
-                    dr::masked(ls.eta, active_surface) *= bs.eta;
-                    dr::masked(ls.ray, active_surface) = si.spawn_ray(si.to_world(bs.wo)); // carries λi
-                    ls.needs_intersection |= active_surface;
-
-                    Mask non_null = active_surface && !has_flag(bs.sampled_type, BSDFFlags::Null);
-                    dr::masked(ls.depth, non_null) += 1;
-                    dr::masked(ls.last_scatter_event, non_null) = Interaction3f(si);
-                    dr::masked(ls.last_scatter_direction_pdf, non_null) = bs.pdf;
-                    ls.valid_ray |= non_null;
-                    ls.specular_chain |= non_null && has_flag(bs.sampled_type, BSDFFlags::Delta);
-                    ls.specular_chain &= !(active_surface && has_flag(bs.sampled_type, BSDFFlags::Smooth));
-                    Mask transition = active_surface && si.is_medium_transition();
-                    dr::masked(ls.medium, transition) = si.target_medium(ls.ray.d);
+                    leave_surface(ls, si, bs, active_surface); // the ray carries λi where shifted
                 }
                 active &= active_surface || active_medium;
             });
         return { ls.result, ls.valid_ray };
     }
 
-    struct ShadowState {
+    /// RGB variants: the 3×K block a shadow ray multiplies by the fluorescent media's
+    /// operators on its way (a placeholder in spectral variants, K = 0).
+    template <size_t K> using Block = std::conditional_t<K == 0, Float, Rows<(K == 0 ? 1 : K)>>;
+
+    template <size_t K> struct ShadowState {
         Mask active;
         Ray3f ray;
         Float total_dist;
@@ -495,14 +570,15 @@ private:
         MediumInteraction3f mei;
         Spectrum transmittance;
         UnpolarizedSpectrum mu_a; ///< μa of a fluorescent medium at the ray's wavelengths (density 1)
+        Block<K> B;
+        Mask met; ///< K > 0: a fluorescent medium acted on B
         Sampler *sampler;
-        DRJIT_STRUCT(ShadowState, active, ray, total_dist, needs_intersection, medium, si, mei, transmittance, mu_a,
-                     sampler)
+        DRJIT_STRUCT(ShadowState, active, ray, total_dist, needs_intersection, medium, si, mei, transmittance, mu_a, B,
+                     met, sampler)
     };
 
     /// An emitter sample seen from `ref` (at ref.wavelengths) and its transmittance
-    /// through media (ratio tracking; fluorescent media with their absorption majorant)
-    /// and null interfaces, as volpath's sample_emitter.
+    /// through media and null interfaces (spectral variants).
     template <typename Interaction>
     std::pair<Spectrum, DirectionSample3f> sample_emitter(const Interaction &ref, const Scene *scene, Sampler *sampler,
                                                           MediumPtr medium, Mask active) const {
@@ -511,25 +587,42 @@ private:
         active &= ds.pdf != 0.f;
         if (dr::none_or<false>(active))
             return { emitter_val, ds };
+        auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, Float(0.f), active);
+        (void) b, (void) met;
+        return { emitter_val * tr, ds };
+    }
 
+    /// The transmittance from `ref` to the emitter sample ds through media (ratio tracking;
+    /// fluorescent media with their absorption majorant) and null interfaces, as volpath's
+    /// sample_emitter. K > 0 (the reduced transport): a fluorescent medium's null collision
+    /// multiplies B (given on entry) by its operator diag(μ̄ − σs)/μ̄ − (d/μ̄)·A, after the RGB
+    /// transmittance so far (folded into B as per-band factors, then reset to 1); returns
+    /// the transmittance, B and where a fluorescent medium was met (fluo_volpath.cpp's
+    /// Shadow, multiplied out row-wise from the vertex).
+    template <size_t K, typename Interaction>
+    std::tuple<Spectrum, Block<K>, Mask> transmit(const Interaction &ref, const DirectionSample3f &ds,
+                                                  const Scene *scene, Sampler *sampler, MediumPtr medium,
+                                                  const Block<K> &B, Mask active) const {
         Ray3f ray = ref.spawn_ray_to(ds.p);
         Float max_dist = ray.maxt;
         if constexpr (std::is_convertible_v<Interaction, SurfaceInteraction3f>)
             dr::masked(medium, ref.is_medium_transition()) = ref.target_medium(ray.d);
 
-        ShadowState ss = { active,
-                           ray,
-                           Float(0.f),
-                           Mask(true),
-                           medium,
-                           dr::zeros<SurfaceInteraction3f>(),
-                           dr::zeros<MediumInteraction3f>(),
-                           Spectrum(1.f),
-                           UnpolarizedSpectrum(0.f),
-                           sampler };
+        ShadowState<K> ss = { active,
+                              ray,
+                              Float(0.f),
+                              Mask(true),
+                              medium,
+                              dr::zeros<SurfaceInteraction3f>(),
+                              dr::zeros<MediumInteraction3f>(),
+                              Spectrum(1.f),
+                              UnpolarizedSpectrum(0.f),
+                              B,
+                              Mask(false),
+                              sampler };
         dr::tie(ss) = dr::while_loop(
-            dr::make_tuple(ss), [](const ShadowState &ss) { return dr::detach(ss.active); },
-            [this, scene, max_dist, ds](ShadowState &ss) {
+            dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
+            [this, scene, max_dist, ds](ShadowState<K> &ss) {
                 Float remaining = max_dist - ss.total_dist;
                 ss.ray.maxt = remaining;
                 ss.active &= remaining > 0.f;
@@ -542,10 +635,11 @@ private:
                     // a fluorescent medium's μa, once per segment (the rate is 0: absorption alone)
                     Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
                     if (dr::any_or<true>(segment))
-                        dr::masked(ss.mu_a, segment) = rates(ss.medium, ss.ray.wavelengths, segment).first;
-                    auto [mei, mu_f, fl] = sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium),
-                                                         Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
-                    (void) mu_f, (void) fl;
+                        dr::masked(ss.mu_a, segment) = absorption_bound<K>(ss.medium, ss.ray.wavelengths, segment);
+                    auto [mei, mu_f, fl, d] = sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium),
+                                                            Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f),
+                                                            active_medium);
+                    (void) mu_f;
                     dr::masked(ss.mei, active_medium) = mei;
                     dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =
                         dr::minimum(ss.mei.t, remaining);
@@ -555,8 +649,11 @@ private:
                     dr::masked(ss.mei.t, active_medium && ss.si.t < ss.mei.t) = dr::Infinity<Float>;
                     ss.needs_intersection &= !active_medium;
 
-                    Mask is_spectral = ss.medium->has_spectral_extinction() && active_medium;
-                    Mask not_spectral = !is_spectral && active_medium;
+                    // reduced transport: fluorescent media act on B (weight 1 to escape, the
+                    // majorant being one for all bands)
+                    Mask reduced_fl = K > 0 ? Mask(fl && active_medium) : Mask(false);
+                    Mask is_spectral = ss.medium->has_spectral_extinction() && active_medium && !reduced_fl;
+                    Mask not_spectral = !ss.medium->has_spectral_extinction() && active_medium;
                     if (dr::any_or<true>(is_spectral)) {
                         Float t = dr::minimum(remaining, dr::minimum(ss.mei.t, ss.si.t)) - ss.mei.mint;
                         UnpolarizedSpectrum tr = dr::exp(-t * ss.mei.combined_extinction);
@@ -571,11 +668,33 @@ private:
                     active_medium &= ss.mei.is_valid();
                     is_spectral &= active_medium;
                     not_spectral &= active_medium;
+                    reduced_fl &= active_medium;
                     dr::masked(ss.total_dist, active_medium) += ss.mei.t;
                     dr::masked(ss.ray.o, active_medium) = ss.mei.p;
                     dr::masked(ss.si.t, active_medium) = ss.si.t - ss.mei.t;
                     dr::masked(ss.transmittance, is_spectral) *= ss.mei.sigma_n;
                     dr::masked(ss.transmittance, not_spectral) *= ss.mei.sigma_n / ss.mei.combined_extinction;
+                    if constexpr (K > 0) {
+                        if (dr::any_or<true>(reduced_fl)) {
+                            Mask flush = reduced_fl && dr::any(ss.transmittance != 1.f);
+                            ss.B = dr::select(flush,
+                                              Reduced::template scale_columns<K>(
+                                                  ss.B, m_reduced.template band_albedo<K>(ss.transmittance)),
+                                              ss.B);
+                            dr::masked(ss.transmittance, reduced_fl) = 1.f;
+                            ss.met |= reduced_fl;
+                            Float mu = ss.mei.combined_extinction[0], inv_mu = dr::rcp(mu);
+                            Coeffs<K> g = m_reduced.template band_albedo<K>(ss.mei.sigma_s);
+                            for (size_t k = 0; k < K; ++k)
+                                g[k] = (mu - g[k]) * inv_mu;
+                            ss.B = dr::select(reduced_fl,
+                                              medium_product<K>(ss.B, g, -d * inv_mu, &ReducedMedium::a,
+                                                                which_media(ss.medium)),
+                                              ss.B);
+                        }
+                    } else {
+                        (void) d;
+                    }
                 }
 
                 Mask intersect = active_surface && ss.needs_intersection;
@@ -599,13 +718,410 @@ private:
                 Mask transition = active_surface && ss.si.is_medium_transition();
                 dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);
             });
-        return { emitter_val * ss.transmittance, ds };
+        return { ss.transmittance, ss.B, ss.met };
+    }
+
+    // ------------------------------------------------ RGB: reduced transport
+
+    /// A fluorescent medium's reduced operators (RGB variants), 1/m at density 1.
+    struct ReducedMedium {
+        const Medium *medium;
+        std::vector<double> a, f;
+        std::vector<double> f_rows; ///< Σ_j |F_kj|/(4π) per band k: its re-emission into band k
+        std::vector<double> f_max;  ///< { the largest of f_rows }
+        std::vector<double> a_max;  ///< { the largest diagonal entry of A }: the majorant's bound
+    };
+
+    /// What a fluorescent medium's majorant must cover, 1/m at density 1: μa at the
+    /// wavelengths (spectral); in the reduced transport (K > 0) μa's sRGB and the largest
+    /// diagonal entry of its reduced absorption A (a bound over the bands, narrower than
+    /// the spectrum's maximum: fewer null collisions, each 3K² products).
+    template <size_t K>
+    UnpolarizedSpectrum absorption_bound(const MediumPtr &medium, const Wavelength &lambda, const Mask &active) const {
+        UnpolarizedSpectrum mu_a = rates(medium, lambda, active).first;
+        if constexpr (K > 0)
+            mu_a = dr::maximum(mu_a, per_medium(which_media(medium), &ReducedMedium::a_max, 0));
+        return mu_a;
+    }
+
+    /// Per lane, whether `medium` is each of the scene's fluorescent media (compared by
+    /// pointer; a handful per scene).
+    std::vector<Mask> which_media(const MediumPtr &medium) const {
+        std::vector<Mask> which;
+        for (const ReducedMedium &r : m_rmedia)
+            which.push_back(medium == MediumPtr(r.medium));
+        return which;
+    }
+
+    /// Entry i of a fluorescent medium's constant table (`field`) per lane: a select over the
+    /// media (a constant in the kernel for one medium; 0 without any: the vectorised loop
+    /// traces every branch, also where no lane takes it).
+    Float per_medium(const std::vector<Mask> &which, std::vector<double> ReducedMedium::*field, size_t i) const {
+        if (m_rmedia.empty())
+            return Float(0.f);
+        Float v = (float) (m_rmedia[0].*field)[i];
+        for (size_t m = 1; m < m_rmedia.size(); ++m)
+            v = dr::select(which[m], (float) (m_rmedia[m].*field)[i], v);
+        return v;
+    }
+
+    /// R·diag(g) + s·R·M, M a fluorescent medium's A or F (`field`): a null collision's
+    /// operator (g = μ̄ − σs, s = −d) or a real one's source (g = σs∘p, s = d/(4π)), each
+    /// times the event's weight. 3K² products; entries that are 0 for every medium are skipped.
+    template <size_t K>
+    Rows<K> medium_product(const Rows<K> &R, const Coeffs<K> &g, const Float &s,
+                           std::vector<double> ReducedMedium::*field, const std::vector<Mask> &which) const {
+        Rows<K> out = Reduced::template scale_columns<K>(R, g);
+        for (size_t j = 0; j < K; ++j) {
+            std::array<Float, 3> acc = { 0.f, 0.f, 0.f };
+            bool any = false;
+            for (size_t k = 0; k < K; ++k) {
+                bool zero = true;
+                for (const ReducedMedium &r : m_rmedia)
+                    zero &= (r.*field)[k * K + j] == 0.0;
+                if (zero)
+                    continue;
+                Float m = per_medium(which, field, k * K + j);
+                for (size_t r = 0; r < 3; ++r)
+                    acc[r] = any ? dr::fmadd(R[r * K + k], m, acc[r]) : R[r * K + k] * m;
+                any = true;
+            }
+            if (any)
+                for (size_t r = 0; r < 3; ++r)
+                    out[r * K + j] = dr::fmadd(s, acc[r], out[r * K + j]);
+        }
+        return out;
+    }
+
+    /// Null and real probabilities over the bands (fluo_volpath.cpp's band_tracking, per
+    /// lane): the bands R carries (w_k: column maxima) in place of the hero wavelengths.
+    template <size_t K>
+    std::pair<Float, Float> band_tracking(const Rows<K> &R, const Coeffs<K> &sigma_s, const Float &d,
+                                          const Float &majorant, const Float &inv_len,
+                                          const std::vector<Mask> &which) const {
+        Coeffs<K> w = Reduced::template column_max<K>(R);
+        Float q_null = 0.f, q_real = 0.f, kappa = 0.f;
+        for (size_t k = 0; k < K; ++k) {
+            Mask live = w[k] > 0.f;
+            Float st = dr::maximum(dr::fmadd(d, per_medium(which, &ReducedMedium::a, k * K + k), sigma_s[k]), 0.f);
+            Float source = dr::fmadd(d, per_medium(which, &ReducedMedium::f_rows, k), dr::maximum(sigma_s[k], 0.f));
+            Float rate = dr::select(inv_len > 0.f, dr::minimum(source, inv_len), source);
+            q_null = dr::select(live, dr::maximum(q_null, w[k] * dr::abs(majorant - st)), q_null);
+            q_real = dr::select(live, dr::maximum(q_real, w[k] * st), q_real);
+            kappa = dr::select(live, dr::maximum(kappa, rate), kappa);
+        }
+        return collision_probabilities(q_null, q_real, kappa, majorant);
+    }
+
+    template <size_t K> struct LoopStateR {
+        Mask active;
+        UInt32 depth;
+        Ray3f ray;
+        Color3f t;   ///< RGB throughput until the first fluorescent event
+        Rows<K> R;   ///< then the 3×K matrix throughput
+        Mask reduced;
+        Color3f result;
+        SurfaceInteraction3f si;
+        MediumInteraction3f mei;
+        MediumPtr medium;
+        Float eta;
+        Interaction3f last_scatter_event;
+        Float last_scatter_direction_pdf;
+        Mask needs_intersection, specular_chain, valid_ray;
+        Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
+        UnpolarizedSpectrum mu_a; ///< μa's RGB of a fluorescent medium (density 1)
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopStateR, active, depth, ray, t, R, reduced, result, si, mei, medium, eta, last_scatter_event,
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, sampler)
+    };
+
+    /// The emitter sample's contribution through a shadow ray from a vertex whose operator
+    /// towards it is B (3×K, `matrix`: the path is in matrix form there) or, in RGB form,
+    /// `rgb` (the throughput times the vertex's value): fluo_volpath.cpp's reduced NEE.
+    template <size_t K, typename Interaction>
+    Color3f reduced_light(const Interaction &ref, const DirectionSample3f &ds, const Color3f &emitter_val,
+                          const Scene *scene, Sampler *sampler, const MediumPtr &medium, const Rows<K> &B,
+                          const Color3f &rgb, const Mask &matrix, const Mask &active) const {
+        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, B, active);
+        // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
+        Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
+        Color3f le = dr::select(met, emitter_val, emitter_val * tr);
+        Color3f via_matrix =
+            Reduced::template apply<K>(dr::select(met, B_met, B_out),
+                                       m_reduced.template emitter_coefficients<K>(ds.emitter, le, active));
+        return dr::select(met || matrix, via_matrix, rgb * emitter_val * tr);
+    }
+
+    /// volpath's loop with the reduced transport (RGB variants with fluorescence).
+    template <size_t K>
+    std::pair<Spectrum, Bool> trace_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                            const Medium *initial_medium, Bool active) const {
+        if constexpr (!is_rgb_v<Spectrum>) {
+            (void) scene, (void) sampler, (void) ray_, (void) initial_medium, (void) active;
+            return { 0.f, false };
+        } else {
+            LoopStateR<K> ls = { active,
+                                 UInt32(0),
+                                 Ray3f(ray_),
+                                 Color3f(1.f),
+                                 dr::zeros<Rows<K>>(),
+                                 Mask(false),
+                                 Color3f(0.f),
+                                 dr::zeros<SurfaceInteraction3f>(),
+                                 dr::zeros<MediumInteraction3f>(),
+                                 MediumPtr(initial_medium),
+                                 Float(1.f),
+                                 dr::zeros<Interaction3f>(),
+                                 Float(1.f),
+                                 Mask(true),
+                                 Mask(active && !m_hide_emitters),
+                                 Mask(!m_hide_emitters && scene->environment() != nullptr),
+                                 Float(0.f),
+                                 UnpolarizedSpectrum(0.f),
+                                 sampler };
+            const bool surfaces = m_reduced.size() > 0, media = !m_rmedia.empty();
+
+            dr::tie(ls) = dr::while_loop(
+                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
+                [this, scene, surfaces, media](LoopStateR<K> &ls) {
+                    Mask &active = ls.active;
+                    Sampler *sampler = ls.sampler;
+                    // A wavelength-preserving weight w: t·w, or R·diag(band albedos of w).
+                    auto scale = [this, &ls](const Color3f &w, const Mask &m) {
+                        ls.R = dr::select(m && ls.reduced,
+                                          Reduced::template scale_columns<K>(ls.R, m_reduced.template band_albedo<K>(w)),
+                                          ls.R);
+                        dr::masked(ls.t, m && !ls.reduced) *= w;
+                    };
+
+                    // ----------------- Russian roulette, max_depth -----------------
+                    Float t_max = dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t));
+                    active &= t_max != 0.f;
+                    Float q = dr::minimum(t_max * dr::square(ls.eta), .95f);
+                    Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
+                    active &= sampler->next_1d(active) < q || !perform_rr;
+                    Float rr = dr::rcp(dr::detach(q));
+                    dr::masked(ls.t, perform_rr) *= rr;
+                    dr::masked(ls.R, perform_rr) *= rr;
+                    active &= ls.depth < (uint32_t) m_max_depth;
+                    if (dr::none_or<false>(active))
+                        return;
+
+                    // ------------------------ Sampling the RTE ---------------------
+                    Mask active_medium = active && ls.medium != nullptr;
+                    Mask active_surface = active && !active_medium;
+                    Mask act_null = false, act_scatter = false, escaped = false;
+                    Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
+                    Float p_null = 0.f, p_real = 1.f, d = 0.f;
+                    Coeffs<K> sigma_s = dr::zeros<Coeffs<K>>(); // a fluorescent collision's σs per band
+                    std::vector<Mask> which;
+                    if (dr::any_or<true>(active_medium)) {
+                        is_spectral &= ls.medium->has_spectral_extinction();
+                        not_spectral = !is_spectral && active_medium;
+                        Mask fluo_flight = start_flight(scene, ls, active_medium);
+                        if (dr::any_or<true>(fluo_flight))
+                            dr::masked(ls.mu_a, fluo_flight) =
+                                absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
+                        if (media)
+                            which = which_media(ls.medium);
+                        // the majorant covers the source rate up to 1/ℓ (its bound over the bands)
+                        UnpolarizedSpectrum source_bound(media ? per_medium(which, &ReducedMedium::f_max, 0)
+                                                               : Float(0.f));
+                        Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
+                        auto [mei, mf, fl, dd] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
+                                                               rate, ls.mu_a, source_bound, active_medium);
+                        (void) mf;
+                        place_collision(scene, ls, mei, active_medium);
+                        d = dd;
+                        is_fluo = fl && active_medium;
+                        is_spectral &= !is_fluo;
+                        if (dr::any_or<true>(is_spectral)) {
+                            auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
+                            Float tr_pdf = free_flight_pdf[0];
+                            scale(dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f), is_spectral);
+                        }
+                        escaped = active_medium && !ls.mei.is_valid();
+                        active_medium &= ls.mei.is_valid();
+                        is_spectral &= active_medium;
+                        not_spectral &= active_medium;
+                        is_fluo &= active_medium;
+
+                        // Null or real: volpath's rule, band tracking in fluorescent media (on R).
+                        p_null = dr::mean(ls.mei.sigma_n / ls.mei.combined_extinction);
+                        p_real = dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction);
+                        Float majorant = ls.mei.combined_extinction[0];
+                        if (media && dr::any_or<true>(is_fluo)) {
+                            ls.R = dr::select(is_fluo && !ls.reduced, m_reduced.template output_rows<K>(ls.t), ls.R);
+                            ls.reduced |= is_fluo;
+                            sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
+                            auto [pn, pr] = band_tracking<K>(ls.R, sigma_s, d, majorant, ls.inv_len, which);
+                            p_null = dr::select(is_fluo, pn, p_null);
+                            p_real = dr::select(is_fluo, pr, p_real);
+                        }
+                        Mask null_scatter = sampler->next_1d(active_medium) < p_null;
+                        act_null = null_scatter && active_medium;
+                        act_scatter = !null_scatter && active_medium;
+                        scale(ls.mei.sigma_n / p_null, act_null && is_spectral);
+                        Mask fl_null = act_null && is_fluo;
+                        if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
+                            Float s = dr::rcp(majorant * p_null);
+                            Coeffs<K> g;
+                            for (size_t k = 0; k < K; ++k)
+                                g[k] = (majorant - sigma_s[k]) * s;
+                            ls.R = dr::select(fl_null, medium_product<K>(ls.R, g, -d * s, &ReducedMedium::a, which),
+                                              ls.R);
+                        }
+                        dr::masked(ls.depth, act_scatter) += 1;
+                        dr::masked(ls.last_scatter_event, act_scatter) = Interaction3f(ls.mei);
+                    }
+
+                    active &= ls.depth < (uint32_t) m_max_depth;
+                    act_scatter &= active;
+
+                    dr::masked(ls.ray.o, act_null) = ls.mei.p;
+                    dr::masked(ls.si.t, act_null) = ls.si.t - ls.mei.t;
+
+                    if (dr::any_or<true>(act_scatter)) {
+                        // A fluorescent medium's real collision: the source operator
+                        // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
+                        Mask fl_scatter = act_scatter && is_fluo;
+                        Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
+                        scale(ls.mei.sigma_s / p_real, act_scatter && is_spectral);
+                        scale(ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
+
+                        PhaseFunctionContext phase_ctx(sampler);
+                        auto [phase, active_e] = begin_scatter(ls, act_scatter);
+
+                        // ------------------------ Emitter sampling -----------------
+                        if (dr::any_or<true>(active_e)) {
+                            auto [ds, emitter_val] =
+                                scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
+                            active_e &= ds.pdf != 0.f;
+                            auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
+                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                            Color3f pv(phase_val);
+                            Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+                            Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
+                            if (media && dr::any_or<true>(fl_scatter))
+                                B = dr::select(fl_scatter, source_product<K>(ls.R, sigma_s, pv, d, InvFourPi,
+                                                                             real_scale, which),
+                                               B);
+                            Color3f v = reduced_light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium, B,
+                                                         ls.t * pv, ls.reduced, active_e);
+                            dr::masked(ls.result, active_e) += v * mis;
+                        }
+
+                        // ---------------------- Phase function sampling ------------
+                        Float phase_1 = sampler->next_1d(act_scatter);
+                        Point2f phase_2 = sampler->next_2d(act_scatter);
+                        auto [wo, phase_weight, phase_pdf] =
+                            phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
+                        act_scatter &= phase_pdf > 0.f;
+                        fl_scatter &= act_scatter;
+                        if (media && dr::any_or<true>(fl_scatter))
+                            ls.R = dr::select(fl_scatter,
+                                              source_product<K>(ls.R, sigma_s, Color3f(phase_weight), d,
+                                                                InvFourPi / phase_pdf, real_scale, which),
+                                              ls.R);
+                        scale(Color3f(phase_weight), act_scatter && !is_fluo);
+                        dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo);
+                        ls.needs_intersection |= act_scatter;
+                        dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
+                    }
+
+                    // ----------------------- Surface interactions ------------------
+                    active_surface |= escaped;
+                    Mask intersect = active_surface && ls.needs_intersection;
+                    if (dr::any_or<true>(intersect))
+                        dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
+                    ls.needs_intersection &= !intersect;
+
+                    if (dr::any_or<true>(active_surface)) {
+                        auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
+                        if (dr::any_or<true>(active_e)) {
+                            Color3f c = dr::select(
+                                ls.reduced,
+                                Reduced::template apply<K>(
+                                    ls.R, m_reduced.template emitter_coefficients<K>(emitter, emitted, active_e)),
+                                ls.t * emitted);
+                            dr::masked(ls.result, active_e) += c * weight;
+                        }
+                    }
+                    active_surface &= ls.si.is_valid();
+                    if (dr::any_or<true>(active_surface)) {
+                        BSDFContext ctx;
+                        SurfaceInteraction3f &si = ls.si;
+                        BSDFPtr bsdf = si.bsdf(ls.ray);
+
+                        // ------------------------ Emitter sampling -----------------
+                        Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
+                                        ls.depth + 1 < (uint32_t) m_max_depth;
+                        DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+                        Color3f emitter_val = 0.f;
+                        if (dr::any_or<true>(active_e)) {
+                            std::tie(ds, emitter_val) =
+                                scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
+                            active_e &= ds.pdf != 0.f;
+                        }
+                        Vector3f wo = si.to_local(ds.d);
+
+                        // ---------------- Emitter contribution, BSDF sampling ------
+                        Float sample_1 = sampler->next_1d(active_surface);
+                        Point2f sample_2 = sampler->next_2d(active_surface);
+                        auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+                            bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
+
+                        Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+                        Mask is_fl = false, native_elastic = false;
+                        Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
+                        if (surfaces)
+                            std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
+                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional, active_surface);
+                        Mask matrix = ls.reduced || is_fl;
+                        if (dr::any_or<true>(active_e)) {
+                            Rows<K> B_red =
+                                Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
+                            Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
+                            Color3f v = reduced_light<K>(si, ds, emitter_val, scene, sampler, ls.medium, B,
+                                                         ls.t * bsdf_val, matrix, active_e);
+                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+                            dr::masked(ls.result, active_e) += v * mis;
+                        }
+
+                        Rows<K> R_red =
+                            Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_weight));
+                        R_fl += dr::select(native_elastic, R_red, 0.f);
+                        dr::masked(ls.R, active_surface) = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
+                        dr::masked(ls.t, active_surface && !matrix) *= bsdf_weight;
+                        ls.reduced |= is_fl;
+                        leave_surface(ls, si, bs, active_surface);
+                    }
+                    active &= active_surface || active_medium;
+                });
+            // Out-of-gamut colours are clipped per sample, as in the scalar variant.
+            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+        }
+    }
+
+    /// R·W·s with W = diag(σs∘p) + d·iso·F: a fluorescent medium's real collision for the
+    /// elastic weight p (phase value, or weight) and the isotropic re-emission's iso (1/4π,
+    /// over the pdf if sampled), s = 1/(μ̄ p_real).
+    template <size_t K>
+    Rows<K> source_product(const Rows<K> &R, const Coeffs<K> &sigma_s, const Color3f &p, const Float &d,
+                           const Float &iso, const Float &s, const std::vector<Mask> &which) const {
+        Coeffs<K> pk = m_reduced.template band_albedo<K>(p);
+        Coeffs<K> g;
+        for (size_t k = 0; k < K; ++k)
+            g[k] = sigma_s[k] * pk[k] * s;
+        return medium_product<K>(R, g, d * iso * s, &ReducedMedium::f, which);
     }
 
     double m_lambda_min = 300.0;
     ref<Base> m_volpath; ///< the render without fluorescence
     std::vector<const BMedium *> m_media;
     std::vector<const Bispectral *> m_bsdfs;
+    Reduced m_reduced;                     ///< RGB variants: the reduced transport
+    std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
     double m_range_lo = 0.0, m_range_hi = 0.0;
     bool m_fluorescent = false, m_directional = false;
 };

@@ -46,7 +46,7 @@ the scene's own fluo integrator: ``fluo_volpath`` in the scene with fluorescent 
 (``qd_cuvette``), whose rows without fluorescence set the media's ``quantum_yield`` to 0
 (the same absorption) under Mitsuba's ``volpath``. Rows named "llvm ..." render in the
 vectorised variants (``llvm_ad_spectral``, ``llvm_ad_rgb``) on the scenes whose materials
-those serve (:data:`JIT_KINDS`; :data:`JIT_RGB_KINDS` for llvm_ad_rgb), each method in a fresh process; their times exclude the
+those serve (:data:`JIT_KINDS`), each method in a fresh process; their times exclude the
 first render of each rung, which traces and compiles the kernels (``compile_s``: its
 extra time at the lowest rung). ``scripts/bench_readme.py`` turns a
 ``results.json`` into the README's table and its reading (:func:`readme_region`). The table goes to stdout (Markdown),
@@ -320,7 +320,7 @@ def methods(cache: Path) -> list[Method]:
            Method("llvm spectral GMM-8 (fluo_path)", "llvm_ad_spectral", _gmm(8, cache), _material_bytes,
                   {"matrix"}, serves=JIT_KINDS),
            Method("llvm rgb ours-x7 (fluo_path)", "llvm_ad_rgb", _reduced("x7", "ours"), _reduced_bytes(7),
-                  serves=JIT_RGB_KINDS),
+                  serves=JIT_KINDS),
            Method("llvm spectral native path, nearest material", "llvm_ad_spectral",
                   lambda t: _to_native(_to_path(t)), lambda _: 0.0, serves=JIT_KINDS, note="llvm's cost floor")]
     return ms
@@ -374,10 +374,8 @@ def _render_text(text: str, variant: str, res: int, spp: int, seed: int, cache: 
 
 #: Material kinds (:func:`_material_kinds`) the vectorised variants serve
 #: (``fluo.JIT_PLUGINS``: fluo_jung with its ``color``, fluo_matrix, fluo_gmm, fluo_qd, and
-#: the fluorescent media under fluo_volpath in llvm_ad_spectral).
+#: the fluorescent media under fluo_volpath), in llvm_ad_spectral and llvm_ad_rgb.
 JIT_KINDS = {"jung", "cube", "matrix", "gmm", "qd", "medium"}
-#: ... and llvm_ad_rgb (fluo_volpath's reduced transport through media is scalar_rgb's).
-JIT_RGB_KINDS = JIT_KINDS - {"medium"}
 
 
 def _render_ladder_jit(text: str, variant: str, res: int, ladder: list[int], seed: int, cache: Path,

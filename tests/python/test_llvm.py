@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import csv
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -346,7 +347,6 @@ CLOSEUP = """<scene version="3.0.0">
 def closeup(bsdf: str, light: str, basis: str = "", res: int = 24) -> str:
     """A sphere filling the view with material `bsdf` (an XML element whose id it reads) under
     a constant `light` (a fluo_illuminant's parameters), fluo_path with optional `basis`."""
-    import re
     return CLOSEUP.format(bsdf=bsdf, id=re.search(r'id="([^"]+)"', bsdf).group(1), light=light, basis=basis,
                           res=res)
 
@@ -463,7 +463,6 @@ def test11_readme_variants_column_is_true():
     """The README's plugin table says, per plugin, which variants serve it: every plugin
     marked "llvm" instantiates in llvm_ad_rgb and llvm_ad_spectral (or fails for a reason of
     its own, e.g. a missing file), every other one raises "not available in variant"."""
-    import re
     table = {}
     for line in (REPO / "README.md").read_text(encoding="utf-8").splitlines():
         m = re.match(r"\| `(fluo_\w+)`\s*\| \w+\s*\| ([^|]+)\|", line)
@@ -659,13 +658,30 @@ def test16_media_equal_scalar_within_noise():
     """fluo_qd_medium and fluo_dye_medium in llvm (μa and the emission interpolated from
     Rust's tables, exact excitation sampling by the running integral of μa) with fluo_volpath
     in llvm_ad_spectral (spectral tracking, the fluorescent source's collision floor, shifts
-    at real collisions; fluorescent BSDFs at surfaces) render what scalar_spectral renders:
-    both cuvette demos, the media bench scene and a dye sphere on a fluo_jung floor. Under
-    Mitsuba's own volpath the media absorb without re-emitting (their Q = 0 limit), as in
-    the scalar variants, in both llvm variants."""
-    cases = [(scene, "llvm_ad_spectral", scene_job(SCENES / scene, "llvm_ad_spectral", spp=256))
-             for scene in ("fluo_qd_cuvettes_uv.xml", "fluo_qd_cuvettes_d65.xml", "bench/qd_cuvette.xml")]
-    cases.append(("dye sphere", "llvm_ad_spectral", {"variant": "llvm_ad_spectral", "xml": DYE_SPHERE, "spp": 256}))
+    at real collisions; fluorescent BSDFs at surfaces) render what scalar_spectral renders,
+    and in llvm_ad_rgb (the reduced transport: the media's K×K operators in band tracking, at
+    real collisions and along shadow rays; fluorescent BSDFs' reduced matrices at surfaces)
+    what scalar_rgb renders: both cuvette demos, the media bench scene (every basis in RGB)
+    and a dye sphere on a fluo_jung floor, in RGB also on a fluo_qd floor (a
+    direction-dependent lobe through media). Under Mitsuba's own volpath the media absorb
+    without re-emitting (their Q = 0 limit), as in the scalar variants, in both llvm variants."""
+    cases = [(scene, v, scene_job(SCENES / scene, v, spp=256))
+             for scene in ("fluo_qd_cuvettes_uv.xml", "fluo_qd_cuvettes_d65.xml", "bench/qd_cuvette.xml")
+             for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
+    for basis in ("rgb", "xyzu"):
+        cases.append((f"bench/qd_cuvette.xml {basis}", "llvm_ad_rgb",
+                      scene_job(SCENES / "bench" / "qd_cuvette.xml", "llvm_ad_rgb", spp=256, basis=basis)))
+    for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
+        cases.append(("dye sphere", v, {"variant": v, "xml": DYE_SPHERE, "spp": 256}))
+    qd_floor = DYE_SPHERE.replace('<bsdf type="fluo_jung"/>', '<bsdf type="fluo_qd"/>')
+    assert qd_floor != DYE_SPHERE
+    cases.append(("dye sphere on fluo_qd", "llvm_ad_rgb", {"variant": "llvm_ad_rgb", "xml": qd_floor, "spp": 256}))
+    # a native medium on a fluorescent floor: the matrix throughput through volpath's own tracking
+    native = re.sub(r'<medium type="fluo_dye_medium" id="dye">.*?</medium>',
+                    '<medium type="homogeneous" id="dye"><rgb name="albedo" value="0.9, 0.5, 0.2"/>'
+                    '<float name="sigma_t" value="2"/></medium>', DYE_SPHERE, flags=re.S)
+    assert "fluo_dye_medium" not in native
+    cases.append(("native medium on fluo_jung", "llvm_ad_rgb", {"variant": "llvm_ad_rgb", "xml": native, "spp": 256}))
     for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
         job = scene_job(SCENES / "fluo_qd_cuvettes_d65.xml", v, spp=64)
         cases.append(("cuvettes under volpath", v, {**job, "integrator": "volpath", "max_depth": 12}))
@@ -674,10 +690,9 @@ def test16_media_equal_scalar_within_noise():
 
 def test17_volpath_variants_and_errors():
     """Without fluorescence llvm fluo_volpath is Mitsuba's volpath (the same image, seed for
-    seed: it hands the render over), in both variants; with fluorescent media llvm_ad_rgb
-    refuses the scene (no reduced transport through media in the vectorised variants) with
-    an error naming the variants that render it; a medium's invalid parameter raises Rust's
-    error, naming it, in llvm as in scalar."""
+    seed: it hands the render over), in both variants; an invalid basis is refused with the
+    scalar variant's error; a medium's invalid parameter raises Rust's error, naming it, in
+    llvm as in scalar."""
     no_glow = (SCENES / "bench" / "qd_cuvette.xml").read_text().replace(
         '<float name="quantum_yield" value="0.8"/>', '<float name="quantum_yield" value="0"/>')
     assert no_glow != (SCENES / "bench" / "qd_cuvette.xml").read_text()
@@ -686,7 +701,7 @@ def test17_volpath_variants_and_errors():
     for v in ("llvm_ad_rgb", "llvm_ad_spectral"):
         base = {"variant": v, "xml": no_glow, "params": {"res": "16"}, "spp": 16, "seed": 5}
         jobs += [{**base, "integrator": "fluo_volpath", "max_depth": 8}, {**base, "integrator": "volpath", "max_depth": 8}]
-    jobs.append(scene_job(SCENES / "bench" / "qd_cuvette.xml", "llvm_ad_rgb", spp=4))
+    jobs.append(scene_job(SCENES / "bench" / "qd_cuvette.xml", "llvm_ad_rgb", spp=4, basis="x9"))
     for bad in ({"type": "fluo_qd_medium", "quantum_yield": 1.5}, {"type": "fluo_dye_medium", "sigma_a": -1.0},
                 {"type": "fluo_qd_medium", "scale": 0.0}):
         jobs.append({"variant": "llvm_ad_spectral", "load": bad})
@@ -695,6 +710,6 @@ def test17_volpath_variants_and_errors():
         assert "error" not in a and "error" not in b, (a, b)
         assert np.mean(a["mean"]) > 1e-3 and a["mean"] == b["mean"], (a, b)
     err = res[4].get("error", "")
-    assert "fluo_volpath" in err and "llvm_ad_spectral" in err and "scalar_rgb" in err, res[4]
+    assert "fluo_volpath" in err and "x9" in err, res[4]
     for name, r in zip(("quantum_yield", "sigma_a", "scale"), res[5:]):
         assert name in r.get("error", ""), r

@@ -81,8 +81,7 @@ protected:
             constexpr const char *ClassName = "fluo";
             Log(Warn, "%s: this medium fluoresces, but the scene's integrator does not transport "
                       "fluorescence in media: it absorbs without re-emitting. Use "
-                      "<integrator type=\"fluo_volpath\"/> (in scalar_spectral, scalar_rgb or "
-                      "llvm_ad_spectral) to render its fluorescence. (This warning is printed once per scene.)",
+                      "<integrator type=\"fluo_volpath\"/> to render its fluorescence. (This warning is printed once per scene.)",
                 plugin);
         }
     }

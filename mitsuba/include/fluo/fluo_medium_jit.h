@@ -31,7 +31,7 @@ NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
 /// What fluo_volpath needs of a fluorescent medium in the vectorised variants, per lane
-/// (spectral variants; in RGB ones fluo_volpath refuses fluorescent media).
+/// (spectral variants: wavelength shifting; RGB variants: the reduced operators).
 template <typename Float, typename Spectrum> class JitBispectralMedium : public ManagedMedium {
 public:
     MI_IMPORT_TYPES()
@@ -44,16 +44,19 @@ public:
 
     /// μa(λ) and μf(λ | [lo, hi]) at the wavelengths, 1/m at density 1: what a flight's
     /// tentative collisions need (a flight keeps its wavelengths; fluo_volpath asks once per
-    /// flight).
+    /// flight). RGB variants: μa's linear sRGB and μf = 0.
     virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> jit_rates(const Wavelength &lambda, double lo,
                                                                           double hi, Mask active) const = 0;
 
     /// A tentative collision along `ray` (Medium::sample_interaction's fields and delta
-    /// tracking with uniform number u) given the flight's jit_rates, with a majorant that
+    /// tracking with uniform number u) given the flight's jit_rates (RGB variants: μa's
+    /// sRGB, or a larger per-channel bound the majorant must cover: the reduced transport
+    /// passes its bands' largest absorption too), with a majorant that
     /// also covers the fluorescent source μf up to `rate` (inverse scene units per lane; 0:
-    /// none, +inf: all of it). Returns the interaction and μf at its point (inverse scene
-    /// units, density and scale included).
-    virtual std::pair<MediumInteraction3f, UnpolarizedSpectrum>
+    /// none, +inf: all of it). Returns the interaction, μf at its point (inverse scene
+    /// units, density and scale included) and the factor d = density·scale that turns
+    /// 1/m at density 1 into inverse scene units there.
+    virtual std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Float>
     jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
                            const UnpolarizedSpectrum &mu_f, Mask active) const = 0;
 
@@ -61,6 +64,13 @@ public:
     /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), and where one exists.
     virtual std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u,
                                                         double lo, double hi, Mask active) const = 0;
+
+    /// Host, RGB variants: the absorption A and reradiation F reduced for the transport
+    /// basis `t` (fluo::medium_reduced, as scalar_rgb), K×K row major each, 1/m at density
+    /// 1: at a point, μa acts on basis coefficients as d·A and light c re-emits d·F·c/(4π)
+    /// per steradian (d from jit_sample_interaction).
+    virtual void jit_reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
+                                       rust::Slice<double> f) const = 0;
 };
 
 NAMESPACE_END(fluo_detail)
@@ -126,12 +136,13 @@ public:
                 mu_f[j] = source(lambda[j], c, a, b, active);
             }
         } else {
-            (void) lambda, (void) lo, (void) hi, (void) active;
+            (void) lo, (void) hi;
+            mu_a = absorption(lambda, active);
         }
         return { mu_a, mu_f };
     }
 
-    std::pair<MediumInteraction3f, UnpolarizedSpectrum>
+    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Float>
     jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
                            const UnpolarizedSpectrum &mu_f, Mask active) const override {
         MediumInteraction3f mi = dr::zeros<MediumInteraction3f>();
@@ -145,7 +156,7 @@ public:
         maxt = dr::select(active, dr::minimum(ray.maxt, maxt), dr::Infinity<Float>);
         // the requested rate in 1/m at density 1
         Float cap = rate * (float) (1.0 / std::max(m_common.max_density * m_common.scale, 1e-300));
-        UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active);
+        UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active, false);
         Float t = mint - dr::log(1.f - u) / m_bar[0];
         Mask valid = active && t <= maxt;
         mi.t = dr::select(valid, t, dr::Infinity<Float>);
@@ -157,7 +168,7 @@ public:
         mi.sigma_t = mu_a * d + mi.sigma_s;
         mi.sigma_n = dr::maximum(m_bar - mi.sigma_t, 0.f);
         mi.combined_extinction = m_bar;
-        return { mi, dr::select(valid, mu_f * d, 0.f) };
+        return { mi, dr::select(valid, mu_f * d, 0.f), dr::select(valid, d, 0.f) };
     }
 
     std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u, double lo,
@@ -188,6 +199,11 @@ public:
             (void) u, (void) lo, (void) hi, (void) active;
         }
         return { li, ok };
+    }
+
+    void jit_reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
+                               rust::Slice<double> f) const override {
+        fluo::medium_reduced(**m_model, t, a, f);
     }
 
 protected:
@@ -261,12 +277,15 @@ private:
 
     /// μ̄: the largest over the wavelengths of (max density · bound + max σs)·scale, at least
     /// the floor, shared by the hero wavelengths (fluo_medium_shim.h's majorant says why);
-    /// in RGB the spectrum's maximum bounds every channel (as scalar_rgb).
-    UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */) const {
+    /// in RGB under Mitsuba's interface (`spectrum_bound`) the spectrum's maximum bounds
+    /// every channel (as scalar_rgb without fluo_volpath; fluo_volpath passes its bound).
+    UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */,
+                                 bool spectrum_bound = true) const {
         const double s = m_common.scale;
         UnpolarizedSpectrum m = (bound * (float) m_common.max_density + (float) m_common.max_sigma_s) * (float) s;
         if constexpr (is_rgb_v<Spectrum>)
-            m = dr::maximum(m, UnpolarizedSpectrum((float) ((m_rgb_mu_max * m_common.max_density + m_common.max_sigma_s) * s)));
+            if (spectrum_bound)
+                m = dr::maximum(m, UnpolarizedSpectrum((float) ((m_rgb_mu_max * m_common.max_density + m_common.max_sigma_s) * s)));
         return UnpolarizedSpectrum(dr::maximum(dr::max(m), (float) m_majorant_floor));
     }
 

@@ -1,0 +1,356 @@
+// The reduced RGB transport of the vectorised integrators (fluo_path and fluo_volpath in
+// llvm_ad_rgb, cuda_ad_rgb): the transport basis and its constants, the scene's
+// fluorescent BSDFs reduced once per render, the emitters' basis coefficients, and the
+// per-lane products of a 3×K matrix throughput R with a vertex's operator. The estimator
+// is the scalar one (fluo_transport_reduced.h, fluo_path's docs): RGB throughput t until
+// the first fluorescent event, then R = diag(t)·O, multiplied by K×K operators.
+#pragma once
+
+#include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/emitter.h>
+#include <mitsuba/render/scene.h>
+
+#include <array>
+#include <optional>
+#include <string>
+#include <unordered_map>
+#include <vector>
+
+#include "fluo_bispectral.h"
+#include "fluo_common.h"
+#include "fluo_jit.h"
+#include "fluo_path_scene.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+template <typename Float, typename Spectrum> class JitReduced {
+public:
+    MI_IMPORT_TYPES(Scene, Emitter, EmitterPtr, BSDF, BSDFPtr)
+    using Bispectral = JitBispectral<Float, Spectrum>;
+    static constexpr size_t KMax = 7;
+    template <size_t K> using Coeffs = dr::Array<Float, K>;
+    template <size_t K> using Rows = dr::Array<Float, 3 * K>;
+
+    /// The basis `basis` with reduction `method`; errors name `plugin`.
+    JitReduced(const char *plugin, const std::string &basis, const std::string &method) : m_plugin(plugin) {
+        m_transport = rust_call(plugin, [&] { return fluo::transport_new(basis, method); });
+        m_k = fluo::transport_size(**m_transport);
+        if (m_k != 3 && m_k != 4 && m_k != KMax)
+            Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4 and %zu", plugin, basis, m_k,
+                  KMax);
+        m_output.resize(3 * m_k);
+        m_from_rgb.resize(3 * m_k);
+        m_white.resize(m_k);
+        fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
+        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
+        fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
+    }
+
+    size_t bands() const { return m_k; }
+    const fluo::TransportBasis &basis() const { return **m_transport; }
+    std::string name() const { return std::string(fluo::transport_name(**m_transport)); }
+
+    /// Once per render (RGB variants): reduce the fluorescent BSDFs `bsdfs` for the basis,
+    /// find the emitters with a known spectrum and their coefficients, and warn once per
+    /// scene of a mostly-UV one when anything fluoresces (`media`: fluorescent media).
+    void prepare(const Scene *scene, const std::vector<Bispectral *> &bsdfs, bool media) {
+        m_entries.clear();
+        m_sources.clear();
+        if constexpr (!is_rgb_v<Spectrum>) {
+            (void) scene, (void) bsdfs, (void) media;
+        } else {
+            for (const auto &emitter : scene->emitters()) {
+                Collector ce;
+                ce.visit(const_cast<Emitter *>(emitter.get()));
+                for (Object *o : ce.objects)
+                    if (auto *src = dynamic_cast<SpectralSource *>(o); src && !m_sources.count(emitter.get())) {
+                        Source s{ std::vector<double>(m_k), src->rgb_luminance(), &src->illuminant() };
+                        fluo::illuminant_coefficients(src->illuminant(), **m_transport,
+                                                      rust::Slice<double>(s.coeffs.data(), m_k));
+                        m_sources.emplace(emitter.get(), s);
+                    }
+            }
+            for (Bispectral *b : bsdfs) {
+                Entry e{ dynamic_cast<const BSDF *>(b), b };
+                for (auto &m : e.m)
+                    m.assign(m_k * m_k, 0.0);
+                e.full = rust_call(m_plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
+                std::vector<double> nodes;
+                if (!b->jit_lambertian())
+                    e.n_nodes = (uint32_t) rust_call(m_plugin,
+                                                     [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
+                if (e.n_nodes > 0) {
+                    std::vector<float> f(nodes.begin(), nodes.end());
+                    e.nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+                }
+                m_entries.push_back(std::move(e));
+            }
+            if ((!m_entries.empty() || media) && m_uv_warned != scene) {
+                for (const auto &[emitter, src] : m_sources)
+                    if (fluo::illuminant_is_mostly_uv(*src.illuminant)) {
+                        warn_uv_emitter(m_plugin, "llvm_ad_rgb", emitter);
+                        m_uv_warned = scene;
+                        break;
+                    }
+            }
+        }
+    }
+
+    /// The fluorescent BSDFs reduced for this render.
+    size_t size() const { return m_entries.size(); }
+    void clear() { m_entries.clear(); }
+
+    /// diag(t)·O: the matrix throughput of a path whose RGB throughput is t.
+    template <size_t K> Rows<K> output_rows(const Color3f &t) const {
+        Rows<K> out;
+        for (size_t r = 0; r < 3; ++r)
+            for (size_t k = 0; k < K; ++k)
+                out[r * K + k] = (float) m_output[r * K + k] * t[r];
+        return out;
+    }
+
+    /// Per-band albedo a_k = (F·v)_k / (F·1)_k of an RGB value (a native BSDF, medium or
+    /// phase weight on the K coefficients; fluo_transport_reduced.h's band_albedo).
+    template <size_t K> Coeffs<K> band_albedo(const Color3f &v) const {
+        Coeffs<K> d;
+        Float mean = (v[0] + v[1] + v[2]) * (1.f / 3.f);
+        for (size_t k = 0; k < K; ++k) {
+            double w = m_white[k];
+            if (std::abs(w) > 1e-12)
+                d[k] = ((float) m_from_rgb[3 * k] * v[0] + (float) m_from_rgb[3 * k + 1] * v[1] +
+                        (float) m_from_rgb[3 * k + 2] * v[2]) * (float) (1.0 / w);
+            else
+                d[k] = mean;
+        }
+        return d;
+    }
+
+    /// Basis coefficients of an emitter's radiance `le` (RGB): a fluo_illuminant's own
+    /// coefficients rescaled to the radiance's luminance, else F·le.
+    template <size_t K> Coeffs<K> emitter_coefficients(const EmitterPtr &emitter, const Color3f &le,
+                                                        const Mask &active) const {
+        Coeffs<K> c;
+        for (size_t k = 0; k < K; ++k)
+            c[k] = (float) m_from_rgb[3 * k] * le[0] + (float) m_from_rgb[3 * k + 1] * le[1] +
+                   (float) m_from_rgb[3 * k + 2] * le[2];
+        // Emitters are compared by pointer (a handful per scene), without a virtual call.
+        Float y = 0.212671f * le[0] + 0.715160f * le[1] + 0.072169f * le[2];
+        for (const auto &[e, src] : m_sources) {
+            Mask is_src = active && emitter == EmitterPtr(e);
+            if (dr::none_or<false>(is_src))
+                continue;
+            Float s = src.luminance > 0.0 ? y * (float) (1.0 / src.luminance) : Float(0.f);
+            for (size_t k = 0; k < K; ++k)
+                c[k] = dr::select(is_src, s * (float) src.coeffs[k], c[k]);
+        }
+        return c;
+    }
+
+    /// R·c (3×K times K).
+    template <size_t K> static Color3f apply(const Rows<K> &R, const Coeffs<K> &c) {
+        Color3f out;
+        for (size_t r = 0; r < 3; ++r) {
+            Float acc = R[r * K] * c[0];
+            for (size_t k = 1; k < K; ++k)
+                acc = dr::fmadd(R[r * K + k], c[k], acc);
+            out[r] = acc;
+        }
+        return out;
+    }
+    /// R·diag(d).
+    template <size_t K> static Rows<K> scale_columns(Rows<K> R, const Coeffs<K> &d) {
+        for (size_t r = 0; r < 3; ++r)
+            for (size_t j = 0; j < K; ++j)
+                R[r * K + j] *= d[j];
+        return R;
+    }
+    /// Per column k, the largest |R_rk| over the rows.
+    template <size_t K> static Coeffs<K> column_max(const Rows<K> &R) {
+        Coeffs<K> w;
+        for (size_t k = 0; k < K; ++k)
+            w[k] = dr::maximum(dr::maximum(dr::abs(R[k]), dr::abs(R[K + k])), dr::abs(R[2 * K + k]));
+        return w;
+    }
+    /// The largest |R_rk|.
+    template <size_t K> static Float max_abs(const Rows<K> &R) {
+        Float m = dr::abs(R[0]);
+        for (size_t i = 1; i < 3 * K; ++i)
+            m = dr::maximum(m, dr::abs(R[i]));
+        return m;
+    }
+
+    /// A fluorescent vertex for the emitter sample's direction `wa` and the sampled one
+    /// `wb` (with pdf `pdf_b`), given the matrix throughput R. Returns where the BSDF is
+    /// fluorescent, where its elastic part is the BSDF's own value (a direction-dependent
+    /// lobe: the caller adds R·diag(band albedo of the BSDF's value) for it), the product
+    /// towards wa (`Block`: the 3×K block R·A(ωa)·cos θa; else R·A(ωa)·cos θa·c, 3 values)
+    /// and R·A(ωb)·cos θb/pdf_b. A = Σ w_t·M_t (+ the elastic band albedos when A lacks
+    /// them) for a Lambertian material (f = A/π), lobe·w_0·Σ_t s_t(cos θ)·M_t for a
+    /// direction-dependent one, which only scenes holding one (`directional`) ask for.
+    template <size_t K, bool Block>
+    auto vertex(const BSDFPtr &bsdf, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
+                const Vector3f &wa, const Vector3f &wb, const Float &pdf_b, bool directional,
+                const Mask &active) const {
+        using Towards = std::conditional_t<Block, Rows<K>, Color3f>;
+        auto towards = [](const Rows<K> &ra, const Coeffs<K> &c_, const Float &f) {
+            if constexpr (Block) {
+                (void) c_;
+                return Towards(ra * f);
+            } else {
+                return Towards(apply<K>(ra, c_) * f);
+            }
+        };
+        Float inv_pdf = dr::select(pdf_b > 0.f, dr::rcp(pdf_b), 0.f);
+        if (!directional) {
+            auto [f, RA] = dispatch_any(
+                bsdf,
+                [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
+                    const Entry *e = find(b);
+                    if (!e)
+                        return std::make_pair(Mask(false), dr::zeros<Rows<K>>());
+                    return std::make_pair(Mask(true), lambertian_product<K>(*e, si_, R_, on));
+                },
+                si, R, active);
+            return std::make_tuple(Mask(f && active), Mask(false), towards(RA, c, Bispectral::lambert(si, wa)),
+                                   Rows<K>(RA * (Bispectral::lambert(si, wb) * inv_pdf)));
+        }
+        // Block = false: towards the emitter only R·A(ωa)·c leaves the call (3 values, not 3K).
+        auto [f, native, va, rb] = dispatch_any(
+            bsdf,
+            [this, towards](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Coeffs<K> &c_,
+                            const Vector3f &wa_, const Vector3f &wb_, const Mask &on) {
+                const Entry *e = find(b);
+                if (!e)
+                    return std::make_tuple(Mask(false), Mask(false), dr::zeros<Towards>(), dr::zeros<Rows<K>>());
+                if (e->n_nodes == 0) {
+                    Rows<K> ra = lambertian_product<K>(*e, si_, R_, on);
+                    return std::make_tuple(Mask(true), Mask(false), towards(ra, c_, Bispectral::lambert(si_, wa_)),
+                                           Rows<K>(ra * Bispectral::lambert(si_, wb_)));
+                }
+                auto [va_, rb_] = directional_products<K, Block>(*e, si_, R_, c_, wa_, wb_, on);
+                return std::make_tuple(Mask(true), Mask(true), va_, rb_);
+            },
+            si, R, c, wa, wb, active);
+        Mask is_fl = f && active;
+        return std::make_tuple(is_fl, Mask(native && is_fl), va, Rows<K>(rb * inv_pdf));
+    }
+
+private:
+    /// A fluorescent BSDF and its reduced operator Σ w_i·M_i (f = M/π).
+    struct Entry {
+        const BSDF *bsdf;
+        const Bispectral *bispectral;
+        bool full = false; ///< the operator includes the elastic part
+        std::array<std::vector<double>, Bispectral::MaxTerms> m;
+        /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
+        /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
+        DynamicBuffer<Float> nodes;
+        uint32_t n_nodes = 0;
+    };
+
+    /// A fluo_illuminant emitter's basis coefficients.
+    struct Source {
+        std::vector<double> coeffs;
+        double luminance;
+        const fluo::Illuminant *illuminant;
+    };
+
+    const Entry *find(const BSDF *b) const {
+        for (const Entry &e : m_entries)
+            if (e.bsdf == b)
+                return &e;
+        return nullptr;
+    }
+
+    /// R·A for a Lambertian fluorescent vertex, A = Σ w_t·M_t (+ the elastic band albedos
+    /// when A lacks them).
+    template <size_t K>
+    Rows<K> lambertian_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Mask &on) const {
+        Rows<K> ra;
+        const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
+        const bool elastic = !e.full;
+        // A is formed one column at a time (the M_t are the material's constants): K·K values
+        // of A never live at once, which at K = 7 spilled registers (a third of the render time).
+        Coeffs<K> d = dr::zeros<Coeffs<K>>();
+        if (elastic)
+            d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
+        for (size_t j = 0; j < K; ++j) {
+            Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
+            for (size_t k = 0; k < K; ++k) {
+                for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                    if (e.m[t][k * K + j] != 0.0)
+                        col[k] = dr::fmadd(w[t], (float) e.m[t][k * K + j], col[k]);
+                if (elastic && k == j)
+                    col[k] += d[k];
+            }
+            for (size_t r = 0; r < 3; ++r) {
+                Float acc = R[r * K] * col[0];
+                for (size_t k = 1; k < K; ++k)
+                    acc = dr::fmadd(R[r * K + k], col[k], acc);
+                ra[r * K + j] = acc;
+            }
+        }
+        return ra;
+    }
+
+    /// For a direction-dependent lobe, R·A(ωo)·cos θo towards wa (`Block`: the 3×K block;
+    /// else times the emitter sample's coefficients c) and towards wb:
+    /// lobe·w_0·R·Σ_t s_t(cos θ)·M_t, the s_t linear between the entry's nodes
+    /// (Bispectral::jit_reduced_nodes, jit_lobe). Each R·M_t column serves both directions.
+    template <size_t K, bool Block>
+    auto directional_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
+                              const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
+        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms;
+        using Weights = std::array<Float, Bispectral::MaxTerms>;
+        auto weights = [&](const Vector3f &wo) {
+            auto [lobe, cos_h] = e.bispectral->jit_lobe(si, wo, on);
+            Float scale = lobe * e.bispectral->jit_reduced_weights()[0];
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
+            Float f = x - Float(j);
+            Mask live = on && lobe != 0.f;
+            Weights w;
+            for (uint32_t t = 0; t < T; ++t)
+                w[t] = dr::lerp(dr::gather<Float>(e.nodes, j * T + t, live),
+                                dr::gather<Float>(e.nodes, (j + 1) * T + t, live), f) * scale;
+            return w;
+        };
+        Weights w_a = weights(wa), w_b = weights(wb);
+        std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
+        Rows<K> out_b = dr::zeros<Rows<K>>();
+        for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+            for (size_t j = 0; j < K; ++j) {
+                Float wc = Block ? w_a[t] : w_a[t] * c[j];
+                for (size_t r = 0; r < 3; ++r) {
+                    Float acc = 0.f; // (R·M_t)[r, j]
+                    bool any = false;
+                    for (size_t k = 0; k < K; ++k)
+                        if (double m = e.m[t][k * K + j]; m != 0.0) {
+                            acc = any ? dr::fmadd(R[r * K + k], (float) m, acc) : R[r * K + k] * (float) m;
+                            any = true;
+                        }
+                    if (!any)
+                        continue;
+                    if constexpr (Block)
+                        out_a[r * K + j] = dr::fmadd(wc, acc, out_a[r * K + j]);
+                    else
+                        out_a[r] = dr::fmadd(wc, acc, out_a[r]);
+                    out_b[r * K + j] = dr::fmadd(w_b[t], acc, out_b[r * K + j]);
+                }
+            }
+        return std::make_pair(out_a, out_b);
+    }
+
+    const char *m_plugin;
+    std::optional<rust::Box<fluo::TransportBasis>> m_transport;
+    size_t m_k = 3;
+    std::vector<double> m_output, m_from_rgb, m_white;
+    std::vector<Entry> m_entries;
+    std::unordered_map<const Emitter *, Source> m_sources;
+    const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
+};
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)
