@@ -153,8 +153,14 @@ shape (λe, s) is baked into the reduced matrices per render and gets no gradien
 A ``color`` texture works with nearest texels (each texel's dye, sigmoid and RGB
 albedo gathered per lane; its excitation wavelength is sampled uniformly over the texel's
 absorption band, weighted by the exact absorption: unbiased, a little noisier than the
-scalar variants' exact inversion). Not yet available in these variants (a clear error at
-load): textured numeric parameters and ``texel_interpolation = bilinear``.
+scalar variants' exact inversion). Textured numeric parameters work as in the scalar
+variants: per lane λe and s take the nearest of the texture's validated levels (binary
+search over them), c and Q the texture's value clamped to [0, 1]; in ``llvm_ad_rgb`` each
+dye shape's reduced reradiation matrix (at c = Q = 1, reduced once per render) is
+gathered per lane and scaled by c·Q, the elastic part being the hit's RGB albedo, as in
+``scalar_rgb``. A textured parameter is not differentiable (``mi.traverse`` lists its
+texture; the floats stay differentiable). Not yet available in these variants (a clear
+error at load): ``texel_interpolation = bilinear``.
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
@@ -216,22 +222,8 @@ public:
 
     FluoJung(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        // A numeric parameter is a float (the uniform fast path) or a float texture; a
-        // texture that does not vary is read once as its float.
-        double *fields[NParams] = { &m_config.emission_peak, &m_config.stokes_shift, &m_config.concentration,
-                                    &m_config.quantum_yield };
-        for (size_t i = 0; i < NParams && !props.has_property("color"); ++i) {
-            const char *name = ParamNames[i];
-            if (props.has_property(name) && props.type(name) == Properties::Type::Object) {
-                ref<Texture> tex = props.get_texture<Texture>(name);
-                if (tex->is_spatially_varying())
-                    m_param_tex[i] = tex;
-                else
-                    *fields[i] = (double) tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true);
-            } else {
-                *fields[i] = get_float(Plugin, props, name, *fields[i]);
-            }
-        }
+        // A numeric parameter is a float (the uniform fast path) or a float texture.
+        jung_param_textures(Plugin, props, m_config, m_param_tex);
         if (props.has_property("color"))
             init_color(props);
         else
@@ -401,46 +393,15 @@ private:
     /// the textures can combine. m_config takes a representative value of each textured
     /// parameter, so that the base model (the sigmoid reflectance) stays valid.
     void init_param_textures() {
-        using namespace fluo_detail;
-        bool any = false;
-        for (auto &t : m_param_tex)
-            any |= (bool) t;
-        if (!any) {
+        std::optional<fluo_detail::JungShapeSet> set = fluo_detail::jung_shape_set(Plugin, m_param_tex, m_config);
+        if (!set) {
             m_shapes.reset();
             return;
         }
-        std::vector<float> levels[NParams];
-        bool fluoresces[2] = { m_config.concentration > 0.0, m_config.quantum_yield > 0.0 };
-        double *fields[NParams] = { &m_config.emission_peak, &m_config.stokes_shift, &m_config.concentration,
-                                    &m_config.quantum_yield };
-        for (size_t i = 0; i < NParams; ++i) {
-            if (!m_param_tex[i]) {
-                levels[i] = { (float) *fields[i] };
-                continue;
-            }
-            // λe and s select dye shapes: their exact levels are needed
-            levels[i] = param_levels(Plugin, ParamNames[i], m_param_tex[i].get(), i == Peak || i == Shift, false,
-                                     [&](const std::vector<float> &v, size_t width) {
-                                         rust_call(Plugin, [&] {
-                                             fluo::jung_check_values(
-                                                 ParamNames[i], rust::Slice<const float>(v.data(), v.size()), width);
-                                         });
-                                     }).levels;
-            *fields[i] = (double) levels[i].back();
-            if (i == Conc || i == Yield)
-                fluoresces[i - Conc] = levels[i].back() > 0.f;
-        }
-        m_shapes_fluoresce = fluoresces[0] && fluoresces[1];
-        m_peak_levels = levels[Peak];
-        m_shift_levels = levels[Shift];
-        std::vector<double> peaks(m_peak_levels.begin(), m_peak_levels.end()),
-            shifts(m_shift_levels.begin(), m_shift_levels.end());
-        m_shapes = rust_call(Plugin, [&] {
-            return fluo::jung_shapes_new(rust::Slice<const double>(peaks.data(), peaks.size()),
-                                         rust::Slice<const double>(shifts.data(), shifts.size()));
-        });
-        m_config.emission_peak = peaks[0];
-        m_config.stokes_shift = shifts[0];
+        m_shapes_fluoresce = set->fluoresce;
+        m_peak_levels = std::move(set->peaks);
+        m_shift_levels = std::move(set->shifts);
+        m_shapes = std::move(set->shapes);
     }
 
     /// A textured material's parameters at a hit: its dye shape, c and Q.
@@ -652,9 +613,8 @@ private:
     }
 
     /// The numeric parameters that take a texture, in the order of m_param_tex.
-    enum Param { Peak, Shift, Conc, Yield, NParams };
-    static constexpr const char *ParamNames[NParams] = { "emission_peak", "stokes_shift", "concentration",
-                                                         "quantum_yield" };
+    enum Param { Peak = fluo_detail::JungPeak, Shift, Conc, Yield, NParams };
+    static constexpr const char *const *ParamNames = fluo_detail::JungParamNames;
 
     fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
     std::optional<rust::Box<fluo::JungModel>> m_model; ///< set by rebuild() in the constructor

@@ -43,14 +43,8 @@ public:
 
     FluoJungJit(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        for (const char *name : { "emission_peak", "stokes_shift", "concentration", "quantum_yield" })
-            if (props.has_property(name) && props.type(name) == Properties::Type::Object)
-                Throw("%s: a texture for \"%s\" is not available in the vectorised variants yet (it is in "
-                      "scalar_rgb and scalar_spectral); give a float", Plugin, name);
-        m_config.emission_peak = get_float(Plugin, props, "emission_peak", m_config.emission_peak);
-        m_config.stokes_shift = get_float(Plugin, props, "stokes_shift", m_config.stokes_shift);
-        m_config.concentration = get_float(Plugin, props, "concentration", m_config.concentration);
-        m_config.quantum_yield = get_float(Plugin, props, "quantum_yield", m_config.quantum_yield);
+        // A numeric parameter is a float (differentiable) or a float texture (per lane).
+        jung_param_textures(Plugin, props, m_config, m_param_tex);
         if (props.has_property("color"))
             init_color(props);
         else
@@ -74,22 +68,30 @@ public:
             return; // everything derives from the colour and the cube
         if (m_reflectance)
             cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
-        cb->put("emission_peak", m_peak, ParamFlags::Differentiable);
-        cb->put("stokes_shift", m_shift, ParamFlags::Differentiable);
-        cb->put("concentration", m_conc, ParamFlags::Differentiable);
-        cb->put("quantum_yield", m_yield, ParamFlags::Differentiable);
+        Float *values[fluo_detail::JungParams] = { &m_peak, &m_shift, &m_conc, &m_yield };
+        for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
+            if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load
+                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
+            else
+                cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
+        }
     }
 
     void parameters_changed(const std::vector<std::string> &keys) override {
         // The JIT values keep their AD graph; Rust sees their detached values and
         // re-bakes the tables. A rejected update restores the previous values (m_config:
         // the members already hold the rejected ones), so the material keeps working.
+        // A textured parameter's texture may have changed too: rebuild() re-reads them all.
         fluo::JungConfig previous = m_config;
         try {
-            m_config.emission_peak = fluo_detail::host_value(m_peak);
-            m_config.stokes_shift = fluo_detail::host_value(m_shift);
-            m_config.concentration = fluo_detail::host_value(m_conc);
-            m_config.quantum_yield = fluo_detail::host_value(m_yield);
+            if (!m_param_tex[fluo_detail::JungPeak])
+                m_config.emission_peak = fluo_detail::host_value(m_peak);
+            if (!m_param_tex[fluo_detail::JungShift])
+                m_config.stokes_shift = fluo_detail::host_value(m_shift);
+            if (!m_param_tex[fluo_detail::JungConc])
+                m_config.concentration = fluo_detail::host_value(m_conc);
+            if (!m_param_tex[fluo_detail::JungYield])
+                m_config.quantum_yield = fluo_detail::host_value(m_yield);
             rebuild();
         } catch (...) {
             m_config = previous;
@@ -109,17 +111,31 @@ public:
     bool jit_fluorescent() const override {
         if (m_texels) // RGB: a colour texture is a plain BSDF (the colour the cube reproduces)
             return is_spectral_v<Spectrum> && fluo::jung_texture_is_fluorescent(**m_texture);
+        if (m_shapes)
+            return m_shapes->fluoresce;
         return fluo::jung_is_fluorescent(**m_model);
     }
     fluo::Range jit_emission_range() const override {
+        if (m_shapes) { // the union of the dye shapes' emission
+            fluo::Range r{ 1e30, -1e30 };
+            for (size_t i = 0; i < fluo::jung_shapes_len(**m_shapes->shapes); ++i) {
+                fluo::Range ri = fluo::fluo_emission_range(fluo::jung_fluorescence(shape(i)));
+                r = { std::min(r.lo, ri.lo), std::max(r.hi, ri.hi) };
+            }
+            return r;
+        }
         return fluo::fluo_emission_range(fluo::jung_fluorescence(
             m_texels ? fluo::jung_texture_representative(**m_texture) : **m_model));
     }
     /// M = M_r − c·M_ra + c·Q·M_fl (fluo::jung_reduced_parts): exact for every c and Q.
+    /// Textured parameters: none here (jit_reduced_table holds the dye shapes' reradiation,
+    /// the elastic part is the hit's RGB albedo, as in scalar_rgb).
     bool jit_reduced_matrices(const fluo::TransportBasis &transport,
                               std::array<std::vector<double>, MaxTerms> &m) const override {
         if (m_texels)
             Throw("%s: a \"color\" texture has no reduced operator (it renders as its RGB albedo)", Plugin);
+        if (m_shapes)
+            return false; // (m stays 0)
         auto slice = [](std::vector<double> &v) { return rust::Slice<double>(v.data(), v.size()); };
         return fluo::jung_reduced_parts(**m_model, transport, slice(m[0]), slice(m[1]),
                                         slice(m[2]));
@@ -128,9 +144,30 @@ public:
         return { Float(1.f), -m_conc, m_conc * m_yield };
     }
 
+    /// Textured parameters: each dye shape's reduced reradiation at c = Q = 1 (scalar_rgb's
+    /// VaryingModel matrices), one per (λe, s) pair; a hit uses its shape's, times c·Q.
+    size_t jit_reduced_table(const fluo::TransportBasis &transport, std::vector<double> &m) const override {
+        if (!m_shapes)
+            return 0;
+        size_t n = fluo::jung_shapes_len(**m_shapes->shapes), k = fluo::transport_size(transport);
+        m.assign(n * k * k, 0.0);
+        for (size_t i = 0; i < n; ++i) {
+            auto r = fluo_detail::rust_call(Plugin, [&] { return fluo::reduced_new(fluo::jung_fluorescence(shape(i)), transport); });
+            if (!fluo::reduced_lambertian(*r, rust::Slice<double>(m.data() + i * k * k, k * k)))
+                Throw("%s: dye shape %zu has no Lambertian reduced operator", Plugin, i);
+        }
+        return n;
+    }
+    std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
+        Hit h = hit(si, active);
+        return { h.shape, h.t.conc * h.t.yield };
+    }
+
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
         if (m_texels)
             return texel_elastic(si, active);
+        if (m_shapes)
+            return textured_elastic(si, hit(si, active), active);
         if constexpr (is_rgb_v<Spectrum>) {
             if (m_reflectance)
                 return m_reflectance->eval(si, active) * dr::clip(1.f - m_conc * m_rgb_absorbed_scale, 0.f, 1.f);
@@ -147,7 +184,7 @@ public:
             return this->elastic_only(lambda_o);
         } else {
             // Probabilities are detached: gradients flow through the values only.
-            Texel t = m_texels ? texel(si, active) : Texel{ m_peak, m_shift, m_conc, m_yield };
+            Texel t = m_texels ? texel(si, active) : (m_shapes ? hit(si, active).t : Texel{ m_peak, m_shift, m_conc, m_yield });
             Dye dye(dr::detach(t.peak), dr::detach(t.shift));
             fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
@@ -189,6 +226,13 @@ public:
             oss << "  reflectance = " << string::indent(m_reflectance) << "," << std::endl;
         if (m_color_mode)
             oss << "  color = " << m_color_text << "," << std::endl;
+        for (size_t i = 0; i < fluo_detail::JungParams; ++i)
+            if (m_param_tex[i])
+                oss << "  " << fluo_detail::JungParamNames[i] << " = " << string::indent(m_param_tex[i]) << ","
+                    << std::endl;
+        if (m_shapes)
+            oss << "  dye shapes = " << fluo::jung_shapes_len(**m_shapes->shapes)
+                << " ((emission_peak, stokes_shift) pairs)," << std::endl;
         oss << "  variant = vectorised (closed forms per lane)" << std::endl << "]";
         return oss.str();
     }
@@ -196,9 +240,25 @@ public:
     MI_DECLARE_CLASS(FluoJungJit)
 
 private:
+    /// Per-texel parameters (m_texel_data) in this order.
+    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TR, TG, TB, TexelFields };
+    using FloatStorage = DynamicBuffer<Float>;
+
+    /// A hit's dye: λe, s, c, Q.
+    struct Texel {
+        Float peak, shift, conc, yield;
+    };
+
+    /// A textured material's parameters at a hit (hit()).
+    struct Hit {
+        UInt32 shape; ///< peak-major index of the (λe, s) pair
+        Texel t;
+    };
+
     /// Validate in Rust and bake what the lanes read.
     void rebuild() {
         using namespace fluo_detail;
+        init_param_textures();
         m_model = rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
         double peak = m_config.emission_peak, shift = m_config.stokes_shift;
         m_unit = rust_call(Plugin, [&] {
@@ -214,6 +274,86 @@ private:
             m_rgb_reflectance_absorbed = color(p.reflectance_absorbed);
             m_rgb_absorbed_scale = color(p.absorbed_scale);
             m_rgb_fluorescence = color(p.fluorescence);
+            if (m_shapes) { // per dye shape, gathered per lane
+                size_t n = fluo::jung_shapes_len(**m_shapes->shapes);
+                std::vector<float> parts[ShapeFields];
+                for (auto &f : parts)
+                    f.resize(n);
+                for (size_t i = 0; i < n; ++i) {
+                    fluo::JungRgbParts q = fluo::jung_rgb_parts(shape(i), **m_model);
+                    const fluo::Rgb *rgb[4] = { &q.reflectance, &q.reflectance_absorbed, &q.absorbed_scale,
+                                                &q.fluorescence };
+                    for (size_t c = 0; c < 4; ++c) {
+                        parts[3 * c][i] = (float) rgb[c]->r;
+                        parts[3 * c + 1][i] = (float) rgb[c]->g;
+                        parts[3 * c + 2][i] = (float) rgb[c]->b;
+                    }
+                }
+                for (size_t f = 0; f < ShapeFields; ++f)
+                    m_shape_parts[f] = dr::load<FloatStorage>(parts[f].data(), n);
+            }
+        }
+    }
+
+    /// Textured parameters: every texture's values validated (Rust names a bad texel) and
+    /// one dye shape per (λe, s) pair (fluo_jung_color.h, as the scalar variants); the
+    /// levels of λe and s on the device, for the per-lane nearest level.
+    void init_param_textures() {
+        m_shapes = fluo_detail::jung_shape_set(Plugin, m_param_tex, m_config);
+        if (!m_shapes)
+            return;
+        m_peak_levels = dr::load<FloatStorage>(m_shapes->peaks.data(), m_shapes->peaks.size());
+        m_shift_levels = dr::load<FloatStorage>(m_shapes->shifts.data(), m_shapes->shifts.size());
+    }
+
+    const fluo::JungModel &shape(size_t i) const { return fluo::jung_shapes_model(**m_shapes->shapes, i); }
+
+    /// A textured material's dye at a hit: λe and s the nearest of their validated levels
+    /// (every shape a hit uses was built at load), c and Q the textures' values clamped to
+    /// [0, 1] (not finite: 0), read with each texture's own eval_1, as the scalar variants.
+    Hit hit(const SurfaceInteraction3f &si, Mask active) const {
+        using namespace fluo_detail;
+        auto level = [&](JungParam p, const FloatStorage &levels, size_t n, const Float &uniform) {
+            if (!m_param_tex[p]) // its one level: the (differentiable) float
+                return std::make_pair(UInt32(0), uniform);
+            Float x = m_param_tex[p]->eval_1(si, active);
+            UInt32 i(0);
+            if (n > 1) {
+                i = dr::binary_search<UInt32>(1, (uint32_t) n - 1, [&](const UInt32 &k) {
+                        return dr::gather<Float>(levels, k, active) <= x;
+                    }) - 1;
+                Float a = dr::gather<Float>(levels, i, active), b = dr::gather<Float>(levels, i + 1, active);
+                i = dr::select(dr::isnan(x), 0u, dr::select(x - a <= b - x, i, i + 1));
+            }
+            return std::make_pair(i, Float(dr::gather<Float>(levels, i, active)));
+        };
+        auto unit = [&](JungParam p, const Float &uniform) {
+            if (!m_param_tex[p])
+                return uniform;
+            Float v = m_param_tex[p]->eval_1(si, active);
+            return dr::select(dr::isfinite(v), dr::clip(v, 0.f, 1.f), 0.f);
+        };
+        auto [ip, peak] = level(JungPeak, m_peak_levels, m_shapes->peaks.size(), m_peak);
+        auto [is, shift] = level(JungShift, m_shift_levels, m_shapes->shifts.size(), m_shift);
+        return { ip * (uint32_t) m_shapes->shifts.size() + is,
+                 Texel{ peak, shift, unit(JungConc, m_conc), unit(JungYield, m_yield) } };
+    }
+
+    /// A textured material's elastic albedo at a hit: r(λ)(1 − c a(λ)) of its dye (spectral);
+    /// in RGB its shape's parts (as scalar_rgb: with a reflectance texture, the texture
+    /// times sRGB(1 − c a)/sRGB(1), else clipped to [0, 1]).
+    UnpolarizedSpectrum textured_elastic(const SurfaceInteraction3f &si, const Hit &h, Mask active) const {
+        if constexpr (is_rgb_v<Spectrum>) {
+            auto part = [&](size_t f) {
+                return Color3f(dr::gather<Float>(m_shape_parts[f], h.shape, active),
+                               dr::gather<Float>(m_shape_parts[f + 1], h.shape, active),
+                               dr::gather<Float>(m_shape_parts[f + 2], h.shape, active));
+            };
+            if (m_reflectance)
+                return m_reflectance->eval(si, active) * dr::clip(1.f - h.t.conc * part(SAbsorbedScale), 0.f, 1.f);
+            return dr::clip(part(SReflectance) - h.t.conc * part(SReflectanceAbsorbed), 0.f, 1.f);
+        } else {
+            return reflectance(si, active) * (1.f - h.t.conc * Dye(h.t.peak, h.t.shift).absorption(si.wavelengths));
         }
     }
 
@@ -238,6 +378,13 @@ private:
         if constexpr (is_rgb_v<Spectrum>) {
             Color3f e = dr::clip(jit_elastic_albedo(si, active), 0.f, 1.f);
             Color3f f = dr::maximum(m_conc * m_yield * m_rgb_fluorescence, 0.f);
+            if (m_shapes) { // the hit's dye shape, c and Q
+                Hit h = hit(si, active);
+                Color3f unit(dr::gather<Float>(m_shape_parts[SFluorescence], h.shape, active),
+                             dr::gather<Float>(m_shape_parts[SFluorescence + 1], h.shape, active),
+                             dr::gather<Float>(m_shape_parts[SFluorescence + 2], h.shape, active));
+                f = dr::maximum(h.t.conc * h.t.yield * unit, 0.f);
+            }
             Float k = 1.f;
             for (size_t c = 0; c < 3; ++c)
                 k = dr::select(f[c] > 0.f, dr::minimum(k, (1.f - e[c]) / f[c]), k);
@@ -331,15 +478,6 @@ private:
         m_config = fluo::jung_config(fluo::jung_texture_representative(**m_texture)); // for rebuild()
     }
 
-    /// Per-texel parameters (m_texel_data) in this order.
-    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TR, TG, TB, TexelFields };
-    using FloatStorage = DynamicBuffer<Float>;
-
-    /// A hit's dye: λe, s, c, Q.
-    struct Texel {
-        Float peak, shift, conc, yield;
-    };
-
     /// Index of the hit's nearest texel (repeat wrap; uv that is not finite reads texel 0).
     UInt32 texel_index(const SurfaceInteraction3f &si) const {
         auto wrap = [](const Float &x, int size) {
@@ -388,6 +526,14 @@ private:
     std::optional<rust::Box<fluo::JungTexture>> m_texture;
     FloatStorage m_texel_data[TexelFields];
     ScalarVector2i m_res = ScalarVector2i(0, 0);
+    // textured numeric parameters (null: the float members)
+    ref<Texture> m_param_tex[fluo_detail::JungParams];
+    std::optional<fluo_detail::JungShapeSet> m_shapes; ///< their levels and dye shapes
+    FloatStorage m_peak_levels, m_shift_levels;        ///< the levels of λe and s, sorted
+    /// RGB variant: per dye shape, fluo::JungRgbParts (reflectance, reflectance_absorbed,
+    /// absorbed_scale, fluorescence; 3 channels each)
+    enum ShapeField { SReflectance = 0, SReflectanceAbsorbed = 3, SAbsorbedScale = 6, SFluorescence = 9, ShapeFields = 12 };
+    FloatStorage m_shape_parts[ShapeFields];
 
     MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,
                    m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)

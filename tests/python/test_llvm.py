@@ -77,7 +77,8 @@ def scene_job(file: Path, variant: str, spp: int, res: int = 24, **params) -> di
 
 
 # (scene, llvm variant, extra params): the Jung bench box under D65 from 300 nm (every RGB
-# basis), the demo objects under a UV-only lamp, sigmoid coefficients, `color` (the cube).
+# basis), the demo objects under a UV-only lamp and under D65, sigmoid coefficients,
+# `color` (the cube), textured concentration and emission peak (the label).
 CASES = [
     ("bench/jung_box.xml", "llvm_ad_spectral", {}),
     ("bench/jung_box.xml", "llvm_ad_rgb", {"basis": "rgb"}),
@@ -89,6 +90,10 @@ CASES = [
     ("jung_spheres.xml", "llvm_ad_rgb", {}),
     ("bench/highlighter_box.xml", "llvm_ad_spectral", {}),
     ("bench/highlighter_box.xml", "llvm_ad_rgb", {"basis": "x7"}),
+    ("fluo_path_d65.xml", "llvm_ad_spectral", {}),
+    ("fluo_path_d65.xml", "llvm_ad_rgb", {}),
+    ("label_textured.xml", "llvm_ad_spectral", {}),
+    ("label_textured.xml", "llvm_ad_rgb", {}),
 ]
 
 
@@ -136,9 +141,10 @@ def test02_without_fluorescence_fluo_path_is_path():
 
 
 def test03_other_plugins_and_unsupported_inputs_raise_clear_errors():
-    """In llvm: plugins not yet ported (the media, fluo_volpath) raise "not available";
-    fluo_jung's and fluo_qd's textured parameters, bilinear colour texels, and a fluorescent material
-    inside a wrapper, raise errors that name what is missing instead of rendering without it."""
+    """In llvm: plugins not yet ported raise "not available"; fluo_qd's textured parameters,
+    bilinear colour texels, and a fluorescent material inside a wrapper, raise errors that
+    name what is missing instead of rendering without it; fluo_jung's textured parameters are
+    validated as in the scalar variants (every (λe, s) pair the textures combine)."""
     base = """<scene version="3.0.0"><integrator type="fluo_path"/>
         <sensor type="perspective"><film type="hdrfilm"><integer name="width" value="4"/>
         <integer name="height" value="4"/></film></sensor>
@@ -150,8 +156,11 @@ def test03_other_plugins_and_unsupported_inputs_raise_clear_errors():
                         'value="2"/><float name="color1" value="3"/></texture></bsdf>',
                         'fluo_qd: a texture for "radius" is not available in the vectorised variants'),
         "qd_bad_radius": ('<bsdf type="fluo_qd"><float name="radius" value="9"/></bsdf>', 'radius'),
-        "textured": ('<bsdf type="fluo_jung"><texture type="checkerboard" name="concentration"/></bsdf>',
-                     'a texture for "concentration" is not available in the vectorised variants'),
+        "textured_pair": ('<bsdf type="fluo_jung"><texture type="checkerboard" name="emission_peak"><float '
+                          'name="color0" value="300"/><float name="color1" value="700"/></texture><texture '
+                          'type="checkerboard" name="stokes_shift"><float name="color0" value="20"/><float '
+                          'name="color1" value="500"/></texture></bsdf>',
+                          'the pair emission_peak = 300, stokes_shift = 500'),
         "bilinear_texels": ('<bsdf type="fluo_jung"><texture type="bitmap" name="color"><string name="filename" '
                             f'value="{SCENES / "textures" / "acescg_card.exr"}"/><boolean name="raw" value="true"/>'
                             '</texture><string name="texel_interpolation" value="bilinear"/></bsdf>',
@@ -713,3 +722,55 @@ def test17_volpath_variants_and_errors():
     assert "fluo_volpath" in err and "x9" in err, res[4]
     for name, r in zip(("quantum_yield", "sigma_a", "scale"), res[5:]):
         assert name in r.get("error", ""), r
+
+
+# A fluo_jung plane whose Stokes shift and yield are checkerboards (four dye shapes' worth
+# of texels: 2 shifts, 2 yields) under D65 from 300 nm.
+CHECKER_JUNG = """<scene version="3.0.0">
+    <integrator type="fluo_path"><integer name="max_depth" value="4"/></integrator>
+    <sensor type="perspective">
+        <float name="fov" value="40"/>
+        <transform name="to_world"><lookat origin="0, 3, 0.01" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <sampler type="independent"/>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+    </sensor>
+    <emitter type="constant">
+        <spectrum type="fluo_illuminant" name="radiance"><string name="illuminant" value="D65"/></spectrum>
+    </emitter>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/></transform>
+        <bsdf type="fluo_jung">
+            <float name="emission_peak" value="560"/>
+            <float name="concentration" value="0.8"/>
+            <texture type="checkerboard" name="stokes_shift">
+                <float name="color0" value="40"/><float name="color1" value="90"/>
+                <transform name="to_uv"><scale value="3"/></transform>
+            </texture>
+            <texture type="checkerboard" name="quantum_yield">
+                <float name="color0" value="0.3"/><float name="color1" value="1.0"/>
+                <transform name="to_uv"><scale value="2"/></transform>
+            </texture>
+            <string name="coefficients" value="0.0, 0.0, 1.0"/>
+        </bsdf>
+    </shape>
+</scene>"""
+
+
+def test18_textured_jung_in_llvm(tmp_path):
+    """fluo_jung's textured numeric parameters in both llvm variants (per lane: λe and s the
+    nearest of the texture's validated levels, c and Q the texture's value; RGB: each dye
+    shape's reduced matrix, gathered per lane): checkerboard shift and yield render what the
+    scalar variants render (the label demo is in test01's CASES), and a bad texel raises the
+    scalar variants' error naming the parameter, the value and its texel."""
+    cases = [("checkerboard shift and yield", v, {"variant": v, "xml": CHECKER_JUNG, "spp": 256})
+             for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
+    assert_means_equal(cases)
+    mi.set_variant("scalar_rgb")
+    bad = tmp_path / "bad.exr"
+    mi.Bitmap(np.array([[0.1, 0.2, 0.3], [0.4, 1.5, 0.6]], dtype=np.float32)).write(str(bad))
+    tex = {"type": "bitmap", "filename": str(bad), "raw": True, "filter_type": "nearest"}
+    jobs = [{"variant": v, "load": {"type": "fluo_jung", "concentration": tex}}
+            for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
+    for res in run_llvm(jobs):
+        err = res.get("error", "")
+        assert 'invalid parameter "concentration" = 1.5 at texel (x = 1, y = 1)' in err and "[0, 1]" in err, res

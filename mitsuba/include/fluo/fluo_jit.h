@@ -281,6 +281,20 @@ public:
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 
+    /// RGB reduced transport of a material whose reradiation varies over the surface among
+    /// a finite set of Lambertian operators (fluo_jung's textured parameters: one per dye
+    /// shape): the K×K matrices M_n (host, row major, f = M_n/π; into `m`, sized by the
+    /// callee), of which a lane's vertex adds w·M_n with (n, w) from jit_reduced_select.
+    /// Returns how many (0: none, the default).
+    virtual size_t jit_reduced_table(const fluo::TransportBasis & /* transport */,
+                                     std::vector<double> & /* m */) const {
+        return 0;
+    }
+    virtual std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f & /* si */,
+                                                        Mask /* active */) const {
+        return { UInt32(0), Float(0.f) };
+    }
+
     // A reradiation lobe that depends on the directions (fluo_qd's microfacet lobe)
     // overrides the three methods below; fluo_path then calls them per vertex (and only
     // in scenes holding such a material: the Lambertian ones keep the calls above).

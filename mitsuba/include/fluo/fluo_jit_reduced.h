@@ -85,6 +85,12 @@ public:
                     std::vector<float> f(nodes.begin(), nodes.end());
                     e.nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
                 }
+                std::vector<double> table;
+                e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
+                if (e.n_table > 0) {
+                    std::vector<float> f(table.begin(), table.end());
+                    e.table = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+                }
                 m_entries.push_back(std::move(e));
             }
             if ((!m_entries.empty() || media) && m_uv_warned != scene) {
@@ -248,6 +254,9 @@ private:
         /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
         DynamicBuffer<Float> nodes;
         uint32_t n_nodes = 0;
+        /// A varying material (Bispectral::jit_reduced_table): its operators M_n, [n][K][K].
+        DynamicBuffer<Float> table;
+        uint32_t n_table = 0;
     };
 
     /// A fluo_illuminant emitter's basis coefficients.
@@ -265,7 +274,7 @@ private:
     }
 
     /// R·A for a Lambertian fluorescent vertex, A = Σ w_t·M_t (+ the elastic band albedos
-    /// when A lacks them).
+    /// when A lacks them; + w·M_n of a varying material's table, gathered per lane).
     template <size_t K>
     Rows<K> lambertian_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Mask &on) const {
         Rows<K> ra;
@@ -276,9 +285,18 @@ private:
         Coeffs<K> d = dr::zeros<Coeffs<K>>();
         if (elastic)
             d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
+        UInt32 base(0);
+        Float wn(0.f);
+        if (e.n_table > 0) {
+            auto [n, w] = e.bispectral->jit_reduced_select(si, on);
+            base = n * (uint32_t) (K * K);
+            wn = w;
+        }
         for (size_t j = 0; j < K; ++j) {
             Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
             for (size_t k = 0; k < K; ++k) {
+                if (e.n_table > 0)
+                    col[k] = wn * dr::gather<Float>(e.table, base + (uint32_t) (k * K + j), on);
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
                     if (e.m[t][k * K + j] != 0.0)
                         col[k] = dr::fmadd(w[t], (float) e.m[t][k * K + j], col[k]);

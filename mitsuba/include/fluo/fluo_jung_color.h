@@ -1,14 +1,17 @@
-// fluo_jung's reflectance and `color` options (wide-gamut upsampling through a coefficient
-// cube), parsed and checked once for the scalar shim (fluo_jung.cpp) and the vectorised
-// one (fluo_jung_jit.cpp).
+// fluo_jung's reflectance, `color` options (wide-gamut upsampling through a coefficient
+// cube) and textured numeric parameters, parsed and checked once for the scalar shim
+// (fluo_jung.cpp) and the vectorised one (fluo_jung_jit.cpp).
 #pragma once
 
 #include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
 
+#include <optional>
 #include <string>
+#include <vector>
 
 #include "fluo_common.h"
+#include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
@@ -67,6 +70,90 @@ ref<Texture> jung_reflectance(const char *plugin, const Properties &props, fluo:
     config.c1 = c[1];
     config.c2 = c[2];
     return nullptr;
+}
+
+/// fluo_jung's numeric parameters that take a float texture, in this order.
+enum JungParam { JungPeak, JungShift, JungConc, JungYield, JungParams };
+inline constexpr const char *JungParamNames[JungParams] = { "emission_peak", "stokes_shift", "concentration",
+                                                            "quantum_yield" };
+
+/// Read fluo_jung's numeric parameters (unless `color` sets them): a float into `config`,
+/// a spatially varying float texture into `tex` (a texture that does not vary is read
+/// once as its float).
+template <typename Float, typename Spectrum>
+void jung_param_textures(const char *plugin, const Properties &props, fluo::JungConfig &config,
+                         ref<Texture<Float, Spectrum>> (&tex)[JungParams]) {
+    using SurfaceInteraction3f = SurfaceInteraction<Float, Spectrum>;
+    double *fields[JungParams] = { &config.emission_peak, &config.stokes_shift, &config.concentration,
+                                   &config.quantum_yield };
+    for (size_t i = 0; i < JungParams && !props.has_property("color"); ++i) {
+        const char *name = JungParamNames[i];
+        if (props.has_property(name) && props.type(name) == Properties::Type::Object) {
+            ref<Texture<Float, Spectrum>> t = props.get_texture<Texture<Float, Spectrum>>(name);
+            if (t->is_spatially_varying())
+                tex[i] = t;
+            else
+                *fields[i] = (double) dr::slice(t->eval_1(dr::zeros<SurfaceInteraction3f>(), true), 0);
+        } else {
+            *fields[i] = get_float(plugin, props, name, *fields[i]);
+        }
+    }
+}
+
+/// Textured parameters' values, read and validated at load: the levels of λe and s (each
+/// (λe, s) pair is a dye shape), whether any texel has c > 0 and any Q > 0, and the shapes.
+struct JungShapeSet {
+    std::vector<float> peaks, shifts; ///< sorted distinct validated values
+    bool fluoresce = false;
+    std::optional<rust::Box<fluo::JungShapes>> shapes; ///< one per (λe, s), peak-major
+};
+
+/// Read and validate every textured parameter's values (per texel for a bitmap, the
+/// constituent values otherwise; Rust names a bad texel) and build one dye shape per
+/// (λe, s) pair the textures can combine. `config` takes a representative value of each
+/// textured parameter, so that the base model (the sigmoid reflectance) stays valid.
+/// Without textures: nullopt.
+template <typename Float, typename Spectrum>
+std::optional<JungShapeSet> jung_shape_set(const char *plugin, const ref<Texture<Float, Spectrum>> (&tex)[JungParams],
+                                           fluo::JungConfig &config) {
+    bool any = false;
+    for (auto &t : tex)
+        any |= (bool) t;
+    if (!any)
+        return std::nullopt;
+    std::vector<float> levels[JungParams];
+    bool fluoresces[2] = { config.concentration > 0.0, config.quantum_yield > 0.0 };
+    double *fields[JungParams] = { &config.emission_peak, &config.stokes_shift, &config.concentration,
+                                   &config.quantum_yield };
+    for (size_t i = 0; i < JungParams; ++i) {
+        if (!tex[i]) {
+            levels[i] = { (float) *fields[i] };
+            continue;
+        }
+        // λe and s select dye shapes: their exact levels are needed
+        levels[i] = param_levels(plugin, JungParamNames[i], tex[i].get(), i == JungPeak || i == JungShift, false,
+                                 [&](const std::vector<float> &v, size_t width) {
+                                     rust_call(plugin, [&] {
+                                         fluo::jung_check_values(JungParamNames[i],
+                                                                 rust::Slice<const float>(v.data(), v.size()), width);
+                                     });
+                                 }).levels;
+        *fields[i] = (double) levels[i].back();
+        if (i == JungConc || i == JungYield)
+            fluoresces[i - JungConc] = levels[i].back() > 0.f;
+    }
+    JungShapeSet out;
+    out.fluoresce = fluoresces[0] && fluoresces[1];
+    out.peaks = levels[JungPeak];
+    out.shifts = levels[JungShift];
+    std::vector<double> peaks(out.peaks.begin(), out.peaks.end()), shifts(out.shifts.begin(), out.shifts.end());
+    out.shapes = rust_call(plugin, [&] {
+        return fluo::jung_shapes_new(rust::Slice<const double>(peaks.data(), peaks.size()),
+                                     rust::Slice<const double>(shifts.data(), shifts.size()));
+    });
+    config.emission_peak = peaks[0];
+    config.stokes_shift = shifts[0];
+    return out;
 }
 
 NAMESPACE_END(fluo_detail)

@@ -76,7 +76,7 @@ private:
             return;
         if (!tex->is_spatially_varying()) {
             SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-            values.push_back((float) tex->eval_1(si, true));
+            values.push_back((float) dr::slice(tex->eval_1(si, true), 0));
             return;
         }
         Reader r;
