@@ -264,6 +264,38 @@ private:
         return { emitter, emitted, weight, active_e };
     }
 
+    /// volpath's loop state at the camera ray (the fields both loops share; the path's
+    /// throughput is the caller's).
+    template <typename State>
+    void start(State &ls, const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+               const Medium *initial_medium, const Bool &active) const {
+        ls.active = active;
+        ls.depth = UInt32(0);
+        ls.ray = Ray3f(ray);
+        ls.si = dr::zeros<SurfaceInteraction3f>();
+        ls.mei = dr::zeros<MediumInteraction3f>();
+        ls.medium = MediumPtr(initial_medium);
+        ls.eta = Float(1.f);
+        ls.last_scatter_event = dr::zeros<Interaction3f>();
+        ls.last_scatter_direction_pdf = Float(1.f);
+        ls.needs_intersection = Mask(true);
+        ls.specular_chain = Mask(active && !m_hide_emitters);
+        ls.valid_ray = Mask(!m_hide_emitters && scene->environment() != nullptr);
+        ls.inv_len = Float(0.f);
+        ls.mu_a = UnpolarizedSpectrum(0.f);
+        ls.sampler = sampler;
+    }
+
+    /// Where the path reaches a surface (`active`, or an escaped medium flight): its
+    /// intersection when the ray is new. Returns where it was intersected here.
+    template <typename State> Mask reach_surface(const Scene *scene, State &ls, const Mask &active) const {
+        Mask intersect = active && ls.needs_intersection;
+        if (dr::any_or<true>(intersect))
+            dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
+        ls.needs_intersection &= !intersect;
+        return intersect;
+    }
+
     /// A new flight in a fluorescent medium (where `active` and the ray is new): its length to
     /// the next surface first (the source rate of its tentative collisions is at most 1/ℓ).
     /// Returns where a flight starts; the caller looks up its rates there.
@@ -289,6 +321,53 @@ private:
             dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
         ls.needs_intersection &= !active;
         dr::masked(ls.mei.t, active && ls.si.t < ls.mei.t) = dr::Infinity<Float>;
+    }
+
+    /// A tentative collision placed (place_collision): the free flight's weight tr/pdf where
+    /// the medium's extinction is spectral (native media; volpath's, applied by the caller
+    /// where is_spectral held on entry, escaping flights included), the masks following the flight (`escaped` where it left the medium), and
+    /// volpath's null and real probabilities (the mean over the channels).
+    template <typename State>
+    std::tuple<UnpolarizedSpectrum, Float, Float> end_flight(const State &ls, Mask &active_medium, Mask &escaped,
+                                                             Mask &is_spectral, Mask &not_spectral,
+                                                             Mask &is_fluo) const {
+        UnpolarizedSpectrum w(1.f);
+        if (dr::any_or<true>(is_spectral)) {
+            auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
+            Float tr_pdf = free_flight_pdf[0];
+            w = dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+        }
+        escaped = active_medium && !ls.mei.is_valid();
+        active_medium &= ls.mei.is_valid();
+        is_spectral &= active_medium;
+        not_spectral &= active_medium;
+        is_fluo &= active_medium;
+        return { w, dr::mean(ls.mei.sigma_n / ls.mei.combined_extinction),
+                 dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction) };
+    }
+
+    /// Russian roulette on the throughput's largest entry `t_max` and max_depth (as
+    /// volpath): ends the paths that stop; returns where the survivors' throughput must be
+    /// scaled, and by what.
+    template <typename State> std::pair<Mask, Float> roulette(State &ls, const Float &t_max) const {
+        ls.active &= t_max != 0.f;
+        Float q = dr::minimum(t_max * dr::square(ls.eta), .95f);
+        Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
+        ls.active &= ls.sampler->next_1d(ls.active) < q || !perform_rr;
+        ls.active &= ls.depth < (uint32_t) m_max_depth;
+        return { perform_rr, dr::rcp(dr::detach(q)) };
+    }
+
+    /// After the null/real choice: a real collision (`scatter`) counts towards the depth and
+    /// is the last scattering event (as volpath), paths at max_depth stop, and a null one
+    /// moves the ray's origin to it.
+    template <typename State> void settle_collision(State &ls, const Mask &null, Mask &scatter) const {
+        dr::masked(ls.depth, scatter) += 1;
+        dr::masked(ls.last_scatter_event, scatter) = Interaction3f(ls.mei);
+        ls.active &= ls.depth < (uint32_t) m_max_depth;
+        scatter &= ls.active;
+        dr::masked(ls.ray.o, null) = ls.mei.p;
+        dr::masked(ls.si.t, null) = ls.si.t - ls.mei.t;
     }
 
     /// A real collision where `scatter`: valid ray, specular chain (as volpath); returns the
@@ -346,24 +425,11 @@ private:
     /// volpath's loop with fluorescence (spectral variants with fluorescence only).
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
                                     const Medium *initial_medium, Bool active) const {
-        LoopState ls = { active,
-                         UInt32(0),
-                         Ray3f(ray_),
-                         Spectrum(1.f),
-                         Spectrum(0.f),
-                         dr::zeros<SurfaceInteraction3f>(),
-                         dr::zeros<MediumInteraction3f>(),
-                         MediumPtr(initial_medium),
-                         Float(1.f),
-                         dr::zeros<Interaction3f>(),
-                         Float(1.f),
-                         Mask(true),
-                         Mask(active && !m_hide_emitters),
-                         Mask(!m_hide_emitters && scene->environment() != nullptr),
-                         Float(0.f),
-                         UnpolarizedSpectrum(0.f),
-                         UnpolarizedSpectrum(0.f),
-                         sampler };
+        LoopState ls;
+        start(ls, scene, sampler, ray_, initial_medium, active);
+        ls.throughput = Spectrum(1.f);
+        ls.result = Spectrum(0.f);
+        ls.mu_f = UnpolarizedSpectrum(0.f);
         const bool directional = m_directional, surfaces = !m_bsdfs.empty(), media = !m_media.empty();
         const double range_lo = m_range_lo, range_hi = m_range_hi;
 
@@ -375,12 +441,8 @@ private:
                 Sampler *sampler = ls.sampler;
 
                 // ----------------- Russian roulette, max_depth -----------------
-                active &= dr::any(unpolarized_spectrum(throughput) != 0.f);
-                Float q = dr::minimum(dr::max(unpolarized_spectrum(throughput)) * dr::square(ls.eta), .95f);
-                Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
-                active &= sampler->next_1d(active) < q || !perform_rr;
-                dr::masked(throughput, perform_rr) *= dr::rcp(dr::detach(q));
-                active &= ls.depth < (uint32_t) m_max_depth;
+                auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(throughput)));
+                dr::masked(throughput, perform_rr) *= rr;
                 if (dr::none_or<false>(active))
                     return;
 
@@ -407,20 +469,13 @@ private:
                     place_collision(scene, ls, mei, active_medium);
                     mu_f = mf;
                     is_fluo = fl && active_medium;
-                    if (dr::any_or<true>(is_spectral)) {
-                        auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
-                        Float tr_pdf = free_flight_pdf[0];
-                        dr::masked(throughput, is_spectral) *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
-                    }
-                    escaped = active_medium && !ls.mei.is_valid();
-                    active_medium &= ls.mei.is_valid();
-                    is_spectral &= active_medium;
-                    not_spectral &= active_medium;
-                    is_fluo &= active_medium;
+                    Mask weighted = is_spectral; // (escaping flights too)
+                    auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
+                    dr::masked(throughput, weighted) *= w;
 
                     // Null or real: volpath's rule, spectral tracking in fluorescent media.
-                    p_null = dr::mean(ls.mei.sigma_n / ls.mei.combined_extinction);
-                    p_real = dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction);
+                    p_null = pn;
+                    p_real = pr;
                     if (media && dr::any_or<true>(is_fluo)) {
                         auto [pn, pr] = spectral_tracking(ls.mei, throughput, mu_f, ls.inv_len);
                         p_null = dr::select(is_fluo, pn, p_null);
@@ -430,15 +485,8 @@ private:
                     act_null = null_scatter && active_medium;
                     act_scatter = !null_scatter && active_medium;
                     dr::masked(throughput, act_null && is_spectral) *= ls.mei.sigma_n / p_null;
-                    dr::masked(ls.depth, act_scatter) += 1;
-                    dr::masked(ls.last_scatter_event, act_scatter) = Interaction3f(ls.mei);
                 }
-
-                active &= ls.depth < (uint32_t) m_max_depth;
-                act_scatter &= active;
-
-                dr::masked(ls.ray.o, act_null) = ls.mei.p;
-                dr::masked(ls.si.t, act_null) = ls.si.t - ls.mei.t;
+                settle_collision(ls, act_null, act_scatter);
 
                 if (dr::any_or<true>(act_scatter)) {
                     // Elastic scattering, or per wavelength a shift to λi (fluo_volpath.cpp).
@@ -508,10 +556,7 @@ private:
 
                 // ----------------------- Surface interactions ------------------
                 active_surface |= escaped;
-                Mask intersect = active_surface && ls.needs_intersection;
-                if (dr::any_or<true>(intersect))
-                    dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
-                ls.needs_intersection &= !intersect;
+                Mask intersect = reach_surface(scene, ls, active_surface);
 
                 if (dr::any_or<true>(active_surface)) {
                     auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
@@ -860,25 +905,12 @@ private:
             (void) scene, (void) sampler, (void) ray_, (void) initial_medium, (void) active;
             return { 0.f, false };
         } else {
-            LoopStateR<K> ls = { active,
-                                 UInt32(0),
-                                 Ray3f(ray_),
-                                 Color3f(1.f),
-                                 dr::zeros<Rows<K>>(),
-                                 Mask(false),
-                                 Color3f(0.f),
-                                 dr::zeros<SurfaceInteraction3f>(),
-                                 dr::zeros<MediumInteraction3f>(),
-                                 MediumPtr(initial_medium),
-                                 Float(1.f),
-                                 dr::zeros<Interaction3f>(),
-                                 Float(1.f),
-                                 Mask(true),
-                                 Mask(active && !m_hide_emitters),
-                                 Mask(!m_hide_emitters && scene->environment() != nullptr),
-                                 Float(0.f),
-                                 UnpolarizedSpectrum(0.f),
-                                 sampler };
+            LoopStateR<K> ls;
+            start(ls, scene, sampler, ray_, initial_medium, active);
+            ls.t = Color3f(1.f);
+            ls.R = dr::zeros<Rows<K>>();
+            ls.reduced = Mask(false);
+            ls.result = Color3f(0.f);
             const bool surfaces = m_reduced.size() > 0, media = !m_rmedia.empty();
 
             dr::tie(ls) = dr::while_loop(
@@ -895,15 +927,10 @@ private:
                     };
 
                     // ----------------- Russian roulette, max_depth -----------------
-                    Float t_max = dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t));
-                    active &= t_max != 0.f;
-                    Float q = dr::minimum(t_max * dr::square(ls.eta), .95f);
-                    Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
-                    active &= sampler->next_1d(active) < q || !perform_rr;
-                    Float rr = dr::rcp(dr::detach(q));
+                    auto [perform_rr, rr] =
+                        roulette(ls, dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t)));
                     dr::masked(ls.t, perform_rr) *= rr;
                     dr::masked(ls.R, perform_rr) *= rr;
-                    active &= ls.depth < (uint32_t) m_max_depth;
                     if (dr::none_or<false>(active))
                         return;
 
@@ -935,20 +962,13 @@ private:
                         d = dd;
                         is_fluo = fl && active_medium;
                         is_spectral &= !is_fluo;
-                        if (dr::any_or<true>(is_spectral)) {
-                            auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
-                            Float tr_pdf = free_flight_pdf[0];
-                            scale(dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f), is_spectral);
-                        }
-                        escaped = active_medium && !ls.mei.is_valid();
-                        active_medium &= ls.mei.is_valid();
-                        is_spectral &= active_medium;
-                        not_spectral &= active_medium;
-                        is_fluo &= active_medium;
+                        Mask weighted = is_spectral; // (escaping flights too)
+                        auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
+                        scale(Color3f(w), weighted);
 
                         // Null or real: volpath's rule, band tracking in fluorescent media (on R).
-                        p_null = dr::mean(ls.mei.sigma_n / ls.mei.combined_extinction);
-                        p_real = dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction);
+                        p_null = pn;
+                        p_real = pr;
                         Float majorant = ls.mei.combined_extinction[0];
                         if (media && dr::any_or<true>(is_fluo)) {
                             ls.R = dr::select(is_fluo && !ls.reduced, m_reduced.template output_rows<K>(ls.t), ls.R);
@@ -971,15 +991,8 @@ private:
                             ls.R = dr::select(fl_null, medium_product<K>(ls.R, g, -d * s, &ReducedMedium::a, which),
                                               ls.R);
                         }
-                        dr::masked(ls.depth, act_scatter) += 1;
-                        dr::masked(ls.last_scatter_event, act_scatter) = Interaction3f(ls.mei);
                     }
-
-                    active &= ls.depth < (uint32_t) m_max_depth;
-                    act_scatter &= active;
-
-                    dr::masked(ls.ray.o, act_null) = ls.mei.p;
-                    dr::masked(ls.si.t, act_null) = ls.si.t - ls.mei.t;
+                    settle_collision(ls, act_null, act_scatter);
 
                     if (dr::any_or<true>(act_scatter)) {
                         // A fluorescent medium's real collision: the source operator
@@ -1031,10 +1044,7 @@ private:
 
                     // ----------------------- Surface interactions ------------------
                     active_surface |= escaped;
-                    Mask intersect = active_surface && ls.needs_intersection;
-                    if (dr::any_or<true>(intersect))
-                        dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
-                    ls.needs_intersection &= !intersect;
+                    Mask intersect = reach_surface(scene, ls, active_surface);
 
                     if (dr::any_or<true>(active_surface)) {
                         auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
