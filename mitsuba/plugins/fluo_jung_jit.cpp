@@ -152,7 +152,8 @@ public:
         size_t n = fluo::jung_shapes_len(**m_shapes->shapes), k = fluo::transport_size(transport);
         m.assign(n * k * k, 0.0);
         for (size_t i = 0; i < n; ++i) {
-            auto r = fluo_detail::rust_call(Plugin, [&] { return fluo::reduced_new(fluo::jung_fluorescence(shape(i)), transport); });
+            auto r = fluo_detail::rust_call(
+                Plugin, [&] { return fluo::reduced_new(fluo::jung_fluorescence(shape(i)), transport); });
             if (!fluo::reduced_lambertian(*r, rust::Slice<double>(m.data() + i * k * k, k * k)))
                 Throw("%s: dye shape %zu has no Lambertian reduced operator", Plugin, i);
         }
@@ -184,7 +185,9 @@ public:
             return this->elastic_only(lambda_o);
         } else {
             // Probabilities are detached: gradients flow through the values only.
-            Texel t = m_texels ? texel(si, active) : (m_shapes ? hit(si, active).t : Texel{ m_peak, m_shift, m_conc, m_yield });
+            Texel t = m_texels   ? texel(si, active)
+                      : m_shapes ? hit(si, active).t
+                                 : Texel{ m_peak, m_shift, m_conc, m_yield };
             Dye dye(dr::detach(t.peak), dr::detach(t.shift));
             fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
@@ -532,7 +535,13 @@ private:
     FloatStorage m_peak_levels, m_shift_levels;        ///< the levels of λe and s, sorted
     /// RGB variant: per dye shape, fluo::JungRgbParts (reflectance, reflectance_absorbed,
     /// absorbed_scale, fluorescence; 3 channels each)
-    enum ShapeField { SReflectance = 0, SReflectanceAbsorbed = 3, SAbsorbedScale = 6, SFluorescence = 9, ShapeFields = 12 };
+    enum ShapeField {
+        SReflectance = 0,
+        SReflectanceAbsorbed = 3,
+        SAbsorbedScale = 6,
+        SFluorescence = 9,
+        ShapeFields = 12
+    };
     FloatStorage m_shape_parts[ShapeFields];
 
     MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,

@@ -175,10 +175,9 @@ matrices are fluo_path's, ``fluo_jit_reduced.h``): the same images within noise
 medium is linear between 4096 nodes across its absorption band (within 3e-7 of its peak),
 shadow rays always ratio-track (``closed_form_shadows`` has no effect there; in RGB a
 shadow ray multiplies the vertex's 3×K row block by each null operator, 3K² per
-collision, instead of keeping the list), the RGB majorant is μa's largest value over
-the spectrum (not over the bands: more null collisions, the same expectation), and a
-path's random numbers differ. Without fluorescence the vectorised variants hand the
-render to Mitsuba's own ``volpath`` (the same image, seed for seed).
+collision, instead of keeping the list), and a path's random numbers differ. Without
+fluorescence the vectorised variants hand the render to Mitsuba's own ``volpath`` (the
+same image, seed for seed).
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.

@@ -182,24 +182,35 @@ private:
 
     /// A tentative collision: fluorescent media through jit_sample_interaction with the
     /// flight's rates (their majorant covering the source up to `rate`), the others through
-    /// Mitsuba's sample_interaction. Returns it, μf there (0 for the others), where it is
-    /// fluorescent and the factor d (density·scale: 1/m at density 1 to inverse scene units).
+    /// Mitsuba's sample_interaction with the path's distance-sampling `channel` (as volpath).
+    /// Returns it, μf there (0 for the others), where it is fluorescent and the factor d
+    /// (density·scale: 1/m at density 1 to inverse scene units).
     std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask, Float>
-    sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const Float &rate,
-                  const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f, const Mask &active) const {
+    sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const UInt32 &channel,
+                  const Float &rate, const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f,
+                  const Mask &active) const {
         const double lo = m_range_lo, hi = m_range_hi;
         return fluo_detail::dispatch_any(
             medium,
-            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const Float &rate_,
+            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const UInt32 &channel_, const Float &rate_,
                      const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
                 if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi)) {
                     auto [mei, mf, d] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
                     return std::make_tuple(mei, mf, Mask(true), d);
                 }
-                return std::make_tuple(m->sample_interaction(ray_, u_, UInt32(0), on), UnpolarizedSpectrum(0.f),
+                return std::make_tuple(m->sample_interaction(ray_, u_, channel_, on), UnpolarizedSpectrum(0.f),
                                        Mask(false), Float(0.f));
             },
-            ray, u, rate, mu_a, mu_f, active);
+            ray, u, channel, rate, mu_a, mu_f, active);
+    }
+
+    /// Channel `c` of a per-channel value (volpath's distance-sampling channel: random per
+    /// path in RGB variants, 0 in spectral ones, where the hero wavelength samples distances).
+    static Float channel_of(const UnpolarizedSpectrum &v, const UInt32 &c) {
+        if constexpr (is_rgb_v<Spectrum>)
+            return dr::select(c == 0u, v[0], dr::select(c == 1u, v[1], v[2]));
+        else
+            return (void) c, v[0];
     }
 
     /// Null and real collision probabilities in a fluorescent medium: spectral tracking
@@ -284,6 +295,10 @@ private:
         ls.inv_len = Float(0.f);
         ls.mu_a = UnpolarizedSpectrum(0.f);
         ls.sampler = sampler;
+        // volpath's distance-sampling channel: one per path in RGB variants
+        ls.channel = UInt32(0);
+        if constexpr (is_rgb_v<Spectrum>)
+            ls.channel = UInt32(dr::minimum(sampler->next_1d(active) * 3.f, 2.f));
     }
 
     /// Where the path reaches a surface (`active`, or an escaped medium flight): its
@@ -323,10 +338,11 @@ private:
         dr::masked(ls.mei.t, active && ls.si.t < ls.mei.t) = dr::Infinity<Float>;
     }
 
-    /// A tentative collision placed (place_collision): the free flight's weight tr/pdf where
-    /// the medium's extinction is spectral (native media; volpath's, applied by the caller
-    /// where is_spectral held on entry, escaping flights included), the masks following the flight (`escaped` where it left the medium), and
-    /// volpath's null and real probabilities (the mean over the channels).
+    /// A tentative collision placed (place_collision): the free flight's weight tr/pdf where the
+    /// medium's extinction is spectral (native media; volpath's, applied by the caller where
+    /// is_spectral held on entry, escaping flights included), the masks following the flight
+    /// (`escaped` where it left the medium), and volpath's null and real probabilities (the mean
+    /// over the channels).
     template <typename State>
     std::tuple<UnpolarizedSpectrum, Float, Float> end_flight(const State &ls, Mask &active_medium, Mask &escaped,
                                                              Mask &is_spectral, Mask &not_spectral,
@@ -334,7 +350,7 @@ private:
         UnpolarizedSpectrum w(1.f);
         if (dr::any_or<true>(is_spectral)) {
             auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
-            Float tr_pdf = free_flight_pdf[0];
+            Float tr_pdf = channel_of(free_flight_pdf, ls.channel);
             w = dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
         }
         escaped = active_medium && !ls.mei.is_valid();
@@ -346,11 +362,12 @@ private:
                  dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction) };
     }
 
-    /// Russian roulette on the throughput's largest entry `t_max` and max_depth (as
-    /// volpath): ends the paths that stop; returns where the survivors' throughput must be
-    /// scaled, and by what.
-    template <typename State> std::pair<Mask, Float> roulette(State &ls, const Float &t_max) const {
-        ls.active &= t_max != 0.f;
+    /// Russian roulette on the throughput's largest entry `t_max` and max_depth (as volpath;
+    /// `alive`: where the throughput is not all 0): ends the paths that stop; returns where the
+    /// survivors' throughput must be scaled, and by what.
+    template <typename State>
+    std::pair<Mask, Float> roulette(State &ls, const Float &t_max, const Mask &alive) const {
+        ls.active &= alive;
         Float q = dr::minimum(t_max * dr::square(ls.eta), .95f);
         Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
         ls.active &= ls.sampler->next_1d(ls.active) < q || !perform_rr;
@@ -416,10 +433,11 @@ private:
         Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
         /// μa, μf of a fluorescent medium at the flight's wavelengths (density 1)
         UnpolarizedSpectrum mu_a, mu_f;
+        UInt32 channel; ///< volpath's distance-sampling channel (0: spectral variants)
         Sampler *sampler;
         DRJIT_STRUCT(LoopState, active, depth, ray, throughput, result, si, mei, medium, eta, last_scatter_event,
                      last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, mu_f,
-                     sampler)
+                     channel, sampler)
     };
 
     /// volpath's loop with fluorescence (spectral variants with fluorescence only).
@@ -441,7 +459,8 @@ private:
                 Sampler *sampler = ls.sampler;
 
                 // ----------------- Russian roulette, max_depth -----------------
-                auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(throughput)));
+                auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(throughput)),
+                                                 dr::any(unpolarized_spectrum(throughput) != 0.f));
                 dr::masked(throughput, perform_rr) *= rr;
                 if (dr::none_or<false>(active))
                     return;
@@ -463,8 +482,8 @@ private:
                         dr::masked(ls.mu_f, fluo_flight) = mu_f_;
                     }
                     Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                    auto [mei, mf, fl, d] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), rate,
-                                                          ls.mu_a, ls.mu_f, active_medium);
+                    auto [mei, mf, fl, d] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
+                                                          ls.channel, rate, ls.mu_a, ls.mu_f, active_medium);
                     (void) d;
                     place_collision(scene, ls, mei, active_medium);
                     mu_f = mf;
@@ -632,7 +651,7 @@ private:
         active &= ds.pdf != 0.f;
         if (dr::none_or<false>(active))
             return { emitter_val, ds };
-        auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, Float(0.f), active);
+        auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, UInt32(0), Float(0.f), active);
         (void) b, (void) met;
         return { emitter_val * tr, ds };
     }
@@ -647,7 +666,7 @@ private:
     template <size_t K, typename Interaction>
     std::tuple<Spectrum, Block<K>, Mask> transmit(const Interaction &ref, const DirectionSample3f &ds,
                                                   const Scene *scene, Sampler *sampler, MediumPtr medium,
-                                                  const Block<K> &B, Mask active) const {
+                                                  const UInt32 &channel, const Block<K> &B, Mask active) const {
         Ray3f ray = ref.spawn_ray_to(ds.p);
         Float max_dist = ray.maxt;
         if constexpr (std::is_convertible_v<Interaction, SurfaceInteraction3f>)
@@ -667,7 +686,7 @@ private:
                               sampler };
         dr::tie(ss) = dr::while_loop(
             dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
-            [this, scene, max_dist, ds](ShadowState<K> &ss) {
+            [this, scene, max_dist, ds, channel](ShadowState<K> &ss) {
                 Float remaining = max_dist - ss.total_dist;
                 ss.ray.maxt = remaining;
                 ss.active &= remaining > 0.f;
@@ -681,9 +700,9 @@ private:
                     Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
                     if (dr::any_or<true>(segment))
                         dr::masked(ss.mu_a, segment) = absorption_bound<K>(ss.medium, ss.ray.wavelengths, segment);
-                    auto [mei, mu_f, fl, d] = sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium),
-                                                            Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f),
-                                                            active_medium);
+                    auto [mei, mu_f, fl, d] =
+                        sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium), channel, Float(0.f),
+                                      ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
                     (void) mu_f;
                     dr::masked(ss.mei, active_medium) = mei;
                     dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =
@@ -704,7 +723,7 @@ private:
                         UnpolarizedSpectrum tr = dr::exp(-t * ss.mei.combined_extinction);
                         UnpolarizedSpectrum pdf = dr::select(ss.si.t < ss.mei.t || ss.mei.t > remaining, tr,
                                                              tr * ss.mei.combined_extinction);
-                        Float tr_pdf = pdf[0];
+                        Float tr_pdf = channel_of(pdf, channel);
                         dr::masked(ss.transmittance, is_spectral) *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
                     }
                     dr::masked(ss.total_dist, active_medium && ss.mei.t > remaining && ss.mei.is_valid()) = ds.dist;
@@ -875,9 +894,11 @@ private:
         Mask needs_intersection, specular_chain, valid_ray;
         Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
         UnpolarizedSpectrum mu_a; ///< μa's RGB of a fluorescent medium (density 1)
+        UInt32 channel;           ///< volpath's distance-sampling channel
         Sampler *sampler;
         DRJIT_STRUCT(LoopStateR, active, depth, ray, t, R, reduced, result, si, mei, medium, eta, last_scatter_event,
-                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, sampler)
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, channel,
+                     sampler)
     };
 
     /// The emitter sample's contribution through a shadow ray from a vertex whose operator
@@ -885,9 +906,9 @@ private:
     /// `rgb` (the throughput times the vertex's value): fluo_volpath.cpp's reduced NEE.
     template <size_t K, typename Interaction>
     Color3f reduced_light(const Interaction &ref, const DirectionSample3f &ds, const Color3f &emitter_val,
-                          const Scene *scene, Sampler *sampler, const MediumPtr &medium, const Rows<K> &B,
-                          const Color3f &rgb, const Mask &matrix, const Mask &active) const {
-        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, B, active);
+                          const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
+                          const Rows<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active) const {
+        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, channel, B, active);
         // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
         Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
         Color3f le = dr::select(met, emitter_val, emitter_val * tr);
@@ -920,15 +941,15 @@ private:
                     Sampler *sampler = ls.sampler;
                     // A wavelength-preserving weight w: t·w, or R·diag(band albedos of w).
                     auto scale = [this, &ls](const Color3f &w, const Mask &m) {
-                        ls.R = dr::select(m && ls.reduced,
-                                          Reduced::template scale_columns<K>(ls.R, m_reduced.template band_albedo<K>(w)),
-                                          ls.R);
+                        Rows<K> scaled =
+                            Reduced::template scale_columns<K>(ls.R, m_reduced.template band_albedo<K>(w));
+                        ls.R = dr::select(m && ls.reduced, scaled, ls.R);
                         dr::masked(ls.t, m && !ls.reduced) *= w;
                     };
 
                     // ----------------- Russian roulette, max_depth -----------------
-                    auto [perform_rr, rr] =
-                        roulette(ls, dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t)));
+                    Float t_max = dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t));
+                    auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
                     dr::masked(ls.t, perform_rr) *= rr;
                     dr::masked(ls.R, perform_rr) *= rr;
                     if (dr::none_or<false>(active))
@@ -955,8 +976,9 @@ private:
                         UnpolarizedSpectrum source_bound(media ? per_medium(which, &ReducedMedium::f_max, 0)
                                                                : Float(0.f));
                         Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                        auto [mei, mf, fl, dd] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
-                                                               rate, ls.mu_a, source_bound, active_medium);
+                        auto [mei, mf, fl, dd] =
+                            sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), ls.channel, rate,
+                                          ls.mu_a, source_bound, active_medium);
                         (void) mf;
                         place_collision(scene, ls, mei, active_medium);
                         d = dd;
@@ -1019,8 +1041,8 @@ private:
                                 B = dr::select(fl_scatter, source_product<K>(ls.R, sigma_s, pv, d, InvFourPi,
                                                                              real_scale, which),
                                                B);
-                            Color3f v = reduced_light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium, B,
-                                                         ls.t * pv, ls.reduced, active_e);
+                            Color3f v = reduced_light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium,
+                                                         ls.channel, B, ls.t * pv, ls.reduced, active_e);
                             dr::masked(ls.result, active_e) += v * mis;
                         }
 
@@ -1047,7 +1069,8 @@ private:
                     Mask intersect = reach_surface(scene, ls, active_surface);
 
                     if (dr::any_or<true>(active_surface)) {
-                        auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
+                        auto [emitter, emitted, weight, active_e] =
+                            surface_emission(scene, ls, active_surface, intersect);
                         if (dr::any_or<true>(active_e)) {
                             Color3f c = dr::select(
                                 ls.reduced,
@@ -1092,8 +1115,8 @@ private:
                             Rows<K> B_red =
                                 Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
                             Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
-                            Color3f v = reduced_light<K>(si, ds, emitter_val, scene, sampler, ls.medium, B,
-                                                         ls.t * bsdf_val, matrix, active_e);
+                            Color3f v = reduced_light<K>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel,
+                                                         B, ls.t * bsdf_val, matrix, active_e);
                             Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
                             dr::masked(ls.result, active_e) += v * mis;
                         }

@@ -685,10 +685,11 @@ def test16_media_equal_scalar_within_noise():
     qd_floor = DYE_SPHERE.replace('<bsdf type="fluo_jung"/>', '<bsdf type="fluo_qd"/>')
     assert qd_floor != DYE_SPHERE
     cases.append(("dye sphere on fluo_qd", "llvm_ad_rgb", {"variant": "llvm_ad_rgb", "xml": qd_floor, "spp": 256}))
-    # a native medium on a fluorescent floor: the matrix throughput through volpath's own tracking
+    # a native medium on a fluorescent floor: the matrix throughput through volpath's own
+    # tracking (an extinction per channel, distances sampled by a random channel, as volpath)
     native = re.sub(r'<medium type="fluo_dye_medium" id="dye">.*?</medium>',
                     '<medium type="homogeneous" id="dye"><rgb name="albedo" value="0.9, 0.5, 0.2"/>'
-                    '<float name="sigma_t" value="2"/></medium>', DYE_SPHERE, flags=re.S)
+                    '<rgb name="sigma_t" value="0.1, 0.6, 1"/><float name="scale" value="3"/></medium>', DYE_SPHERE, flags=re.S)
     assert "fluo_dye_medium" not in native
     cases.append(("native medium on fluo_jung", "llvm_ad_rgb", {"variant": "llvm_ad_rgb", "xml": native, "spp": 256}))
     for v in ("llvm_ad_spectral", "llvm_ad_rgb"):

@@ -106,7 +106,6 @@ public:
 
     /// The fluorescent BSDFs reduced for this render.
     size_t size() const { return m_entries.size(); }
-    void clear() { m_entries.clear(); }
 
     /// diag(t)·O: the matrix throughput of a path whose RGB throughput is t.
     template <size_t K> Rows<K> output_rows(const Color3f &t) const {
@@ -288,9 +287,9 @@ private:
         UInt32 base(0);
         Float wn(0.f);
         if (e.n_table > 0) {
-            auto [n, w] = e.bispectral->jit_reduced_select(si, on);
+            auto [n, weight] = e.bispectral->jit_reduced_select(si, on);
             base = n * (uint32_t) (K * K);
-            wn = w;
+            wn = weight;
         }
         for (size_t j = 0; j < K; ++j) {
             Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
