@@ -295,10 +295,8 @@ private:
 
                     if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
                         auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
-                        Color3f c = dr::select(
-                            ls.reduced,
-                            Reduced::template apply<K>(ls.R, m_reduced.template emitter_coefficients<K>(emitter, le, emitter != nullptr)),
-                            ls.t * le);
+                        Color3f c =
+                            m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, le, emitter != nullptr);
                         ls.result = dr::fmadd(c, mis_bsdf, ls.result);
                     }
 
@@ -329,7 +327,6 @@ private:
                         c = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
                     auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
                         bsdf, si, R, c, wo, bs.wo, bs.pdf, m_directional, active_next);
-                    Mask matrix = ls.reduced || is_fl;
                     if (any_em) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                         Color3f v_red = Reduced::template apply<K>(
@@ -339,12 +336,8 @@ private:
                         ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
                     }
 
-                    Rows<K> R_red =
-                        Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_weight));
-                    R_fl += dr::select(native_elastic, R_red, 0.f);
-                    ls.R = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
-                    ls.t = dr::select(matrix, ls.t, ls.t * bsdf_weight);
-                    ls.reduced = matrix;
+                    m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, R, R_fl, is_fl, native_elastic, bsdf_weight,
+                                                  Mask(true));
 
                     advance(ls, si, bs);
 

@@ -235,7 +235,7 @@ public:
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
             // The A_tot row nearest cos θi (as the Rust model's sampling).
-            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * m_n;
+            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * m_grid.n;
             Float hi_r = (float) hi_host;
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
@@ -253,7 +253,7 @@ public:
                 // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
                 // then the cell's quadratic root (cancellation-free form).
                 Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
-                UInt32 k = dr::binary_search<UInt32>(1, m_n - 1, [&](const UInt32 &i) {
+                UInt32 k = dr::binary_search<UInt32>(1, m_grid.n - 1, [&](const UInt32 &i) {
                                return dr::gather<Float>(m_cdf, row + i, ok) <= target;
                            }) - 1;
                 k = dr::clip(k, ca.k, cb.k);
@@ -299,7 +299,7 @@ public:
             << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl
             << "  eta = " << string::indent(m_setup.eta) << "," << std::endl
             << "  k = " << string::indent(m_setup.k) << "," << std::endl
-            << "  variant = vectorised (tables per lane, " << m_rows << " x " << m_n << ")" << std::endl
+            << "  variant = vectorised (tables per lane, " << m_rows << " x " << m_grid.n << ")" << std::endl
             << "]";
         return oss.str();
     }
@@ -383,8 +383,8 @@ private:
     /// A [rows][λ] table, bilinear in (cos θ, λ).
     Float bilinear(const FloatStorage &t, const Float &cos_theta, const Cell &c, const Mask &active) const {
         auto [j, fc] = rows_at(cos_theta);
-        UInt32 r0 = j * m_n;
-        return dr::lerp(along(t, r0, c, active), along(t, r0 + m_n, c, active), fc);
+        UInt32 r0 = j * m_grid.n;
+        return dr::lerp(along(t, r0, c, active), along(t, r0 + m_grid.n, c, active), fc);
     }
 
     /// e(λo | λi) = L(λo)/I (λo > λi, within [λmin, λmax], checked by the caller): the
@@ -463,7 +463,6 @@ private:
                   t.lambda.size(), t.rows);
         m_model = std::move(model);
         m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
-        m_n = m_grid.n;
         m_rows = (uint32_t) t.rows;
         m_a_tot = storage(t.a_tot);
         m_cdf = storage(t.cdf);
@@ -523,7 +522,7 @@ private:
     bool m_tabulated = false;
     // the tables ([rows][λ] row major) and their grid
     FloatStorage m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot;
-    uint32_t m_n = 2, m_rows = 2; ///< m_n = m_grid.n, the table's row length
+    uint32_t m_rows = 2; ///< the tables' rows (cosine nodes); a row is m_grid.n long
     uint64_t m_build = 0; ///< counts rebuilds: keys the reduction below
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes)
     mutable std::string m_reduced_key;

@@ -1071,14 +1071,10 @@ private:
                     if (dr::any_or<true>(active_surface)) {
                         auto [emitter, emitted, weight, active_e] =
                             surface_emission(scene, ls, active_surface, intersect);
-                        if (dr::any_or<true>(active_e)) {
-                            Color3f c = dr::select(
-                                ls.reduced,
-                                Reduced::template apply<K>(
-                                    ls.R, m_reduced.template emitter_coefficients<K>(emitter, emitted, active_e)),
-                                ls.t * emitted);
-                            dr::masked(ls.result, active_e) += c * weight;
-                        }
+                        if (dr::any_or<true>(active_e))
+                            dr::masked(ls.result, active_e) +=
+                                m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, emitted, active_e) *
+                                weight;
                     }
                     active_surface &= ls.si.is_valid();
                     if (dr::any_or<true>(active_surface)) {
@@ -1121,12 +1117,8 @@ private:
                             dr::masked(ls.result, active_e) += v * mis;
                         }
 
-                        Rows<K> R_red =
-                            Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_weight));
-                        R_fl += dr::select(native_elastic, R_red, 0.f);
-                        dr::masked(ls.R, active_surface) = dr::select(is_fl, R_fl, dr::select(ls.reduced, R_red, ls.R));
-                        dr::masked(ls.t, active_surface && !matrix) *= bsdf_weight;
-                        ls.reduced |= is_fl;
+                        m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, Rm, R_fl, is_fl, native_elastic,
+                                                      bsdf_weight, active_surface);
                         leave_surface(ls, si, bs, active_surface);
                     }
                     active &= active_surface || active_medium;

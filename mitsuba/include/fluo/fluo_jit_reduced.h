@@ -153,6 +153,29 @@ public:
         return c;
     }
 
+    /// Emitted radiance `le` of `emitter` reaching the camera through the path's throughput:
+    /// R·c(le) in matrix form (`reduced`), else t·le.
+    template <size_t K>
+    Color3f through(const Rows<K> &R, const Color3f &t, const Mask &reduced, const EmitterPtr &emitter,
+                    const Color3f &le, const Mask &active) const {
+        return dr::select(reduced, apply<K>(R, emitter_coefficients<K>(emitter, le, active)), t * le);
+    }
+
+    /// The path's throughput after a vertex's BSDF sample (where `active`) of weight w: a
+    /// fluorescent vertex (`is_fl`) gives R_fl = R·A(ωb)·cos/pdf (from vertex(), plus the
+    /// BSDF's own elastic part where `native_elastic`) and switches the path to matrix form;
+    /// a native one scales R's columns by w's band albedos, or t by w. `Rm`: the matrix
+    /// throughput at the vertex (R, or diag(t)·O before the first fluorescent event).
+    template <size_t K>
+    void scatter(Rows<K> &R, Color3f &t, Mask &reduced, const Rows<K> &Rm, const Rows<K> &R_fl, const Mask &is_fl,
+                 const Mask &native_elastic, const Color3f &w, const Mask &active) const {
+        Rows<K> R_red = scale_columns<K>(Rm, band_albedo<K>(w));
+        dr::masked(R, active) = dr::select(is_fl, R_fl + dr::select(native_elastic, R_red, 0.f),
+                                           dr::select(reduced, R_red, R));
+        dr::masked(t, active && !(reduced || is_fl)) *= w;
+        reduced |= is_fl;
+    }
+
     /// R·c (3×K times K).
     template <size_t K> static Color3f apply(const Rows<K> &R, const Coeffs<K> &c) {
         Color3f out;
