@@ -71,7 +71,11 @@ the Rust core, ``core/src/models/gmm.rs``.
   is detached), in ``llvm_ad_rgb`` the mixture is baked into the reduced matrix per render
   and gets no gradient. An update is validated by Rust as a fit file is (a negative weight,
   a mean out of range: an error naming it, and the previous mixture stays).
-  ``index`` textures are not available there yet.
+  Several files selected by an ``index`` texture: every file's components are read per
+  lane from arrays padded to the largest mixture (weight 0), the lane's file chosen as in
+  the scalar variants (the index rounded, per hit); ``llvm_ad_rgb`` gathers each file's
+  reduced matrix per lane. ``mi.traverse`` then exposes the ``index`` texture only (as the
+  scalar variants), not the mixtures.
 
 A malformed fit file (bad JSON, weights not summing to 1, a covariance that is not
 symmetric positive definite, non-finite numbers) raises an error naming the field.

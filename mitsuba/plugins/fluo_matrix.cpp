@@ -59,7 +59,10 @@ physics lives in the Rust core, ``core/src/models/matrix.rs``.
   are f64 in Rust: a float CDF resolves about 1e-7 of a row's mass, far below the noise).
   In ``llvm_ad_rgb`` ``fluo_path`` uses the same reduced matrix as ``scalar_rgb``. Images
   equal the scalar variants' within noise (``test_llvm.py``). Several files selected by
-  an ``index`` texture are not available there yet (a clear error says so).
+  an ``index`` texture: the files' grids and tables are concatenated and each lane reads
+  its file's (the index rounded per hit, as the scalar variants; a binary search runs over
+  the longest grid with each lane clamped to its own), and ``llvm_ad_rgb`` gathers each
+  file's reduced matrix per lane.
 
 A malformed file (truncated, a NaN, a wrong header, a wavelength off its grid) raises
 an error naming the file and the line and column.

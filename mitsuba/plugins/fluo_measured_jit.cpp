@@ -32,6 +32,7 @@
 #include "fluo_common.h"
 #include "fluo_jit.h"
 #include "fluo_lambertian.h"
+#include "fluo_measured_files.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -39,51 +40,20 @@ template <typename Float, typename Spectrum>
 class FluoMeasuredJit : public BSDF<Float, Spectrum>, public fluo_detail::JitBispectral<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
-    MI_IMPORT_TYPES()
+    MI_IMPORT_TYPES(Texture)
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using FloatStorage = DynamicBuffer<Float>;
-    using Factory = rust::Box<fluo::MeasuredModel> (*)(rust::Str);
+    using Factory = typename fluo_detail::MeasuredFiles<Float, Spectrum>::Factory;
     using fluo_detail::JitBispectral<Float, Spectrum>::MaxTerms;
     using Choice = typename fluo_detail::JitBispectral<Float, Spectrum>::Choice;
 
     FluoMeasuredJit(const Properties &props, const char *plugin, Factory factory) : Base(props), m_plugin(plugin) {
-        if (props.has_property("index") || props.has_property("filename0"))
-            Throw("%s: several files selected by a material-index texture (\"filename0\", ..., \"index\") are not "
-                  "available in the vectorised variants yet (they are in scalar_rgb and scalar_spectral); give one "
-                  "\"filename\"",
-                  plugin);
-        if (!props.has_property("filename"))
-            Throw("%s: parameter \"filename\" is required", plugin);
-        std::string name(props.get<std::string_view>("filename"));
-        fs::path path = file_resolver()->resolve(name);
-        if (!fs::exists(path))
-            Throw("%s: invalid parameter \"filename\" = \"%s\": file not found", plugin, name);
-        m_filename = path.string();
-        m_model = fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filename)); });
-        fluo::MeasuredTables t = fluo::measured_tables(**m_model);
-        m_gmm = std::string(t.kind) == "gmm";
-        m_gd = grid(t.diagonal_nm);
-        m_diag = storage(t.diagonal);
-        if (m_gmm) {
-            m_scale = (float) t.scale;
-            for (size_t i = 0; i < 4; ++i)
-                m_rect[i] = (float) t.rect[i];
-            for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
-                const double *v = t.components.data() + c;
-                double det = v[3] * v[5] - v[4] * v[4];
-                // N(λo | μo, σoo) and the conditional λi | λo: mean μi + σio/σoo (λo − μo),
-                // standard deviation √(det/σoo).
-                m_comps.push_back({ (float) (-0.5 / v[5]), (float) (1.0 / std::sqrt(2.0 * dr::Pi<double> * v[5])),
-                                    (float) (v[4] / v[5]), (float) std::sqrt(det / v[5]) });
-            }
-            load_mixture(t);
-        } else {
-            m_gi = grid(t.lambda_i);
-            m_go = grid(t.lambda_o);
-            m_p = storage(t.p);
-            m_rcdf = storage(t.row_cdf);
-            m_rect = { m_gi.lo, m_gi.hi, m_go.lo, m_go.hi };
-        }
+        fluo_detail::MeasuredFiles<Float, Spectrum> files(props, plugin, factory);
+        m_keys = std::move(files.keys);
+        m_filenames = std::move(files.paths);
+        m_models = std::move(files.models);
+        m_index = files.index;
+        load_tables();
         update_rgb();
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
@@ -91,7 +61,9 @@ public:
 
     void traverse(TraversalCallback *cb) override {
         Base::traverse(cb);
-        if (m_gmm) {
+        if (m_index)
+            cb->put("index", m_index, ParamFlags::NonDifferentiable);
+        if (m_gmm && !m_index) { // one file: its mixture's weights and means
             cb->put("weights", m_weights, ParamFlags::Differentiable);
             cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
             cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
@@ -102,7 +74,9 @@ public:
     /// within range) and bakes the RGB parts and reduced matrices again; a rejected update
     /// restores the previous values, so the material keeps working.
     void parameters_changed(const std::vector<std::string> &keys) override {
-        if (m_gmm) {
+        if (m_index) // a changed index map is validated again
+            fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
+        if (m_gmm && !m_index) {
             auto host = [](const Float &v) {
                 Float d = dr::detach(v);
                 dr::eval(d);
@@ -112,18 +86,18 @@ public:
             };
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
             try {
-                if (w.size() != m_comps.size() || mi.size() != m_comps.size() || mo.size() != m_comps.size())
+                if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
                     Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
-                          m_plugin, m_comps.size());
+                          m_plugin, m_n_comps);
                 auto updated = fluo_detail::rust_call(m_plugin, [&] {
-                    return fluo::gmm_updated(**m_model, rust::Slice<const double>(w.data(), w.size()),
+                    return fluo::gmm_updated(*m_models[0], rust::Slice<const double>(w.data(), w.size()),
                                              rust::Slice<const double>(mi.data(), mi.size()),
                                              rust::Slice<const double>(mo.data(), mo.size()));
                 });
-                m_model = std::move(updated);
+                m_models[0] = std::move(updated);
                 update_rgb();
             } catch (...) {
-                load_mixture(fluo::measured_tables(**m_model)); // the previous mixture
+                load_mixture(); // the previous mixture
                 throw;
             }
         }
@@ -133,29 +107,60 @@ public:
     FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), (void) 0)
 
     // ------------------------------------------------ fluo_path's interface (fluo_jit.h)
-    bool jit_fluorescent() const override { return fluo::measured_is_fluorescent(**m_model); }
-    fluo::Range jit_emission_range() const override {
-        return fluo::fluo_emission_range(fluo::measured_fluorescence(**m_model));
+    /// Whether any file re-emits.
+    bool jit_fluorescent() const override {
+        for (const auto &m : m_models)
+            if (fluo::measured_is_fluorescent(*m))
+                return true;
+        return false;
     }
-    /// The whole operator ρ·diag + P, reduced by Rust (as the scalar fluo_path).
+    /// The files' emission ranges' hull.
+    fluo::Range jit_emission_range() const override {
+        fluo::Range r{ 0.0, 0.0 };
+        bool any = false;
+        for (const auto &m : m_models) {
+            if (!fluo::measured_is_fluorescent(*m))
+                continue;
+            fluo::Range e = fluo::fluo_emission_range(fluo::measured_fluorescence(*m));
+            r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
+            any = true;
+        }
+        return r;
+    }
+    /// The whole operator ρ·diag + P, reduced by Rust (as the scalar fluo_path). Several
+    /// files: none here (jit_reduced_table holds one per file).
     bool jit_reduced_matrices(const fluo::TransportBasis &transport,
                               std::array<std::vector<double>, MaxTerms> &m) const override {
-        auto reduced = fluo::reduced_new(fluo::measured_fluorescence(**m_model), transport);
+        if (m_index)
+            return reduced_table(transport, nullptr);
+        auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*m_models[0]), transport);
         if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(m[0].data(), m[0].size())))
             Throw("%s: no Lambertian reduced operator", m_plugin);
         return fluo::reduced_includes_elastic(*reduced);
     }
-    std::array<Float, MaxTerms> jit_reduced_weights() const override { return { Float(1.f), Float(0.f), Float(0.f) }; }
+    std::array<Float, MaxTerms> jit_reduced_weights() const override {
+        return { Float(m_index ? 0.f : 1.f), Float(0.f), Float(0.f) };
+    }
+    /// Several files: each one's reduced operator, selected per lane by the index texture.
+    size_t jit_reduced_table(const fluo::TransportBasis &transport, std::vector<double> &m) const override {
+        if (!m_index)
+            return 0;
+        reduced_table(transport, &m);
+        return m_models.size();
+    }
+    std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
+        return { material(si, active), Float(1.f) };
+    }
 
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
+        UInt32 mat = material(si, active);
         if constexpr (is_rgb_v<Spectrum>) {
-            (void) si;
-            (void) active;
-            return m_rgb_elastic;
+            return rgb_at(m_rgb_elastic, mat, active);
         } else {
+            typename Grids::At gd = m_gd.at(mat, active);
             UnpolarizedSpectrum out;
             for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
-                out[w] = reflectance(si.wavelengths[w], active);
+                out[w] = reflectance(gd, si.wavelengths[w], active);
             return out;
         }
     }
@@ -166,21 +171,24 @@ public:
         if constexpr (!is_spectral_v<Spectrum>) {
             return this->elastic_only(lambda_o);
         } else {
+            UInt32 mat = material(si, active);
+            File file = file_at(mat, active);
             UnpolarizedSpectrum we = dr::maximum(jit_elastic_albedo(si, active), 0.f);
             Wavelength lambda_i = lambda_o;
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
             Mixture mix;
             if (m_gmm)
-                mix = mixture();
+                mix = mixture(mat, active);
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo) and its mass; the shift's value
                 // and pdf once sampled with u2.
                 Float lo = lambda_o[w];
-                Float a = dr::maximum((float) range_lo, m_rect[0]),
-                      b = dr::minimum(dr::minimum((float) range_hi, lo), m_rect[1]);
-                Mask ok = active && b > a && lo >= m_rect[2] && lo <= m_rect[3];
-                auto [mass, x, value] = m_gmm ? gmm_shift(mix, lo, a, b, u2[w], ok) : matrix_shift(lo, a, b, u2[w], ok);
+                Float a = dr::maximum((float) range_lo, file.rect[0]),
+                      b = dr::minimum(dr::minimum((float) range_hi, lo), file.rect[1]);
+                Mask ok = active && b > a && lo >= file.rect[2] && lo <= file.rect[3];
+                auto [mass, x, value] = m_gmm ? gmm_shift(mix, file, lo, a, b, u2[w], ok)
+                                              : matrix_shift(file, lo, a, b, u2[w], ok);
                 fluo_detail::ShiftChoice<Float> choice(we[w], mass, u1[w], active);
                 scale[w] = choice.weight(dr::detach(value) / mass, u1[w]);
                 shifted[w] = choice.shifted;
@@ -193,15 +201,142 @@ public:
 
     std::string to_string() const override {
         std::ostringstream oss;
-        oss << this->class_name() << "[" << std::endl
-            << "  filename = \"" << m_filename << "\"," << std::endl
-            << "  model = " << std::string(fluo::measured_to_string(**m_model)) << "," << std::endl
-            << "  variant = vectorised (tables per lane)" << std::endl
-            << "]";
+        oss << this->class_name() << "[" << std::endl;
+        for (size_t i = 0; i < m_models.size(); ++i)
+            oss << "  " << m_keys[i] << " = \"" << m_filenames[i] << "\"," << std::endl
+                << "  model = " << std::string(fluo::measured_to_string(*m_models[i])) << "," << std::endl;
+        if (m_index)
+            oss << "  index = " << string::indent(m_index) << "," << std::endl;
+        oss << "  variant = vectorised (tables per lane)" << std::endl << "]";
         return oss.str();
     }
 
 protected:
+    using UInt32Storage = DynamicBuffer<UInt32>;
+
+    /// The wavelength grids of one axis (the diagonal's, λi's or λo's) of every file,
+    /// concatenated: per file its offset, size, ends and step (> 0 where it is uniform, as
+    /// BFC files and most CSV ones are: a cell is then one multiplication instead of a
+    /// binary search per lane). Rust checked each: strictly increasing, at least 2 nodes.
+    struct Grids {
+        std::vector<float> host;
+        std::vector<uint32_t> off, n;
+        std::vector<float> lo, hi, step;
+        FloatStorage nodes;
+        FloatStorage d_ends;  ///< per file: lo, hi, step (several files)
+        UInt32Storage d_size; ///< per file: offset, size (several files)
+        uint32_t n_max = 2;
+        bool any_uniform = false, all_uniform = true;
+
+        void add(const rust::Vec<double> &v) {
+            off.push_back((uint32_t) host.size());
+            n.push_back((uint32_t) v.size());
+            n_max = std::max(n_max, (uint32_t) v.size());
+            double h = (v.back() - v.front()) / (double) (v.size() - 1);
+            bool uniform = true;
+            for (size_t i = 0; i < v.size(); ++i)
+                uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
+            any_uniform |= uniform;
+            all_uniform &= uniform;
+            lo.push_back((float) v.front());
+            hi.push_back((float) v.back());
+            step.push_back(uniform ? (float) h : 0.f);
+            host.insert(host.end(), v.begin(), v.end());
+        }
+        void upload() {
+            nodes = dr::load<FloatStorage>(host.data(), host.size());
+            if (off.size() > 1) {
+                std::vector<uint32_t> size;
+                std::vector<float> ends;
+                for (size_t i = 0; i < off.size(); ++i) {
+                    size.insert(size.end(), { off[i], n[i] });
+                    ends.insert(ends.end(), { lo[i], hi[i], step[i] });
+                }
+                d_size = dr::load<UInt32Storage>(size.data(), size.size());
+                d_ends = dr::load<FloatStorage>(ends.data(), ends.size());
+            }
+        }
+
+        /// A lane's file's grid (literals with one file).
+        struct At {
+            UInt32 off, n;
+            Float lo, hi, step;
+        };
+        At at(const UInt32 &mat, const Mask &active) const {
+            if (off.size() == 1)
+                return { UInt32(off[0]), UInt32(n[0]), Float(lo[0]), Float(hi[0]), Float(step[0]) };
+            UInt32 i = mat * 2, e = mat * 3;
+            return { dr::gather<UInt32>(d_size, i, active), dr::gather<UInt32>(d_size, i + 1, active),
+                     dr::gather<Float>(d_ends, e, active), dr::gather<Float>(d_ends, e + 1, active),
+                     dr::gather<Float>(d_ends, e + 2, active) };
+        }
+
+        /// The cell j ∈ [0, n − 2] (within the file's grid) holding x ∈ [lo, hi] (the last
+        /// node ≤ x), and its ends. The binary search runs over the longest grid, each lane's
+        /// nodes clamped to its own last one.
+        std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
+            UInt32 j(0);
+            Float x0(0.f), x1(0.f);
+            if (!all_uniform) {
+                UInt32 last = g.n - 1;
+                j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
+                        return dr::gather<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
+                    }) - 1;
+                j = dr::minimum(j, g.n - 2);
+                x0 = dr::gather<Float>(nodes, g.off + j, active);
+                x1 = dr::gather<Float>(nodes, g.off + j + 1, active);
+            }
+            if (any_uniform) {
+                Mask uniform = g.step > 0.f;
+                Float s = dr::select(uniform, g.step, 1.f);
+                UInt32 ju = UInt32(dr::clip(dr::floor((x - g.lo) / s), 0.f, Float(g.n - 2)));
+                Float u0 = dr::fmadd(Float(ju), s, g.lo);
+                j = dr::select(uniform, ju, j);
+                x0 = dr::select(uniform, u0, x0);
+                x1 = dr::select(uniform, u0 + s, x1);
+            }
+            return { j, x0, x1 };
+        }
+    };
+
+    /// What a lane's file holds beyond its diagonal: its λi and λo grids and P's offset
+    /// (fluo_matrix), its scale (fluo_gmm) and where P can be non-zero:
+    /// [λi_min, λi_max, λo_min, λo_max] (the matrix's grids, the mixture's measured rectangle).
+    struct File {
+        typename Grids::At gi, go;
+        UInt32 p_off;
+        Float scale;
+        std::array<Float, 4> rect;
+    };
+    File file_at(const UInt32 &mat, const Mask &active) const {
+        File f;
+        if (!m_gmm) {
+            f.gi = m_gi.at(mat, active);
+            f.go = m_go.at(mat, active);
+            f.p_off = m_index ? dr::gather<UInt32>(m_p_off, mat, active) : UInt32(0);
+        }
+        for (size_t i = 0; i < 4; ++i)
+            f.rect[i] = m_index ? dr::gather<Float>(m_d_rect, mat * 4 + (uint32_t) i, active) : Float(m_rect[i]);
+        f.scale = m_index ? dr::gather<Float>(m_d_scale, mat, active) : Float(m_scale[0]);
+        return f;
+    }
+
+    /// The file at si: 0 without an index texture, else the texture's value (its own
+    /// eval_1: to_uv, filter) rounded to the nearest whole number, within range (0 where
+    /// not finite), as the scalar variants.
+    UInt32 material(const SurfaceInteraction3f &si, const Mask &active) const {
+        if (!m_index)
+            return UInt32(0);
+        Float v = m_index->eval_1(si, active);
+        Float r = dr::clip(dr::round(v), 0.f, (float) (m_models.size() - 1));
+        return UInt32(dr::select(dr::isfinite(v), r, 0.f));
+    }
+
+    /// A per-file RGB colour (3 values per file) at a lane's file.
+    Color3f rgb_at(const FloatStorage &t, const UInt32 &mat, const Mask &active) const {
+        return dr::gather<Color3f>(t, mat, active);
+    }
+
     /// A mixture component's fixed numbers (its covariance): −1/(2σoo), 1/√(2π σoo),
     /// σio/σoo and the conditional standard deviation √(det Σ/σoo). Its weight and mean
     /// are differentiable arrays (m_weights, m_means_i, m_means_o).
@@ -209,89 +344,145 @@ protected:
         float half_inv_var_o, norm, slope, cond_sd;
     };
 
-    /// RGB variants: the albedos under equal-energy light, from Rust (as the scalar variants).
-    void update_rgb() {
-        if constexpr (is_rgb_v<Spectrum>) {
-            fluo::Rgb a = fluo::measured_rgb_albedo(**m_model), e = fluo::measured_rgb_elastic(**m_model);
-            m_rgb_albedo = Color3f((ScalarFloat) a.r, (ScalarFloat) a.g, (ScalarFloat) a.b);
-            m_rgb_elastic = dr::clip(Color3f((ScalarFloat) e.r, (ScalarFloat) e.g, (ScalarFloat) e.b), 0.f, 1.f);
+    /// Every file's tables from Rust, concatenated (fluo::measured_tables): the diagonals;
+    /// fluo_matrix: the λi, λo grids, P and its rows' running integrals; fluo_gmm: the
+    /// components, padded to the largest mixture with weight 0.
+    void load_tables() {
+        std::vector<float> diag, p, rcdf, rect, scale;
+        std::vector<uint32_t> p_off;
+        std::vector<std::vector<Comp>> comps;
+        for (const auto &model : m_models) {
+            fluo::MeasuredTables t = fluo::measured_tables(*model);
+            m_gmm = std::string(t.kind) == "gmm";
+            m_gd.add(t.diagonal_nm);
+            diag.insert(diag.end(), t.diagonal.begin(), t.diagonal.end());
+            if (m_gmm) {
+                scale.push_back((float) t.scale);
+                rect.insert(rect.end(), t.rect.begin(), t.rect.end());
+                comps.emplace_back();
+                for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
+                    const double *v = t.components.data() + c;
+                    double det = v[3] * v[5] - v[4] * v[4];
+                    // N(λo | μo, σoo) and the conditional λi | λo: mean μi + σio/σoo (λo − μo),
+                    // standard deviation √(det/σoo).
+                    comps.back().push_back({ (float) (-0.5 / v[5]),
+                                             (float) (1.0 / std::sqrt(2.0 * dr::Pi<double> * v[5])),
+                                             (float) (v[4] / v[5]), (float) std::sqrt(det / v[5]) });
+                }
+            } else {
+                m_gi.add(t.lambda_i);
+                m_go.add(t.lambda_o);
+                p_off.push_back((uint32_t) p.size());
+                p.insert(p.end(), t.p.begin(), t.p.end());
+                rcdf.insert(rcdf.end(), t.row_cdf.begin(), t.row_cdf.end());
+                scale.push_back(0.f);
+                for (auto &v : { t.lambda_i.front(), t.lambda_i.back(), t.lambda_o.front(), t.lambda_o.back() })
+                    rect.push_back((float) v);
+            }
         }
+        m_gd.upload();
+        m_diag = dr::load<FloatStorage>(diag.data(), diag.size());
+        if (!m_gmm) {
+            m_gi.upload();
+            m_go.upload();
+            m_p = dr::load<FloatStorage>(p.data(), p.size());
+            m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
+            m_p_off = dr::load<UInt32Storage>(p_off.data(), p_off.size());
+        } else {
+            // [file][component], padded: weight 0 (never drawn, no value), σ = 1
+            m_n_comps = 0;
+            for (const auto &c : comps)
+                m_n_comps = std::max(m_n_comps, c.size());
+            m_comps.assign(m_n_comps * m_models.size(), Comp{ -0.5f, 0.f, 0.f, 1.f });
+            for (size_t f = 0; f < comps.size(); ++f)
+                std::copy(comps[f].begin(), comps[f].end(), m_comps.begin() + (std::ptrdiff_t) (f * m_n_comps));
+            std::vector<float> cols[4];
+            for (const Comp &c : m_comps)
+                for (size_t i = 0; i < 4; ++i)
+                    cols[i].push_back((&c.half_inv_var_o)[i]);
+            for (size_t i = 0; i < 4; ++i)
+                m_d_comp[i] = dr::load<FloatStorage>(cols[i].data(), cols[i].size());
+            load_mixture();
+        }
+        std::copy(rect.begin(), rect.begin() + 4, m_rect.begin());
+        m_scale = scale;
+        m_d_rect = dr::load<FloatStorage>(rect.data(), rect.size());
+        m_d_scale = dr::load<FloatStorage>(scale.data(), scale.size());
     }
 
-    /// fluo_gmm: the differentiable weights and means from Rust's components.
-    void load_mixture(const fluo::MeasuredTables &t) {
-        std::vector<float> weight, mean_i, mean_o;
-        for (size_t c = 0; c + 6 <= t.components.size(); c += 6) {
-            weight.push_back((float) t.components[c]);
-            mean_i.push_back((float) t.components[c + 1]);
-            mean_o.push_back((float) t.components[c + 2]);
+    /// fluo_gmm: the differentiable weights and means from Rust's components ([file][component]
+    /// as m_comps, padded with weight 0).
+    void load_mixture() {
+        std::vector<float> weight(m_comps.size(), 0.f), mean_i(m_comps.size(), 0.f), mean_o(m_comps.size(), 0.f);
+        for (size_t f = 0; f < m_models.size(); ++f) {
+            fluo::MeasuredTables t = fluo::measured_tables(*m_models[f]);
+            for (size_t c = 0, k = f * m_n_comps; c + 6 <= t.components.size(); c += 6, ++k) {
+                weight[k] = (float) t.components[c];
+                mean_i[k] = (float) t.components[c + 1];
+                mean_o[k] = (float) t.components[c + 2];
+            }
         }
         m_weights = dr::load<Float>(weight.data(), weight.size());
         m_means_i = dr::load<Float>(mean_i.data(), mean_i.size());
         m_means_o = dr::load<Float>(mean_o.data(), mean_o.size());
     }
 
-    static FloatStorage storage(const rust::Vec<double> &v) {
-        std::vector<float> f(v.begin(), v.end());
-        return dr::load<FloatStorage>(f.data(), f.size());
-    }
-
-    /// A wavelength grid (strictly increasing, ≥ 2 nodes, checked by Rust): its nodes, and
-    /// whether they are uniform (BFC files and most CSV ones), where a cell is one
-    /// multiplication instead of a binary search per lane.
-    struct Grid {
-        FloatStorage nodes;
-        uint32_t n = 0;
-        float lo = 0.f, hi = 0.f, step = 0.f;
-        bool uniform = false;
-
-        /// The cell j ∈ [0, n − 2] holding x ∈ [lo, hi] (the last node ≤ x), and its ends.
-        std::tuple<UInt32, Float, Float> cell(const Float &x, const Mask &active) const {
-            if (uniform) {
-                UInt32 j = UInt32(dr::clip(dr::floor((x - lo) * (1.f / step)), 0.f, (float) (n - 2)));
-                Float x0 = dr::fmadd(Float(j), step, lo);
-                return { j, x0, x0 + step };
-            }
-            UInt32 j =
-                dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) { return dr::gather<Float>(nodes, i) <= x; }) -
-                1;
-            return { j, dr::gather<Float>(nodes, j, active), dr::gather<Float>(nodes, j + 1, active) };
+    /// Several files in RGB: each file's reduced operator into `m` ([file][K][K]; null: not
+    /// asked). Returns whether they include the elastic part (every measured file's does:
+    /// its diagonal is known spectrally; a mix would be an error).
+    bool reduced_table(const fluo::TransportBasis &transport, std::vector<double> *m) const {
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        if (m)
+            m->assign(kk * m_models.size(), 0.0);
+        bool full = true;
+        for (size_t f = 0; f < m_models.size(); ++f) {
+            auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*m_models[f]), transport);
+            bool includes = fluo::reduced_includes_elastic(*reduced);
+            if (f > 0 && includes != full)
+                Throw("%s: \"%s\" and \"%s\" reduce differently (one with its elastic part, one without)",
+                      m_plugin, m_keys[0], m_keys[f]);
+            full = includes;
+            if (m && !fluo::reduced_lambertian(*reduced, rust::Slice<double>(m->data() + f * kk, kk)))
+                Throw("%s: no Lambertian reduced operator for \"%s\"", m_plugin, m_keys[f]);
         }
-    };
-
-    static Grid grid(const rust::Vec<double> &v) {
-        Grid g;
-        g.nodes = storage(v);
-        g.n = (uint32_t) v.size();
-        g.lo = (float) v.front();
-        g.hi = (float) v.back();
-        double h = (v.back() - v.front()) / (double) (v.size() - 1);
-        g.step = (float) h;
-        g.uniform = true;
-        for (size_t i = 0; i < v.size(); ++i)
-            g.uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
-        return g;
+        return full;
     }
 
-    /// ρ(λ): linear between the diagonal's nodes, constant beyond its ends (0 for λ not finite).
-    Float reflectance(const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, m_gd.lo, m_gd.hi);
-        auto [j, x0, x1] = m_gd.cell(x, active);
+    /// RGB variants: each file's albedos under equal-energy light, from Rust (as the scalar
+    /// variants).
+    void update_rgb() {
+        if constexpr (is_rgb_v<Spectrum>) {
+            std::vector<float> albedo, elastic;
+            for (const auto &m : m_models) {
+                fluo::Rgb a = fluo::measured_rgb_albedo(*m), e = fluo::measured_rgb_elastic(*m);
+                for (double v : { a.r, a.g, a.b })
+                    albedo.push_back((float) v);
+                for (double v : { e.r, e.g, e.b })
+                    elastic.push_back(std::clamp((float) v, 0.f, 1.f));
+            }
+            m_rgb_albedo = dr::load<FloatStorage>(albedo.data(), albedo.size());
+            m_rgb_elastic = dr::load<FloatStorage>(elastic.data(), elastic.size());
+        }
+    }
+
+    /// ρ(λ) of a lane's file: linear between the diagonal's nodes, constant beyond its ends
+    /// (0 for λ not finite).
+    Float reflectance(const typename Grids::At &gd, const Float &lambda, const Mask &active) const {
+        Float x = dr::clip(lambda, gd.lo, gd.hi);
+        auto [j, x0, x1] = m_gd.cell(gd, x, active);
         Float t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
-        Float v = dr::lerp(dr::gather<Float>(m_diag, j, active), dr::gather<Float>(m_diag, j + 1, active), t);
+        UInt32 i = gd.off + j;
+        Float v = dr::lerp(dr::gather<Float>(m_diag, i, active), dr::gather<Float>(m_diag, i + 1, active), t);
         return dr::select(active && dr::isfinite(lambda), v, 0.f);
     }
 
     /// The albedo served to Mitsuba: the diagonal (spectral), or in RGB the albedo under
     /// equal-energy light (diagonal plus reradiation), as the scalar variants.
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        if constexpr (is_rgb_v<Spectrum>) {
-            (void) si;
-            (void) active;
-            return m_rgb_albedo;
-        } else {
+        if constexpr (is_rgb_v<Spectrum>)
+            return rgb_at(m_rgb_albedo, material(si, active), active);
+        else
             return jit_elastic_albedo(si, active);
-        }
     }
 
     /// fluo_matrix: given λo, the row slice P(·, λo) = (1 − t)·row_j + t·row_{j+1} over λi;
@@ -300,23 +491,24 @@ protected:
     /// times its mass on [a, b], then λi ∝ that row by inverting its CDF exactly (the last
     /// node whose running integral is ≤ the target, then the cell's quadratic root in the
     /// cancellation-free form of matrix.rs). The density is the slice's own, P/mass.
-    std::tuple<Float, Float, Float> matrix_shift(const Float &lambda_o, const Float &a, const Float &b,
-                                                 const Float &u, const Mask &ok) const {
-        Float lo = dr::clip(lambda_o, m_go.lo, m_go.hi);
-        auto [j, o0, o1] = m_go.cell(lo, ok);
+    std::tuple<Float, Float, Float> matrix_shift(const File &file, const Float &lambda_o, const Float &a,
+                                                 const Float &b, const Float &u, const Mask &ok) const {
+        const typename Grids::At &gi = file.gi, &go = file.go;
+        Float lo = dr::clip(lambda_o, go.lo, go.hi);
+        auto [j, o0, o1] = m_go.cell(go, lo, ok);
         Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
-        UInt32 r0 = j * m_gi.n, r1 = r0 + m_gi.n;
+        UInt32 r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last = gi.n - 1;
         auto p = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_p, r + k, ok); };
         auto c = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_rcdf, r + k, ok); };
         // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Float &x) {
-            auto [k, x0, x1] = m_gi.cell(x, ok);
+            auto [k, x0, x1] = m_gi.cell(gi, x, ok);
             Float s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), half = .5f * (x - x0);
             Float f0 = p(r0, k), g0 = p(r1, k);
             return std::make_tuple(c(r0, k) + half * (f0 + dr::lerp(f0, p(r0, k + 1), s)),
                                    c(r1, k) + half * (g0 + dr::lerp(g0, p(r1, k + 1), s)), k);
         };
-        Float a_ = dr::select(ok, a, m_gi.lo), b_ = dr::select(ok, b, m_gi.lo);
+        Float a_ = dr::select(ok, a, gi.lo), b_ = dr::select(ok, b, gi.lo);
         auto [ca0, ca1, k_lo] = cdf(a_);
         auto [cb0, cb1, k_hi] = cdf(b_);
         Float m0 = (1.f - t) * dr::maximum(cb0 - ca0, 0.f), m1 = t * dr::maximum(cb1 - ca1, 0.f);
@@ -328,10 +520,16 @@ protected:
         Float m_row = dr::select(second, cb1 - ca1, cb0 - ca0);
         Float u_row = dr::clip(dr::select(second, (split - m0) / m1, split / m0), 0.f, 1.f);
         Float target = dr::select(second, ca1, ca0) + u_row * dr::maximum(m_row, 0.f);
-        UInt32 k = dr::binary_search<UInt32>(1, m_gi.n - 1, [&](const UInt32 &i) { return c(r, i) <= target; }) - 1;
+        // (over the longest λi grid, each lane's row clamped to its own last node)
+        UInt32 k = dr::binary_search<UInt32>(1, m_gi.n_max - 1,
+                                             [&](const UInt32 &i) { return c(r, dr::minimum(i, last)) <= target; }) -
+                   1;
         k = dr::clip(k, k_lo, k_hi);
-        Float x0 = m_gi.uniform ? dr::fmadd(Float(k), m_gi.step, m_gi.lo) : dr::gather<Float>(m_gi.nodes, k, ok);
-        Float x1 = m_gi.uniform ? x0 + m_gi.step : dr::gather<Float>(m_gi.nodes, k + 1, ok), h = x1 - x0;
+        Mask uniform = gi.step > 0.f;
+        Float x0 = dr::select(uniform, dr::fmadd(Float(k), gi.step, gi.lo),
+                              dr::gather<Float>(m_gi.nodes, gi.off + k, ok && !uniform));
+        Float x1 = dr::select(uniform, x0 + gi.step, dr::gather<Float>(m_gi.nodes, gi.off + k + 1, ok && !uniform));
+        Float h = x1 - x0;
         Float f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
         Float e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
         Float step = fluo_detail::linear_cell_inverse(e0, e1, h, target - c(r, k));
@@ -395,23 +593,33 @@ protected:
     /// are detached, P carries their gradients.
     /// The mixture's weights (renormalised, times the normalisation of N(λo)) and means,
     /// read once per vertex from the differentiable arrays.
+    /// With several files, a lane's file's components ([file][component], padded with weight
+    /// 0): their fixed numbers too are read per lane (one file: constants of the kernel).
     struct Mixture {
-        std::vector<Float> weight, mu_i, mu_o;
+        std::vector<Float> weight, mu_i, mu_o, half_inv_var_o, slope, cond_sd;
     };
-    Mixture mixture() const {
-        size_t n = m_comps.size();
-        Mixture m{ std::vector<Float>(n), std::vector<Float>(n), std::vector<Float>(n) };
+    Mixture mixture(const UInt32 &mat, const Mask &active) const {
+        size_t n = m_n_comps;
+        Mixture m;
+        for (auto *v : { &m.weight, &m.mu_i, &m.mu_o, &m.half_inv_var_o, &m.slope, &m.cond_sd })
+            v->resize(n);
         Float wsum = 0.f;
+        UInt32 base = mat * (uint32_t) n;
+        std::vector<Float> norm(n);
         for (size_t k = 0; k < n; ++k) {
-            UInt32 index((uint32_t) k);
-            m.weight[k] = dr::gather<Float>(m_weights, index);
-            m.mu_i[k] = dr::gather<Float>(m_means_i, index);
-            m.mu_o[k] = dr::gather<Float>(m_means_o, index);
+            UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
+            m.weight[k] = dr::gather<Float>(m_weights, index, active);
+            m.mu_i[k] = dr::gather<Float>(m_means_i, index, active);
+            m.mu_o[k] = dr::gather<Float>(m_means_o, index, active);
+            const Comp &c = m_comps[k];
+            Float *fixed[4] = { &m.half_inv_var_o[k], &norm[k], &m.slope[k], &m.cond_sd[k] };
+            for (size_t i = 0; i < 4; ++i)
+                *fixed[i] = m_index ? dr::gather<Float>(m_d_comp[i], index, active) : Float((&c.half_inv_var_o)[i]);
             wsum += m.weight[k];
         }
         Float inv_wsum = dr::rcp(wsum);
         for (size_t k = 0; k < n; ++k)
-            m.weight[k] *= inv_wsum * m_comps[k].norm;
+            m.weight[k] *= inv_wsum * norm[k];
         return m;
     }
 
@@ -421,11 +629,11 @@ protected:
     /// wavelength); with them the whole truncated mixture (gmm_shift_mixture), whose
     /// estimate of d/dθ has the image's variance (measured: the split estimator's weights
     /// gradient scattered 2x more per seed). Both are unbiased (test_llvm.py test09, test12).
-    std::tuple<Float, Float, Float> gmm_shift(const Mixture &mix, const Float &lambda_o, const Float &a,
-                                              const Float &b, const Float &u, const Mask &ok) const {
+    std::tuple<Float, Float, Float> gmm_shift(const Mixture &mix, const File &file, const Float &lambda_o,
+                                              const Float &a, const Float &b, const Float &u, const Mask &ok) const {
         if (dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o))
-            return gmm_shift_mixture(mix, lambda_o, a, b, u, ok);
-        return gmm_shift_split(mix, lambda_o, a, b, u, ok);
+            return gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok);
+        return gmm_shift_split(mix, file, lambda_o, a, b, u, ok);
     }
 
     /// fluo_gmm, given λo on [a, b]: P(λi, λo) = S Σ_k π_k N(λo | μo_k, σoo_k) N(λi | m_k, s_k²)
@@ -439,14 +647,15 @@ protected:
     /// one per component. Returns (S·W·M_k, λi, S·W·M_k): value/weight = 1 as the density
     /// gives the estimate f_k/(p_k q_k) = S·W·M_k without evaluating f_k. Renders without
     /// gradients take this path (gmm_shift).
-    std::tuple<Float, Float, Float> gmm_shift_split(const Mixture &mix, const Float &lambda_o, const Float &a,
-                                              const Float &b, const Float &u, const Mask &ok) const {
-        size_t n = m_comps.size();
+    std::tuple<Float, Float, Float> gmm_shift_split(const Mixture &mix, const File &file, const Float &lambda_o,
+                                                    const Float &a, const Float &b, const Float &u,
+                                                    const Mask &ok) const {
+        size_t n = m_n_comps;
         std::vector<Float> marginal(n);
         Float total = 0.f;
         for (size_t k = 0; k < n; ++k) {
             Float d = lambda_o - mix.mu_o[k];
-            marginal[k] = mix.weight[k] * dr::exp(m_comps[k].half_inv_var_o * d * d);
+            marginal[k] = mix.weight[k] * dr::exp(mix.half_inv_var_o[k] * d * d);
             total += dr::detach(marginal[k]);
         }
         // The component: the first k with u·W < Σ_{≤k} marginal (the last one with a
@@ -459,8 +668,8 @@ protected:
             cu = dr::select(take, dr::clip((target - run) / w, 0.f, 1.f), cu);
             cmu_i = dr::select(take, mix.mu_i[k], cmu_i);
             cmu_o = dr::select(take, mix.mu_o[k], cmu_o);
-            cslope = dr::select(take, Float(m_comps[k].slope), cslope);
-            csd = dr::select(take, Float(m_comps[k].cond_sd), csd);
+            cslope = dr::select(take, mix.slope[k], cslope);
+            csd = dr::select(take, mix.cond_sd[k], csd);
             done |= take && target < run + w;
             run += w;
         }
@@ -473,7 +682,7 @@ protected:
         Float z = phi_inv(dr::fmadd(cu, pb - pa, pa));
         // (clamped to the interval in the mirrored coordinate)
         Float x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
-        Float estimate = m_scale * total * mass_k;
+        Float estimate = file.scale * total * mass_k;
         Mask good = ok && total > 0.f && mass_k > 0.f;
         estimate = dr::select(good, estimate, 0.f);
         return { estimate, x, estimate };
@@ -482,19 +691,19 @@ protected:
     /// fluo_gmm, given λo on [a, b], the whole truncated mixture: the component by its share
     /// π_k N(λo) M_k, then its truncated normal; returns (S Σ_k π_k N(λo) M_k, λi, P(λi, λo)),
     /// P differentiable in the weights and means (the scalar variants' estimator).
-    std::tuple<Float, Float, Float> gmm_shift_mixture(const Mixture &mix, const Float &lambda_o, const Float &a,
-                                              const Float &b, const Float &u, const Mask &ok) const {
-        size_t n = m_comps.size();
+    std::tuple<Float, Float, Float> gmm_shift_mixture(const Mixture &mix, const File &file, const Float &lambda_o,
+                                                      const Float &a, const Float &b, const Float &u,
+                                                      const Mask &ok) const {
+        size_t n = m_n_comps;
         std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n), marginal(n);
         std::vector<Mask> mirror(n);
         Float total = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            const Comp &c = m_comps[k];
             Float d = lambda_o - mix.mu_o[k];
-            marginal[k] = mix.weight[k] * dr::exp(c.half_inv_var_o * d * d);
-            mean[k] = dr::fmadd(c.slope, d, mix.mu_i[k]);
-            Float mean_d = dr::detach(mean[k]);
-            Float lo = (a - mean_d) * (1.f / c.cond_sd), hi = (b - mean_d) * (1.f / c.cond_sd);
+            marginal[k] = mix.weight[k] * dr::exp(mix.half_inv_var_o[k] * d * d);
+            mean[k] = dr::fmadd(mix.slope[k], d, mix.mu_i[k]);
+            Float mean_d = dr::detach(mean[k]), inv_sd = dr::rcp(mix.cond_sd[k]);
+            Float lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
             // On the side where Φ is small: an interval above the mean is mirrored.
             mirror[k] = lo > 0.f;
             za[k] = dr::select(mirror[k], -hi, lo);
@@ -513,7 +722,7 @@ protected:
             ca = dr::select(take, pa[k], ca);
             cb = dr::select(take, pb[k], cb);
             cmean = dr::select(take, dr::detach(mean[k]), cmean);
-            csd = dr::select(take, Float(m_comps[k].cond_sd), csd);
+            csd = dr::select(take, mix.cond_sd[k], csd);
             cmirror = dr::select(take, mirror[k], cmirror);
             cu = dr::select(take, dr::clip((target - run) / w[k], 0.f, 1.f), cu);
             done |= take && target < run + w[k];
@@ -526,33 +735,40 @@ protected:
         // drawn with density exactly P/mass (detached).
         Float value = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            Float e = (x - mean[k]) * (1.f / m_comps[k].cond_sd);
-            value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> / m_comps[k].cond_sd));
+            Float inv_sd = dr::rcp(mix.cond_sd[k]), e = (x - mean[k]) * inv_sd;
+            value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> * inv_sd));
         }
         Mask good = ok && total > 0.f;
-        return { dr::select(good, m_scale * total, 0.f), x, dr::select(good, m_scale * value, 0.f) };
+        return { dr::select(good, file.scale * total, 0.f), x, dr::select(good, file.scale * value, 0.f) };
     }
 
     const char *m_plugin;
-    std::string m_filename;
-    std::optional<rust::Box<fluo::MeasuredModel>> m_model;
+    std::vector<std::string> m_keys, m_filenames; ///< "filename" or "filename0".., resolved paths
+    std::vector<rust::Box<fluo::MeasuredModel>> m_models;
+    ref<Texture> m_index; ///< material-index texture (null: one file)
     bool m_gmm = false;
-    Grid m_gd;            ///< the diagonal's wavelengths
-    FloatStorage m_diag;  ///< ρ at them
-    // fluo_matrix: its λi and λo grids, P and the rows' running integrals
-    Grid m_gi, m_go;
+    Grids m_gd;          ///< the diagonals' wavelengths
+    FloatStorage m_diag; ///< ρ at them
+    // fluo_matrix: the λi and λo grids, P and the rows' running integrals, P's offset per file
+    Grids m_gi, m_go;
     FloatStorage m_p, m_rcdf;
-    // fluo_gmm
-    float m_scale = 0.f;
-    /// where P can be non-zero: [λi_min, λi_max, λo_min, λo_max] (the mixture's measured
-    /// rectangle, the matrix's grids)
+    UInt32Storage m_p_off;
+    /// per file: where P can be non-zero, [λi_min, λi_max, λo_min, λo_max], and fluo_gmm's
+    /// scale (device arrays; the first file's on the host, constants of a one-file kernel)
+    FloatStorage m_d_rect, m_d_scale;
     std::array<float, 4> m_rect{};
+    std::vector<float> m_scale;
+    // fluo_gmm: [file][component], padded to the largest mixture
+    size_t m_n_comps = 0;
     std::vector<Comp> m_comps;
+    FloatStorage m_d_comp[4];              ///< the Comp fields per (file, component), for several files
     Float m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)
-    Color3f m_rgb_albedo = 0.f, m_rgb_elastic = 0.f;
+    FloatStorage m_rgb_albedo, m_rgb_elastic; ///< per file (RGB variants)
 
-    MI_TRAVERSE_CB(Base, m_gd.nodes, m_diag, m_gi.nodes, m_go.nodes, m_p, m_rcdf, m_weights, m_means_i, m_means_o,
-                   m_rgb_albedo, m_rgb_elastic)
+    MI_TRAVERSE_CB(Base, m_gd.nodes, m_gd.d_ends, m_gd.d_size, m_diag, m_gi.nodes, m_gi.d_ends, m_gi.d_size,
+                   m_go.nodes, m_go.d_ends, m_go.d_size, m_p, m_rcdf, m_p_off, m_d_rect, m_d_scale, m_d_comp[0],
+                   m_d_comp[1], m_d_comp[2], m_d_comp[3], m_weights, m_means_i, m_means_o, m_rgb_albedo,
+                   m_rgb_elastic)
 };
 
 template <typename Float, typename Spectrum> class FluoMatrixJit final : public FluoMeasuredJit<Float, Spectrum> {

@@ -11,7 +11,8 @@ evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths,
 ``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
 derivative of the image mean by automatic differentiation and by central differences
 (same seed) for each parameter of ``mi.traverse``, or ``{"variant", "load": a plugin
-dict}`` to instantiate one plugin (an error says why it cannot be).
+dict}`` to instantiate one plugin (an error says why it cannot be), or ``{"variant",
+"traverse": a plugin dict}`` for the keys ``mi.traverse`` lists.
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
 per-pixel image (``"image": true`` in the job), the BSDF values, or the error message.
 """
@@ -34,6 +35,8 @@ def run(job: dict) -> dict:
     if "load" in job:
         mi.load_dict(job["load"])
         return {"loaded": True}
+    if "traverse" in job:
+        return {"keys": list(mi.traverse(mi.load_dict(job["traverse"])).keys())}
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0))}
     params = job.get("params", {})

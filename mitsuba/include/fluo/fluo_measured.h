@@ -20,7 +20,7 @@
 #include "fluo_bispectral.h"
 #include "fluo_common.h"
 #include "fluo_lambertian.h"
-#include "fluo_param_texture.h"
+#include "fluo_measured_files.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -30,43 +30,15 @@ public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture)
 
-    using Factory = rust::Box<fluo::MeasuredModel> (*)(rust::Str);
+    using Factory = typename fluo_detail::MeasuredFiles<Float, Spectrum>::Factory;
 
     FluoMeasured(const Properties &props, const char *plugin, Factory factory)
         : Base(props), m_plugin(plugin) {
-        // One file ("filename"), or several ("filename0", "filename1", ...) selected per
-        // hit by the material-index texture "index".
-        std::vector<std::string> names;
-        if (props.has_property("filename"))
-            names.emplace_back(props.get<std::string_view>("filename"));
-        for (size_t i = 0;; ++i) {
-            std::string key = "filename" + std::to_string(i);
-            if (!props.has_property(key))
-                break;
-            names.emplace_back(props.get<std::string_view>(key));
-            m_keys.push_back(key);
-        }
-        if (names.empty())
-            Throw("%s: parameter \"filename\" is required (or \"filename0\", \"filename1\", ... with "
-                  "a material-index texture \"index\")", plugin);
-        if (props.has_property("filename") && !m_keys.empty())
-            Throw("%s: specify either \"filename\" or \"filename0\", \"filename1\", ..., not both", plugin);
-        if (m_keys.empty())
-            m_keys.push_back("filename");
-        if (m_keys.size() > 1 || props.has_property("index")) {
-            if (!props.has_property("index"))
-                Throw("%s: several files (\"filename0\" ...) need a material-index texture \"index\"", plugin);
-            m_index = props.get_texture<Texture>("index");
-        }
-        for (size_t i = 0; i < names.size(); ++i) {
-            fs::path path = file_resolver()->resolve(names[i]);
-            if (!fs::exists(path))
-                Throw("%s: invalid parameter \"%s\" = \"%s\": file not found", plugin, m_keys[i], names[i]);
-            m_filenames.push_back(path.string());
-            m_models.push_back(fluo_detail::rust_call(plugin, [&] { return factory(rust::Str(m_filenames.back())); }));
-        }
-        if (m_index)
-            check_index(m_index.get());
+        fluo_detail::MeasuredFiles<Float, Spectrum> files(props, plugin, factory);
+        m_keys = std::move(files.keys);
+        m_filenames = std::move(files.paths);
+        m_models = std::move(files.models);
+        m_index = files.index;
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         for (const auto &m : m_models) {
@@ -91,7 +63,8 @@ public:
 
     void parameters_changed(const std::vector<std::string> & /* keys */) override {
         if (m_index)
-            check_index(m_index.get()); // a changed index map is validated again
+            fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(),
+                                                                     m_models.size()); // validated again
     }
 
     FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si), this->warn_if_unmanaged(m_plugin))
@@ -176,19 +149,6 @@ private:
         if (!std::isfinite(v))
             return 0;
         return (size_t) std::clamp(std::lround(v), 0l, (long) m_models.size() - 1);
-    }
-
-    /// Every texel (or constituent value) of the index texture is a whole number in
-    /// [0, number of files − 1].
-    void check_index(const Texture *tex) const {
-        fluo_detail::TextureValues<Float, Spectrum> tv(m_plugin, "index", tex);
-        if (!tv.complete)
-            Throw("%s: the material-index texture's values cannot be read at load (%s): use a bitmap, a "
-                  "constant or a texture of those (checkerboard)", m_plugin, tex->class_name());
-        fluo_detail::rust_call(m_plugin, [&] {
-            fluo::measured_check_index(rust::Slice<const float>(tv.values.data(), tv.values.size()), tv.width,
-                                       m_models.size());
-        });
     }
 
     const char *m_plugin;
