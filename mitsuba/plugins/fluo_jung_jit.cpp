@@ -217,7 +217,7 @@ public:
             Dye exact(t.peak, t.shift);
             UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
             rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
-            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad };
+            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0) };
         }
     }
 

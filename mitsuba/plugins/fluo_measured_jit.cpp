@@ -195,7 +195,7 @@ public:
                 lambda_i[w] = dr::select(choice.shifted, x, lo);
                 rerad[w] = dr::select(choice.shifted, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
             }
-            return { lambda_i, scale, shifted, rerad };
+            return { lambda_i, scale, shifted, rerad, UInt32(0) };
         }
     }
 
@@ -214,90 +214,8 @@ public:
 protected:
     using UInt32Storage = DynamicBuffer<UInt32>;
 
-    /// The wavelength grids of one axis (the diagonal's, λi's or λo's) of every file,
-    /// concatenated: per file its offset, size, ends and step (> 0 where it is uniform, as
-    /// BFC files and most CSV ones are: a cell is then one multiplication instead of a
-    /// binary search per lane). Rust checked each: strictly increasing, at least 2 nodes.
-    struct Grids {
-        std::vector<float> host;
-        std::vector<uint32_t> off, n;
-        std::vector<float> lo, hi, step;
-        FloatStorage nodes;
-        FloatStorage d_ends;  ///< per file: lo, hi, step (several files)
-        UInt32Storage d_size; ///< per file: offset, size (several files)
-        uint32_t n_max = 2;
-        bool any_uniform = false, all_uniform = true;
-
-        void add(const rust::Vec<double> &v) {
-            off.push_back((uint32_t) host.size());
-            n.push_back((uint32_t) v.size());
-            n_max = std::max(n_max, (uint32_t) v.size());
-            double h = (v.back() - v.front()) / (double) (v.size() - 1);
-            bool uniform = true;
-            for (size_t i = 0; i < v.size(); ++i)
-                uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
-            any_uniform |= uniform;
-            all_uniform &= uniform;
-            lo.push_back((float) v.front());
-            hi.push_back((float) v.back());
-            step.push_back(uniform ? (float) h : 0.f);
-            host.insert(host.end(), v.begin(), v.end());
-        }
-        void upload() {
-            nodes = dr::load<FloatStorage>(host.data(), host.size());
-            if (off.size() > 1) {
-                std::vector<uint32_t> size;
-                std::vector<float> ends;
-                for (size_t i = 0; i < off.size(); ++i) {
-                    size.insert(size.end(), { off[i], n[i] });
-                    ends.insert(ends.end(), { lo[i], hi[i], step[i] });
-                }
-                d_size = dr::load<UInt32Storage>(size.data(), size.size());
-                d_ends = dr::load<FloatStorage>(ends.data(), ends.size());
-            }
-        }
-
-        /// A lane's file's grid (literals with one file).
-        struct At {
-            UInt32 off, n;
-            Float lo, hi, step;
-        };
-        At at(const UInt32 &mat, const Mask &active) const {
-            if (off.size() == 1)
-                return { UInt32(off[0]), UInt32(n[0]), Float(lo[0]), Float(hi[0]), Float(step[0]) };
-            UInt32 i = mat * 2, e = mat * 3;
-            return { dr::gather<UInt32>(d_size, i, active), dr::gather<UInt32>(d_size, i + 1, active),
-                     dr::gather<Float>(d_ends, e, active), dr::gather<Float>(d_ends, e + 1, active),
-                     dr::gather<Float>(d_ends, e + 2, active) };
-        }
-
-        /// The cell j ∈ [0, n − 2] (within the file's grid) holding x ∈ [lo, hi] (the last
-        /// node ≤ x), and its ends. The binary search runs over the longest grid, each lane's
-        /// nodes clamped to its own last one.
-        std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
-            UInt32 j(0);
-            Float x0(0.f), x1(0.f);
-            if (!all_uniform) {
-                UInt32 last = g.n - 1;
-                j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
-                        return dr::gather<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
-                    }) - 1;
-                j = dr::minimum(j, g.n - 2);
-                x0 = dr::gather<Float>(nodes, g.off + j, active);
-                x1 = dr::gather<Float>(nodes, g.off + j + 1, active);
-            }
-            if (any_uniform) {
-                Mask uniform = g.step > 0.f;
-                Float s = dr::select(uniform, g.step, 1.f);
-                UInt32 ju = UInt32(dr::clip(dr::floor((x - g.lo) / s), 0.f, Float(g.n - 2)));
-                Float u0 = dr::fmadd(Float(ju), s, g.lo);
-                j = dr::select(uniform, ju, j);
-                x0 = dr::select(uniform, u0, x0);
-                x1 = dr::select(uniform, u0 + s, x1);
-            }
-            return { j, x0, x1 };
-        }
-    };
+    /// The wavelength grids of one axis (the diagonal's, λi's or λo's) of every file.
+    using Grids = fluo_detail::JitGridSet<Float>;
 
     /// What a lane's file holds beyond its diagonal: its λi and λo grids and P's offset
     /// (fluo_matrix), its scale (fluo_gmm) and where P can be non-zero:

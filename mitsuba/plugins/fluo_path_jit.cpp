@@ -103,6 +103,7 @@ private:
         m_range_lo = lo;
         m_range_hi = hi;
         m_directional = directional && m_bsdfs > 0;
+        m_varying = m_directional && m_reduced.varying();
     }
 
     /// First intersection of a camera ray, skipping area emitters when they are hidden
@@ -325,8 +326,9 @@ private:
                     Coeffs<K> c = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
                     if (any_em)
                         c = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+                    Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
                     auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
-                        bsdf, si, R, c, wo, bs.wo, bs.pdf, m_directional, active_next);
+                        bsdf, si, R, c, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
                     if (any_em) {
                         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                         Color3f v_red = Reduced::template apply<K>(
@@ -358,6 +360,7 @@ private:
     double m_range_lo = 0.0, m_range_hi = 0.0;
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media
     bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
+    bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
 };
 
 static const bool fluo_path_jit_registered =

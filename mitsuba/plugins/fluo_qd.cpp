@@ -181,9 +181,18 @@ variants' within noise (``test_llvm.py``). Cost against ``roughconductor`` under
 ``path``: the ``llvm_qd`` rows of ``benches/bench_costs.py`` (README).
 ``quantum_yield`` is differentiable (the reradiation is linear in it); ``radius``,
 ``density``, ``alpha`` and ``width`` can be updated through ``mi.traverse`` (the tables
-are baked again) but carry no gradient. Not yet available in these variants (a clear error
-at load): spatially varying (textured) ``radius``, ``density``, ``quantum_yield`` and
-``alpha``.
+are baked again) but carry no gradient. Textured ``radius``, ``density``, ``quantum_yield``
+and ``alpha`` bake the same models on the same levels as the scalar variants (validated
+alike), each with its own tables and λ grid (with its bucket index) on the device (about
+1.4 MB per model). Per lane a hit reads its (radius, density) models at the roughness level
+nearest its alpha, with bilinear weights, and its Q: the elastic lobe uses the hit's own
+alpha and mixes its models' R_tot, as the scalar variants; the reradiation takes one model
+per vertex picked with its weight as probability (an unbiased estimate of the mixture):
+``llvm_ad_spectral`` with the first wavelength's choice number (rescaled within the model's
+share), as ``scalar_spectral`` does with a number of its own, and ``llvm_ad_rgb`` with a
+number drawn for it (``scalar_rgb`` sums the models' reduced matrices instead: the same
+mean; 3·K² gathers of the picked model's terms per vertex instead of up to four times as
+many). A textured parameter is not differentiable (``mi.traverse`` lists its texture).
 
 Invalid parameters raise an error naming the parameter, its value and the valid range.
 Directions are always sampled from the visible normals.
@@ -216,25 +225,15 @@ public:
     static constexpr const char *Plugin = "fluo_qd";
     using Samples = fluo_detail::QdSamples;
     static constexpr const float *RgbWavelengths = fluo_detail::QdSetup<Float, Spectrum>::RgbWavelengths;
+    using Tex = fluo_detail::QdTextures<Float, Spectrum>;
 
     FluoQd(const Properties &props) : Base(props) {
         using namespace fluo_detail;
         fluo::QdConfig &c = m_config; // starts as fluo::qd_default_config(): the defaults live in Rust
         // radius, density, quantum_yield, alpha: a float (the uniform fast path) or a float
         // texture; a texture that does not vary is read once as its float.
-        double *textured_fields[NParams] = { &c.radius, &c.density, &c.quantum_yield, &c.alpha };
-        for (size_t i = 0; i < NParams; ++i) {
-            const char *name = ParamNames[i];
-            if (!props.has_property(name) || props.type(name) != Properties::Type::Object)
-                continue;
-            ref<Texture> tex = props.get_texture<Texture>(name);
-            if (tex->is_spatially_varying())
-                m_param_tex[i] = tex;
-            else
-                *textured_fields[i] = (double) tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true);
-            props.mark_queried(name);
-        }
-        m_setup.parse(props, m_config, [&](const char *name) { return is_textured(name); });
+        m_tex.read(props, c);
+        m_setup.parse(props, m_config, [&](const char *name) { return m_tex.textured(name); });
         m_type = m_config.ggx ? MicrofacetType::GGX : MicrofacetType::Beckmann;
 
         m_flags = BSDFFlags::GlossyReflection | BSDFFlags::FrontSide;
@@ -243,12 +242,12 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
-        ScalarFloat *values[NParams] = { &m_radius, &m_density, &m_quantum_yield, &m_alpha };
-        for (size_t i = 0; i < NParams; ++i) {
-            if (m_param_tex[i])
-                cb->put(ParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
+        ScalarFloat *values[Tex::NParams] = { &m_radius, &m_density, &m_quantum_yield, &m_alpha };
+        for (size_t i = 0; i < Tex::NParams; ++i) {
+            if (m_tex.tex[i])
+                cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
             else
-                cb->put(ParamNames[i], *values[i], ParamFlags::NonDifferentiable);
+                cb->put(Tex::Names[i], *values[i], ParamFlags::NonDifferentiable);
         }
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
@@ -259,11 +258,11 @@ public:
         auto changed = [&](const char *name) { return keys.empty() || string::contains(keys, name); };
         fluo_detail::transactional_update(m_config, [&] {
             // textured parameters: rebuild() re-reads their textures
-            if (changed("radius") && !m_param_tex[Radius])       m_config.radius = m_radius;
-            if (changed("width"))                                 m_config.width = m_width;
-            if (changed("quantum_yield") && !m_param_tex[Yield]) m_config.quantum_yield = m_quantum_yield;
-            if (changed("density") && !m_param_tex[Density])     m_config.density = m_density;
-            if (changed("alpha") && !m_param_tex[Alpha])         m_config.alpha = m_alpha;
+            if (changed("radius") && !m_tex.tex[Tex::Radius])       m_config.radius = m_radius;
+            if (changed("width"))                                    m_config.width = m_width;
+            if (changed("quantum_yield") && !m_tex.tex[Tex::Yield]) m_config.quantum_yield = m_quantum_yield;
+            if (changed("density") && !m_tex.tex[Tex::Density])     m_config.density = m_density;
+            if (changed("alpha") && !m_tex.tex[Tex::Alpha])         m_config.alpha = m_alpha;
         }, [&] { rebuild(); });
     }
 
@@ -347,13 +346,13 @@ public:
     /// The coating's model, in both variants: fluo_path shifts wavelengths with it in
     /// scalar_spectral and reduces it per incidence angle in scalar_rgb.
     const fluo::Fluorescence *fluorescence() const override {
-        if (!m_grid.empty()) // textured: a representative (the largest radius and density)
-            return m_grid_fluoresces ? &fluo::qd_fluorescence(*m_grid.back()) : nullptr;
+        if (!m_tex.models.empty()) // textured: a representative (the largest radius and density)
+            return m_tex.fluoresces ? &fluo::qd_fluorescence(*m_tex.models.back()) : nullptr;
         return fluo::qd_is_fluorescent(**m_model) ? &fluo::qd_fluorescence(**m_model) : nullptr;
     }
 
     const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
-        if (m_grid.empty())
+        if (m_tex.models.empty())
             return fluorescence();
         typename BispectralBSDF<Float, Spectrum>::Mixture mix;
         size_t n = fluorescence_local(si, mix);
@@ -363,28 +362,28 @@ public:
         return nullptr;
     }
 
-    bool fluorescence_varies() const override { return !m_grid.empty(); }
+    bool fluorescence_varies() const override { return !m_tex.models.empty(); }
 
     /// Textured: the models of the hit's surrounding (radius, density) nodes, at the alpha
     /// level nearest the hit's, with their bilinear weights as mixture probabilities, each
     /// scaled by the hit's Q.
     size_t fluorescence_local(const SurfaceInteraction3f &si,
                               typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
-        if (m_grid.empty())
+        if (m_tex.models.empty())
             return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
         Corners c = corners(si, true);
         for (size_t i = 0; i < c.n; ++i) {
-            const fluo::QdModel &m = *m_grid[c.model[i]];
+            const fluo::QdModel &m = *m_tex.models[c.model[i]];
             out[i] = { fluo::qd_is_fluorescent(m) ? &fluo::qd_fluorescence(m) : nullptr, c.model[i], c.q,
                        c.weight[i] };
         }
         return c.n;
     }
 
-    size_t fluorescence_models() const override { return m_grid.size(); }
+    size_t fluorescence_models() const override { return m_tex.models.size(); }
 
     const fluo::Fluorescence *fluorescence_model(size_t i) const override {
-        return i < m_grid.size() ? &fluo::qd_fluorescence(*m_grid[i]) : nullptr;
+        return i < m_tex.models.size() ? &fluo::qd_fluorescence(*m_tex.models[i]) : nullptr;
     }
 
     /// The elastic lobe alone: eval() already serves only the elastic part.
@@ -401,14 +400,7 @@ public:
         std::ostringstream oss;
         oss << "FluoQd[" << std::endl
             << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl;
-        for (size_t i = 0; i < NParams; ++i)
-            if (m_param_tex[i])
-                oss << "  " << ParamNames[i] << " = " << string::indent(m_param_tex[i]) << "," << std::endl;
-        if (!m_grid.empty())
-            oss << "  baked models = " << m_grid.size() << " (" << m_radius_levels.size() << " radii x "
-                << m_density_levels.size() << " densities" << (m_density_grid ? ", a grid" : "") << " x "
-                << m_alpha_levels.size() << " alphas)," << std::endl;
-        oss
+        oss << m_tex.to_string()
             << "  eta = " << string::indent(m_setup.eta) << "," << std::endl
             << "  k = " << string::indent(m_setup.k) << std::endl
             << "]";
@@ -422,7 +414,7 @@ private:
     void rebuild() {
         Samples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
         m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
-        init_param_textures(eta, k, qd_eta, qd_k);
+        m_tex.bake(m_config, eta, k, qd_eta, qd_k);
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
@@ -442,82 +434,9 @@ private:
         // Mitsuba's own clamp of a zero roughness.
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
         // ρ = 0: no coating, the elastic part is exactly roughconductor's.
-        m_coated = m_config.density > 0.0 || (!m_grid.empty() && m_density_levels.back() > 0.f);
+        m_coated = m_config.density > 0.0 || (!m_tex.models.empty() && m_tex.densities.back() > 0.f);
         m_uniform_substrate = m_setup.uniform_substrate();
         m_build = fluo_detail::WavelengthMemo::next_build();
-    }
-
-    /// Textured radius, density, quantum_yield, alpha: read and validate each texture's
-    /// values (per texel for a bitmap, constituent values otherwise), then bake one model
-    /// per (radius, density, alpha) level triple with Q = 1 (the reradiation is linear in
-    /// Q, which scales it per hit). Radii and alphas: the texture's own values. Densities:
-    /// the texture's own values when at most TEXTURE_GRID_NODES, else that many nodes
-    /// over their range.
-    /// m_config takes the largest level of each (the base model, shown by to_string).
-    void init_param_textures(const Samples &eta, const Samples &k, const Samples &qd_eta, const Samples &qd_k) {
-        using namespace fluo_detail;
-        m_grid.clear();
-        if (!m_param_tex[Radius] && !m_param_tex[Density] && !m_param_tex[Yield] && !m_param_tex[Alpha])
-            return;
-        std::vector<float> levels[NParams];
-        double *fields[NParams] = { &m_config.radius, &m_config.density, &m_config.quantum_yield,
-                                    &m_config.alpha };
-        m_density_grid = false;
-        for (size_t i = 0; i < NParams; ++i) {
-            if (!m_param_tex[i]) {
-                levels[i] = { (float) *fields[i] };
-                continue;
-            }
-            // radius and alpha bake their own models: their exact levels are needed; an
-            // unreadable density or yield spans [0, its maximum] (a density grid)
-            ParamLevels pl = param_levels(Plugin, ParamNames[i], m_param_tex[i].get(), i == Radius || i == Alpha,
-                                          true, [&](const std::vector<float> &v, size_t width) {
-                                              rust_call(Plugin, [&] {
-                                                  fluo::qd_check_values(ParamNames[i],
-                                                                        rust::Slice<const float>(v.data(), v.size()),
-                                                                        width);
-                                              });
-                                          });
-            levels[i] = std::move(pl.levels);
-            if (i == Density && !pl.complete)
-                m_density_grid = true;
-        }
-        size_t max_radii = fluo::qd_texture_max_radii(), nodes = fluo::qd_texture_grid_nodes();
-        if (levels[Radius].size() > max_radii)
-            Throw("%s: the \"radius\" texture holds %zu distinct values; at most %zu are supported (each "
-                  "radius bakes its own coating tables: quantize the texture)", Plugin, levels[Radius].size(),
-                  max_radii);
-        size_t max_alphas = fluo::qd_texture_max_alphas();
-        if (levels[Alpha].size() > max_alphas)
-            Throw("%s: the \"alpha\" texture holds %zu distinct values; at most %zu are supported (each "
-                  "roughness bakes its own coating models: quantize the texture)", Plugin, levels[Alpha].size(),
-                  max_alphas);
-        if (levels[Density].size() > nodes || m_density_grid) {
-            float lo = levels[Density].front(), hi = levels[Density].back();
-            levels[Density].clear();
-            for (size_t j = 0; j < nodes; ++j)
-                levels[Density].push_back(lo + (hi - lo) * (float) j / (float) (nodes - 1));
-            levels[Density] = distinct_levels(levels[Density]);
-            m_density_grid = true;
-        }
-        m_radius_levels = levels[Radius];
-        m_density_levels = levels[Density];
-        m_alpha_levels = levels[Alpha];
-        m_grid_fluoresces = levels[Yield].back() > 0.f && m_density_levels.back() > 0.f;
-        fluo::QdConfig c = m_config;
-        c.quantum_yield = 1.0;
-        for (float r : m_radius_levels)
-            for (float d : m_density_levels)
-                for (float a : m_alpha_levels) {
-                    c.radius = r;
-                    c.density = d;
-                    c.alpha = a;
-                    m_grid.push_back(rust_call(Plugin, [&] {
-                        return fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
-                    }));
-                }
-        for (size_t i = 0; i < NParams; ++i)
-            *fields[i] = (double) levels[i].back();
     }
 
     /// A textured material at a hit: up to four (radius, density) models, at the alpha
@@ -529,51 +448,35 @@ private:
         double q = 1.0;
     };
 
-    /// The bracketing levels of x: (i, t) with x = (1 − t) levels[i] + t levels[i + 1],
-    /// t = 0 at (or beyond) the ends.
-    static std::pair<size_t, double> bracket(const std::vector<float> &levels, float x) {
-        if (!(x > levels.front()))
-            return { 0, 0.0 };
-        if (!(x < levels.back()))
-            return { levels.size() - 1, 0.0 };
-        size_t i = (size_t) (std::upper_bound(levels.begin(), levels.end(), x) - levels.begin()) - 1;
-        return { i, ((double) x - levels[i]) / ((double) levels[i + 1] - levels[i]) };
-    }
-
     /// Evaluate the parameter textures at si (Mitsuba's own eval_1: to_uv, filtering).
     Corners corners(const SurfaceInteraction3f &si, Mask active) const {
         auto value = [&](size_t i) {
-            return m_param_tex[i] ? (float) m_param_tex[i]->eval_1(si, active) : (float) *config_field(i);
+            return m_tex.tex[i] ? (float) m_tex.tex[i]->eval_1(si, active)
+                                : (float) Tex::field(m_config, i);
         };
-        auto [ri, rt] = bracket(m_radius_levels, value(Radius));
-        auto [di, dt] = bracket(m_density_levels, value(Density));
-        size_t ai = fluo_detail::nearest_level(m_alpha_levels, value(Alpha));
-        float q = value(Yield);
+        auto [ri, rt] = Tex::bracket(m_tex.radii, value(Tex::Radius));
+        auto [di, dt] = Tex::bracket(m_tex.densities, value(Tex::Density));
+        size_t ai = fluo_detail::nearest_level(m_tex.alphas, value(Tex::Alpha));
+        float q = value(Tex::Yield);
         Corners c;
         c.q = std::isfinite(q) ? std::clamp((double) q, 0.0, 1.0) : 0.0;
-        size_t nd = m_density_levels.size(), na = m_alpha_levels.size();
         for (size_t a = 0; a < 2; ++a)
             for (size_t b = 0; b < 2; ++b) {
                 double w = (a ? rt : 1.0 - rt) * (b ? dt : 1.0 - dt);
                 if (!(w > 0.0))
                     continue;
-                c.model[c.n] = ((ri + a) * nd + (di + b)) * na + ai;
+                c.model[c.n] = m_tex.index(ri + a, di + b, ai);
                 c.weight[c.n++] = w;
             }
         return c;
     }
 
-    const double *config_field(size_t i) const {
-        return i == Radius ? &m_config.radius : i == Density ? &m_config.density
-             : i == Yield  ? &m_config.quantum_yield : &m_config.alpha;
-    }
-
     /// The elastic lobe's roughness at si: the hit's own with a textured alpha (clamped
     /// as Mitsuba's roughconductor clamps it), else the uniform m_alpha_f.
     Float alpha_at(const SurfaceInteraction3f &si, Mask active) const {
-        if (!m_param_tex[Alpha])
+        if (!m_tex.tex[Tex::Alpha])
             return m_alpha_f;
-        return dr::maximum(m_param_tex[Alpha]->eval_1(si, active), 1e-4f);
+        return dr::maximum(m_tex.tex[Tex::Alpha]->eval_1(si, active), 1e-4f);
     }
 
     /// The substrate's Fresnel factor, times the coating's effect when coated (eq. 23).
@@ -614,25 +517,14 @@ private:
             }
             return out;
         };
-        if (m_grid.empty())
+        if (m_tex.models.empty())
             return coated(**m_model);
         // textured: the elastic parts of the hit's models, mixed with their weights
         Corners c = corners(si, active);
         UnpolarizedSpectrum mixed(0.f);
         for (size_t i = 0; i < c.n; ++i)
-            mixed += (float) c.weight[i] * coated(*m_grid[c.model[i]]);
+            mixed += (float) c.weight[i] * coated(*m_tex.models[c.model[i]]);
         return mixed;
-    }
-
-    /// The numeric parameters that take a texture, in the order of m_param_tex.
-    enum Param { Radius, Density, Yield, Alpha, NParams };
-    static constexpr const char *ParamNames[NParams] = { "radius", "density", "quantum_yield", "alpha" };
-
-    bool is_textured(const char *name) const {
-        for (size_t i = 0; i < NParams; ++i)
-            if (std::string_view(name) == ParamNames[i] && m_param_tex[i])
-                return true;
-        return false;
     }
 
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
@@ -649,13 +541,8 @@ private:
         for (size_t j = 0; j < 4; ++j)
             out[j] = s[j];
     }
-    // textured radius, density, quantum_yield, alpha (null: the float in m_config)
-    ref<Texture> m_param_tex[NParams];
-    std::vector<float> m_radius_levels, m_density_levels, m_alpha_levels; ///< the baked levels
-    bool m_density_grid = false;   ///< densities on a grid (more distinct values than its nodes)
-    bool m_grid_fluoresces = false; ///< some texel has density > 0 and some Q > 0
-    /// model (i, j, l) at (i·len(densities) + j)·len(alphas) + l
-    std::vector<rust::Box<fluo::QdModel>> m_grid;
+    /// textured radius, density, quantum_yield, alpha: their textures, levels, baked models
+    Tex m_tex;
 };
 
 static const bool fluo_qd_registered =

@@ -41,9 +41,14 @@ public:
     MI_IMPORT_TYPES(Texture, MicrofacetDistribution)
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using FloatStorage = DynamicBuffer<Float>;
+    using UInt32Storage = DynamicBuffer<UInt32>;
     using Setup = fluo_detail::QdSetup<Float, Spectrum>;
-    using fluo_detail::JitBispectral<Float, Spectrum>::MaxTerms;
-    using Choice = typename fluo_detail::JitBispectral<Float, Spectrum>::Choice;
+    using Tex = fluo_detail::QdTextures<Float, Spectrum>;
+    using Bispectral = fluo_detail::JitBispectral<Float, Spectrum>;
+    using Bispectral::MaxTerms;
+    using Choice = typename Bispectral::Choice;
+    /// A textured hit mixes at most four models: two radii by two densities.
+    static constexpr size_t MaxCorners = 4;
 
     static constexpr const char *Plugin = "fluo_qd";
     /// Rows of the interpolated tables, uniform in cos θ (the Rust test measures the error at
@@ -51,22 +56,8 @@ public:
     static constexpr size_t JitCosNodes = 129;
 
     FluoQdJit(const Properties &props) : Base(props) {
-        for (const char *name : { "radius", "density", "quantum_yield", "alpha" }) {
-            if (!props.has_property(name) || props.type(name) != Properties::Type::Object)
-                continue;
-            ref<Texture> tex = props.get_texture<Texture>(name);
-            if (tex->is_spatially_varying())
-                Throw("%s: a texture for \"%s\" is not available in the vectorised variants yet (it is in "
-                      "scalar_rgb and scalar_spectral); give a float", Plugin, name);
-            double v = fluo_detail::host_value(tex->eval_1(dr::zeros<SurfaceInteraction3f>(), true));
-            std::string_view n(name);
-            (n == "radius" ? m_config.radius : n == "density" ? m_config.density
-             : n == "quantum_yield" ? m_config.quantum_yield : m_config.alpha) = v;
-            props.mark_queried(name);
-        }
-        m_setup.parse(props, m_config, [&](const char *name) {
-            return props.has_property(name) && props.type(name) == Properties::Type::Object;
-        });
+        m_tex.read(props, m_config);
+        m_setup.parse(props, m_config, [&](const char *name) { return m_tex.textured(name); });
         m_type = m_config.ggx ? MicrofacetType::GGX : MicrofacetType::Beckmann;
         m_flags = BSDFFlags::GlossyReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
@@ -74,27 +65,40 @@ public:
         sync_members();
     }
 
+    /// A textured parameter is listed as its texture (not differentiable), as in the scalar
+    /// variants.
     void traverse(TraversalCallback *cb) override {
         Base::traverse(cb);
-        cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
-        cb->put("radius", m_radius, ParamFlags::NonDifferentiable);
-        cb->put("density", m_density, ParamFlags::NonDifferentiable);
-        cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
+        if (m_tex.tex[Tex::Yield])
+            cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
+        else
+            cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
+        ScalarFloat *values[Tex::NParams] = { &m_radius, &m_density, nullptr, &m_alpha };
+        for (size_t i : { Tex::Radius, Tex::Density, Tex::Alpha }) {
+            if (m_tex.tex[i])
+                cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
+            else
+                cb->put(Tex::Names[i], *values[i], ParamFlags::NonDifferentiable);
+        }
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
     }
 
-    /// Rust validates the new values and bakes the tables again; a rejected update restores
-    /// the previous ones, so the material keeps working. Q keeps its AD graph (the
-    /// reradiation is linear in it).
+    /// Rust validates the new values and bakes the tables again (textured parameters: their
+    /// textures are read again); a rejected update restores the previous ones, so the
+    /// material keeps working. Q keeps its AD graph (the reradiation is linear in it).
     void parameters_changed(const std::vector<std::string> &keys) override {
         fluo::QdConfig previous = m_config;
         try {
-            m_config.quantum_yield = fluo_detail::host_value(m_q);
-            m_config.radius = m_radius;
-            m_config.density = m_density;
-            m_config.alpha = m_alpha;
+            if (!m_tex.tex[Tex::Yield])
+                m_config.quantum_yield = fluo_detail::host_value(m_q);
+            if (!m_tex.tex[Tex::Radius])
+                m_config.radius = m_radius;
+            if (!m_tex.tex[Tex::Density])
+                m_config.density = m_density;
+            if (!m_tex.tex[Tex::Alpha])
+                m_config.alpha = m_alpha;
             m_config.width = m_width;
             rebuild();
         } catch (...) {
@@ -109,12 +113,12 @@ public:
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
                                              Mask active) const override {
-        return sample_with(ctx, si, sample2, active, cells_of(si, active));
+        return sample_with(ctx, si, sample2, active, hit(si, active, true));
     }
 
     Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
                   Mask active) const override {
-        return eval_pdf_with(ctx, si, wo, active, cells_of(si, active)).first;
+        return eval_pdf_with(ctx, si, wo, active, hit(si, active, true)).first;
     }
 
     Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
@@ -124,35 +128,50 @@ public:
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, m) > 0.f && dr::dot(wo, m) > 0.f;
         if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
             return 0.f;
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        Float alpha = elastic_alpha(si, active);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
         return dr::select(active, distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i), 0.f);
     }
 
     std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                         const Vector3f &wo, Mask active) const override {
-        return eval_pdf_with(ctx, si, wo, active, cells_of(si, active));
+        return eval_pdf_with(ctx, si, wo, active, hit(si, active, true));
     }
 
-    /// eval_pdf and sample sharing the wavelengths' table cells.
+    /// eval_pdf and sample sharing the hit's models and table cells.
     std::tuple<Spectrum, Float, BSDFSample3f, Spectrum> eval_pdf_sample(const BSDFContext &ctx,
                                                                         const SurfaceInteraction3f &si,
                                                                         const Vector3f &wo, Float /* sample1 */,
                                                                         const Point2f &sample2,
                                                                         Mask active) const override {
-        Cells cells = cells_of(si, active);
-        auto [value, pdf] = eval_pdf_with(ctx, si, wo, active, cells);
-        auto [bs, weight] = sample_with(ctx, si, sample2, active, cells);
+        Hit h = hit(si, active, true);
+        auto [value, pdf] = eval_pdf_with(ctx, si, wo, active, h);
+        auto [bs, weight] = sample_with(ctx, si, sample2, active, h);
         return { value, pdf, bs, weight };
     }
 
     // ------------------------------------------------ fluo_path's interface (fluo_jit.h)
-    bool jit_fluorescent() const override { return fluo::qd_is_fluorescent(**m_model); }
+    bool jit_fluorescent() const override {
+        return textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(**m_model);
+    }
+    /// The emission range (textured: the hull of the fluorescent models').
     fluo::Range jit_emission_range() const override {
-        return fluo::fluo_emission_range(fluo::qd_fluorescence(**m_model));
+        if (!textured())
+            return fluo::fluo_emission_range(fluo::qd_fluorescence(**m_model));
+        fluo::Range r{ 0.0, 0.0 };
+        bool any = false;
+        for (const auto &m : m_tex.models) {
+            if (!fluo::qd_is_fluorescent(*m))
+                continue;
+            fluo::Range e = fluo::fluo_emission_range(fluo::qd_fluorescence(*m));
+            r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
+            any = true;
+        }
+        return r;
     }
     bool jit_lambertian() const override { return false; }
 
-    /// No Lambertian operator: jit_reduced_nodes serves the reradiation.
+    /// No Lambertian operator: jit_reduced_nodes (jit_reduced_nodes_table) serves the reradiation.
     bool jit_reduced_matrices(const fluo::TransportBasis &, std::array<std::vector<double>, MaxTerms> &) const override {
         return false;
     }
@@ -166,129 +185,176 @@ public:
         // until the model is rebuilt.
         std::string key = std::string(fluo::transport_label(transport)) + "/" + std::to_string(m_build);
         if (key != m_reduced_key) {
-            m_reduced_m = m;
-            m_reduced_n = reduce_nodes(transport, m_reduced_m, m_reduced_nodes);
+            size_t kk = m[0].size();
+            std::vector<double> basis;
+            double error = 0.0;
+            m_reduced_n = reduce_nodes(**m_model, m_config.quantum_yield, transport, kk, basis, m_reduced_nodes, error);
+            warn_low_rank(error, "this coating");
+            for (size_t t = 0; t < MaxTerms; ++t)
+                m_reduced_m[t].assign(basis.begin() + (std::ptrdiff_t) (t * kk),
+                                      basis.begin() + (std::ptrdiff_t) ((t + 1) * kk));
             m_reduced_key = key;
         }
         m = m_reduced_m;
         nodes = m_reduced_nodes;
         return m_reduced_n;
     }
-
-    size_t reduce_nodes(const fluo::TransportBasis &transport, std::array<std::vector<double>, MaxTerms> &m,
-                        std::vector<double> &nodes) const {
-        size_t kk = m[0].size(), n = fluo::reduced_microfacet_nodes();
-        std::vector<double> basis(MaxTerms * kk);
-        nodes.assign(n * MaxTerms, 0.0);
-        auto reduced = fluo::reduced_new(fluo::qd_fluorescence(**m_model), transport);
-        double error = fluo::reduced_microfacet_low_rank(*reduced, MaxTerms, rust::Slice<double>(basis.data(), basis.size()),
-                                                         rust::Slice<double>(nodes.data(), nodes.size()));
-        if (!(error >= 0.0) || !std::isfinite(error))
-            Throw("%s: no microfacet reduced operator", Plugin);
-        if (error > fluo::reduced_low_rank_tolerance())
-            Log(Warn, "%s: the reduced reradiation of this coating is held by %zu terms to %.2g of its largest "
-                      "entry in the vectorised variants (expected below %.2g): RGB renders may differ from "
-                      "scalar_rgb by about that much", Plugin, MaxTerms, error, fluo::reduced_low_rank_tolerance());
-        double inv_q = 1.0 / m_config.quantum_yield; // fluorescent: Q > 0
-        for (size_t t = 0; t < MaxTerms; ++t)
-            for (size_t i = 0; i < kk; ++i)
-                m[t][i] = basis[t * kk + i] * inv_q;
-        return n;
-    }
     std::array<Float, MaxTerms> jit_reduced_weights() const override { return { m_q, Float(0.f), Float(0.f) }; }
 
-    /// The microfacet lobe D G/(4 cos θi) and cos θ = ωi·h (as the Rust model's lobe).
+    /// Textured: every baked model's terms (Q = 1: the hit's Q enters the corners' weights).
+    size_t jit_reduced_nodes_table(const fluo::TransportBasis &transport, std::vector<double> &m,
+                                   std::vector<double> &nodes, size_t &n_nodes) const override {
+        if (!textured())
+            return 0;
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        std::string key = std::string(fluo::transport_label(transport)) + "/" + std::to_string(m_build) + "/table";
+        if (key != m_table_key) {
+            m_table_m.clear();
+            m_table_nodes.clear();
+            double worst = 0.0;
+            for (const auto &model : m_tex.models) {
+                std::vector<double> basis, s;
+                if (fluo::qd_is_fluorescent(*model)) {
+                    double error = 0.0;
+                    m_table_n = reduce_nodes(*model, 1.0, transport, kk, basis, s, error);
+                    worst = std::max(worst, error);
+                } else { // density 0: nothing re-emitted
+                    m_table_n = fluo::reduced_microfacet_nodes();
+                    basis.assign(MaxTerms * kk, 0.0);
+                    s.assign(m_table_n * MaxTerms, 0.0);
+                }
+                m_table_m.insert(m_table_m.end(), basis.begin(), basis.end());
+                m_table_nodes.insert(m_table_nodes.end(), s.begin(), s.end());
+            }
+            warn_low_rank(worst, "the least well held of this material's coatings");
+            m_table_key = key;
+        }
+        m = m_table_m;
+        nodes = m_table_nodes;
+        n_nodes = m_table_n;
+        return m_tex.models.size();
+    }
+    /// One of the hit's (radius, density) models at the alpha level nearest its roughness,
+    /// picked with its bilinear weight as probability by u, and the hit's Q.
+    std::pair<UInt32, Float> jit_reduced_pick(const SurfaceInteraction3f &si, const Float &u,
+                                              Mask active) const override {
+        Hit h = hit(si, active, false);
+        Pick p = pick(h, u);
+        return { p.model.index, h.q };
+    }
+
+    /// The microfacet lobe D G/(4 cos θi) and cos θ = ωi·h (as the Rust model's lobe, at the
+    /// roughness the hit's models were baked with).
     std::pair<Float, Float> jit_lobe(const SurfaceInteraction3f &si, const Vector3f &wo, Mask active) const override {
-        Float cos_i = Frame3f::cos_theta(si.wi);
-        Vector3f h = dr::normalize(wo + si.wi);
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
-        Float g = distr.smith_g1(si.wi, h) * distr.smith_g1(wo, h), c = dr::minimum(dr::dot(si.wi, h), 1.f);
-        Float lobe = distr.eval(h) * g / (4.f * cos_i);
-        active &= cos_i > 0.f && Frame3f::cos_theta(wo) > 0.f && g > 0.f && c > 0.f && dr::isfinite(lobe);
-        return { dr::select(active, lobe, 0.f), dr::select(active, c, 0.f) };
+        Float alpha = m_alpha_f;
+        if (textured())
+            alpha = level_alpha(fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active)));
+        return lobe(si, wo, alpha, active);
     }
 
     /// Smooth-surface R_tot(θi, λ) (spectral), or per RGB channel.
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
-        return fresnel_value(si, dr::maximum(Frame3f::cos_theta(si.wi), 0.f), active, cells_of(si, active));
+        return fresnel_value(si, dr::maximum(Frame3f::cos_theta(si.wi), 0.f), active, hit(si, active, true));
     }
 
-    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
+    /// Textured: one of the hit's (radius, density) models, picked with its bilinear weight
+    /// as probability by the first wavelength's u1 (then rescaled within the model's share:
+    /// still uniform for the elastic/shift choice), scaled by the hit's Q; its index is
+    /// `local`. As the scalar fluo_path's mixture (an unbiased estimate of it).
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1_, const Wavelength &u2, double range_lo,
                       double range_hi, Mask active) const override {
         const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
+            (void) u1_, (void) u2, (void) range_lo, (void) range_hi, (void) active;
             return this->elastic_only(lambda_o);
         } else {
             Float cos_i = Frame3f::cos_theta(si.wi);
             // The cells of λo serve the elastic weight and, where λo is below the range's top,
-            // the excitation interval's upper end; its lower end is the same for every lane.
-            Cells cells = cells_of(si, active); // fluorescent: coated
+            // the excitation interval's upper end. Fluorescent: coated.
+            Hit h = hit(si, active, false);
+            Wavelength u1 = u1_;
+            Pick p = pick(h, u1[0]);
+            const ModelAt &mo = p.model;
+            Cells cells;
+            for (size_t w = 0; w < cells.size(); ++w)
+                cells[w] = cell(mo, lambda_o[w], active);
+            u1[0] = p.u;
+            Emission em = emission_of(mo, active);
             // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
             // weight positive where the elastic lobe is keeps the estimator unbiased; this one
             // spares the substrate's eta/k lookups).
             UnpolarizedSpectrum we;
             for (size_t w = 0; w < cells.size(); ++w)
-                we[w] = dr::maximum(bilinear(m_r_tot, dr::maximum(cos_i, 0.f), cells[w], active), 0.f);
+                we[w] = dr::maximum(bilinear(m_r_tot, dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
+            // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
+            // within the model's excitation range.
             double a_host = std::max(range_lo, (double) m_ex_lo), hi_host = std::min(range_hi, (double) m_ex_hi);
-            Cell ca = host_cell(a_host), c_hi = host_cell(hi_host);
+            Float a_r = textured() ? dr::maximum((float) range_lo, em.ex_lo) : Float((float) a_host),
+                  hi_r = textured() ? dr::minimum((float) range_hi, em.ex_hi) : Float((float) hi_host);
+            Cell ca = textured() ? cell(mo, a_r, active) : host_cell(a_host),
+                 c_hi = textured() ? cell(mo, hi_r, active) : host_cell(hi_host);
             Wavelength lambda_i = lambda_o;
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
             // The A_tot row nearest cos θi (as the Rust model's sampling).
-            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * m_grid.n;
-            Float hi_r = (float) hi_host;
+            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
+            UInt32 last = mo.n - 1;
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
-                Float lo = lambda_o[w], a = (float) a_host, b = dr::minimum(hi_r, lo);
-                Mask ok = active && cos_i > 0.f && b > a && lo >= m_lmin && lo <= m_lmax;
-                Float e = dr::select(ok, emission(lo), 0.f);
+                Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
+                Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
+                Float e = dr::select(ok, emission(lo, em), 0.f);
                 ok &= e > 0.f;
                 Mask below = lo < hi_r;
-                Cell cb{ dr::select(below, cells[w].k, c_hi.k), dr::select(below, cells[w].f, c_hi.f),
-                         dr::select(below, cells[w].x0, c_hi.x0), dr::select(below, cells[w].x1, c_hi.x1) };
+                Cell cb = select_cell(below, cells[w], c_hi);
                 Float c_a = running(row, ca, ok), c_b = running(row, cb, ok);
                 Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
                 ok &= mass > 0.f;
-                fluo_detail::ShiftChoice<Float> choice(we[w], dr::detach(m_q) * e * mass, u1[w], active);
+                fluo_detail::ShiftChoice<Float> choice(we[w], dr::detach(h.q) * e * mass, u1[w], active);
                 // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
-                // then the cell's quadratic root (cancellation-free form).
+                // then the cell's quadratic root (cancellation-free form); the search runs
+                // over the longest grid, each lane's row clamped to its own.
                 Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
-                UInt32 k = dr::binary_search<UInt32>(1, m_grid.n - 1, [&](const UInt32 &i) {
-                               return dr::gather<Float>(m_cdf, row + i, ok) <= target;
+                UInt32 k = dr::binary_search<UInt32>(1, grid_max() - 1, [&](const UInt32 &i) {
+                               return dr::gather<Float>(m_cdf, row + dr::minimum(i, last), ok) <= target;
                            }) - 1;
                 k = dr::clip(k, ca.k, cb.k);
-                Float x0 = dr::gather<Float>(m_grid.nodes, k, ok), x1 = dr::gather<Float>(m_grid.nodes, k + 1, ok);
+                Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
                 Float f0 = dr::gather<Float>(m_a_tot, row + k, ok), f1 = dr::gather<Float>(m_a_tot, row + k + 1, ok);
-                Float h = x1 - x0;
-                Float step = fluo_detail::linear_cell_inverse(f0, f1, h, target - dr::gather<Float>(m_cdf, row + k, ok));
-                Float x = dr::clip(x0 + step, dr::maximum(a, x0), dr::minimum(b, x1));
-                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h, 0.f, 1.f)) / mass, 0.f);
+                Float h_ = x1 - x0;
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(m_cdf, row + k, ok));
+                Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
+                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
                 scale[w] = choice.weight(pdf, u1[w]);
                 shifted[w] = choice.shifted;
                 lambda_i[w] = dr::select(choice.shifted, x, lo);
-                rerad[w] = dr::select(choice.shifted, m_q * e, 0.f); // Q·e(λo | λi), nm⁻¹
+                rerad[w] = dr::select(choice.shifted, h.q * e, 0.f); // Q·e(λo | λi), nm⁻¹
             }
-            return { lambda_i, scale, shifted, rerad };
+            return { lambda_i, scale, shifted, rerad, mo.index };
         }
     }
 
-    /// lobe(ωi, ωo)·A_tot(ωi·h, λi)·rerad towards both directions (si.wavelengths = λi).
+    /// lobe(ωi, ωo)·A_tot(ωi·h, λi)·rerad towards both directions (si.wavelengths = λi), of
+    /// the model jit_choose picked (`local`; textured: its roughness level's lobe).
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> jit_reradiation(const SurfaceInteraction3f &si,
                                                                         const UnpolarizedSpectrum &rerad,
-                                                                        const Vector3f &wo_a, const Vector3f &wo_b,
+                                                                        const UInt32 &local, const Vector3f &wo_a,
+                                                                        const Vector3f &wo_b,
                                                                         Mask active) const override {
         UnpolarizedSpectrum out_a(0.f), out_b(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
-            auto [lobe_a, c_a] = jit_lobe(si, wo_a, active);
-            auto [lobe_b, c_b] = jit_lobe(si, wo_b, active);
+            ModelAt mo = model_at(local, active);
+            Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : Float(m_alpha_f);
+            auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
+            auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 Mask on = active && rerad[w] != 0.f;
-                Cell c = cell(si.wavelengths[w], on);
-                out_a[w] = rerad[w] * lobe_a * bilinear(m_a_tot, c_a, c, on);
-                out_b[w] = rerad[w] * lobe_b * bilinear(m_a_tot, c_b, c, on);
+                Cell c = cell(mo, si.wavelengths[w], on);
+                out_a[w] = rerad[w] * lobe_a * bilinear(m_a_tot, c_a, c, mo, on);
+                out_b[w] = rerad[w] * lobe_b * bilinear(m_a_tot, c_b, c, mo, on);
             }
         } else {
-            (void) si, (void) rerad, (void) wo_a, (void) wo_b, (void) active;
+            (void) si, (void) rerad, (void) local, (void) wo_a, (void) wo_b, (void) active;
         }
         return { out_a, out_b };
     }
@@ -297,9 +363,10 @@ public:
         std::ostringstream oss;
         oss << "FluoQd[" << std::endl
             << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl
+            << m_tex.to_string()
             << "  eta = " << string::indent(m_setup.eta) << "," << std::endl
             << "  k = " << string::indent(m_setup.k) << "," << std::endl
-            << "  variant = vectorised (tables per lane, " << m_rows << " x " << m_grid.n << ")" << std::endl
+            << "  variant = vectorised (tables per lane, " << m_rows << " x " << grid_max() << ")" << std::endl
             << "]";
         return oss.str();
     }
@@ -309,36 +376,177 @@ public:
 private:
     /// λ in the table's cell k (λ_k = x0 ≤ λ ≤ λ_{k+1} = x1, clamped to the grid) at fraction f.
     using Cell = typename fluo_detail::JitGrid<Float>::Cell;
-    /// The cells of si.wavelengths (spectral; unused in RGB).
+    /// The cells of a hit's wavelengths (spectral; unused in RGB).
     using Cells = std::array<Cell, dr::size_v<UnpolarizedSpectrum>>;
+    using GridAt = typename fluo_detail::JitGridSet<Float>::At;
 
-    /// The cell of λ (the grid's bucket index, else binary search).
-    Cell cell(const Float &lambda, const Mask &active) const { return m_grid.cell(lambda, active); }
-    /// The cell of a wavelength known on the host (the same for every lane).
+    bool textured() const { return !m_tex.models.empty(); }
+    /// The longest λ grid of the baked models.
+    uint32_t grid_max() const { return textured() ? m_grids.n_max : m_grid.n; }
+
+    /// One baked model as a lane reads it: its tables at offset `off` ([rows][n] row major)
+    /// and its λ grid (textured; a uniform material's is m_grid, with its bucket index).
+    struct ModelAt {
+        UInt32 index, off, n;
+        GridAt grid;
+    };
+    ModelAt model_at(const UInt32 &m, const Mask &active) const {
+        if (!textured())
+            return { UInt32(0), UInt32(0), UInt32(m_grid.n), GridAt{} };
+        GridAt g = m_grids.at(m, active);
+        return { m, dr::gather<UInt32>(m_t_off, m, active), g.n, g };
+    }
+    static ModelAt select_model(const Mask &m, const ModelAt &a, const ModelAt &b) {
+        const GridAt &g = a.grid, &h = b.grid;
+        return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.n, b.n),
+                 GridAt{ dr::select(m, g.off, h.off), dr::select(m, g.n, h.n), dr::select(m, g.b_off, h.b_off),
+                         dr::select(m, g.b_n, h.b_n), dr::select(m, g.lo, h.lo), dr::select(m, g.hi, h.hi),
+                         dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) } };
+    }
+    static Cell select_cell(const Mask &m, const Cell &a, const Cell &b) {
+        return { dr::select(m, a.k, b.k), dr::select(m, a.f, b.f), dr::select(m, a.x0, b.x0),
+                 dr::select(m, a.x1, b.x1) };
+    }
+
+    /// The cell of λ in a model's grid (uniform: the bucket index, else binary search).
+    Cell cell(const ModelAt &mo, const Float &lambda, const Mask &active) const {
+        if (!textured())
+            return m_grid.cell(lambda, active);
+        Float x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
+        auto [k, x0, x1] = m_grids.cell(mo.grid, x, active);
+        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
+    }
+    /// Node k of a model's grid.
+    Float node(const ModelAt &mo, const UInt32 &k, const Mask &active) const {
+        if (!textured())
+            return dr::gather<Float>(m_grid.nodes, k, active);
+        return dr::gather<Float>(m_grids.nodes, mo.grid.off + k, active);
+    }
+    /// The cell of a wavelength known on the host (the same for every lane; uniform).
     Cell host_cell(double lambda) const {
         auto [k, f] = m_grid.host_cell(lambda);
         return { UInt32((uint32_t) k), Float((float) f), Float((float) m_grid.host[k]), Float((float) m_grid.host[k + 1]) };
     }
-    Cells cells_of(const SurfaceInteraction3f &si, const Mask &active) const {
-        Cells c;
-        if constexpr (is_spectral_v<Spectrum>) {
-            if (m_coated)
-                for (size_t w = 0; w < c.size(); ++w)
-                    c[w] = cell(si.wavelengths[w], active);
-        } else {
-            (void) si, (void) active;
+
+    /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
+    /// corners at the roughness level nearest its alpha, with bilinear weights, as the
+    /// scalar fluo_qd's corners), its Q, the elastic lobe's roughness (the hit's own) and
+    /// the cells of its wavelengths in each radius corner's grid (spectral, coated, `with_cells`).
+    struct Hit {
+        size_t n = 1, per_radius = 1; ///< corners; corner i reads cells[i / per_radius]
+        std::array<ModelAt, MaxCorners> model;
+        std::array<Float, MaxCorners> weight;
+        Float q, alpha;
+        std::array<Cells, 2> cells;
+        bool has_cells = false;
+    };
+
+    /// One of a hit's models picked with its weight as probability by u (the first with
+    /// u < the running sum of the weights, or the last with a positive weight), its cells,
+    /// and u rescaled within its share (uniform again, for reuse).
+    struct Pick {
+        ModelAt model;
+        Cells cells;
+        Float u;
+    };
+    Pick pick(const Hit &h, const Float &u) const {
+        Pick p{ h.model[0], h.cells[0], u };
+        if (h.n == 1)
+            return p;
+        Float run = 0.f;
+        Mask done = false;
+        for (size_t i = 0; i < h.n; ++i) {
+            const Float &w = h.weight[i];
+            Mask take = !done && w > 0.f;
+            p.model = select_model(take, h.model[i], p.model);
+            if (h.has_cells)
+                for (size_t j = 0; j < p.cells.size(); ++j)
+                    p.cells[j] = select_cell(take, h.cells[i / h.per_radius][j], p.cells[j]);
+            p.u = dr::select(take, dr::clip((u - run) / w, 0.f, 1.f), p.u);
+            done |= take && u < run + w;
+            run += w;
         }
-        return c;
+        return p;
+    }
+
+    /// A numeric parameter at si: its texture's value (Mitsuba's own eval_1), else the float.
+    Float param(const SurfaceInteraction3f &si, size_t i, const Mask &active) const {
+        if (m_tex.tex[i])
+            return m_tex.tex[i]->eval_1(si, active);
+        return Float((float) Tex::field(m_config, i));
+    }
+    /// The roughness of alpha level i (Mitsuba's clamp of a zero roughness).
+    Float level_alpha(const UInt32 &i) const {
+        Float a((float) m_tex.alphas[0]);
+        for (size_t k = 1; k < m_tex.alphas.size(); ++k)
+            a = dr::select(i == (uint32_t) k, m_tex.alphas[k], a);
+        return dr::maximum(a, 1e-4f);
+    }
+    /// The elastic lobe's roughness at si: the hit's own with a textured alpha (clamped as
+    /// roughconductor clamps it), else the uniform one.
+    Float elastic_alpha(const SurfaceInteraction3f &si, const Mask &active) const {
+        if (!m_tex.tex[Tex::Alpha])
+            return m_alpha_f;
+        return dr::maximum(m_tex.tex[Tex::Alpha]->eval_1(si, active), 1e-4f);
+    }
+
+    Hit hit(const SurfaceInteraction3f &si, const Mask &active, bool with_cells) const {
+        Hit h;
+        if (!textured()) {
+            h.model[0] = model_at(UInt32(0), active);
+            h.weight[0] = Float(1.f);
+            h.q = m_q;
+            h.alpha = m_alpha_f;
+        } else {
+            auto [ri, rt] = fluo_detail::lane_bracket(m_tex.radii, param(si, Tex::Radius, active));
+            auto [di, dt] = fluo_detail::lane_bracket(m_tex.densities, param(si, Tex::Density, active));
+            UInt32 ai = fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active));
+            Float q = param(si, Tex::Yield, active);
+            h.q = dr::select(dr::isfinite(q), dr::clip(q, 0.f, 1.f), 0.f);
+            h.alpha = elastic_alpha(si, active);
+            size_t nr = m_tex.radii.size() > 1 ? 2 : 1, nd = m_tex.densities.size() > 1 ? 2 : 1;
+            uint32_t n_density = (uint32_t) m_tex.densities.size(), n_alpha = (uint32_t) m_tex.alphas.size();
+            h.n = nr * nd;
+            h.per_radius = nd;
+            for (size_t a = 0; a < nr; ++a)
+                for (size_t b = 0; b < nd; ++b) {
+                    UInt32 m = ((ri + (uint32_t) a) * n_density + (di + (uint32_t) b)) * n_alpha + ai;
+                    h.model[a * nd + b] = model_at(m, active);
+                    h.weight[a * nd + b] = (a ? rt : 1.f - rt) * (b ? dt : 1.f - dt);
+                }
+        }
+        if constexpr (is_spectral_v<Spectrum>) {
+            h.has_cells = m_coated && with_cells;
+            if (h.has_cells)
+                for (size_t a = 0; a * h.per_radius < h.n; ++a)
+                    for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
+                        h.cells[a][w] = cell(h.model[a * h.per_radius], si.wavelengths[w], active);
+        } else {
+            (void) with_cells;
+        }
+        return h;
+    }
+
+    /// The microfacet lobe D G/(4 cos θi) at roughness alpha, and cos θ = ωi·h.
+    std::pair<Float, Float> lobe(const SurfaceInteraction3f &si, const Vector3f &wo, const Float &alpha,
+                                 Mask active) const {
+        Float cos_i = Frame3f::cos_theta(si.wi);
+        Vector3f h = dr::normalize(wo + si.wi);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
+        Float g = distr.smith_g1(si.wi, h) * distr.smith_g1(wo, h), c = dr::minimum(dr::dot(si.wi, h), 1.f);
+        Float value = distr.eval(h) * g / (4.f * cos_i);
+        active &= cos_i > 0.f && Frame3f::cos_theta(wo) > 0.f && g > 0.f && c > 0.f && dr::isfinite(value);
+        return { dr::select(active, value, 0.f), dr::select(active, c, 0.f) };
     }
 
     std::pair<BSDFSample3f, Spectrum> sample_with(const BSDFContext &ctx, const SurfaceInteraction3f &si,
-                                                  const Point2f &sample2, Mask active, const Cells &cells) const {
+                                                  const Point2f &sample2, Mask active, const Hit &h) const {
         BSDFSample3f bs = dr::zeros<BSDFSample3f>();
         Float cos_theta_i = Frame3f::cos_theta(si.wi);
         active &= cos_theta_i > 0.f;
         if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
             return { bs, 0.f };
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        MicrofacetDistribution distr(m_type, h.alpha, h.alpha, true);
         auto [m, pdf] = distr.sample(si.wi, sample2);
         bs.wo = reflect(si.wi, m);
         bs.eta = 1.f;
@@ -346,21 +554,21 @@ private:
         bs.sampled_type = +BSDFFlags::GlossyReflection;
         active &= (pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
         bs.pdf = dr::select(active, pdf / (4.f * dr::dot(bs.wo, m)), 0.f);
-        UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m) * fresnel_value(si, dr::dot(si.wi, m), active, cells);
+        UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m) * fresnel_value(si, dr::dot(si.wi, m), active, h);
         return { bs, depolarizer<Spectrum>(dr::select(active, weight, 0.f)) };
     }
 
     std::pair<Spectrum, Float> eval_pdf_with(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-                                             Mask active, const Cells &cells) const {
+                                             Mask active, const Hit &h) const {
         Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
         Vector3f H = dr::normalize(wo + si.wi);
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, H) > 0.f && dr::dot(wo, H) > 0.f;
         if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
             return { 0.f, 0.f };
-        MicrofacetDistribution distr(m_type, m_alpha_f, m_alpha_f, true);
+        MicrofacetDistribution distr(m_type, h.alpha, h.alpha, true);
         Float D = distr.eval(H), smith_g1_wi = distr.smith_g1(si.wi, H);
         Float G = smith_g1_wi * distr.smith_g1(wo, H);
-        UnpolarizedSpectrum value = fresnel_value(si, dr::dot(si.wi, H), active, cells) * (D * G / (4.f * cos_theta_i));
+        UnpolarizedSpectrum value = fresnel_value(si, dr::dot(si.wi, H), active, h) * (D * G / (4.f * cos_theta_i));
         Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
         return { depolarizer<Spectrum>(dr::select(active, value, 0.f)), dr::select(active, pdf, 0.f) };
     }
@@ -380,38 +588,68 @@ private:
         UInt32 j = dr::minimum(UInt32(dr::floor(x)), m_rows - 2);
         return { j, x - Float(j) };
     }
-    /// A [rows][λ] table, bilinear in (cos θ, λ).
-    Float bilinear(const FloatStorage &t, const Float &cos_theta, const Cell &c, const Mask &active) const {
+    /// A model's [rows][λ] table, bilinear in (cos θ, λ).
+    Float bilinear(const FloatStorage &t, const Float &cos_theta, const Cell &c, const ModelAt &mo,
+                   const Mask &active) const {
         auto [j, fc] = rows_at(cos_theta);
-        UInt32 r0 = j * m_grid.n;
-        return dr::lerp(along(t, r0, c, active), along(t, r0 + m_grid.n, c, active), fc);
+        UInt32 r0 = mo.off + j * mo.n;
+        return dr::lerp(along(t, r0, c, active), along(t, r0 + mo.n, c, active), fc);
     }
+    /// A model's [rows][3] RGB table at cos θ, per channel.
+    UnpolarizedSpectrum rgb_rows(const FloatStorage &t, const Float &cos_theta, const ModelAt &mo,
+                                 const Mask &active) const {
+        auto [j, fc] = rows_at(cos_theta);
+        UInt32 base = mo.index * (m_rows * 3) + j * 3;
+        UnpolarizedSpectrum out;
+        for (size_t ch = 0; ch < 3; ++ch)
+            out[ch] = dr::lerp(dr::gather<Float>(t, base + (uint32_t) ch, active),
+                               dr::gather<Float>(t, base + (uint32_t) (ch + 3), active), fc);
+        return out;
+    }
+
+    /// A model's logistic emission: peak, scale, 1/normalisation, the range where it is
+    /// defined and the excitation range (uniform: constants; textured: per lane).
+    struct Emission {
+        Float peak, scale, inv_norm, lmin, lmax, ex_lo, ex_hi;
+    };
+    Emission emission_of(const ModelAt &mo, const Mask &active) const {
+        if (!textured())
+            return { Float(m_peak), Float(m_scale), Float(m_inv_norm), Float(m_lmin), Float(m_lmax), Float(m_ex_lo),
+                     Float(m_ex_hi) };
+        Emission e;
+        Float *fields[EmissionFields] = { &e.peak, &e.scale, &e.inv_norm, &e.lmin, &e.lmax, &e.ex_lo, &e.ex_hi };
+        for (uint32_t i = 0; i < EmissionFields; ++i)
+            *fields[i] = dr::gather<Float>(m_emission, mo.index * EmissionFields + i, active);
+        return e;
+    }
+    static constexpr uint32_t EmissionFields = 7;
 
     /// e(λo | λi) = L(λo)/I (λo > λi, within [λmin, λmax], checked by the caller): the
     /// logistic density exp(−|u|)/(s(1 + exp(−|u|))²), u = (λo − peak)/s, as band.rs.
-    Float emission(const Float &lambda_o) const {
-        Float e = dr::exp(-dr::abs((lambda_o - m_peak) * (1.f / m_scale)));
-        return e / (m_scale * dr::square(1.f + e)) * m_inv_norm;
+    static Float emission(const Float &lambda_o, const Emission &em) {
+        Float e = dr::exp(-dr::abs((lambda_o - em.peak) / em.scale));
+        return e / (em.scale * dr::square(1.f + e)) * em.inv_norm;
     }
 
     /// The substrate's Fresnel factor F (its eta/k textures, as roughconductor), and with a
-    /// coating R_tot = R_spe + pass·F/(1 − F·R_spe) (eq. 23).
+    /// coating R_tot = R_spe + pass·F/(1 − F·R_spe) (eq. 23); textured: the hit's models'
+    /// values mixed with their weights (as the scalar variants).
     UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, const Float &cos_m, const Mask &active,
-                                      const Cells &cells) const {
+                                      const Hit &h) const {
         if (m_tabulated) {
             // a uniform substrate under the coating: R_tot itself from Rust's table (the
             // scalar lobe's r_tot at the nodes), no substrate lookups and Fresnel per lane
-            UnpolarizedSpectrum r_tot;
-            if constexpr (is_spectral_v<Spectrum>) {
-                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
-                    r_tot[w] = bilinear(m_r_tot, cos_m, cells[w], active);
-            } else {
-                auto [j, fc] = rows_at(cos_m);
-                for (size_t ch = 0; ch < 3; ++ch) {
-                    UInt32 i0 = j * 3 + (uint32_t) ch, i1 = i0 + 3;
-                    r_tot[ch] = dr::lerp(dr::gather<Float>(m_rgb_r_tot, i0, active),
-                                         dr::gather<Float>(m_rgb_r_tot, i1, active), fc);
+            UnpolarizedSpectrum r_tot(0.f);
+            for (size_t i = 0; i < h.n; ++i) {
+                Mask on = active && h.weight[i] > 0.f;
+                UnpolarizedSpectrum v;
+                if constexpr (is_spectral_v<Spectrum>) {
+                    for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
+                        v[w] = bilinear(m_r_tot, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
+                } else {
+                    v = rgb_rows(m_rgb_r_tot, cos_m, h.model[i], on);
                 }
+                r_tot = h.n == 1 ? v : dr::fmadd(h.weight[i], v, r_tot);
             }
             return r_tot;
         }
@@ -419,36 +657,66 @@ private:
         UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
         if (!m_coated)
             return F;
-        UnpolarizedSpectrum r_spe, pass;
-        if constexpr (is_spectral_v<Spectrum>) {
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                r_spe[w] = bilinear(m_r_spe, cos_m, cells[w], active);
-                pass[w] = bilinear(m_pass, cos_m, cells[w], active);
+        UnpolarizedSpectrum mixed(0.f);
+        for (size_t i = 0; i < h.n; ++i) {
+            Mask on = active && h.weight[i] > 0.f;
+            UnpolarizedSpectrum r_spe, pass;
+            if constexpr (is_spectral_v<Spectrum>) {
+                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                    r_spe[w] = bilinear(m_r_spe, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
+                    pass[w] = bilinear(m_pass, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
+                }
+            } else {
+                r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
+                pass = rgb_rows(m_rgb_pass, cos_m, h.model[i], on);
             }
-        } else {
-            auto [j, fc] = rows_at(cos_m);
-            for (size_t ch = 0; ch < 3; ++ch) {
-                UInt32 i0 = j * 3 + (uint32_t) ch, i1 = i0 + 3;
-                r_spe[ch] = dr::lerp(dr::gather<Float>(m_rgb_r_spe, i0, active), dr::gather<Float>(m_rgb_r_spe, i1, active), fc);
-                pass[ch] = dr::lerp(dr::gather<Float>(m_rgb_pass, i0, active), dr::gather<Float>(m_rgb_pass, i1, active), fc);
-            }
+            UnpolarizedSpectrum v = r_spe + pass * F / dr::maximum(1.f - F * r_spe, 1e-12f);
+            mixed = h.n == 1 ? v : dr::fmadd(h.weight[i], v, mixed);
         }
-        return r_spe + pass * F / dr::maximum(1.f - F * r_spe, 1e-12f);
+        return mixed;
     }
 
-    static FloatStorage storage(const rust::Vec<double> &v) {
-        std::vector<float> f(v.begin(), v.end());
-        return dr::load<FloatStorage>(f.data(), f.size());
+    static std::vector<float> floats(const rust::Vec<double> &v) { return std::vector<float>(v.begin(), v.end()); }
+
+    /// A model's reduced reradiation at the microfacet cosines as MaxTerms terms per unit Q:
+    /// B_t into `basis` ([MaxTerms][kk]) and their weights at the nodes into `nodes`
+    /// ([n][MaxTerms]); returns n, and the truncation's error (of the largest entry) in
+    /// `error`. `q`: the model's own Q (its tables scale with it).
+    size_t reduce_nodes(const fluo::QdModel &model, double q, const fluo::TransportBasis &transport, size_t kk,
+                        std::vector<double> &basis, std::vector<double> &nodes, double &error) const {
+        size_t n = fluo::reduced_microfacet_nodes();
+        basis.assign(MaxTerms * kk, 0.0);
+        nodes.assign(n * MaxTerms, 0.0);
+        auto reduced = fluo::reduced_new(fluo::qd_fluorescence(model), transport);
+        error = fluo::reduced_microfacet_low_rank(*reduced, MaxTerms, rust::Slice<double>(basis.data(), basis.size()),
+                                                  rust::Slice<double>(nodes.data(), nodes.size()));
+        if (!(error >= 0.0) || !std::isfinite(error))
+            Throw("%s: no microfacet reduced operator", Plugin);
+        for (double &v : basis)
+            v /= q; // fluorescent: Q > 0
+        return n;
     }
 
-    /// Validate the configuration in Rust, build the model and bake the tables.
+    /// One warning per reduction (a textured material: its worst model) where MaxTerms terms
+    /// hold the reduced reradiation less well than expected.
+    static void warn_low_rank(double error, const char *what) {
+        if (error > fluo::reduced_low_rank_tolerance())
+            Log(Warn, "%s: the reduced reradiation of %s is held by %zu terms to %.2g of its largest entry in the "
+                      "vectorised variants (expected below %.2g): RGB renders may differ from scalar_rgb by about "
+                      "that much", Plugin, what, MaxTerms, error, fluo::reduced_low_rank_tolerance());
+    }
+
+    /// Validate the configuration in Rust, build the model (textured: one per level triple)
+    /// and bake the tables.
     void rebuild() {
         fluo_detail::QdSamples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
         m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
+        m_tex.bake(m_config, eta, k, qd_eta, qd_k); // textured: m_config takes the largest levels
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
-        if (fluo::qd_is_fluorescent(*model) && !m_setup.uniform_substrate())
+        bool fluorescent = textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(*model);
+        if (fluorescent && !m_setup.uniform_substrate())
             Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
                   "with a fluorescent coating: the coating's absorption tables are baked for one "
                   "substrate (the elastic part alone is evaluated per hit); give constant "
@@ -456,48 +724,77 @@ private:
                   Plugin);
         const float *rgb = Setup::RgbWavelengths;
         std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
-        fluo::QdJitTables t =
-            fluo::qd_jit_tables(*model, JitCosNodes, rust::Slice<const double>(extra.data(), extra.size()));
-        if (t.lambda.size() < 2 || t.rows < 2)
-            Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)", Plugin,
-                  t.lambda.size(), t.rows);
+        std::vector<const fluo::QdModel *> models;
+        if (textured())
+            for (const auto &m : m_tex.models)
+                models.push_back(&*m);
+        else
+            models.push_back(&*model);
+        std::vector<float> a_tot, cdf, r_spe, pass, r_tot, rgb_r_spe, rgb_pass, emission;
+        std::vector<uint32_t> t_off;
+        m_grids = fluo_detail::JitGridSet<Float>();
+        for (const fluo::QdModel *m : models) {
+            fluo::QdJitTables t =
+                fluo::qd_jit_tables(*m, JitCosNodes, rust::Slice<const double>(extra.data(), extra.size()));
+            if (t.lambda.size() < 2 || t.rows < 2)
+                Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
+                      Plugin, t.lambda.size(), t.rows);
+            m_rows = (uint32_t) t.rows;
+            t_off.push_back((uint32_t) a_tot.size());
+            for (auto [dst, src] : { std::pair{ &a_tot, &t.a_tot }, std::pair{ &cdf, &t.cdf },
+                                     std::pair{ &r_spe, &t.r_spe }, std::pair{ &pass, &t.pass },
+                                     std::pair{ &r_tot, &t.r_tot }, std::pair{ &rgb_r_spe, &t.extra_r_spe },
+                                     std::pair{ &rgb_pass, &t.extra_pass } })
+                dst->insert(dst->end(), src->begin(), src->end());
+            for (double v : { t.emission_peak_nm, t.emission_scale_nm,
+                              t.emission_norm > 0.0 ? 1.0 / t.emission_norm : 0.0, t.lambda_min, t.lambda_max,
+                              t.excitation_lo, t.excitation_hi })
+                emission.push_back((float) v);
+            if (textured())
+                m_grids.add(t.lambda, true);
+            else
+                m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
+        }
+        if (textured()) {
+            m_grids.upload();
+            m_t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
+        }
         m_model = std::move(model);
-        m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
-        m_rows = (uint32_t) t.rows;
-        m_a_tot = storage(t.a_tot);
-        m_cdf = storage(t.cdf);
-        m_r_spe = storage(t.r_spe);
-        m_pass = storage(t.pass);
-        m_r_tot = storage(t.r_tot);
-        m_rgb_r_spe = storage(t.extra_r_spe);
-        m_rgb_pass = storage(t.extra_pass);
-        m_peak = (float) t.emission_peak_nm;
-        m_scale = (float) t.emission_scale_nm;
-        m_inv_norm = t.emission_norm > 0.0 ? (float) (1.0 / t.emission_norm) : 0.f;
-        m_lmin = (float) t.lambda_min;
-        m_lmax = (float) t.lambda_max;
-        m_ex_lo = (float) t.excitation_lo;
-        m_ex_hi = (float) t.excitation_hi;
+        auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
+        m_a_tot = load(a_tot);
+        m_cdf = load(cdf);
+        m_r_spe = load(r_spe);
+        m_pass = load(pass);
+        m_r_tot = load(r_tot);
+        m_rgb_r_spe = load(rgb_r_spe);
+        m_rgb_pass = load(rgb_pass);
+        m_emission = load(emission);
+        // uniform: the model's emission as constants of the kernel
+        m_peak = emission[0];
+        m_scale = emission[1];
+        m_inv_norm = emission[2];
+        m_lmin = emission[3];
+        m_lmax = emission[4];
+        m_ex_lo = emission[5];
+        m_ex_hi = emission[6];
         // Mitsuba's own clamp of a zero roughness.
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
-        m_coated = m_config.density > 0.0;
+        m_coated = m_config.density > 0.0; // textured: the largest density level
         m_tabulated = m_coated && m_setup.uniform_substrate();
         if (m_tabulated && !is_spectral_v<Spectrum>) {
             // RGB: R_tot per channel at the cosine nodes from the channels' R_spe and pass and
             // the substrate's (uniform) eta/k, as fresnel_value computes it per lane
-            auto eta = m_setup.eta->eval(dr::zeros<SurfaceInteraction3f>(), true);
-            auto k = m_setup.k->eval(dr::zeros<SurfaceInteraction3f>(), true);
-            std::vector<double> r_tot(t.extra_r_spe.size());
-            for (size_t j = 0; j < t.rows; ++j)
-                for (size_t ch = 0; ch < 3; ++ch) {
-                    double cos_m = (double) j / (double) (t.rows - 1);
-                    dr::Complex<double> eta_c(fluo_detail::host_value(eta[ch]), fluo_detail::host_value(k[ch]));
-                    double f = fresnel_conductor(cos_m, eta_c), r = t.extra_r_spe[j * 3 + ch],
-                           pass = t.extra_pass[j * 3 + ch];
-                    r_tot[j * 3 + ch] = r + pass * f / std::max(1.0 - f * r, 1e-12);
-                }
-            std::vector<float> f(r_tot.begin(), r_tot.end());
-            m_rgb_r_tot = dr::load<FloatStorage>(f.data(), f.size());
+            auto eta_c = m_setup.eta->eval(dr::zeros<SurfaceInteraction3f>(), true);
+            auto k_c = m_setup.k->eval(dr::zeros<SurfaceInteraction3f>(), true);
+            std::vector<float> rgb_r_tot(rgb_r_spe.size());
+            for (size_t i = 0; i < rgb_r_spe.size(); ++i) {
+                size_t ch = i % 3, j = (i / 3) % m_rows;
+                double cos_m = (double) j / (double) (m_rows - 1);
+                dr::Complex<double> ior(fluo_detail::host_value(eta_c[ch]), fluo_detail::host_value(k_c[ch]));
+                double f = fresnel_conductor(cos_m, ior), r = rgb_r_spe[i], p = rgb_pass[i];
+                rgb_r_tot[i] = (float) (r + p * f / std::max(1.0 - f * r, 1e-12));
+            }
+            m_rgb_r_tot = load(rgb_r_tot);
         }
         ++m_build;
     }
@@ -513,30 +810,37 @@ private:
     }
 
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
-    std::optional<rust::Box<fluo::QdModel>> m_model;
+    std::optional<rust::Box<fluo::QdModel>> m_model; ///< textured: at the largest levels (a representative)
     Setup m_setup;
+    Tex m_tex; ///< textured radius, density, quantum_yield, alpha: textures, levels, baked models
     MicrofacetType m_type = MicrofacetType::Beckmann;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;
     /// coated over a uniform substrate: the elastic lobe's R_tot from the tables (fresnel_value)
     bool m_tabulated = false;
-    // the tables ([rows][λ] row major) and their grid
+    /// the tables ([rows][λ] row major per model, the models' blocks concatenated at m_t_off;
+    /// RGB ones [model][rows][3]) and their grids (uniform: m_grid; textured: m_grids)
     FloatStorage m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot;
-    uint32_t m_rows = 2; ///< the tables' rows (cosine nodes); a row is m_grid.n long
-    uint64_t m_build = 0; ///< counts rebuilds: keys the reduction below
-    // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes)
-    mutable std::string m_reduced_key;
+    FloatStorage m_emission; ///< [model][EmissionFields] (textured)
+    UInt32Storage m_t_off;   ///< each model's table offset (textured)
+    uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
+    uint64_t m_build = 0; ///< counts rebuilds: keys the reductions below
+    // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes), and
+    // every textured model's (jit_reduced_nodes_table)
+    mutable std::string m_reduced_key, m_table_key;
     mutable std::array<std::vector<double>, MaxTerms> m_reduced_m;
-    mutable std::vector<double> m_reduced_nodes;
-    mutable size_t m_reduced_n = 0;
-    fluo_detail::JitGrid<Float> m_grid; ///< the λ grid and its bucket index
+    mutable std::vector<double> m_reduced_nodes, m_table_m, m_table_nodes;
+    mutable size_t m_reduced_n = 0, m_table_n = 0;
+    fluo_detail::JitGrid<Float> m_grid; ///< a uniform material's λ grid and its bucket index
+    fluo_detail::JitGridSet<Float> m_grids; ///< the textured models' λ grids
     float m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
     float m_ex_lo = 0.f, m_ex_hi = 0.f;
     Float m_q = 0.f; ///< Q (differentiable)
     ScalarFloat m_radius = 0.f, m_density = 0.f, m_alpha = 0.f, m_width = 0.f;
 
-    MI_TRAVERSE_CB(Base, m_grid.nodes, m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot,
-                   m_grid.buckets, m_q)
+    MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
+                   m_a_tot, m_cdf,
+                   m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_rgb_r_tot, m_emission, m_t_off, m_q)
 };
 
 static const bool fluo_qd_jit_registered =

@@ -136,6 +136,7 @@ private:
         m_fluorescent = !m_media.empty() || !m_bsdfs.empty();
         if constexpr (is_rgb_v<Spectrum>) {
             m_reduced.prepare(scene, bsdfs, !m_media.empty());
+            m_varying = m_directional && m_reduced.varying();
             size_t k = m_reduced.bands();
             for (const BMedium *b : m_media) {
                 ReducedMedium r{ dynamic_cast<const Medium *>(b), std::vector<double>(k * k),
@@ -1105,7 +1106,8 @@ private:
                         Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
                         if (surfaces)
                             std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
-                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional, active_surface);
+                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
+                                m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
                         Mask matrix = ls.reduced || is_fl;
                         if (dr::any_or<true>(active_e)) {
                             Rows<K> B_red =
@@ -1149,6 +1151,7 @@ private:
     std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
     double m_range_lo = 0.0, m_range_hi = 0.0;
     bool m_fluorescent = false, m_directional = false;
+    bool m_varying = false; ///< RGB: a direction-dependent lobe varies over the surface (a model picked per vertex)
 };
 
 static const bool fluo_volpath_jit_registered =

@@ -233,6 +233,163 @@ template <typename Float> struct JitGrid {
     }
 };
 
+/// Several piecewise-linear functions' nodes (one grid per measured file, per baked coating
+/// model), concatenated on the device: per grid its offset, size, ends and step (> 0 where it
+/// is uniform, as BFC files and most CSV ones are: a cell is then one multiplication), else
+/// (`bucketed` grids: the coatings' piecewise-uniform ones) a bucket index as JitGrid's, else
+/// a binary search per lane over the longest grid; a lane reads the grid it selects. Each
+/// grid is strictly increasing with at least 2 nodes (checked by Rust).
+template <typename Float> struct JitGridSet {
+    using UInt32 = dr::uint32_array_t<Float>;
+    using Mask = dr::mask_t<Float>;
+    using FloatStorage = DynamicBuffer<Float>;
+    using UInt32Storage = DynamicBuffer<UInt32>;
+
+    std::vector<float> host;
+    std::vector<uint32_t> off, n, b_off, b_n;
+    std::vector<float> lo, hi, step, b_step;
+    std::vector<uint32_t> host_buckets;
+    FloatStorage nodes;
+    FloatStorage d_ends;  ///< per grid: lo, hi, step, bucket step (several grids)
+    UInt32Storage d_size; ///< per grid: offset, size, bucket offset, bucket count (several grids)
+    UInt32Storage buckets;
+    uint32_t n_max = 2;
+    bool any_uniform = false, all_uniform = true, bucketed = true;
+
+    /// Append a grid (host); upload() once all are in. `bucketed`: index its cells (every
+    /// grid of a set alike).
+    template <typename Nodes> void add(const Nodes &v, bool with_buckets = false) {
+        off.push_back((uint32_t) host.size());
+        n.push_back((uint32_t) v.size());
+        n_max = std::max(n_max, (uint32_t) v.size());
+        double h = (v.back() - v.front()) / (double) (v.size() - 1);
+        bool uniform = true;
+        for (size_t i = 0; i < v.size(); ++i)
+            uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
+        any_uniform |= uniform;
+        all_uniform &= uniform;
+        lo.push_back((float) v.front());
+        hi.push_back((float) v.back());
+        step.push_back(uniform ? (float) h : 0.f);
+        host.insert(host.end(), v.begin(), v.end());
+        // the bucket index (JitGrid::set): one bucket per narrowest cell
+        double narrowest = v.back() - v.front();
+        for (size_t k = 0; k + 1 < v.size(); ++k)
+            narrowest = std::min(narrowest, (double) (v[k + 1] - v[k]));
+        double bs = narrowest * (1.0 - 1e-6);
+        size_t count = bs > 0.0 ? (size_t) std::ceil((v.back() - v.front()) / bs) + 1 : 0;
+        bucketed &= with_buckets && count >= 1 && count <= JitGrid<Float>::MaxBuckets;
+        b_off.push_back((uint32_t) host_buckets.size());
+        b_n.push_back((uint32_t) count);
+        b_step.push_back((float) bs);
+        if (!with_buckets || count > JitGrid<Float>::MaxBuckets)
+            return;
+        for (size_t i = 0, k = 0; i < count; ++i) {
+            double at = v.front() + (double) i * bs;
+            while (k + 2 < v.size() && v[k + 1] <= at)
+                ++k;
+            host_buckets.push_back((uint32_t) k);
+        }
+    }
+    void upload() {
+        nodes = dr::load<FloatStorage>(host.data(), host.size());
+        if (bucketed)
+            buckets = dr::load<UInt32Storage>(host_buckets.data(), host_buckets.size());
+        if (off.size() > 1) {
+            std::vector<uint32_t> size;
+            std::vector<float> ends;
+            for (size_t i = 0; i < off.size(); ++i) {
+                size.insert(size.end(), { off[i], n[i], b_off[i], b_n[i] });
+                ends.insert(ends.end(), { lo[i], hi[i], step[i], b_step[i] });
+            }
+            d_size = dr::load<UInt32Storage>(size.data(), size.size());
+            d_ends = dr::load<FloatStorage>(ends.data(), ends.size());
+        }
+    }
+
+    /// A lane's grid `which` (literals when there is one).
+    struct At {
+        UInt32 off, n, b_off, b_n;
+        Float lo, hi, step, b_step;
+    };
+    At at(const UInt32 &which, const Mask &active) const {
+        if (off.size() == 1)
+            return { UInt32(off[0]), UInt32(n[0]), UInt32(b_off[0]), UInt32(b_n[0]),
+                     Float(lo[0]),   Float(hi[0]), Float(step[0]),   Float(b_step[0]) };
+        UInt32 i = which * 4;
+        return { dr::gather<UInt32>(d_size, i, active),     dr::gather<UInt32>(d_size, i + 1, active),
+                 dr::gather<UInt32>(d_size, i + 2, active), dr::gather<UInt32>(d_size, i + 3, active),
+                 dr::gather<Float>(d_ends, i, active),      dr::gather<Float>(d_ends, i + 1, active),
+                 dr::gather<Float>(d_ends, i + 2, active),  dr::gather<Float>(d_ends, i + 3, active) };
+    }
+
+    /// The cell j ∈ [0, n − 2] (within the lane's grid) holding x ∈ [lo, hi] (the last
+    /// node ≤ x), and its ends.
+    std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
+        UInt32 j(0);
+        if (all_uniform) {
+        } else if (bucketed) {
+            UInt32 b = UInt32(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Float(g.b_n - 1)));
+            j = dr::gather<UInt32>(buckets, g.b_off + b, active);
+            j = dr::select(j + 2 < g.n && dr::gather<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
+        } else {
+            // over the longest grid, each lane's nodes clamped to its own last one
+            UInt32 last = g.n - 1;
+            j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
+                    return dr::gather<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
+                }) - 1;
+            j = dr::minimum(j, g.n - 2);
+        }
+        Float x0(0.f), x1(0.f);
+        if (!all_uniform) {
+            x0 = dr::gather<Float>(nodes, g.off + j, active);
+            x1 = dr::gather<Float>(nodes, g.off + j + 1, active);
+        }
+        if (any_uniform) {
+            Mask uniform = g.step > 0.f;
+            Float s = dr::select(uniform, g.step, 1.f);
+            UInt32 ju = UInt32(dr::clip(dr::floor((x - g.lo) / s), 0.f, Float(g.n - 2)));
+            Float u0 = dr::fmadd(Float(ju), s, g.lo);
+            j = dr::select(uniform, ju, j);
+            x0 = dr::select(uniform, u0, x0);
+            x1 = dr::select(uniform, u0 + s, x1);
+        }
+        return { j, x0, x1 };
+    }
+};
+
+/// Per lane, the bracketing levels of x among `levels` (host, sorted, at most a few dozen:
+/// compared as constants): (i, t) with x = (1 − t)·levels[i] + t·levels[i + 1], t = 0 at or
+/// below the first level (and for x NaN), 1 at or above the last (i = n − 2), as the scalar
+/// shims' bracket; one level: (0, 0).
+template <typename Float> std::pair<dr::uint32_array_t<Float>, Float> lane_bracket(const std::vector<float> &levels,
+                                                                                  const Float &x) {
+    using UInt32 = dr::uint32_array_t<Float>;
+    size_t n = levels.size();
+    if (n < 2)
+        return { UInt32(0), Float(0.f) };
+    UInt32 i(0);
+    Float l0(levels[0]), l1(levels[1]);
+    for (size_t k = 1; k + 1 < n; ++k) {
+        dr::mask_t<Float> above = x >= levels[k];
+        i = dr::select(above, (uint32_t) k, i);
+        l0 = dr::select(above, levels[k], l0);
+        l1 = dr::select(above, levels[k + 1], l1);
+    }
+    Float t = (x - l0) / (l1 - l0);
+    return { i, dr::select(dr::isnan(t), 0.f, dr::clip(t, 0.f, 1.f)) };
+}
+
+/// Per lane, the index of the level nearest x (ties: the lower; NaN: the first), as
+/// nearest_level (fluo_param_texture.h).
+template <typename Float> dr::uint32_array_t<Float> lane_nearest(const std::vector<float> &levels, const Float &x) {
+    using UInt32 = dr::uint32_array_t<Float>;
+    UInt32 i(0);
+    for (size_t k = 1; k < levels.size(); ++k)
+        i = dr::select(x - levels[k - 1] > levels[k] - x, (uint32_t) k, i);
+    return i;
+}
+
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
 /// (core/src/sigmoid.rs).
 template <typename Value, typename Coeff>
@@ -270,13 +427,14 @@ public:
     /// shift to λi ∈ [range_lo, range_hi] (the lights' range), with uniform numbers u1
     /// (choice), u2 (λi). Returns the wavelengths to continue with, the estimator's
     /// weight (1/probability; detached), which wavelengths shifted, and for those the
-    /// reradiation π·f_fl(λi, λo) (differentiable). The reradiation lobe is Lambertian
-    /// (f_fl·cos θo = that value·cos θo/π), so one call per vertex serves both directions.
-    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum>;
+    /// reradiation π·f_fl(λi, λo) (differentiable), and the model a varying material picked
+    /// at this vertex (`local`, handed back to jit_reradiation; 0 for the others). A
+    /// Lambertian lobe (f_fl·cos θo = that value·cos θo/π) needs no further call.
+    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32>;
     /// The choice that keeps every wavelength (RGB variants, where fluo_path does not call
     /// jit_choose, and materials that do not re-emit).
     static Choice elastic_only(const Wavelength &lambda_o) {
-        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f) };
+        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f), UInt32(0) };
     }
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
@@ -308,11 +466,11 @@ public:
                           Frame3f::cos_theta(wo) * dr::InvPi<Float>, 0.f);
     }
 
-    /// Spectral: f_fl·cos θo towards wo_a and wo_b, given jit_choose's `rerad` for the
-    /// shifted wavelengths, with si.wavelengths = λi.
+    /// Spectral: f_fl·cos θo towards wo_a and wo_b, given jit_choose's `rerad` and `local`
+    /// for the shifted wavelengths, with si.wavelengths = λi.
     virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
-    jit_reradiation(const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad, const Vector3f &wo_a,
-                    const Vector3f &wo_b, Mask /* active */) const {
+    jit_reradiation(const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad, const UInt32 & /* local */,
+                    const Vector3f &wo_a, const Vector3f &wo_b, Mask /* active */) const {
         return { rerad * lambert(si, wo_a), rerad * lambert(si, wo_b) };
     }
 
@@ -333,6 +491,25 @@ public:
                                              Mask /* active */) const {
         return { lambert(si, wo), Float(0.f) };
     }
+
+    /// A direction-dependent operator that varies over the surface among a finite set of
+    /// models (fluo_qd's textured parameters: coatings baked on levels): every model's
+    /// jit_reduced_nodes terms, B_t into `m` ([model][MaxTerms][K][K], sized by the callee)
+    /// and their weights at the n cosine nodes into `nodes` ([model][n][MaxTerms]), n into
+    /// `n_nodes`. Returns how many models (0: none, the default). Per lane the vertex's
+    /// operator is then estimated as lobe·w·M_m(cos θ) for the (model m, weight w) that
+    /// jit_reduced_pick draws with the uniform number u (a model of the hit's mixture picked
+    /// with its probability: unbiased for the mixture, as jit_choose's pick in the spectral
+    /// variants), the lobe from jit_lobe.
+    virtual size_t jit_reduced_nodes_table(const fluo::TransportBasis & /* transport */,
+                                           std::vector<double> & /* m */, std::vector<double> & /* nodes */,
+                                           size_t & /* n_nodes */) const {
+        return 0;
+    }
+    virtual std::pair<UInt32, Float> jit_reduced_pick(const SurfaceInteraction3f & /* si */, const Float & /* u */,
+                                                      Mask /* active */) const {
+        return { UInt32(0), Float(0.f) };
+    }
 };
 
 /// A fluorescent surface vertex of the vectorised spectral integrators (fluo_path,
@@ -346,6 +523,7 @@ template <typename Float, typename Spectrum> struct JitSurfaceShift {
 
     UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
     WMask shifted = false;
+    UInt32 local = 0; ///< the model a varying material picked (jit_choose)
 
     /// Choose per hero wavelength (four 2D numbers from `sampler`); si.wavelengths become
     /// the wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range.
@@ -357,7 +535,7 @@ template <typename Float, typename Spectrum> struct JitSurfaceShift {
             u1[j] = u.x();
             u2[j] = u.y();
         }
-        auto [li, sc, sh, rr] = dispatch_any(
+        auto [li, sc, sh, rr, lc] = dispatch_any(
             bsdf,
             [lo, hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_, const Wavelength &u2_,
                      const Mask &on) {
@@ -371,6 +549,7 @@ template <typename Float, typename Spectrum> struct JitSurfaceShift {
         scale = dr::select(has_bsdf, sc, 1.f);
         shifted = WMask(has_bsdf) && sh;
         rerad = dr::select(shifted, rr, 0.f);
+        local = dr::select(has_bsdf, lc, 0u);
     }
 
     /// The vertex's f·cos towards the emitter sample `wo` (`val`, the BSDF's value on entry)
@@ -384,13 +563,13 @@ template <typename Float, typename Spectrum> struct JitSurfaceShift {
         if (directional) {
             std::tie(v_em, v_bs) = dispatch_any(
                 bsdf,
-                [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_, const Vector3f &wa,
-                   const Vector3f &wb, const Mask &on) {
+                [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_, const UInt32 &lc_,
+                   const Vector3f &wa, const Vector3f &wb, const Mask &on) {
                     if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
-                        return f->jit_reradiation(si_, rr_, wa, wb, on);
+                        return f->jit_reradiation(si_, rr_, lc_, wa, wb, on);
                     return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
                 },
-                si, rerad, wo, bs.wo, active && dr::any(shifted));
+                si, rerad, local, wo, bs.wo, active && dr::any(shifted));
         } else {
             v_em = rerad * Bispectral::lambert(si, wo);
             v_bs = rerad * Bispectral::lambert(si, bs.wo);

@@ -78,19 +78,25 @@ public:
                     m.assign(m_k * m_k, 0.0);
                 e.full = rust_call(m_plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
                 std::vector<double> nodes;
-                if (!b->jit_lambertian())
-                    e.n_nodes = (uint32_t) rust_call(m_plugin,
-                                                     [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
-                if (e.n_nodes > 0) {
-                    std::vector<float> f(nodes.begin(), nodes.end());
-                    e.nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+                if (!b->jit_lambertian()) {
+                    std::vector<double> dm;
+                    size_t n_nodes = 0;
+                    e.n_models = (uint32_t) rust_call(
+                        m_plugin, [&] { return b->jit_reduced_nodes_table(**m_transport, dm, nodes, n_nodes); });
+                    if (e.n_models > 0) {
+                        e.n_nodes = (uint32_t) n_nodes;
+                        e.models = load(dm);
+                    } else {
+                        e.n_nodes = (uint32_t) rust_call(
+                            m_plugin, [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
+                    }
                 }
+                if (e.n_nodes > 0)
+                    e.nodes = load(nodes);
                 std::vector<double> table;
                 e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
-                if (e.n_table > 0) {
-                    std::vector<float> f(table.begin(), table.end());
-                    e.table = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
-                }
+                if (e.n_table > 0)
+                    e.table = load(table);
                 m_entries.push_back(std::move(e));
             }
             if ((!m_entries.empty() || media) && m_uv_warned != scene) {
@@ -106,6 +112,14 @@ public:
 
     /// The fluorescent BSDFs reduced for this render.
     size_t size() const { return m_entries.size(); }
+    /// Whether one of them has a direction-dependent lobe that varies over the surface
+    /// (vertex() then needs its number u).
+    bool varying() const {
+        for (const Entry &e : m_entries)
+            if (e.n_models > 0)
+                return true;
+        return false;
+    }
 
     /// diag(t)·O: the matrix throughput of a path whose RGB throughput is t.
     template <size_t K> Rows<K> output_rows(const Color3f &t) const {
@@ -216,10 +230,12 @@ public:
     /// towards wa (`Block`: the 3×K block R·A(ωa)·cos θa; else R·A(ωa)·cos θa·c, 3 values)
     /// and R·A(ωb)·cos θb/pdf_b. A = Σ w_t·M_t (+ the elastic band albedos when A lacks
     /// them) for a Lambertian material (f = A/π), lobe·w_0·Σ_t s_t(cos θ)·M_t for a
-    /// direction-dependent one, which only scenes holding one (`directional`) ask for.
+    /// direction-dependent one, which only scenes holding one (`directional`) ask for; u: a
+    /// uniform number for a lobe that varies over the surface (one model of the hit's
+    /// mixture picked per vertex; the caller draws it where varying() holds).
     template <size_t K, bool Block>
     auto vertex(const BSDFPtr &bsdf, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
-                const Vector3f &wa, const Vector3f &wb, const Float &pdf_b, bool directional,
+                const Vector3f &wa, const Vector3f &wb, const Float &pdf_b, bool directional, const Float &u,
                 const Mask &active) const {
         using Towards = std::conditional_t<Block, Rows<K>, Color3f>;
         auto towards = [](const Rows<K> &ra, const Coeffs<K> &c_, const Float &f) {
@@ -248,7 +264,7 @@ public:
         auto [f, native, va, rb] = dispatch_any(
             bsdf,
             [this, towards](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Coeffs<K> &c_,
-                            const Vector3f &wa_, const Vector3f &wb_, const Mask &on) {
+                            const Vector3f &wa_, const Vector3f &wb_, const Float &u_, const Mask &on) {
                 const Entry *e = find(b);
                 if (!e)
                     return std::make_tuple(Mask(false), Mask(false), dr::zeros<Towards>(), dr::zeros<Rows<K>>());
@@ -257,10 +273,11 @@ public:
                     return std::make_tuple(Mask(true), Mask(false), towards(ra, c_, Bispectral::lambert(si_, wa_)),
                                            Rows<K>(ra * Bispectral::lambert(si_, wb_)));
                 }
-                auto [va_, rb_] = directional_products<K, Block>(*e, si_, R_, c_, wa_, wb_, on);
+                auto [va_, rb_] = e->n_models > 0 ? varying_products<K, Block>(*e, si_, R_, c_, wa_, wb_, u_, on)
+                                                  : directional_products<K, Block>(*e, si_, R_, c_, wa_, wb_, on);
                 return std::make_tuple(Mask(true), Mask(true), va_, rb_);
             },
-            si, R, c, wa, wb, active);
+            si, R, c, wa, wb, u, active);
         Mask is_fl = f && active;
         return std::make_tuple(is_fl, Mask(native && is_fl), va, Rows<K>(rb * inv_pdf));
     }
@@ -279,7 +296,17 @@ private:
         /// A varying material (Bispectral::jit_reduced_table): its operators M_n, [n][K][K].
         DynamicBuffer<Float> table;
         uint32_t n_table = 0;
+        /// A varying direction-dependent lobe (Bispectral::jit_reduced_nodes_table): every
+        /// model's terms B_t ([model][MaxTerms][K][K]; `nodes` then [model][n_nodes][MaxTerms]),
+        /// of which a lane reads the one it picks.
+        DynamicBuffer<Float> models;
+        uint32_t n_models = 0;
     };
+
+    static DynamicBuffer<Float> load(const std::vector<double> &v) {
+        std::vector<float> f(v.begin(), v.end());
+        return dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+    }
 
     /// A fluo_illuminant emitter's basis coefficients.
     struct Source {
@@ -380,6 +407,58 @@ private:
                     out_b[r * K + j] = dr::fmadd(w_b[t], acc, out_b[r * K + j]);
                 }
             }
+        return std::make_pair(out_a, out_b);
+    }
+
+    /// directional_products for a lobe that varies over the surface: per lane the model m and
+    /// weight w that Bispectral::jit_reduced_pick draws with u, the operator lobe·w·Σ_t
+    /// s_t^m(cos θ)·B_t^m, its columns formed one at a time from the gathered B_t^m (each
+    /// gather serves both directions).
+    template <size_t K, bool Block>
+    auto varying_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
+                          const Vector3f &wa, const Vector3f &wb, const Float &u, const Mask &on) const {
+        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms, KK = (uint32_t) (K * K);
+        auto [model, weight] = e.bispectral->jit_reduced_pick(si, u, on);
+        Mask live = on && weight > 0.f;
+        UInt32 base = model * (T * KK);
+        using Weights = std::array<Float, T>;
+        auto weights = [&](const Vector3f &wo) {
+            auto [lobe, cos_h] = e.bispectral->jit_lobe(si, wo, live);
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
+            Float f = x - Float(j);
+            Mask m = live && lobe != 0.f;
+            UInt32 row = (model * e.n_nodes + j) * T;
+            Weights w;
+            for (uint32_t t = 0; t < T; ++t)
+                w[t] = dr::lerp(dr::gather<Float>(e.nodes, row + t, m), dr::gather<Float>(e.nodes, row + T + t, m), f) *
+                       (lobe * weight);
+            return w;
+        };
+        Weights w_a = weights(wa), w_b = weights(wb);
+        std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
+        Rows<K> out_b;
+        for (size_t j = 0; j < K; ++j) {
+            Coeffs<K> col_a = dr::zeros<Coeffs<K>>(), col_b = dr::zeros<Coeffs<K>>(); // A[:, j]
+            for (size_t k = 0; k < K; ++k)
+                for (uint32_t t = 0; t < T; ++t) {
+                    Float b = dr::gather<Float>(e.models, base + (t * KK + (uint32_t) (k * K + j)), live);
+                    col_a[k] = dr::fmadd(w_a[t], b, col_a[k]);
+                    col_b[k] = dr::fmadd(w_b[t], b, col_b[k]);
+                }
+            for (size_t r = 0; r < 3; ++r) {
+                Float acc_a = R[r * K] * col_a[0], acc_b = R[r * K] * col_b[0];
+                for (size_t k = 1; k < K; ++k) {
+                    acc_a = dr::fmadd(R[r * K + k], col_a[k], acc_a);
+                    acc_b = dr::fmadd(R[r * K + k], col_b[k], acc_b);
+                }
+                if constexpr (Block)
+                    out_a[r * K + j] = acc_a;
+                else
+                    out_a[r] = dr::fmadd(acc_a, c[j], out_a[r]);
+                out_b[r * K + j] = acc_b;
+            }
+        }
         return std::make_pair(out_a, out_b);
     }
 

@@ -13,12 +13,15 @@
 #include <cmath>
 #include <functional>
 #include <initializer_list>
+#include <sstream>
+#include <string_view>
 #include <string>
 #include <utility>
 #include <vector>
 
 #include "fluo_common.h"
 #include "fluo_jit.h"
+#include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
@@ -250,6 +253,153 @@ template <typename Float, typename Spectrum> struct QdSetup {
         Properties p("uniform");
         p.set("value", value);
         return PluginManager::instance()->create_object<Texture>(p);
+    }
+};
+
+/// fluo_qd's textured numeric parameters, in both shims: `radius`, `density`,
+/// `quantum_yield` and `alpha` each a float or a float texture; the textures' validated
+/// levels and the coating models baked on them (fluo_qd.cpp's docs, "Textured parameters").
+template <typename Float, typename Spectrum> struct QdTextures {
+    MI_IMPORT_TYPES(Texture)
+    enum Param { Radius, Density, Yield, Alpha, NParams };
+    static constexpr const char *Names[NParams] = { "radius", "density", "quantum_yield", "alpha" };
+
+    ref<Texture> tex[NParams]; ///< null: the float in the configuration
+    std::vector<float> radii, densities, alphas; ///< the baked levels
+    bool density_grid = false; ///< densities on a grid (more distinct values than its nodes)
+    bool fluoresces = false;   ///< some texel has density > 0 and some Q > 0
+    /// model (i, j, l) at index(i, j, l)
+    std::vector<rust::Box<fluo::QdModel>> models;
+
+    static double &field(fluo::QdConfig &c, size_t i) {
+        return i == Radius ? c.radius : i == Density ? c.density : i == Yield ? c.quantum_yield : c.alpha;
+    }
+    static double field(const fluo::QdConfig &c, size_t i) {
+        fluo::QdConfig copy = c;
+        return field(copy, i);
+    }
+
+    /// Read the four parameters' textures from props: a spatially varying one is kept, one
+    /// that does not vary is read once into `c` (the uniform material's code path).
+    void read(const Properties &props, fluo::QdConfig &c) {
+        for (size_t i = 0; i < NParams; ++i) {
+            const char *name = Names[i];
+            if (!props.has_property(name) || props.type(name) != Properties::Type::Object)
+                continue;
+            ref<Texture> t = props.get_texture<Texture>(name);
+            if (t->is_spatially_varying())
+                tex[i] = t;
+            else
+                field(c, i) = host_value(t->eval_1(dr::zeros<SurfaceInteraction3f>(), true));
+            props.mark_queried(name);
+        }
+    }
+
+    bool any() const { return tex[Radius] || tex[Density] || tex[Yield] || tex[Alpha]; }
+    bool textured(const char *name) const {
+        for (size_t i = 0; i < NParams; ++i)
+            if (std::string_view(name) == Names[i] && tex[i])
+                return true;
+        return false;
+    }
+    size_t index(size_t radius, size_t density, size_t alpha) const {
+        return (radius * densities.size() + density) * alphas.size() + alpha;
+    }
+
+    /// Read and validate each texture's values (per texel for a bitmap, constituent values
+    /// otherwise), then bake one model per (radius, density, alpha) level triple with Q = 1
+    /// (the reradiation is linear in Q, which scales it per hit). Radii and alphas: the
+    /// texture's own values. Densities: the texture's own values when at most
+    /// TEXTURE_GRID_NODES, else that many nodes over their range. `c` takes the largest
+    /// level of each (the base model). Nothing without textures.
+    void bake(fluo::QdConfig &c, const QdSamples &eta, const QdSamples &k, const QdSamples &qd_eta,
+              const QdSamples &qd_k) {
+        constexpr const char *Plugin = "fluo_qd";
+        models.clear();
+        if (!any())
+            return;
+        std::vector<float> levels[NParams];
+        density_grid = false;
+        for (size_t i = 0; i < NParams; ++i) {
+            if (!tex[i]) {
+                levels[i] = { (float) field(c, i) };
+                continue;
+            }
+            // radius and alpha bake their own models: their exact levels are needed; an
+            // unreadable density or yield spans [0, its maximum] (a density grid)
+            ParamLevels pl = param_levels(Plugin, Names[i], tex[i].get(), i == Radius || i == Alpha, true,
+                                          [&](const std::vector<float> &v, size_t width) {
+                                              rust_call(Plugin, [&] {
+                                                  fluo::qd_check_values(Names[i],
+                                                                        rust::Slice<const float>(v.data(), v.size()),
+                                                                        width);
+                                              });
+                                          });
+            levels[i] = std::move(pl.levels);
+            if (i == Density && !pl.complete)
+                density_grid = true;
+        }
+        size_t max_radii = fluo::qd_texture_max_radii(), nodes = fluo::qd_texture_grid_nodes();
+        if (levels[Radius].size() > max_radii)
+            Throw("%s: the \"radius\" texture holds %zu distinct values; at most %zu are supported (each "
+                  "radius bakes its own coating tables: quantize the texture)", Plugin, levels[Radius].size(),
+                  max_radii);
+        size_t max_alphas = fluo::qd_texture_max_alphas();
+        if (levels[Alpha].size() > max_alphas)
+            Throw("%s: the \"alpha\" texture holds %zu distinct values; at most %zu are supported (each "
+                  "roughness bakes its own coating models: quantize the texture)", Plugin, levels[Alpha].size(),
+                  max_alphas);
+        if (levels[Density].size() > nodes || density_grid) {
+            float lo = levels[Density].front(), hi = levels[Density].back();
+            levels[Density].clear();
+            for (size_t j = 0; j < nodes; ++j)
+                levels[Density].push_back(lo + (hi - lo) * (float) j / (float) (nodes - 1));
+            levels[Density] = distinct_levels(levels[Density]);
+            density_grid = true;
+        }
+        radii = levels[Radius];
+        densities = levels[Density];
+        alphas = levels[Alpha];
+        fluoresces = levels[Yield].back() > 0.f && densities.back() > 0.f;
+        fluo::QdConfig b = c;
+        b.quantum_yield = 1.0;
+        for (float r : radii)
+            for (float d : densities)
+                for (float a : alphas) {
+                    b.radius = r;
+                    b.density = d;
+                    b.alpha = a;
+                    models.push_back(
+                        rust_call(Plugin, [&] { return fluo::qd_new(b, eta.view(), k.view(), qd_eta.view(), qd_k.view()); }));
+                }
+        for (size_t i = 0; i < NParams; ++i)
+            field(c, i) = (double) levels[i].back();
+    }
+
+    /// The bracketing levels of x: (i, t) with x = (1 − t) levels[i] + t levels[i + 1],
+    /// t = 0 at (or beyond) the ends.
+    static std::pair<size_t, double> bracket(const std::vector<float> &levels, float x) {
+        if (!(x > levels.front()))
+            return { 0, 0.0 };
+        if (!(x < levels.back()))
+            return { levels.size() - 1, 0.0 };
+        size_t i = (size_t) (std::upper_bound(levels.begin(), levels.end(), x) - levels.begin()) - 1;
+        return { i, ((double) x - levels[i]) / ((double) levels[i + 1] - levels[i]) };
+    }
+
+    /// How many (radius, density) models a hit mixes: 2 per parameter with several levels.
+    size_t corner_count() const { return (radii.size() > 1 ? 2 : 1) * (densities.size() > 1 ? 2 : 1); }
+
+    std::string to_string() const {
+        std::ostringstream oss;
+        for (size_t i = 0; i < NParams; ++i)
+            if (tex[i])
+                oss << "  " << Names[i] << " = " << string::indent(tex[i]) << "," << std::endl;
+        if (!models.empty())
+            oss << "  baked models = " << models.size() << " (" << radii.size() << " radii x " << densities.size()
+                << " densities" << (density_grid ? ", a grid" : "") << " x " << alphas.size() << " alphas),"
+                << std::endl;
+        return oss.str();
     }
 };
 
