@@ -116,16 +116,10 @@ public:
     }
     /// The files' emission ranges' hull.
     fluo::Range jit_emission_range() const override {
-        fluo::Range r{ 0.0, 0.0 };
-        bool any = false;
-        for (const auto &m : m_models) {
-            if (!fluo::measured_is_fluorescent(*m))
-                continue;
-            fluo::Range e = fluo::fluo_emission_range(fluo::measured_fluorescence(*m));
-            r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
-            any = true;
-        }
-        return r;
+        std::vector<const fluo::Fluorescence *> f;
+        for (const auto &m : m_models)
+            f.push_back(fluo::measured_is_fluorescent(*m) ? &fluo::measured_fluorescence(*m) : nullptr);
+        return fluo_detail::emission_hull(f);
     }
     /// The whole operator ρ·diag + P, reduced by Rust (as the scalar fluo_path). Several
     /// files: none here (jit_reduced_table holds one per file).

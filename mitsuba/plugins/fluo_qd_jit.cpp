@@ -158,16 +158,10 @@ public:
     fluo::Range jit_emission_range() const override {
         if (!textured())
             return fluo::fluo_emission_range(fluo::qd_fluorescence(**m_model));
-        fluo::Range r{ 0.0, 0.0 };
-        bool any = false;
-        for (const auto &m : m_tex.models) {
-            if (!fluo::qd_is_fluorescent(*m))
-                continue;
-            fluo::Range e = fluo::fluo_emission_range(fluo::qd_fluorescence(*m));
-            r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
-            any = true;
-        }
-        return r;
+        std::vector<const fluo::Fluorescence *> f;
+        for (const auto &m : m_tex.models)
+            f.push_back(fluo::qd_is_fluorescent(*m) ? &fluo::qd_fluorescence(*m) : nullptr);
+        return fluo_detail::emission_hull(f);
     }
     bool jit_lambertian() const override { return false; }
 

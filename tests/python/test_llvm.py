@@ -357,6 +357,17 @@ def closeup(bsdf: str, light: str, basis: str = "", res: int = 24) -> str:
                           res=res)
 
 
+def lit_variants():
+    """(light, its label, llvm variant, basis) for D65 in both variants (RGB: x7) and the
+    300-380 nm lamp in the spectral one (UV-only light in RGB is the reduced transport's
+    known limit, warned)."""
+    for light, label in ((D65, "d65"), (UV_FLAT, "uv")):
+        for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
+            if light is UV_FLAT and v == "llvm_ad_rgb":
+                continue
+            yield light, label, v, basis
+
+
 def resampled_matrix(path: Path, source: str, keep) -> Path:
     """data/matrices/`source` on the wavelengths (both axes) where keep(nm) holds."""
     rows = [r for r in csv.reader((MATRICES / source).open()) if r and not r[0].startswith("#")]
@@ -386,19 +397,14 @@ def test09_measured_materials_equal_scalar_within_noise(tmp_path):
     The glow's estimator is heavy-tailed (a per-pixel variance from a few images
     underestimates the variance of the image mean), so the test compares image means with
     the spread of the means themselves: 4 llvm and 6 scalar seeds, a pooled two-sample z."""
-    d65, uv = D65, UV_FLAT
     cases = []
     irregular = irregular_matrix(tmp_path / "irregular.csv")
     for plugin, file in (("fluo_matrix", "jung_yellow.csv"), ("fluo_matrix", "jung_brightener.csv"),
                          ("fluo_gmm", "jung_orange.gmm.json"), ("fluo_matrix", irregular)):
-        for light in (d65, uv):
-            for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
-                if light is uv and v == "llvm_ad_rgb":
-                    continue  # UV-only light in RGB: the reduced transport's known limit (warned)
-                xml = closeup(f'<bsdf type="{plugin}" id="m"><string name="filename" value="{MATRICES / file}"/>'
-                              '</bsdf>', light, basis)
-                cases.append((f"{plugin} {Path(file).name} {'uv' if light is uv else 'd65'}", v,
-                              {"variant": v, "xml": xml, "spp": 256}))
+        for light, label, v, basis in lit_variants():
+            xml = closeup(f'<bsdf type="{plugin}" id="m"><string name="filename" value="{MATRICES / file}"/>'
+                          '</bsdf>', light, basis)
+            cases.append((f"{plugin} {Path(file).name} {label}", v, {"variant": v, "xml": xml, "spp": 256}))
     for scene in ("fluo_measured.xml", "fluo_measured_uv.xml", "bench/measured_box.xml"):
         for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
             params = {"matrix_a": MATRICES / "jung_yellow.csv", "matrix_b": MATRICES / "jung_brightener.csv"}
@@ -560,18 +566,30 @@ def test13_qd_equals_scalar_within_noise():
     fluo_jung: Lambertian and microfacet lobes in one kernel)."""
     cases = []
     for name, bsdf in QD_MATERIALS.items():
-        for light in (D65, UV_FLAT):
-            for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
-                if light is UV_FLAT and v == "llvm_ad_rgb":
-                    continue  # UV-only light in RGB: the reduced transport's known limit (warned)
-                xml = closeup(f'<bsdf type="fluo_qd" id="qd">{bsdf}</bsdf>', light, basis)
-                cases.append((f"fluo_qd {name} {'uv' if light is UV_FLAT else 'd65'}", v,
-                              {"variant": v, "xml": xml, "spp": 256}))
+        for light, label, v, basis in lit_variants():
+            xml = closeup(f'<bsdf type="fluo_qd" id="qd">{bsdf}</bsdf>', light, basis)
+            cases.append((f"fluo_qd {name} {label}", v, {"variant": v, "xml": xml, "spp": 256}))
     for scene in ("fluo_qd_spheres.xml", "fluo_qd_spheres_uv.xml", "bench/qd_box.xml", "bench/blacklight_box.xml"):
         for v in ("llvm_ad_spectral", "llvm_ad_rgb"):
             params = {"basis": "x7"} if scene.startswith("bench/") else {}
             cases.append((scene, v, scene_job(SCENES / scene, v, spp=128, **params)))
     assert_means_equal(cases)
+
+
+def glossy_points(seed: int, n: int) -> list:
+    """n random (wi, wo, 4 wavelengths) points above the surface for a glossy lobe, every
+    other one near the specular direction (where the lobe is large)."""
+    rng = np.random.default_rng(seed)
+    points = []
+    for _ in range(n):
+        wi, wo = rng.normal(size=3), rng.normal(size=3)
+        wi[2], wo[2] = abs(wi[2]) + 0.05, abs(wo[2]) + 0.05
+        if len(points) % 2:
+            wo = np.array([-wi[0], -wi[1], wi[2]]) + 0.1 * rng.normal(size=3)
+            wo[2] = abs(wo[2]) + 0.05
+        points.append([list(wi / np.linalg.norm(wi)), list(wo / np.linalg.norm(wo)),
+                       list(rng.uniform(360.0, 830.0, size=4))])
+    return points
 
 
 def test14_qd_bsdf_values_equal_the_rust_reference():
@@ -580,17 +598,7 @@ def test14_qd_bsdf_values_equal_the_rust_reference():
     the scalar variants' (which ask Rust per call) at random directions and wavelengths.
     The tables hold R_spe and pass within 1.3e-4 (Rust test jit_tables_interpolate_the_model),
     which is 0.3 % of a glass substrate's 4 % reflectance: hence rtol 5e-3."""
-    rng = np.random.default_rng(5)
-    points = []
-    for _ in range(60):
-        wi, wo = rng.normal(size=3), rng.normal(size=3)
-        wi[2], wo[2] = abs(wi[2]) + 0.05, abs(wo[2]) + 0.05
-        # near-specular pairs too, where the lobe is large
-        if len(points) % 2:
-            wo = np.array([-wi[0], -wi[1], wi[2]]) + 0.1 * rng.normal(size=3)
-            wo[2] = abs(wo[2]) + 0.05
-        points.append([list(wi / np.linalg.norm(wi)), list(wo / np.linalg.norm(wo)),
-                       list(rng.uniform(360.0, 830.0, size=4))])
+    points = glossy_points(seed=5, n=60)
     bsdfs = [{"type": "fluo_qd", "material": "Al", "distribution": "ggx", "alpha": 0.15, "radius": 3.3,
               "density": 0.8},
              {"type": "fluo_qd", "int_ior": 1.5, "alpha": 0.3, "radius": 1.8},
@@ -726,22 +734,25 @@ def test17_volpath_variants_and_errors():
         assert name in r.get("error", ""), r
 
 
-# A fluo_jung plane whose Stokes shift and yield are checkerboards (four dye shapes' worth
-# of texels: 2 shifts, 2 yields) under D65 from 300 nm.
-CHECKER_JUNG = """<scene version="3.0.0">
-    <integrator type="fluo_path"><integer name="max_depth" value="4"/></integrator>
+# A plane seen from above (a textured material: {bsdf}) under a constant light ({light}: a
+# fluo_illuminant's parameters), fluo_path with optional {basis}.
+TEXTURED_PLANE = """<scene version="3.0.0">
+    <integrator type="fluo_path"><integer name="max_depth" value="4"/>{basis}</integrator>
     <sensor type="perspective">
         <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 3, 0.01" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <transform name="to_world"><lookat origin="{origin}, 3, 0.01" target="0, 0, 0" up="0, 1, 0"/></transform>
         <sampler type="independent"/>
         <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
     </sensor>
-    <emitter type="constant">
-        <spectrum type="fluo_illuminant" name="radiance"><string name="illuminant" value="D65"/></spectrum>
-    </emitter>
+    <emitter type="constant"><spectrum type="fluo_illuminant" name="radiance">{light}</spectrum></emitter>
     <shape type="rectangle">
         <transform name="to_world"><rotate x="1" angle="-90"/></transform>
-        <bsdf type="fluo_jung">
+{bsdf}    </shape>
+</scene>"""
+
+# A fluo_jung plane whose Stokes shift and yield are checkerboards (four dye shapes' worth
+# of texels: 2 shifts, 2 yields) under D65 from 300 nm.
+CHECKER_JUNG = TEXTURED_PLANE.format(origin=0, light=D65, basis="", bsdf="""        <bsdf type="fluo_jung">
             <float name="emission_peak" value="560"/>
             <float name="concentration" value="0.8"/>
             <texture type="checkerboard" name="stokes_shift">
@@ -754,8 +765,7 @@ CHECKER_JUNG = """<scene version="3.0.0">
             </texture>
             <string name="coefficients" value="0.0, 0.0, 1.0"/>
         </bsdf>
-    </shape>
-</scene>"""
+""")
 
 
 def test18_textured_jung_in_llvm(tmp_path):
@@ -810,12 +820,9 @@ def test19_material_index_in_llvm(tmp_path):
 
     cases = []
     for plugin in files:
-        for light in (D65, UV_FLAT):
-            for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
-                if light is UV_FLAT and v == "llvm_ad_rgb":
-                    continue  # UV-only light in RGB: the reduced transport's known limit (warned)
-                cases.append((f"{plugin} index {'uv' if light is UV_FLAT else 'd65'}", v,
-                              {"variant": v, "xml": closeup(bsdf(plugin, index), light, basis), "spp": 256}))
+        for light, label, v, basis in lit_variants():
+            cases.append((f"{plugin} index {label}", v,
+                          {"variant": v, "xml": closeup(bsdf(plugin, index), light, basis), "spp": 256}))
     assert_means_equal(cases)
     jobs = [{"variant": v, "xml": closeup(bsdf(plugin, bad), D65), "spp": 1}
             for plugin in files for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
@@ -829,21 +836,10 @@ def test19_material_index_in_llvm(tmp_path):
     assert any(k.endswith("index.data") for k in keys["keys"]) and "weights" not in keys["keys"], keys
 
 
-# A fluo_qd plane seen from above whose parameters are textures ({qd}: the textures).
-TEXTURED_QD_PLANE = """<scene version="3.0.0">
-    <integrator type="fluo_path"><integer name="max_depth" value="4"/>{basis}</integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0.4, 3, 0.01" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"/>
-        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
-    </sensor>
-    <emitter type="constant"><spectrum type="fluo_illuminant" name="radiance">{light}</spectrum></emitter>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="-90"/></transform>
-        <bsdf type="fluo_qd"><string name="material" value="Al"/>{qd}</bsdf>
-    </shape>
-</scene>"""
+def textured_qd_plane(qd: str, light: str, basis: str) -> str:
+    """A fluo_qd plane (aluminium substrate) whose parameters are textures (`qd`)."""
+    return TEXTURED_PLANE.format(origin=0.4, light=light, basis=basis,
+                                 bsdf=f'        <bsdf type="fluo_qd"><string name="material" value="Al"/>{qd}</bsdf>\n')
 
 
 def checker_xml(name: str, a: float, b: float, scale: float) -> str:
@@ -885,29 +881,16 @@ def test20_textured_qd_in_llvm(tmp_path):
     }
     cases = []
     for name, qd in materials.items():
-        for light in (D65, UV_FLAT):
-            for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
-                if light is UV_FLAT and v == "llvm_ad_rgb":
-                    continue  # UV-only light in RGB: the reduced transport's known limit (warned)
-                if light is UV_FLAT and name == "radius bitmap":
-                    # the glow of three radii under the lamp is too heavy-tailed for 4 seeds (12
-                    # llvm and 8 scalar seeds agree: 49600 ± 530 and 49580 ± 200 in red)
-                    continue
-                xml = TEXTURED_QD_PLANE.format(qd=qd, light=light, basis=basis)
-                cases.append((f"textured fluo_qd {name} {'uv' if light is UV_FLAT else 'd65'}", v,
-                              {"variant": v, "xml": xml, "spp": 256}))
+        for light, label, v, basis in lit_variants():
+            if light is UV_FLAT and name == "radius bitmap":
+                # the glow of three radii under the lamp is too heavy-tailed for 4 seeds (12
+                # llvm and 8 scalar seeds agree: 49600 ± 530 and 49580 ± 200 in red)
+                continue
+            cases.append((f"textured fluo_qd {name} {label}", v,
+                          {"variant": v, "xml": textured_qd_plane(qd, light, basis), "spp": 256}))
     assert_means_equal(cases)
     # eval at uv = 0.5: the bitmap's four texels averaged (density 0.45, between levels 0.3 and 0.5)
-    rng = np.random.default_rng(9)
-    points = []
-    for _ in range(30):
-        wi, wo = rng.normal(size=3), rng.normal(size=3)
-        wi[2], wo[2] = abs(wi[2]) + 0.05, abs(wo[2]) + 0.05
-        if len(points) % 2:
-            wo = np.array([-wi[0], -wi[1], wi[2]]) + 0.1 * rng.normal(size=3)
-            wo[2] = abs(wo[2]) + 0.05
-        points.append([list(wi / np.linalg.norm(wi)), list(wo / np.linalg.norm(wo)),
-                       list(rng.uniform(360.0, 830.0, size=4))])
+    points = glossy_points(seed=9, n=30)
     radius = tmp_path / "radius.exr"
     mi.Bitmap(np.array([[2.0, 3.0], [2.5, 2.0]], dtype=np.float32)).write(str(radius))
     tex = {"type": "bitmap", "filename": str(density), "raw": True, "filter_type": "bilinear"}
@@ -916,8 +899,7 @@ def test20_textured_qd_in_llvm(tmp_path):
              {"type": "fluo_qd", "int_ior": 1.5, "alpha": 0.3, "radius": tex | {"filename": str(radius)},
               "density": 0.6}]
     assert_bsdf_values_equal(bsdfs, points, rtol=5e-3, atol=1e-5, peak=1e-2)
-    jobs = [{"variant": v, "xml": TEXTURED_QD_PLANE.format(qd=bitmap_xml("radius", bad, 1, "nearest"), light=D65,
-                                                          basis=""), "spp": 1}
+    jobs = [{"variant": v, "xml": textured_qd_plane(bitmap_xml("radius", bad, 1, "nearest"), D65, ""), "spp": 1}
             for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
     for res in run_llvm(jobs):
         err = res.get("error", "")

@@ -358,6 +358,21 @@ template <typename Float> struct JitGridSet {
     }
 };
 
+/// The hull of the emission ranges of several models (a material that varies over the
+/// surface; nullptr: a model that does not re-emit, left out); {0, 0} if none re-emits.
+inline fluo::Range emission_hull(const std::vector<const fluo::Fluorescence *> &models) {
+    fluo::Range r{ 0.0, 0.0 };
+    bool any = false;
+    for (const fluo::Fluorescence *m : models) {
+        if (!m)
+            continue;
+        fluo::Range e = fluo::fluo_emission_range(*m);
+        r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
+        any = true;
+    }
+    return r;
+}
+
 /// Per lane, the bracketing levels of x among `levels` (host, sorted, at most a few dozen:
 /// compared as constants): (i, t) with x = (1 − t)·levels[i] + t·levels[i + 1], t = 0 at or
 /// below the first level (and for x NaN), 1 at or above the last (i = n − 2), as the scalar
