@@ -240,7 +240,8 @@ protected:
         if (!m_index)
             return UInt32(0);
         Float v = m_index->eval_1(si, active);
-        Float r = dr::clip(dr::round(v), 0.f, (float) (m_models.size() - 1));
+        // (halves away from zero, as std::lround: not dr::round's ties to even)
+        Float r = dr::clip(dr::floor(v + .5f), 0.f, (float) (m_models.size() - 1));
         return UInt32(dr::select(dr::isfinite(v), r, 0.f));
     }
 

@@ -179,9 +179,16 @@ entry for every coating tested; a warning names the error where it is not), so a
 interpolates three weights instead of two K×K matrices. Images equal the scalar
 variants' within noise (``test_llvm.py``). Cost against ``roughconductor`` under llvm
 ``path``: the ``llvm_qd`` rows of ``benches/bench_costs.py`` (README).
-``quantum_yield`` is differentiable (the reradiation is linear in it); ``radius``,
-``density``, ``alpha`` and ``width`` can be updated through ``mi.traverse`` (the tables
-are baked again) but carry no gradient. Textured ``radius``, ``density``, ``quantum_yield``
+``quantum_yield`` is differentiable (the reradiation is linear in it), and in
+``llvm_ad_spectral`` so are ``radius`` and ``density`` of a uniform material: when a render
+asks for their gradient, Rust bakes the tables again at each ± 1e-3 (one-sided at the ends
+of their ranges) on the model's own λ grid, and a lane's table value and emission
+parameters carry value + (θ − detach(θ))·∂/∂θ from those differences (the same value; the
+sampling stays detached). ``test_llvm.py`` holds AD against central differences of the
+image. In ``llvm_ad_rgb`` they are baked into the reduced matrices and ``mi.traverse`` lists
+them as not differentiable, as ``alpha`` and ``width``, which can be updated (the tables
+are baked again) but carry no gradient; at ``density`` = 0 the material is
+``roughconductor`` and has no density derivative. Textured ``radius``, ``density``, ``quantum_yield``
 and ``alpha`` bake the same models on the same levels as the scalar variants (validated
 alike), each with its own tables and λ grid (with its bucket index) on the device (about
 1.4 MB per model). Per lane a hit reads its (radius, density) models at the roughness level

@@ -73,13 +73,20 @@ public:
             cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
         else
             cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
-        ScalarFloat *values[Tex::NParams] = { &m_radius, &m_density, nullptr, &m_alpha };
-        for (size_t i : { Tex::Radius, Tex::Density, Tex::Alpha }) {
+        // radius and density: differentiable in the spectral variants of a uniform material
+        // (tangents()); RGB bakes them into its reduced matrices
+        auto flag = is_spectral_v<Spectrum> && !m_tex.any() ? ParamFlags::Differentiable
+                                                            : ParamFlags::NonDifferentiable;
+        for (auto [i, value] : { std::pair{ Tex::Radius, &m_radius }, std::pair{ Tex::Density, &m_density } }) {
             if (m_tex.tex[i])
                 cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
             else
-                cb->put(Tex::Names[i], *values[i], ParamFlags::NonDifferentiable);
+                cb->put(Tex::Names[i], *value, flag);
         }
+        if (m_tex.tex[Tex::Alpha])
+            cb->put("alpha", m_tex.tex[Tex::Alpha], ParamFlags::NonDifferentiable);
+        else
+            cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
@@ -94,13 +101,15 @@ public:
             if (!m_tex.tex[Tex::Yield])
                 m_config.quantum_yield = fluo_detail::host_value(m_q);
             if (!m_tex.tex[Tex::Radius])
-                m_config.radius = m_radius;
+                m_config.radius = fluo_detail::host_value(m_radius);
             if (!m_tex.tex[Tex::Density])
-                m_config.density = m_density;
+                m_config.density = fluo_detail::host_value(m_density);
             if (!m_tex.tex[Tex::Alpha])
                 m_config.alpha = m_alpha;
             m_config.width = m_width;
             rebuild();
+            // gradients asked for (an optimiser's update): the tangents now, outside any trace
+            tangents();
         } catch (...) {
             m_config = previous;
             rebuild();
@@ -273,7 +282,7 @@ public:
             for (size_t w = 0; w < cells.size(); ++w)
                 cells[w] = cell(mo, lambda_o[w], active);
             u1[0] = p.u;
-            Emission em = emission_of(mo, active);
+            Emission em = emission_of(mo, active); // with radius's and density's gradients
             // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
             // weight positive where the elastic lobe is keeps the estimator unbiased; this one
             // spares the substrate's eta/k lookups).
@@ -297,7 +306,7 @@ public:
                 // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
                 Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
                 Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
-                Float e = dr::select(ok, emission(lo, em), 0.f);
+                Float e_ad = dr::select(ok, emission(lo, em), 0.f), e = dr::detach(e_ad);
                 ok &= e > 0.f;
                 Mask below = lo < hi_r;
                 Cell cb = select_cell(below, cells[w], c_hi);
@@ -322,7 +331,7 @@ public:
                 scale[w] = choice.weight(pdf, u1[w]);
                 shifted[w] = choice.shifted;
                 lambda_i[w] = dr::select(choice.shifted, x, lo);
-                rerad[w] = dr::select(choice.shifted, h.q * e, 0.f); // Q·e(λo | λi), nm⁻¹
+                rerad[w] = dr::select(choice.shifted, h.q * e_ad, 0.f); // Q·e(λo | λi), nm⁻¹
             }
             return { lambda_i, scale, shifted, rerad, mo.index };
         }
@@ -344,8 +353,8 @@ public:
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 Mask on = active && rerad[w] != 0.f;
                 Cell c = cell(mo, si.wavelengths[w], on);
-                out_a[w] = rerad[w] * lobe_a * bilinear(m_a_tot, c_a, c, mo, on);
-                out_b[w] = rerad[w] * lobe_b * bilinear(m_a_tot, c_b, c, mo, on);
+                out_a[w] = rerad[w] * lobe_a * bilinear_ad(m_a_tot, &Tangents::a_tot, c_a, c, mo, on);
+                out_b[w] = rerad[w] * lobe_b * bilinear_ad(m_a_tot, &Tangents::a_tot, c_b, c, mo, on);
             }
         } else {
             (void) si, (void) rerad, (void) local, (void) wo_a, (void) wo_b, (void) active;
@@ -495,8 +504,12 @@ private:
             auto [ri, rt] = fluo_detail::lane_bracket(m_tex.radii, param(si, Tex::Radius, active));
             auto [di, dt] = fluo_detail::lane_bracket(m_tex.densities, param(si, Tex::Density, active));
             UInt32 ai = fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active));
-            Float q = param(si, Tex::Yield, active);
-            h.q = dr::select(dr::isfinite(q), dr::clip(q, 0.f, 1.f), 0.f);
+            if (m_tex.tex[Tex::Yield]) {
+                Float q = m_tex.tex[Tex::Yield]->eval_1(si, active);
+                h.q = dr::select(dr::isfinite(q), dr::clip(q, 0.f, 1.f), 0.f);
+            } else {
+                h.q = m_q; // the float (differentiable)
+            }
             h.alpha = elastic_alpha(si, active);
             size_t nr = m_tex.radii.size() > 1 ? 2 : 1, nd = m_tex.densities.size() > 1 ? 2 : 1;
             uint32_t n_density = (uint32_t) m_tex.densities.size(), n_alpha = (uint32_t) m_tex.alphas.size();
@@ -589,6 +602,104 @@ private:
         UInt32 r0 = mo.off + j * mo.n;
         return dr::lerp(along(t, r0, c, active), along(t, r0 + mo.n, c, active), fc);
     }
+    /// Spectral, uniform material: the tables' derivatives in radius (p = 0) and density
+    /// (p = 1), central differences of the tables Rust bakes at the parameter ± h on this
+    /// model's λ grid (one-sided where ± h leaves the valid range), and of the emission's
+    /// peak, scale and 1/normalisation. Built once per build when either carries a gradient:
+    /// in parameters_changed (an update after enabling it), else when a render first asks
+    /// (from the substrate's spectra kept at the build: no texture is evaluated while the
+    /// integrator traces). A value then carries value + (θ − detach(θ))·∂value/∂θ: the same
+    /// value, and its derivative for AD. Sampling stays detached.
+    struct Tangents {
+        uint64_t build = 0;
+        std::array<FloatStorage, 2> a_tot, r_tot, r_spe, pass;
+        std::array<float, 2> peak{}, scale{}, inv_norm{};
+    };
+    static constexpr double TangentStep[2] = { 1e-3, 1e-3 }; ///< h: radius (nm), density
+
+    /// The tangents where radius or density carry gradients (else null).
+    const Tangents *tangents() const {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            return nullptr;
+        } else {
+            if (textured() || !(wants(0) || wants(1)))
+                return nullptr;
+            if (m_tangents.build != m_build)
+                bake_tangents();
+            return &m_tangents;
+        }
+    }
+    /// Whether radius (p = 0) or density (p = 1) carries a gradient.
+    bool wants(size_t p) const { return dr::grad_enabled(p == 0 ? m_radius : m_density); }
+    /// θ − detach(θ) of radius (p = 0) or density (p = 1): 0 with θ's gradient.
+    Float delta(size_t p) const {
+        const Float &v = p == 0 ? m_radius : m_density;
+        return v - dr::detach(v);
+    }
+
+    void bake_tangents() const {
+        const fluo_detail::QdSamples &eta = m_samples[0], &k = m_samples[1], &qd_eta = m_samples[2],
+                                     &qd_k = m_samples[3];
+        const float *rgb = Setup::RgbWavelengths;
+        std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
+        rust::Slice<const double> grid(m_grid.host.data(), m_grid.host.size());
+        Tangents t;
+        for (size_t p = 0; p < 2; ++p) {
+            // the tables at θ + s·h for s = ±1, or θ where that is out of range
+            auto at = [&](double sign, double &x) -> std::optional<fluo::QdJitTables> {
+                fluo::QdConfig c = m_config;
+                double &field = p == 0 ? c.radius : c.density;
+                x = field + sign * TangentStep[p];
+                field = x;
+                try {
+                    rust::Box<fluo::QdModel> m = fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
+                    return fluo::qd_jit_tables(*m, JitCosNodes, grid,
+                                               rust::Slice<const double>(extra.data(), extra.size()));
+                } catch (const std::exception &) {
+                    return std::nullopt;
+                }
+            };
+            double x_hi = 0.0, x_lo = 0.0;
+            std::optional<fluo::QdJitTables> hi = at(1.0, x_hi), lo = at(-1.0, x_lo);
+            if (!hi)
+                hi = at(0.0, x_hi);
+            if (!lo)
+                lo = at(0.0, x_lo);
+            if (!hi || !lo || !(x_hi > x_lo))
+                Throw("%s: no derivative tables in \"%s\" at %f", Plugin, p == 0 ? "radius" : "density",
+                      p == 0 ? m_config.radius : m_config.density);
+            double inv = 1.0 / (x_hi - x_lo);
+            auto diff = [&](const rust::Vec<double> &a, const rust::Vec<double> &b) {
+                std::vector<float> d(a.size());
+                for (size_t i = 0; i < a.size(); ++i)
+                    d[i] = (float) ((a[i] - b[i]) * inv);
+                return dr::load<FloatStorage>(d.data(), d.size());
+            };
+            t.a_tot[p] = diff(hi->a_tot, lo->a_tot);
+            t.r_tot[p] = diff(hi->r_tot, lo->r_tot);
+            t.r_spe[p] = diff(hi->r_spe, lo->r_spe);
+            t.pass[p] = diff(hi->pass, lo->pass);
+            auto inv_norm = [](const fluo::QdJitTables &x) { return x.emission_norm > 0.0 ? 1.0 / x.emission_norm : 0.0; };
+            t.peak[p] = (float) ((hi->emission_peak_nm - lo->emission_peak_nm) * inv);
+            t.scale[p] = (float) ((hi->emission_scale_nm - lo->emission_scale_nm) * inv);
+            t.inv_norm[p] = (float) ((inv_norm(*hi) - inv_norm(*lo)) * inv);
+        }
+        t.build = m_build;
+        m_tangents = std::move(t);
+    }
+
+    /// bilinear() of a table, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
+    /// carry gradients (`table`: which of Tangents' arrays).
+    Float bilinear_ad(const FloatStorage &t, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
+                      const Cell &c, const ModelAt &mo, const Mask &active) const {
+        Float v = bilinear(t, cos_theta, c, mo, active);
+        if (const Tangents *tg = tangents())
+            for (size_t p = 0; p < 2; ++p)
+                if (wants(p))
+                    v = dr::fmadd(delta(p), bilinear((tg->*table)[p], cos_theta, c, mo, active), v);
+        return v;
+    }
+
     /// A model's [rows][3] RGB table at cos θ, per channel.
     UnpolarizedSpectrum rgb_rows(const FloatStorage &t, const Float &cos_theta, const ModelAt &mo,
                                  const Mask &active) const {
@@ -607,9 +718,20 @@ private:
         Float peak, scale, inv_norm, lmin, lmax, ex_lo, ex_hi;
     };
     Emission emission_of(const ModelAt &mo, const Mask &active) const {
-        if (!textured())
-            return { Float(m_peak), Float(m_scale), Float(m_inv_norm), Float(m_lmin), Float(m_lmax), Float(m_ex_lo),
-                     Float(m_ex_hi) };
+        if (!textured()) {
+            Emission e{ Float(m_peak), Float(m_scale), Float(m_inv_norm), Float(m_lmin), Float(m_lmax), Float(m_ex_lo),
+                        Float(m_ex_hi) };
+            if (const Tangents *t = tangents())
+                for (size_t p = 0; p < 2; ++p) {
+                    if (!wants(p))
+                        continue;
+                    Float d = delta(p);
+                    e.peak = dr::fmadd(d, t->peak[p], e.peak);
+                    e.scale = dr::fmadd(d, t->scale[p], e.scale);
+                    e.inv_norm = dr::fmadd(d, t->inv_norm[p], e.inv_norm);
+                }
+            return e;
+        }
         Emission e;
         Float *fields[EmissionFields] = { &e.peak, &e.scale, &e.inv_norm, &e.lmin, &e.lmax, &e.ex_lo, &e.ex_hi };
         for (uint32_t i = 0; i < EmissionFields; ++i)
@@ -639,7 +761,8 @@ private:
                 UnpolarizedSpectrum v;
                 if constexpr (is_spectral_v<Spectrum>) {
                     for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
-                        v[w] = bilinear(m_r_tot, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
+                        v[w] = bilinear_ad(m_r_tot, &Tangents::r_tot, cos_m, h.cells[i / h.per_radius][w], h.model[i],
+                                           on);
                 } else {
                     v = rgb_rows(m_rgb_r_tot, cos_m, h.model[i], on);
                 }
@@ -657,8 +780,9 @@ private:
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
                 for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                    r_spe[w] = bilinear(m_r_spe, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
-                    pass[w] = bilinear(m_pass, cos_m, h.cells[i / h.per_radius][w], h.model[i], on);
+                    const Cell &c = h.cells[i / h.per_radius][w];
+                    r_spe[w] = bilinear_ad(m_r_spe, &Tangents::r_spe, cos_m, c, h.model[i], on);
+                    pass[w] = bilinear_ad(m_pass, &Tangents::pass, cos_m, c, h.model[i], on);
                 }
             } else {
                 r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
@@ -706,6 +830,7 @@ private:
         fluo_detail::QdSamples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
         m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
         m_tex.bake(m_config, eta, k, qd_eta, qd_k); // textured: m_config takes the largest levels
+        m_samples = { eta, k, qd_eta, qd_k };       // (sampled once: the tangents reuse them)
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
@@ -729,7 +854,7 @@ private:
         m_grids = fluo_detail::JitGridSet<Float>();
         for (const fluo::QdModel *m : models) {
             fluo::QdJitTables t =
-                fluo::qd_jit_tables(*m, JitCosNodes, rust::Slice<const double>(extra.data(), extra.size()));
+                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(extra.data(), extra.size()));
             if (t.lambda.size() < 2 || t.rows < 2)
                 Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
                       Plugin, t.lambda.size(), t.rows);
@@ -748,6 +873,17 @@ private:
                 m_grids.add(t.lambda, true);
             else
                 m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
+        }
+        // A hit finds its λ cells once per radius (Hit::cells): every model of one radius
+        // must share its grid (Rust's grid depends on the band, i.e. on the radius, alone).
+        for (size_t m = 0, per_radius = m_tex.densities.size() * m_tex.alphas.size(); textured() && m < models.size();
+             ++m) {
+            size_t first = m - m % per_radius;
+            if (m_grids.n[m] != m_grids.n[first] ||
+                !std::equal(m_grids.host.begin() + m_grids.off[m], m_grids.host.begin() + m_grids.off[m] + m_grids.n[m],
+                            m_grids.host.begin() + m_grids.off[first]))
+                Throw("%s: the coatings of one radius have different wavelength grids (models %zu and %zu)", Plugin,
+                      first, m);
         }
         if (textured()) {
             m_grids.upload();
@@ -818,7 +954,9 @@ private:
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
-    uint64_t m_build = 0; ///< counts rebuilds: keys the reductions below
+    uint64_t m_build = 0; ///< counts rebuilds: keys the reductions below and the tangents
+    mutable Tangents m_tangents; ///< the spectral tables' derivatives (tangents())
+    std::array<fluo_detail::QdSamples, 4> m_samples; ///< eta, k, qd_eta, qd_k as Rust got them
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes), and
     // every textured model's (jit_reduced_nodes_table)
     mutable std::string m_reduced_key, m_table_key;
@@ -830,7 +968,8 @@ private:
     float m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
     float m_ex_lo = 0.f, m_ex_hi = 0.f;
     Float m_q = 0.f; ///< Q (differentiable)
-    ScalarFloat m_radius = 0.f, m_density = 0.f, m_alpha = 0.f, m_width = 0.f;
+    Float m_radius = 0.f, m_density = 0.f; ///< differentiable in the spectral variants (uniform material)
+    ScalarFloat m_alpha = 0.f, m_width = 0.f;
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
                    m_a_tot, m_cdf,

@@ -351,7 +351,7 @@ mod bridge {
         );
         /// The tables of [`QdJitTables`] at `rows` cosines, with the coating's
         /// coefficients also at `extra_nm` (the RGB channels' wavelengths).
-        fn qd_jit_tables(model: &QdModel, rows: usize, extra_nm: &[f64]) -> QdJitTables;
+        fn qd_jit_tables(model: &QdModel, rows: usize, lambda: &[f64], extra_nm: &[f64]) -> QdJitTables;
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
@@ -1305,9 +1305,9 @@ fn qd_elastic_coefficients(model: &QdModel, cos_theta: f32, lambdas: &[f32], r_s
     }
 }
 
-fn qd_jit_tables(model: &QdModel, rows: usize, extra_nm: &[f64]) -> QdJitTables {
+fn qd_jit_tables(model: &QdModel, rows: usize, lambda: &[f64], extra_nm: &[f64]) -> QdJitTables {
     let m = &model.coating;
-    let t = m.jit_tables(rows, extra_nm);
+    let t = if lambda.is_empty() { m.jit_tables(rows, extra_nm) } else { m.jit_tables_on(rows, lambda, extra_nm) };
     let p = m.params();
     let (excitation_lo, excitation_hi) = t.excitation.unwrap_or((0.0, 0.0));
     QdJitTables {

@@ -12,7 +12,7 @@ evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths,
 derivative of the image mean by automatic differentiation and by central differences
 (same seed) for each parameter of ``mi.traverse``, or ``{"variant", "load": a plugin
 dict}`` to instantiate one plugin (an error says why it cannot be), or ``{"variant",
-"traverse": a plugin dict}`` for the keys ``mi.traverse`` lists.
+"traverse": a plugin dict}`` for the keys ``mi.traverse`` lists (and which are differentiable).
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
 per-pixel image (``"image": true`` in the job), the BSDF values, or the error message.
 """
@@ -36,7 +36,9 @@ def run(job: dict) -> dict:
         mi.load_dict(job["load"])
         return {"loaded": True}
     if "traverse" in job:
-        return {"keys": list(mi.traverse(mi.load_dict(job["traverse"])).keys())}
+        params = mi.traverse(mi.load_dict(job["traverse"]))
+        differentiable = [k for k in params.keys() if not params.flags(k) & mi.ParamFlags.NonDifferentiable]
+        return {"keys": list(params.keys()), "differentiable": differentiable}
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0))}
     params = job.get("params", {})

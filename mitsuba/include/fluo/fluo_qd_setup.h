@@ -265,6 +265,7 @@ template <typename Float, typename Spectrum> struct QdTextures {
     static constexpr const char *Names[NParams] = { "radius", "density", "quantum_yield", "alpha" };
 
     ref<Texture> tex[NParams]; ///< null: the float in the configuration
+    bool given[NParams] = {};  ///< given as a texture (varying or not)
     std::vector<float> radii, densities, alphas; ///< the baked levels
     bool density_grid = false; ///< densities on a grid (more distinct values than its nodes)
     bool fluoresces = false;   ///< some texel has density > 0 and some Q > 0
@@ -287,6 +288,7 @@ template <typename Float, typename Spectrum> struct QdTextures {
             if (!props.has_property(name) || props.type(name) != Properties::Type::Object)
                 continue;
             ref<Texture> t = props.get_texture<Texture>(name);
+            given[i] = true;
             if (t->is_spatially_varying())
                 tex[i] = t;
             else
@@ -296,9 +298,10 @@ template <typename Float, typename Spectrum> struct QdTextures {
     }
 
     bool any() const { return tex[Radius] || tex[Density] || tex[Yield] || tex[Alpha]; }
+    /// Whether parameter `name` was given as a texture (read by read(), not as a float).
     bool textured(const char *name) const {
         for (size_t i = 0; i < NParams; ++i)
-            if (std::string_view(name) == Names[i] && tex[i])
+            if (std::string_view(name) == Names[i] && given[i])
                 return true;
         return false;
     }
@@ -315,11 +318,14 @@ template <typename Float, typename Spectrum> struct QdTextures {
     void bake(fluo::QdConfig &c, const QdSamples &eta, const QdSamples &k, const QdSamples &qd_eta,
               const QdSamples &qd_k) {
         constexpr const char *Plugin = "fluo_qd";
-        models.clear();
-        if (!any())
+        if (!any()) {
+            models.clear();
             return;
+        }
+        // Everything is built aside and kept only once it all succeeded: a rejected update
+        // (an invalid texel, too many radii) leaves the previous models in place.
         std::vector<float> levels[NParams];
-        density_grid = false;
+        bool grid = false;
         for (size_t i = 0; i < NParams; ++i) {
             if (!tex[i]) {
                 levels[i] = { (float) field(c, i) };
@@ -337,7 +343,7 @@ template <typename Float, typename Spectrum> struct QdTextures {
                                           });
             levels[i] = std::move(pl.levels);
             if (i == Density && !pl.complete)
-                density_grid = true;
+                grid = true;
         }
         size_t max_radii = fluo::qd_texture_max_radii(), nodes = fluo::qd_texture_grid_nodes();
         if (levels[Radius].size() > max_radii)
@@ -349,29 +355,32 @@ template <typename Float, typename Spectrum> struct QdTextures {
             Throw("%s: the \"alpha\" texture holds %zu distinct values; at most %zu are supported (each "
                   "roughness bakes its own coating models: quantize the texture)", Plugin, levels[Alpha].size(),
                   max_alphas);
-        if (levels[Density].size() > nodes || density_grid) {
+        if (levels[Density].size() > nodes || grid) {
             float lo = levels[Density].front(), hi = levels[Density].back();
             levels[Density].clear();
             for (size_t j = 0; j < nodes; ++j)
                 levels[Density].push_back(lo + (hi - lo) * (float) j / (float) (nodes - 1));
             levels[Density] = distinct_levels(levels[Density]);
-            density_grid = true;
+            grid = true;
         }
-        radii = levels[Radius];
-        densities = levels[Density];
-        alphas = levels[Alpha];
-        fluoresces = levels[Yield].back() > 0.f && densities.back() > 0.f;
         fluo::QdConfig b = c;
         b.quantum_yield = 1.0;
-        for (float r : radii)
-            for (float d : densities)
-                for (float a : alphas) {
+        std::vector<rust::Box<fluo::QdModel>> baked;
+        for (float r : levels[Radius])
+            for (float d : levels[Density])
+                for (float a : levels[Alpha]) {
                     b.radius = r;
                     b.density = d;
                     b.alpha = a;
-                    models.push_back(
+                    baked.push_back(
                         rust_call(Plugin, [&] { return fluo::qd_new(b, eta.view(), k.view(), qd_eta.view(), qd_k.view()); }));
                 }
+        models = std::move(baked);
+        radii = levels[Radius];
+        densities = levels[Density];
+        alphas = levels[Alpha];
+        density_grid = grid;
+        fluoresces = levels[Yield].back() > 0.f && densities.back() > 0.f;
         for (size_t i = 0; i < NParams; ++i)
             field(c, i) = (double) levels[i].back();
     }
