@@ -4,7 +4,7 @@
 
 For each scene (the Jung bench box under D65 from 300 nm, the demo objects under a UV
 lamp, sigmoid coefficients, the measured materials: matrices and a Gaussian mixture, the
-quantum-dot bench box) it
+quantum-dot bench box and cuvette, the textured label) it
 renders the scalar variant and the cuda variant, each in
 its own process (Mitsuba 3.8 cannot start a JIT variant in a process that has rendered
 in a scalar one), with two seeds each, and prints per-channel means with a z-score
@@ -29,10 +29,8 @@ SCENES = [("bench/jung_box.xml", {"basis": "x7"}), ("fluo_path_uv.xml", {"basis"
           ("jung_spheres.xml", {}),
           ("fluo_measured.xml", {"matrix_a": str(MATRICES / "jung_yellow.csv"),
                                  "matrix_b": str(MATRICES / "jung_brightener.csv")}),
-          ("bench/qd_box.xml", {"basis": "x7"}), ("bench/qd_cuvette.xml", {"basis": "x7"})]
-#: Scenes the vectorised RGB variants refuse (fluorescent media: fluo_volpath's reduced
-#: transport through media is scalar_rgb's): compared in the spectral variants only.
-SPECTRAL_ONLY = {"bench/qd_cuvette.xml"}
+          ("bench/qd_box.xml", {"basis": "x7"}), ("bench/qd_cuvette.xml", {"basis": "x7"}),
+          ("label_textured.xml", {})]
 
 
 def worker(variant: str, spp: int, res: int) -> dict:
@@ -44,8 +42,6 @@ def worker(variant: str, spp: int, res: int) -> dict:
 
     out = {}
     for scene, params in SCENES:
-        if scene in SPECTRAL_ONLY and variant.endswith("rgb"):
-            continue
         kw = {"res": str(res), "spp": str(spp),
               **{k: v for k, v in params.items() if k != "basis" or "rgb" in variant}}
         s = mi.load_file(str(REPO / "scenes" / scene), **kw)

@@ -46,7 +46,8 @@ the scene's own fluo integrator: ``fluo_volpath`` in the scene with fluorescent 
 (``qd_cuvette``), whose rows without fluorescence set the media's ``quantum_yield`` to 0
 (the same absorption) under Mitsuba's ``volpath``. Rows named "llvm ..." render in the
 vectorised variants (``llvm_ad_spectral``, ``llvm_ad_rgb``) on the scenes whose materials
-those serve (:data:`JIT_KINDS`), each method in a fresh process; their times exclude the
+those serve (:data:`JIT_KINDS`), and rows named "cuda ..." the same on a machine with a
+CUDA GPU (Dr.Jit finds one; left out elsewhere), each method in a fresh process; their times exclude the
 first render of each rung, which traces and compiles the kernels (``compile_s``: its
 extra time at the lowest rung). ``scripts/bench_readme.py`` turns a
 ``results.json`` into the README's table and its reading (:func:`readme_region`). The table goes to stdout (Markdown),
@@ -323,7 +324,24 @@ def methods(cache: Path) -> list[Method]:
                   serves=JIT_KINDS),
            Method("llvm spectral native path, nearest material", "llvm_ad_spectral",
                   lambda t: _to_native(_to_path(t)), lambda _: 0.0, serves=JIT_KINDS, note="llvm's cost floor")]
+    # The same shims on Dr.Jit's CUDA backend, where this machine has a GPU (CI has none).
+    if _cuda_available():
+        ms += [Method(f"cuda {SPECTRAL}", "cuda_ad_spectral", lambda t: t, _material_bytes, serves=JIT_KINDS),
+               Method("cuda rgb ours-x7 (fluo_path)", "cuda_ad_rgb", _reduced("x7", "ours"), _reduced_bytes(7),
+                      serves=JIT_KINDS),
+               Method("cuda spectral native path, nearest material", "cuda_ad_spectral",
+                      lambda t: _to_native(_to_path(t)), lambda _: 0.0, serves=JIT_KINDS, note="cuda's cost floor")]
     return ms
+
+
+def _cuda_available() -> bool:
+    """Whether Dr.Jit finds a CUDA device here (the "cuda ..." methods run only then)."""
+    try:
+        import drjit as dr
+
+        return bool(dr.has_backend(dr.JitBackend.CUDA))
+    except Exception:  # noqa: BLE001  (no CUDA driver: no cuda rows)
+        return False
 
 
 @dataclass
