@@ -126,7 +126,7 @@ public:
     bool jit_reduced_matrices(const fluo::TransportBasis &transport,
                               std::array<std::vector<double>, MaxTerms> &m) const override {
         if (m_index)
-            return reduced_table(transport, nullptr);
+            return reduced_table(transport).second;
         auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*m_models[0]), transport);
         if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(m[0].data(), m[0].size())))
             Throw("%s: no Lambertian reduced operator", m_plugin);
@@ -139,7 +139,7 @@ public:
     size_t jit_reduced_table(const fluo::TransportBasis &transport, std::vector<double> &m) const override {
         if (!m_index)
             return 0;
-        reduced_table(transport, &m);
+        m = reduced_table(transport).first;
         return m_models.size();
     }
     std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
@@ -340,13 +340,16 @@ protected:
         m_means_o = dr::load<Float>(mean_o.data(), mean_o.size());
     }
 
-    /// Several files in RGB: each file's reduced operator into `m` ([file][K][K]; null: not
-    /// asked). Returns whether they include the elastic part (every measured file's does:
-    /// its diagonal is known spectrally; a mix would be an error).
-    bool reduced_table(const fluo::TransportBasis &transport, std::vector<double> *m) const {
+    /// Several files in RGB: each file's reduced operator ([file][K][K]) and whether they
+    /// include the elastic part (every measured file's does: its diagonal is known
+    /// spectrally; a mix would be an error). Reduced once per basis (fluo_path asks for both
+    /// halves at each render's start).
+    const std::pair<std::vector<double>, bool> &reduced_table(const fluo::TransportBasis &transport) const {
+        std::string key(fluo::transport_label(transport));
+        if (key == m_table_key)
+            return m_table;
         size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
-        if (m)
-            m->assign(kk * m_models.size(), 0.0);
+        std::vector<double> m(kk * m_models.size(), 0.0);
         bool full = true;
         for (size_t f = 0; f < m_models.size(); ++f) {
             auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*m_models[f]), transport);
@@ -355,10 +358,12 @@ protected:
                 Throw("%s: \"%s\" and \"%s\" reduce differently (one with its elastic part, one without)",
                       m_plugin, m_keys[0], m_keys[f]);
             full = includes;
-            if (m && !fluo::reduced_lambertian(*reduced, rust::Slice<double>(m->data() + f * kk, kk)))
+            if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(m.data() + f * kk, kk)))
                 Throw("%s: no Lambertian reduced operator for \"%s\"", m_plugin, m_keys[f]);
         }
-        return full;
+        m_table = { std::move(m), full };
+        m_table_key = key;
+        return m_table;
     }
 
     /// RGB variants: each file's albedos under equal-energy light, from Rust (as the scalar
@@ -677,6 +682,9 @@ protected:
     FloatStorage m_d_comp[4];              ///< the Comp fields per (file, component), for several files
     Float m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)
     FloatStorage m_rgb_albedo, m_rgb_elastic; ///< per file (RGB variants)
+    /// several files: their reduced operators for the basis last asked for (reduced_table)
+    mutable std::string m_table_key;
+    mutable std::pair<std::vector<double>, bool> m_table;
 
     MI_TRAVERSE_CB(Base, m_gd.nodes, m_gd.d_ends, m_gd.d_size, m_diag, m_gi.nodes, m_gi.d_ends, m_gi.d_size,
                    m_go.nodes, m_go.d_ends, m_go.d_size, m_p, m_rcdf, m_p_off, m_d_rect, m_d_scale, m_d_comp[0],

@@ -137,7 +137,7 @@ public:
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, m) > 0.f && dr::dot(wo, m) > 0.f;
         if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
             return 0.f;
-        Float alpha = elastic_alpha(si, active);
+        Float alpha = elastic_alpha(param(si, Tex::Alpha, active));
         MicrofacetDistribution distr(m_type, alpha, alpha, true);
         return dr::select(active, distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i), 0.f);
     }
@@ -485,12 +485,10 @@ private:
             a = dr::select(i == (uint32_t) k, m_tex.alphas[k], a);
         return dr::maximum(a, 1e-4f);
     }
-    /// The elastic lobe's roughness at si: the hit's own with a textured alpha (clamped as
-    /// roughconductor clamps it), else the uniform one.
-    Float elastic_alpha(const SurfaceInteraction3f &si, const Mask &active) const {
-        if (!m_tex.tex[Tex::Alpha])
-            return m_alpha_f;
-        return dr::maximum(m_tex.tex[Tex::Alpha]->eval_1(si, active), 1e-4f);
+    /// The elastic lobe's roughness given the hit's alpha (param()): its own with a textured
+    /// alpha (clamped as roughconductor clamps it), else the uniform one.
+    Float elastic_alpha(const Float &alpha) const {
+        return m_tex.tex[Tex::Alpha] ? dr::maximum(alpha, 1e-4f) : Float(m_alpha_f);
     }
 
     Hit hit(const SurfaceInteraction3f &si, const Mask &active, bool with_cells) const {
@@ -503,14 +501,15 @@ private:
         } else {
             auto [ri, rt] = fluo_detail::lane_bracket(m_tex.radii, param(si, Tex::Radius, active));
             auto [di, dt] = fluo_detail::lane_bracket(m_tex.densities, param(si, Tex::Density, active));
-            UInt32 ai = fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active));
+            Float alpha = param(si, Tex::Alpha, active); // (one texture lookup for both uses)
+            UInt32 ai = fluo_detail::lane_nearest(m_tex.alphas, alpha);
             if (m_tex.tex[Tex::Yield]) {
                 Float q = m_tex.tex[Tex::Yield]->eval_1(si, active);
                 h.q = dr::select(dr::isfinite(q), dr::clip(q, 0.f, 1.f), 0.f);
             } else {
                 h.q = m_q; // the float (differentiable)
             }
-            h.alpha = elastic_alpha(si, active);
+            h.alpha = elastic_alpha(alpha);
             size_t nr = m_tex.radii.size() > 1 ? 2 : 1, nd = m_tex.densities.size() > 1 ? 2 : 1;
             uint32_t n_density = (uint32_t) m_tex.densities.size(), n_alpha = (uint32_t) m_tex.alphas.size();
             h.n = nr * nd;

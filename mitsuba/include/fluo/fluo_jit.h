@@ -327,12 +327,11 @@ template <typename Float> struct JitGridSet {
     /// node ≤ x), and its ends.
     std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
         UInt32 j(0);
-        if (all_uniform) {
-        } else if (bucketed) {
+        if (!all_uniform && bucketed) {
             UInt32 b = UInt32(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Float(g.b_n - 1)));
             j = dr::gather<UInt32>(buckets, g.b_off + b, active);
             j = dr::select(j + 2 < g.n && dr::gather<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
-        } else {
+        } else if (!all_uniform) {
             // over the longest grid, each lane's nodes clamped to its own last one
             UInt32 last = g.n - 1;
             j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {

@@ -276,8 +276,7 @@ template <typename Float, typename Spectrum> struct QdTextures {
         return i == Radius ? c.radius : i == Density ? c.density : i == Yield ? c.quantum_yield : c.alpha;
     }
     static double field(const fluo::QdConfig &c, size_t i) {
-        fluo::QdConfig copy = c;
-        return field(copy, i);
+        return i == Radius ? c.radius : i == Density ? c.density : i == Yield ? c.quantum_yield : c.alpha;
     }
 
     /// Read the four parameters' textures from props: a spatially varying one is kept, one
