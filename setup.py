@@ -1,6 +1,7 @@
 """What pyproject.toml cannot say: the compiled parts of the wheel and its data.
 
-``pip wheel .`` (or ``python -m build``) builds a platform wheel with setuptools-rust:
+``pip wheel .`` (or ``python -m build``) builds a platform wheel with setuptools-rust, tagged
+``py3-none-<platform>`` (``AnyPythonWheel``: one file for every CPython >= 3.10):
 
 * ``fluo/libfluo_mitsuba.so`` — the Mitsuba plugin library (the ``fluo-mitsuba`` crate in
   ``mitsuba/``: Rust core + bridge + C++ shims), built with cargo against the ``mitsuba``/``drjit``/``nanobind`` wheels of
@@ -23,6 +24,7 @@ import sys
 from pathlib import Path
 
 from setuptools import setup
+from setuptools.command.bdist_wheel import bdist_wheel
 from setuptools.command.build_py import build_py
 from setuptools_rust import Binding, RustBin, RustExtension
 
@@ -42,6 +44,17 @@ class BuildPyWithData(build_py):
                             ignore=shutil.ignore_patterns("*.md", "__pycache__"))
 
 
+class AnyPythonWheel(bdist_wheel):
+    """A platform wheel for every CPython: tagged ``py3-none-<platform>``. Nothing in it
+    links Python (the plugin library links Mitsuba's and Dr.Jit's libraries, found through
+    relative run paths in the installed ``mitsuba``/``drjit`` packages; ``fluo-rs`` is a
+    plain executable), so one file serves every Python that Mitsuba 3.8 has wheels for."""
+
+    def get_tag(self):
+        _, _, platform = super().get_tag()
+        return "py3", "none", platform
+
+
 def rust_targets() -> list:
     if os.environ.get("FLUO_SKIP_RUST"):
         return []
@@ -57,4 +70,5 @@ def rust_targets() -> list:
     ]
 
 
-setup(rust_extensions=rust_targets(), cmdclass={"build_py": BuildPyWithData}, zip_safe=False)
+setup(rust_extensions=rust_targets(), cmdclass={"build_py": BuildPyWithData, "bdist_wheel": AnyPythonWheel},
+      zip_safe=False)

@@ -71,7 +71,12 @@ sample little (1.75 with a constant λi instead of 1.82): the rest is the re-emi
 itself, paths that go on where volpath's absorbed light stops, which the lean llvm volpath
 baseline does not dilute as the scalar one does (its row: 1.41).
 
+``--backend cuda`` runs the llvm rows (the rows named ``llvm_*``) in the cuda variants
+instead (``cuda_ad_spectral``, ``cuda_ad_rgb``, same scenes, same pairs), on a machine with
+an NVIDIA GPU; their labels then say "cuda". The speed-up rows compare scalar with cuda.
+
 Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
+       python benches/bench_costs.py --backend cuda --rows llvm_jung,llvm_qd --json   # on a GPU
        python benches/bench_costs.py --json > docs/bench/costs.json
        python benches/bench_costs.py --readme docs/bench/costs.json   # README's costs region
        python benches/bench_costs.py --rows llvm_jung --merge docs/bench/costs.json  # update rows in place
@@ -267,10 +272,19 @@ MEDIA_SPP_FACTOR = 4
 LLVM_SPP_FACTOR = 8
 
 
+#: The JIT backend of the rows named llvm_* (``--backend``): "llvm", or "cuda" on a GPU.
+JIT_BACKEND = "llvm"
+
+
+def jit_variant(variant: str) -> str:
+    """`variant` (an llvm_ad_* name) in the backend the llvm rows run on."""
+    return variant.replace("llvm_", f"{JIT_BACKEND}_", 1) if variant.startswith("llvm_") else variant
+
+
 def in_worker(row: str, a) -> dict:
     """Run one row (or one side of one) in a fresh process; its JSON result."""
     cmd = [sys.executable, __file__, "--worker", row, "--spp", str(a.spp * LLVM_SPP_FACTOR), "--res", str(a.res),
-           "--rounds", str(a.rounds)]
+           "--rounds", str(a.rounds), "--backend", JIT_BACKEND]
     proc = subprocess.run(cmd, capture_output=True, text=True)
     lines = [ln[ln.index("RESULT ") + 7:] for ln in proc.stdout.splitlines() if "RESULT " in ln]
     if proc.returncode != 0 or not lines:
@@ -283,7 +297,7 @@ def render_pair_jit(variant: str, da: dict, db: dict, spp: int, rounds: int) -> 
     the first render of each scene (tracing, kernel compilation) is timed apart."""
     import drjit as dr
 
-    mi.set_variant(variant)
+    mi.set_variant(jit_variant(variant))
     import fluo  # noqa: F401
 
     sa, sb = mi.load_dict(da), mi.load_dict(db)
@@ -306,7 +320,7 @@ def render_times(variant: str, d: dict, spp: int, rounds: int) -> dict:
     """One scene's render times in this process: the first (compiling) and `rounds` more."""
     import drjit as dr
 
-    mi.set_variant(variant)
+    mi.set_variant(jit_variant(variant))
     import fluo  # noqa: F401
 
     scene = mi.load_dict(d)
@@ -540,8 +554,16 @@ def main() -> None:
                     help="rewrite README.md's costs region from a saved --json run (measures nothing)")
     ap.add_argument("--merge", type=Path, metavar="SAVED_JSON",
                     help="measure --rows and replace (or add) them in a saved --json run, same settings")
+    ap.add_argument("--backend", choices=("llvm", "cuda"), default="llvm",
+                    help="JIT backend of the llvm_* rows (cuda: on a machine with an NVIDIA GPU)")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     a = ap.parse_args()
+    global JIT_BACKEND
+    JIT_BACKEND = a.backend
+    if a.backend != "llvm":
+        if any(not key.startswith("llvm_") for key in a.rows.split(",")) and not a.worker:
+            ap.error("--backend cuda runs the llvm_* rows only: name them with --rows")
+        ROWS.update({k: (v[0].replace("llvm", a.backend), *v[1:]) for k, v in ROWS.items() if k.startswith("llvm_")})
     if a.worker:
         mi.set_log_level(mi.LogLevel.Error)
         print("RESULT " + json.dumps(WORKER_ROWS[a.worker](a)))

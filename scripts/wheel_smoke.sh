@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# The user path, checked end to end: build the platform wheel (`pip wheel .`), install
-# it into a fresh virtual environment outside the checkout, and from /tmp, with neither
+# The user path, checked end to end: build the platform wheel (`pip wheel .`; then
+# `auditwheel repair` for the manylinux tag), install
+# it (one py3-none wheel) into a fresh virtual environment under every CPython 3.10-3.13 this
+# machine has (pyenv's), outside the checkout, and from /tmp, with neither
 # cargo nor rustc on PATH, render fluo_path with fluo_jung in both variants, use the
 # shipped cubes and scenes, and run fluo-rs. Called by scripts/test.sh (so by CI).
 set -euo pipefail
@@ -13,8 +15,17 @@ rm -f "$wheels"/fluo-*.whl
 rm -rf build
 say "pip wheel . (setuptools-rust; cargo target folder target/wheel)"
 .venv/bin/python -m pip wheel . -w "$wheels" --no-deps --quiet --disable-pip-version-check
-wheel=$(ls "$wheels"/fluo-*.whl)
-say "built $wheel ($(du -h "$wheel" | cut -f1))"
+raw=$(ls "$wheels"/fluo-*.whl)
+say "built $raw ($(du -h "$raw" | cut -f1))"
+# The manylinux tag: auditwheel checks the symbol versions the library needs (glibc 2.35,
+# GLIBCXX 3.4.29 here) and bundles nothing: Mitsuba's and Dr.Jit's libraries come from
+# their own wheels (the run paths point there), the rest is the system's.
+say "auditwheel repair (Mitsuba's and Dr.Jit's libraries excluded)"
+PATH="$PWD/.venv/bin:$PATH" .venv/bin/auditwheel repair --plat "${FLUO_MANYLINUX:-manylinux_2_35_x86_64}" \
+    --exclude libmitsuba.so --exclude libdrjit-core.so --exclude libdrjit-extra.so -w "$wheels" "$raw" >/dev/null
+rm -f "$raw"
+wheel=$(ls "$wheels"/fluo-*manylinux*.whl)
+say "repaired: $wheel"
 .venv/bin/python - "$wheel" <<'PY'
 import sys, zipfile
 libs = [n for n in zipfile.ZipFile(sys.argv[1]).namelist() if n.startswith("fluo/lib") and n.endswith(".so")]
@@ -23,14 +34,7 @@ PY
 
 work=$(mktemp -d /tmp/fluo-wheel-XXXXXX)
 trap 'rm -rf "$work"' EXIT
-base=$(.venv/bin/python -c 'import sys; print(sys._base_executable)')
-"$base" -m venv "$work/venv"
-say "installing into a fresh venv in $work (dependencies from the package index)"
-"$work/venv/bin/python" -m pip install --quiet --disable-pip-version-check "$PWD/$wheel"
-
-cd "$work"
-say "smoke test from $work without a toolchain on PATH"
-env -i HOME="$HOME" PATH="$work/venv/bin:/usr/bin:/bin" "$work/venv/bin/python" - <<'PY'
+cat > "$work/smoke.py" <<'PY'
 import shutil, subprocess
 for tool in ("cargo", "rustc"):
     assert shutil.which(tool) is None, f"{tool} is on PATH"
@@ -79,4 +83,27 @@ subprocess.run(["fluo", "render", str(scene), "--variant", "scalar_rgb", "--spp"
                check=True, capture_output=True)
 print("[wheel] fluo render of the shipped", scene.name, "ok")
 PY
-say "ok"
+
+# One wheel (py3-none-<platform>) for every CPython that Mitsuba 3.8 has wheels for:
+# the developer venv's Python and every other 3.10-3.13 this machine has (pyenv's).
+base=$(.venv/bin/python -c 'import sys; print(sys._base_executable)')
+pythons=("$base")
+for v in 3.10 3.12 3.13; do
+    found=$(ls -d "${PYENV_ROOT:-$HOME/.pyenv}"/versions/$v.*/bin/python$v 2>/dev/null | sort -V | tail -1 || true)
+    [[ -z $found ]] && found=$(command -v "python$v" || true)
+    if [[ -n $found && -x $found ]]; then pythons+=("$found"); else say "no Python $v on this machine: skipped"; fi
+done
+case "$(basename "$wheel")" in
+    *-py3-none-manylinux_*) ;;
+    *) say "error: $wheel is not tagged py3-none-manylinux (one wheel for every Python)" >&2; exit 1 ;;
+esac
+for python in "${pythons[@]}"; do
+    version=$("$python" -c 'import sys; print("%d.%d" % sys.version_info[:2])')
+    venv="$work/venv$version"
+    "$python" -m venv "$venv"
+    say "Python $version: installing $(basename "$wheel") into a fresh venv (dependencies from the package index)"
+    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check "$PWD/$wheel"
+    say "Python $version: smoke test from $work without a toolchain on PATH"
+    (cd "$work" && env -i HOME="$HOME" PATH="$venv/bin:/usr/bin:/bin" "$venv/bin/python" "$work/smoke.py")
+done
+say "ok (Pythons: ${#pythons[@]})"

@@ -90,3 +90,33 @@ fn saturated_report_compares_every_basis() {
     }
     assert!(rows.iter().all(|r| r["delta_e"].as_f64().unwrap().is_finite()));
 }
+
+/// An empty `FLUO_CUBE_DIR` counts as unset: the shipped cubes are found from any working
+/// directory (before: the empty path resolved against the working directory, and found none).
+#[test]
+fn empty_cube_dir_means_unset() {
+    let out = Command::new(env!("CARGO_BIN_EXE_fluo-rs"))
+        .args(["upsample-report", "--card", "2"])
+        .env("FLUO_CUBE_DIR", "")
+        .current_dir(std::env::temp_dir())
+        .output()
+        .expect("run fluo-rs");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}");
+    assert!(String::from_utf8_lossy(&out.stdout).contains("acescg"), "{stderr}");
+}
+
+/// `gmm-report --components 1,2,...` (the README's command) takes a list; it exited 1
+/// with "not a whole number" when the fit options read the same option as one count.
+#[test]
+fn gmm_report_takes_a_list_of_component_counts() {
+    let yellow = concat!(env!("CARGO_MANIFEST_DIR"), "/../data/matrices/jung_yellow.csv");
+    let (code, out, err) = run(&["gmm-report", yellow, "--components", "1,2", "--json"]);
+    assert_eq!(code, 0, "{err}");
+    let v: serde_json::Value = serde_json::from_str(&out).expect("one JSON object");
+    let text = v.to_string();
+    assert!(text.contains("\"components\":1") && text.contains("\"components\":2"), "{text}");
+    let (code, _, err) = run(&["gmm-report", yellow, "--components", "1,x"]);
+    assert_ne!(code, 0);
+    assert!(err.contains("expected e.g. 1,2,4,8,16"), "{err}");
+}

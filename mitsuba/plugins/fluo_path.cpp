@@ -79,8 +79,8 @@ materials (``fluo_jung``, ``fluo_matrix``, ``fluo_gmm``) are reached through
 ``dr::dispatch``; their probabilities are detached, their values differentiable, so
 ``mi.render`` with ``params`` gives gradients of dye parameters. The scene is scanned once
 per render as below. Not yet in these variants: fluorescent materials inside wrappers
-(``twosided``, ``blendbsdf``, ``mask``: refused at render start with an error) and
-``fluo_qd`` (refused at load).
+(``twosided``, ``blendbsdf``, ``mask``, ``normalmap``, ``bumpmap``: refused at render
+start with an error).
 
 **Simulate only what the scene calls for.** At the start of each render the scene is
 scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface
@@ -152,11 +152,14 @@ Fluorescent materials may be wrapped in ``twosided``, ``blendbsdf`` and ``mask``
 there — ``twosided``: the front or back child, with the local frame mirrored for the
 back side exactly as ``twosided`` does; ``blendbsdf``: child 1 with probability w(si),
 else child 0; ``mask``: the nested BSDF with probability opacity(si), else a null
-(pass-through) interaction, as ``mask`` samples it — and treats that child as an
-unwrapped material. The selections are unbiased: renders equal the wrapper's within
-noise. Any other BSDF around a fluorescent one (``bumpmap``, ``normalmap``, ...) is
-refused with an error at render start (the first access the integrator has to the
-scene) rather than rendered without its fluorescence. Mitsuba's own integrators
+(pass-through) interaction, as ``mask`` samples it; ``normalmap`` and ``bumpmap`` (in
+the scalar variants): the nested BSDF in the perturbed shading frame, which every lobe
+of the vertex then uses (elastic and fluorescent), with the adapters' rule that a
+direction on different sides of the two frames carries nothing — and treats that child
+as an unwrapped material. The selections are unbiased: renders equal the wrapper's within
+noise. Any other BSDF around a fluorescent one is refused with an error at render start
+(the first access the integrator has to the scene) rather than rendered without its
+fluorescence. Mitsuba's own integrators
 (``path``, ...) render only the elastic part of fluorescent materials, and say so once
 per scene.
 

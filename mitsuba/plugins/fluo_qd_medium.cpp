@@ -35,7 +35,8 @@ Quantum-dot medium (:monosp:`fluo_qd_medium`)
  * - concentration
    - |float|
    - Molar concentration of dots in µmol/L, [0, 1e6]. μa(λ) = c · σ_abs(λ) · N_A·10⁻²¹
-     in 1/m with σ_abs in nm². (Default: 1)
+     in 1/m with σ_abs in nm²; μa's peak × ``scale`` × the largest density is at most 1e5
+     per scene unit (refused at load beyond: delta tracking would not finish). (Default: 1)
  * - density
    - |volume|
    - Optional spatially varying multiplier of the concentration (a ``gridvolume``, as
@@ -140,7 +141,9 @@ public:
 
     static constexpr const char *Plugin = "fluo_qd_medium";
 
-    FluoQdMedium(const Properties &props) : Base(props, Plugin) { init(qd_medium_model(props, Plugin)); }
+    FluoQdMedium(const Properties &props) : Base(props, Plugin) {
+        init(qd_medium_model(props, Plugin), "the dots' concentration and radius");
+    }
 
     std::string to_string() const override { return describe("FluoQdMedium"); }
 

@@ -81,7 +81,7 @@ and ``scalar_rgb``, extended with fluorescence:
   at an absorption event the medium re-emits isotropically at a longer wavelength;
 * **at surfaces**: everything ``fluo_path`` does for fluo's fluorescent BSDFs
   (``fluo_jung``, ``fluo_qd``, ``fluo_matrix``, ``fluo_gmm``, inside ``twosided``,
-  ``blendbsdf``, ``mask``), with the same code.
+  ``blendbsdf``, ``mask``, ``normalmap``, ``bumpmap``), with the same code.
 
 **Without fluorescence it is volpath.** At render start the scene is scanned for
 fluorescent BSDFs and media (and the emitters' spectral range R, as ``fluo_path`` does;
@@ -519,8 +519,9 @@ public:
             active_surface &= si.is_valid();
             if (active_surface) {
                 BSDFPtr bsdf = si.bsdf(ray);
+                typename fluo_detail::FluoWrappers<Float, Spectrum>::Perturbations perturbed;
                 if (!m_wrappers.empty())
-                    bsdf = m_wrappers.resolve(bsdf, si, sampler);
+                    bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed);
                 auto vertex = path.begin_vertex(bsdf, si, sampler);
 
                 // ------------------------ Emitter sampling -----------------
@@ -533,6 +534,7 @@ public:
                     em.ds = ds;
                     em.weight = emitted;
                     em.wo = si.to_local(ds.d);
+                    em.active &= perturbed.keeps_side(ds.d);
                 }
                 Coeffs light;
                 if constexpr (IsReduced) {
@@ -557,6 +559,8 @@ public:
                     last_scatter_direction_pdf = bs.pdf;
                     valid_ray = true;
                 }
+                if (!perturbed.keeps_side(ray.d)) // a normal or bump map's sample across the surface: no weight
+                    break;
                 specular_chain |= non_null_bsdf && has_flag(bs.sampled_type, BSDFFlags::Delta);
                 specular_chain &= !has_flag(bs.sampled_type, BSDFFlags::Smooth);
                 if (si.is_medium_transition())

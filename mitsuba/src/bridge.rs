@@ -213,8 +213,6 @@ mod bridge {
         /// The configuration a model was built from (the vectorised shim bakes texels'
         /// parameters into arrays from it).
         fn jung_config(model: &JungModel) -> JungConfig;
-        /// ∫ a(λ) dλ over the model's whole absorption band, nm.
-        fn jung_absorption_integral(model: &JungModel) -> f64;
 
         // Textured numeric parameters (`emission_peak`, `stokes_shift`,
         // `concentration`, `quantum_yield`). The reradiation is linear in c·Q and the
@@ -424,8 +422,6 @@ mod bridge {
             mu_f: &mut [f32],
             samples: &mut [Sample],
         );
-        /// f(λi → λo), re-emitted per nm of λo per unit absorbed at λi.
-        fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64;
         fn medium_to_string(model: &FluoMedium) -> String;
         /// The tables of [`MediumJitTables`] (vectorised variants).
         fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables;
@@ -504,7 +500,6 @@ mod bridge {
         /// (`core/src/interface.rs`) that the `fluo_path` integrator uses.
         type Fluorescence;
 
-        fn fluo_name(f: &Fluorescence) -> &'static str;
         /// Excitation wavelengths at which the model re-emits (empty if never).
         fn fluo_excitation_range(f: &Fluorescence) -> Range;
         /// Wavelengths at which it re-emits (empty if never).
@@ -522,10 +517,6 @@ mod bridge {
         fn shift_table_albedo(t: &ShiftTable, f: &Fluorescence, wi: &Vec3, lambda_o: f64) -> f64;
         /// λi given λo within `range` (camera paths).
         fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample;
-        fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64;
-        /// λo given λi (light paths).
-        fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample;
-        fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64;
 
         /// Reduced (matrix-throughput) transport for scalar_rgb (core/src/reduce/).
         type TransportBasis;
@@ -1038,10 +1029,6 @@ fn jung_config(model: &JungModel) -> JungConfig {
     }
 }
 
-fn jung_absorption_integral(model: &JungModel) -> f64 {
-    model.dye.absorption_integral()
-}
-
 fn jung_texture_is_fluorescent(tex: &JungTexture) -> bool {
     tex.models.iter().any(|m| m.dye.is_fluorescent())
 }
@@ -1458,10 +1445,6 @@ fn medium_shift_and_sample(
     }
 }
 
-fn medium_reradiation(model: &FluoMedium, lambda_i: f64, lambda_o: f64) -> f64 {
-    model.model.reradiation_per_nm(lambda_i, lambda_o)
-}
-
 fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables {
     let t = model.model.jit_tables();
     MediumJitTables {
@@ -1649,9 +1632,6 @@ fn shift_table_albedo(t: &ShiftTable, f: &Fluorescence, wi: &Vec3, lambda_o: f64
     }
 }
 
-fn fluo_name(f: &Fluorescence) -> &'static str {
-    f.model.name()
-}
 fn fluo_excitation_range(f: &Fluorescence) -> Range {
     range_of(f.model.excitation_range())
 }
@@ -1666,15 +1646,6 @@ fn fluo_shift_albedo(f: &Fluorescence, wi: &Vec3, lambda_o: f64, range: &Range) 
 }
 fn fluo_sample_excitation(f: &Fluorescence, wi: &Vec3, lambda_o: f64, xi: f64, range: &Range) -> Sample {
     sample_of(f.model.sample_excitation(dir(wi), lambda_o, xi, (range.lo, range.hi)))
-}
-fn fluo_excitation_pdf(f: &Fluorescence, wi: &Vec3, lambda_o: f64, lambda_i: f64, range: &Range) -> f64 {
-    f.model.excitation_pdf(dir(wi), lambda_o, lambda_i, (range.lo, range.hi))
-}
-fn fluo_sample_emission(f: &Fluorescence, wi: &Vec3, lambda_i: f64, xi: f64) -> Sample {
-    sample_of(f.model.sample_emission(dir(wi), lambda_i, xi))
-}
-fn fluo_emission_pdf(f: &Fluorescence, wi: &Vec3, lambda_i: f64, lambda_o: f64) -> f64 {
-    f.model.emission_pdf(dir(wi), lambda_i, lambda_o)
 }
 
 /// Opaque reduced transport.
@@ -1964,7 +1935,7 @@ mod tests {
     fn jung_shares_one_model_with_its_generic_handle() {
         let m = jung_new(&JungConfig { concentration: 0.5, ..config() }).unwrap();
         assert_eq!(Arc::strong_count(&m.dye), 2);
-        assert_eq!(fluo_name(jung_fluorescence(&m)), "jung");
+        assert_eq!(jung_fluorescence(&m).model.name(), "jung");
     }
 
     fn spectrum<'a>(wavelengths: &'a [f64], values: &'a [f64]) -> SampledSpectrum<'a> {
@@ -2016,7 +1987,7 @@ mod tests {
         let (mut r, mut p) = ([0.0f32; 2], [0.0f32; 4]);
         qd_elastic_coefficients(&m, 0.5, &[400.0, 500.0, 600.0], &mut r, &mut p);
         assert!(r[0] >= 0.0 && p[0] > 0.0 && p[0] <= 1.0 && p[2] == 0.0);
-        assert_eq!(fluo_name(qd_fluorescence(&m)), "qd");
+        assert_eq!(qd_fluorescence(&m).model.name(), "qd");
         assert_eq!(Arc::strong_count(&m.coating), 2);
     }
 

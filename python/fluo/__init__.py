@@ -204,7 +204,9 @@ def _load_library() -> ctypes.CDLL:
         return handle
     _check_versions()
     # The Rust side finds the shipped cubes through FLUO_CUBE_DIR (wheel: package data).
-    os.environ.setdefault("FLUO_CUBE_DIR", str(data_dir("cubes")))
+    # An empty value means unset (it would resolve against the working directory).
+    if not os.environ.get("FLUO_CUBE_DIR"):
+        os.environ["FLUO_CUBE_DIR"] = str(data_dir("cubes"))
     path = library_path()
     if not path.is_file():
         raise ImportError(

@@ -593,6 +593,23 @@ def header(result: dict) -> str:
             f"(identical, same seed) image")
 
 
+def _volumetric(scene: str) -> bool:
+    """Whether the bench scene renders with fluo_volpath (fluorescent media)."""
+    path = BENCH_DIR / f"{scene}.xml"
+    return path.is_file() and 'type="fluo_volpath"' in path.read_text()
+
+
+def display_method(r: dict) -> str:
+    """A row's method as tables show it: the integrator it really rendered with
+    (``fluo_volpath``/``volpath`` on the scenes with media, where a method's name says
+    ``fluo_path``/``path``)."""
+    name = r["method"]
+    if _volumetric(r["scene"]):
+        name = name.replace("(fluo_path)", "(fluo_volpath)").replace("(path)", "(volpath)")
+        name = name.replace("native path,", "native volpath,")
+    return name
+
+
 def rows_table(rows: list[dict], knob: bool = False) -> str:
     """Markdown table of bench rows (``knob``: with the knob's name as first column)."""
     head = ("| knob | " if knob else "| ") + ("scene | method | time (s) | mean ΔE00 | p95 ΔE00 | "
@@ -600,7 +617,7 @@ def rows_table(rows: list[dict], knob: bool = False) -> str:
     lines = [head, "|" + "---|" * (head.count("|") - 1)]
     for r in rows:
         lines.append(("| " + r.get("knob", "") + " " if knob else "") +
-                     f"| {r['scene']} | {r['method']} | {_time(r)} | {r['mean_de'][-1]:.2f} | "
+                     f"| {r['scene']} | {display_method(r)} | {_time(r)} | {r['mean_de'][-1]:.2f} | "
                      f"{r['p95_de'][-1]:.2f} | {_eet(r)} | {r['material_bytes']:.0f} |")
     return "\n".join(lines) + "\n"
 

@@ -3,7 +3,7 @@
 Python subcommands:
 
 ``render``
-    Render one scene file in a scalar variant, write an EXR (or whatever the ``-o``
+    Render one scene file in any variant the library serves, write an EXR (or whatever the ``-o``
     extension says) plus an sRGB PNG beside it, and print the written paths.
 ``demo``
     Render every ``scenes/*.xml`` in every scalar variant it allows, and without
@@ -42,8 +42,14 @@ from . import out_dir, repo_root, scenes_dir, tool_path
 
 #: Subcommands implemented here; anything else goes to fluo-rs.
 PYTHON_COMMANDS = ("render", "demo", "bench")
-#: Variants the plugins are registered for (and that ``demo`` renders).
+#: Variants ``demo`` renders (the gallery's columns).
 VARIANTS = ("scalar_spectral", "scalar_rgb")
+#: Every variant the plugin library serves (``fluo render --variant``); the cuda ones need
+#: an NVIDIA GPU.
+RENDER_VARIANTS = VARIANTS + ("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb")
+#: Largest film ``fluo render`` accepts, in pixels: Dr.Jit arrays hold at most 2^32 entries,
+#: and a film stores at least four channels per pixel.
+MAX_FILM_PIXELS = 2**30
 #: Examples of subcommands that fluo-rs implements (shown in ``--help``).
 FORWARDED_EXAMPLES = ("patch", "qd", "fit-gmm", "reduce")
 #: Seconds to wait for ``fluo-rs --help`` while printing ``fluo --help``.
@@ -75,7 +81,7 @@ def _parser() -> argparse.ArgumentParser:
         description="Render SCENE with mi.render and write PATH plus a PNG beside it.",
     )
     render.add_argument("scene", type=Path, metavar="SCENE", help="scene XML file")
-    render.add_argument("--variant", choices=VARIANTS, required=True)
+    render.add_argument("--variant", choices=RENDER_VARIANTS, required=True)
     render.add_argument("--spp", type=_positive_int, required=True, metavar="N",
                         help="samples per pixel")
     render.add_argument("-o", "--output", type=Path, required=True, metavar="PATH",
@@ -281,6 +287,11 @@ def render_to_files(scene_path: Path, variant: str, spp: int, output: Path,
     import fluo  # noqa: F401  (loads libfluo_mitsuba.so: registers the fluo_* plugins)
 
     scene = mi.load_file(str(scene_path), **(params or {}))
+    width, height = (int(v) for v in scene.sensors()[0].film().crop_size())
+    if width * height > MAX_FILM_PIXELS:
+        # Before: a 100000² film took 5.3 GB before Dr.Jit failed on it.
+        raise RuntimeError(f"the film's crop is {width} x {height} = {width * height} pixels, more than the "
+                           f"{MAX_FILM_PIXELS} (2^30) a render can hold (Dr.Jit arrays: 2^32 entries, 4 channels)")
     image = mi.render(scene, spp=spp, seed=seed)
 
     output.parent.mkdir(parents=True, exist_ok=True)

@@ -63,6 +63,12 @@ def test02_every_method_loads_every_bench_scene(scene, index, tmp_path, monkeypa
     assert method.bytes(text) >= 0
     if "fluo_path" in method.name:  # the scene's own integrator: fluo_volpath for media
         assert integrator == ("FluoVolpath" if media else "FluoPath"), integrator
+    # the tables name the integrator that rendered the row
+    shown = bench.display_method({"method": method.name, "scene": scene.stem})
+    expected = {"FluoVolpath": "(fluo_volpath)", "FluoPath": "(fluo_path)", "VolumetricPathIntegrator": "(volpath)",
+                "PathIntegrator": "(path)"}.get(integrator)
+    if "(" in method.name and expected is not None and "nearest material" not in method.name:
+        assert shown.endswith(expected), (shown, integrator)
 
 
 def test02b_vectorised_methods_render_their_bench_scenes(tmp_path):

@@ -92,6 +92,34 @@ def test05_render_reports_errors(fluo_cli, tmp_path, scene_xml):
     assert proc.returncode == 2 and "positive" in proc.stderr
 
 
+def test05b_render_serves_the_vectorised_variants_and_refuses_huge_films(fluo_cli, tmp_path, scene_xml):
+    """`fluo render --variant` offers every variant the library serves (an llvm render
+    through the CLI, a fluorescent material in it); a film too large for Dr.Jit's arrays is
+    refused before it allocates anything (a 100000² film took 5.3 GB before failing)."""
+    proc = run([fluo_cli, "render", "--help"])
+    for variant in ("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb"):
+        assert variant in proc.stdout
+    scene = scene_xml(tmp_path, '<bsdf type="fluo_jung"/>', integrator="fluo_path")
+    out = tmp_path / "llvm.exr"
+    proc = run([fluo_cli, "render", scene, "--variant", "llvm_ad_rgb", "--spp", 4, "-o", out, "-q"])
+    assert proc.returncode == 0, proc.stderr
+    exr = read_image(out)
+    assert exr.shape == (12, 16, 3) and np.all(np.isfinite(exr)) and exr.mean() > 0
+    huge = scene_xml(tmp_path, DIFFUSE, extra=DEFAULT_REFLECTANCE, width=100000, height=100000, name="huge.xml")
+    proc = run([fluo_cli, "render", huge, "--variant", "scalar_rgb", "--spp", 1, "-o", tmp_path / "h.exr"])
+    assert proc.returncode == 1 and "100000 x 100000" in proc.stderr and "2^30" in proc.stderr, proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test05c_empty_cube_dir_means_unset(tmp_path):
+    """FLUO_CUBE_DIR='' is unset (before: the cube resolved against the working
+    directory): a `color` material loads from any directory."""
+    code = ("import mitsuba as mi; mi.set_variant('scalar_rgb'); import fluo; "
+            "mi.load_dict({'type': 'fluo_jung', 'color': {'type': 'rgb', 'value': [0.2, 0.8, 0.3]}}); print('ok')")
+    proc = run([sys.executable, "-c", code], env={**os.environ, "FLUO_CUBE_DIR": ""}, cwd=tmp_path)
+    assert proc.returncode == 0 and proc.stdout.strip().endswith("ok"), proc.stderr[-2000:]
+
+
 def test06_demo_respects_variant_comment(fluo_cli, tmp_path, scene_xml):
     scenes = tmp_path / "scenes"
     (scenes / "sub").mkdir(parents=True)

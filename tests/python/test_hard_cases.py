@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import mitsuba as mi
@@ -311,3 +312,77 @@ def test15_a_uv_lamp_in_rgb_has_no_negative_channels(integrator, mitsuba_log):
     img = np.array(mi.render(_lit({"type": "diffuse"}, "uv", integrator), spp=4))
     assert not any("Invalid sample value" in t for t in mitsuba_log), mitsuba_log[:3]
     assert img.min() >= 0.0 and np.isfinite(img).all()
+
+
+# ------------------------------------------------------------- media at the extremes
+
+WORKER = Path(__file__).resolve().parent / "llvm_worker.py"
+
+
+def _tracking_cases(tmp_path) -> dict:
+    """(medium, refused?): μa's peak × largest density × scale against 1e5 per scene unit."""
+    mi.set_variant("scalar_rgb")  # VolumeGrid needs a variant
+    grid = tmp_path / "one_hot.vol"
+    g = np.full((4, 4, 4, 1), 0.5, dtype=np.float32)
+    g[1, 2, 3, 0] = 1e30
+    mi.VolumeGrid(g).write(str(grid))
+    return {
+        "dye_1e9_cm": ({"type": "fluo_dye_medium", "sigma_a": 1e9, "scale": 0.01}, True),  # 1e7 per unit
+        "qd_1e6": ({"type": "fluo_qd_medium", "concentration": 1e6}, True),
+        "dye_hot_voxel": ({"type": "fluo_dye_medium", "density": {"type": "gridvolume", "filename": str(grid)}}, True),
+        "dye_5e6_cm": ({"type": "fluo_dye_medium", "sigma_a": 5e6, "scale": 0.01}, False),  # 5e4 per unit
+        "qd_default": ({"type": "fluo_qd_medium"}, False),
+    }
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+def test16_media_too_opaque_to_track_are_refused_at_load(variant, tmp_path):
+    """A medium whose absorption peaks above 1e5 per scene unit (documented maxima such as
+    sigma_a 1e9 at scale 0.01, concentration 1e6, or one 1e30 density voxel) rendered for
+    minutes to hours: delta tracking meets that many null collisions per unit length at the
+    wavelengths it does not absorb. Now refused at load with the numbers, in every variant
+    (the llvm ones in a fresh process)."""
+    mi.set_variant(variant)
+    for name, (medium, refused) in _tracking_cases(tmp_path).items():
+        if refused:
+            with pytest.raises(RuntimeError, match=r"absorption too strong to track: μa peaks at [0-9.e+]+ per "
+                                                   r"scene unit.*above the 100000 per scene unit"):
+                mi.load_dict(medium)
+        else:
+            mi.load_dict(medium)
+
+
+def test16b_media_too_opaque_to_track_are_refused_in_llvm(tmp_path):
+    cases = _tracking_cases(tmp_path)
+    jobs = [{"variant": v, "load": medium} for v in ("llvm_ad_spectral", "llvm_ad_rgb") for medium, _ in cases.values()]
+    proc = subprocess.run([sys.executable, str(WORKER), json.dumps(jobs)], capture_output=True, text=True, timeout=600)
+    lines = [ln[ln.index("RESULT ") + 7:] for ln in proc.stdout.splitlines() if "RESULT " in ln]
+    assert proc.returncode == 0 and lines, proc.stderr[-3000:]
+    results = json.loads(lines[-1])
+    for (name, (_, refused)), res in zip(list(cases.items()) * 2, results):
+        if refused:
+            assert "absorption too strong to track" in res.get("error", ""), (name, res)
+        else:
+            assert res.get("loaded"), (name, res)
+
+
+def test17_huge_sigmoid_coefficients_agree_across_variants():
+    """fluo_jung's sigmoid at a polynomial beyond float range ('0, 0, 1e20': r = 1, and its
+    negative: r = 0): llvm_ad_spectral gave 0.5 (x² overflowed a float before the clamp),
+    scalar_spectral 1. Both variants now agree with the closed form S(±∞) = 1 or 0."""
+    point = [[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [450.0, 520.0, 600.0, 700.0]]
+    cases = {"0, 0, 1e20": 1.0, "0, 0, -1e20": 0.0, "1e30, 0, 0": 1.0}
+    bsdfs = [{"type": "fluo_jung", "coefficients": c, "concentration": 0.0} for c in cases]
+    jobs = [{"variant": "llvm_ad_spectral", "bsdf": b, "points": [point]} for b in bsdfs]
+    proc = subprocess.run([sys.executable, str(WORKER), json.dumps(jobs)], capture_output=True, text=True, timeout=600)
+    lines = [ln[ln.index("RESULT ") + 7:] for ln in proc.stdout.splitlines() if "RESULT " in ln]
+    assert proc.returncode == 0 and lines, proc.stderr[-3000:]
+    mi.set_variant("scalar_spectral")
+    for (coeffs, r), bsdf, res in zip(cases.items(), bsdfs, json.loads(lines[-1])):
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(0, 0, 1)
+        si.wavelengths = mi.UnpolarizedSpectrum(*point[2])
+        scalar = np.array(mi.load_dict(bsdf).eval(mi.BSDFContext(), si, mi.Vector3f(0, 0, 1))).ravel()
+        llvm = np.array(res["values"][0])
+        np.testing.assert_allclose(scalar, r / np.pi, atol=1e-6, err_msg=coeffs)
+        np.testing.assert_allclose(llvm, r / np.pi, atol=1e-6, err_msg=coeffs)

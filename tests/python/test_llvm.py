@@ -163,6 +163,9 @@ def test03_other_plugins_and_unsupported_inputs_raise_clear_errors():
                             '</texture><string name="texel_interpolation" value="bilinear"/></bsdf>',
                             'texel_interpolation = "bilinear" is not available in the vectorised variants'),
         "wrapped": ('<bsdf type="twosided"><bsdf type="fluo_jung"/></bsdf>', "wrapped in another BSDF"),
+        "normal_mapped": ('<bsdf type="normalmap"><texture type="bitmap" name="normalmap"><string name="filename" '
+                          f'value="{SCENES / "textures" / "acescg_card.exr"}"/><boolean name="raw" value="true"/>'
+                          '</texture><bsdf type="fluo_jung"/></bsdf>', "wrapped in another BSDF"),
         "bad_yield": ('<bsdf type="fluo_jung"><float name="quantum_yield" value="1.5"/></bsdf>',
                       'quantum_yield'),
         "matrix_index": ('<bsdf type="fluo_matrix"><string name="filename0" value="a.csv"/></bsdf>',

@@ -817,10 +817,13 @@ fn usize_or(args: &Args, key: &str, default: usize) -> Result<usize, String> {
     }
 }
 
-fn fit_options(args: &Args) -> Result<FitOptions, String> {
+/// The fit's options from the command line; `components` from `--components` when
+/// `single_count` (fit-gmm), else the default (gmm-report's `--components` is a list, read
+/// by the report itself: `gmm-report --components 1,2,4,8,16` exited 1 here before).
+fn fit_options(args: &Args, single_count: bool) -> Result<FitOptions, String> {
     let d = FitOptions::default();
     Ok(FitOptions {
-        components: usize_or(args, "components", d.components)?,
+        components: if single_count { usize_or(args, "components", d.components)? } else { d.components },
         max_iterations: usize_or(args, "max-iterations", d.max_iterations)?,
         restarts: usize_or(args, "restarts", d.restarts)?,
         seed: usize_or(args, "seed", d.seed as usize)? as u64,
@@ -837,7 +840,7 @@ fn cmd_fit_gmm(args: &Args) -> Result<Value, String> {
         return Err("fit-gmm needs exactly one matrix file: fit-gmm X.BFC --components 8 -o X.gmm.json".into());
     };
     let output = args.values.get("output").ok_or("fit-gmm needs -o OUTPUT.gmm.json")?;
-    let opts = fit_options(args)?;
+    let opts = fit_options(args, true)?;
     let filtered = Filtered::new(&load_matrix(input).map_err(|e| e.to_string())?).map_err(|e| e.to_string())?;
     let t0 = std::time::Instant::now();
     let file = fit(&filtered, &opts).map_err(|e| e.to_string())?;
@@ -870,7 +873,7 @@ fn cmd_gmm_report(args: &Args) -> Result<Value, String> {
             })
             .collect::<Result<_, _>>()?,
     };
-    let r = report(&files, &counts, &fit_options(args)?).map_err(|e| e.to_string())?;
+    let r = report(&files, &counts, &fit_options(args, false)?).map_err(|e| e.to_string())?;
     let acceptance = r.summary.iter().find(|s| s.components == ACCEPTANCE_COMPONENTS).map(|s| {
         json!({"components": ACCEPTANCE_COMPONENTS, "mean_delta_e_cie": s.mean_delta_e_cie,
                "threshold": ACCEPTANCE_DELTA_E, "pass": s.mean_delta_e_cie <= ACCEPTANCE_DELTA_E})

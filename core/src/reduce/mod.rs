@@ -61,7 +61,7 @@
 //! A. Fichet, L. Belcour, P. Barla, "Non-Orthogonal Reduction for Rendering Fluorescent
 //! Materials in Non-Spectral Engines", CGF 43(4), 2024.
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, Schur, SymmetricEigen, SVD};
 
 use crate::interface::Bispectral;
 use crate::patch::normalise_patch;
@@ -225,7 +225,9 @@ impl Basis {
         };
         let mut b = Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY };
         let gram = b.gram(&b.s);
-        let eig = gram.clone().symmetric_eigen();
+        let eig = SymmetricEigen::try_new(gram.clone(), f64::EPSILON, max_iterations(k)).ok_or_else(|| {
+            Error::data(format!("basis {}: the Gram matrix's eigenvalues did not converge", kind.name()))
+        })?;
         let (mut lo, mut hi) = (f64::INFINITY, 0.0_f64);
         for e in eig.eigenvalues.iter() {
             lo = lo.min(*e);
@@ -471,8 +473,10 @@ pub fn spectral_patch_xyz(material: &Operator, basis: &Basis, illum: &dyn Spectr
 /// A diagonalisation M = V·diag(λ)·V⁻¹ of a real K×K matrix (row major) with real,
 /// distinct, non-negative eigenvalues, for transfers exp(−M t) = V·diag(e^{−λt})·V⁻¹ in
 /// closed form (a reduced medium's attenuation over a segment). `None` when M has complex
-/// or repeated eigenvalues, a negative one, or eigenvectors too close to dependent (the
-/// product would amplify rounding): the caller keeps tracking collisions then.
+/// or repeated eigenvalues, a negative one, eigenvectors too close to dependent (the
+/// product would amplify rounding), or when the decompositions do not converge within
+/// their iteration cap: the caller keeps tracking collisions then. Bounded in time for
+/// every input.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RealEigen {
     /// Eigenvectors as columns, row major.
@@ -492,19 +496,32 @@ impl RealEigen {
         if k == 0 || m.len() != k * k || !m.iter().all(|v| v.is_finite()) {
             return None;
         }
-        let mm = DMatrix::from_row_slice(k, k, m);
-        let scale = m.iter().fold(0.0f64, |a, v| a.max(v.abs()));
+        // Decompose M − σI, σ the mean of M's diagonal: the same eigenvectors, eigenvalues
+        // shifted by σ, and tolerances relative to what tells the eigenvalues apart (a
+        // medium's σs on the diagonal would otherwise drown its absorption's structure).
+        let shift = (0..k).map(|i| m[i * k + i]).sum::<f64>() / k as f64;
+        let mm = DMatrix::from_row_slice(k, k, m) - DMatrix::identity(k, k) * shift;
+        let scale = mm.amax();
+        let floor = -1e-9 * scale.max(shift.abs());
         if scale == 0.0 {
-            return Some(Self { v: identity_rows(k), v_inv: identity_rows(k), lambda: vec![0.0; k] });
+            return (shift >= floor).then(|| Self {
+                v: identity_rows(k),
+                v_inv: identity_rows(k),
+                lambda: vec![shift.max(0.0); k],
+            });
         }
-        let ev = mm.clone().complex_eigenvalues();
+        let ev = bounded_schur(&mm)?.complex_eigenvalues();
         let mut lambda = Vec::with_capacity(k);
         for c in ev.iter() {
-            if c.im.abs() > 1e-9 * scale || c.re < -1e-9 * scale {
+            if c.im.abs() > 1e-9 * scale || c.re + shift < floor {
                 return None;
             }
-            lambda.push(c.re.max(0.0));
+            lambda.push(c.re);
         }
+        // Repeated eigenvalues are refused: a band the medium does not absorb in makes
+        // one (σs added to a zero eigenvalue), and there the reduced transfer's entries
+        // grow large (exp(−M t) up to ~14 in x7), so the closed form's shadow weights
+        // were measured heavier-tailed than tracking's (fireflies 50× brighter).
         for i in 0..k {
             for j in 0..i {
                 if (lambda[i] - lambda[j]).abs() <= 1e-6 * scale {
@@ -517,19 +534,10 @@ impl RealEigen {
         let mut v = DMatrix::zeros(k, k);
         for (col, &l) in lambda.iter().enumerate() {
             let shifted = &mm - DMatrix::identity(k, k) * l;
-            let svd = shifted.svd(false, true);
+            let svd = SVD::try_new(shifted, false, true, f64::EPSILON, max_iterations(k))?;
             let v_t = svd.v_t?;
-            let (imin, _) =
-                svd.singular_values.iter().enumerate().fold(
-                    (0, f64::INFINITY),
-                    |best, (i, &s)| {
-                        if s < best.1 {
-                            (i, s)
-                        } else {
-                            best
-                        }
-                    },
-                );
+            let imin = (0..svd.singular_values.len())
+                .min_by(|&a, &b| svd.singular_values[a].total_cmp(&svd.singular_values[b]))?;
             for r in 0..k {
                 v[(r, col)] = v_t[(imin, r)];
             }
@@ -543,7 +551,7 @@ impl RealEigen {
             return None;
         }
         let rows = |x: &DMatrix<f64>| x.transpose().iter().copied().collect::<Vec<f64>>();
-        Some(Self { v: rows(&v), v_inv: rows(&v_inv), lambda })
+        Some(Self { v: rows(&v), v_inv: rows(&v_inv), lambda: lambda.iter().map(|l| (l + shift).max(0.0)).collect() })
     }
 }
 
@@ -572,11 +580,11 @@ impl LowRank {
             return Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: 0.0 };
         }
         let x = DMatrix::from_fn(n, len, |j, i| rows[j][i]);
-        let svd = x.clone().svd(true, true);
-        let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
+        let svd = SVD::try_new(x.clone(), true, true, f64::EPSILON, max_iterations(n.max(len)));
+        let Some(SVD { u: Some(u), v_t: Some(v_t), singular_values }) = svd else {
             return Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: f64::INFINITY };
         };
-        let sigma = &svd.singular_values;
+        let sigma = &singular_values;
         let mut order: Vec<usize> = (0..sigma.len()).collect();
         order.sort_by(|&a, &b| sigma[b].total_cmp(&sigma[a]));
         let mut best = None;
@@ -600,6 +608,23 @@ impl LowRank {
         }
         best.unwrap_or(Self { basis: Vec::new(), weights: vec![Vec::new(); n], error: f64::INFINITY })
     }
+}
+
+/// Iteration cap of nalgebra's iterative decompositions (Schur, SVD, symmetric
+/// eigenvalues) for an n×n problem: theirs is unbounded by default, and the implicit
+/// double-shift QR has no exceptional shifts, so it can cycle forever on some matrices
+/// (a reduced medium operator hung a render at start). Converging problems take a few
+/// iterations per eigenvalue; past the cap the caller takes its documented fallback.
+fn max_iterations(n: usize) -> usize {
+    100 * n.max(1)
+}
+
+/// The real Schur form of `m`, with a bounded iteration count; where the QR iteration
+/// stalls at machine precision, again with a looser deflation threshold (the caller
+/// checks the reconstruction to 1e-8 anyway). `None` when neither converges.
+fn bounded_schur(m: &DMatrix<f64>) -> Option<Schur<f64, nalgebra::Dyn>> {
+    let n = m.nrows();
+    [f64::EPSILON, 1e-13, 1e-11].into_iter().find_map(|eps| Schur::try_new(m.clone(), eps, max_iterations(n)))
 }
 
 /// The K×K identity, row major.
@@ -762,6 +787,15 @@ mod tests {
         }
         assert!(RealEigen::new(&[0.0, -1.0, 1.0, 0.0], 2).is_none()); // complex pair
         assert!(RealEigen::new(&[1.0, 1.0, 0.0, 1.0], 2).is_none()); // defective (repeated)
+
+        // A constant on the diagonal (a medium's σs) shifts the eigenvalues and keeps the
+        // eigenvectors: the same matrix plus 1e4·I is told apart as well.
+        let shifted: Vec<f64> = m.iter().enumerate().map(|(i, v)| if i % 4 == 0 { v + 1e4 } else { *v }).collect();
+        let f = RealEigen::new(&shifted, 3).expect("diagonalisable");
+        for (a, b) in f.lambda.iter().zip(&e.lambda) {
+            assert!((a - b - 1e4).abs() < 1e-9, "{:?} vs {:?}", f.lambda, e.lambda);
+        }
+        assert!(RealEigen::new(&[-3.0, 0.0, 0.0, -3.0], 2).is_none()); // negative multiple of I
         assert!(RealEigen::new(&[-1.0, 0.0, 0.0, 2.0], 2).is_none()); // negative: would grow
         assert!(RealEigen::new(&[1.0, f64::NAN, 0.0, 2.0], 2).is_none());
         assert_eq!(RealEigen::new(&[0.0; 4], 2).unwrap().lambda, vec![0.0, 0.0]);

@@ -23,8 +23,11 @@ pub const MAX_RESOLUTION: usize = 129;
 
 /// Directory of the shipped cubes: `$FLUO_CUBE_DIR` (set by the Python package to its
 /// data folder, which is how an installed wheel finds them), else `<repo>/data/cubes`.
+/// An empty `$FLUO_CUBE_DIR` counts as unset (it would resolve against the working
+/// directory).
 pub fn shipped_cube_dir() -> std::path::PathBuf {
     std::env::var_os("FLUO_CUBE_DIR")
+        .filter(|dir| !dir.is_empty())
         .map(std::path::PathBuf::from)
         .unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/cubes"))
 }

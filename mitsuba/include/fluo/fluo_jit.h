@@ -405,10 +405,13 @@ template <typename Float> dr::uint32_array_t<Float> lane_nearest(const std::vect
 }
 
 /// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
-/// (core/src/sigmoid.rs).
+/// (core/src/sigmoid.rs). x is clamped to ±1e18 first, where S is 0 or 1 in single
+/// precision already: x² of a larger x overflows a float (coefficients such as
+/// (0, 0, 1e20) gave 0.5 instead of 1).
 template <typename Value, typename Coeff>
 Value sigmoid_polynomial(const Value &lambda, const Coeff &c0, const Coeff &c1, const Coeff &c2) {
     Value x = dr::fmadd(dr::fmadd(Value(c0), lambda, Value(c1)), lambda, Value(c2));
+    x = dr::clip(x, -1e18f, 1e18f);
     return .5f + .5f * x * dr::rsqrt(dr::fmadd(x, x, 1.f));
 }
 

@@ -214,7 +214,8 @@ protected:
     }
 
     /// Adopt the plugin's Rust model and bake its tables.
-    void init(rust::Box<fluo::FluoMedium> model) {
+    /// `what`: the parameters that set μa, for the absorption check's message.
+    void init(rust::Box<fluo::FluoMedium> model, const std::string &what) {
         m_model = std::move(model);
         m_fluorescent = fluo::medium_is_fluorescent(**m_model);
         m_range = fluo::medium_lambda_range(**m_model);
@@ -233,6 +234,7 @@ protected:
         m_emission = load(t.emission);
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
         double mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
+        m_common.check_absorption(m_plugin, mu_max, what);
         m_majorant_floor = m_common.majorant_floor(mu_max);
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                   m_mu_a_rgb[2] });

@@ -43,6 +43,11 @@ inline double medium_double(const Properties &props, const char *plugin, const c
 constexpr double MediumMajorantFloor = 1e-6;
 /// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
 constexpr double MediumMinMajorant = 1e-30;
+/// Largest accepted peak absorption, inverse scene units: μa varies over the spectrum and
+/// the majorant is shared by the hero wavelengths, so a wavelength the medium does not
+/// absorb meets about this many null collisions per scene unit it crosses. Beyond it a
+/// render does not finish in reasonable time (1e7 per unit: > 120 s for 16×16 at 8 spp).
+constexpr double MediumMaxAbsorption = 1e5;
 
 /// What every fluo medium parses in every variant: scale (metres per scene unit), the
 /// optional density grid and the host's scattering σs, with their maxima (the majorant's
@@ -81,6 +86,20 @@ template <typename Float, typename Spectrum> struct MediumCommon {
     /// probability σn/μ̄ would be 0/0 (NaN) without it.
     double majorant_floor(double mu_max) const {
         return std::max(MediumMajorantFloor * (mu_max * max_density + max_sigma_s) * scale, MediumMinMajorant);
+    }
+
+    /// Refuse, at load, a medium whose tracking cannot finish: μa's peak mu_max (1/m at
+    /// density 1) × the largest density × scale above MediumMaxAbsorption per scene unit.
+    /// `what` names the model parameter that sets μa (e.g. "sigma_a = 1e9 1/m").
+    void check_absorption(const char *plugin, double mu_max, const std::string &what) const {
+        double per_unit = mu_max * max_density * scale;
+        if (per_unit > MediumMaxAbsorption)
+            Throw("%s: absorption too strong to track: μa peaks at %g per scene unit (%g 1/m from %s, x the "
+                  "largest density %g, x scale %g m per unit), above the %g per scene unit that fluo's media "
+                  "accept (delta tracking meets about that many null collisions per scene unit at the "
+                  "wavelengths the medium does not absorb: the render would not finish). Lower %s, the "
+                  "density or \"scale\" (metres per scene unit)",
+                  plugin, per_unit, mu_max, what.c_str(), max_density, scale, MediumMaxAbsorption, what.c_str());
     }
 
     /// "Name[ model, scale, density, sigma_s, phase(, extra) ]".
@@ -208,7 +227,8 @@ protected:
     }
 
     /// Adopt the plugin's Rust model and derive what the render needs from it.
-    void init(rust::Box<fluo::FluoMedium> model) {
+    /// `what`: the parameters that set μa, for the absorption check's message.
+    void init(rust::Box<fluo::FluoMedium> model, const std::string &what) {
         m_model = std::move(model);
         m_fluorescent = fluo::medium_is_fluorescent(**m_model);
         m_range = fluo::medium_lambda_range(**m_model);
@@ -224,6 +244,7 @@ protected:
                 mu_max = std::max(mu_max, (double) v);
         }
         m_majorant_floor = m_common.majorant_floor(mu_max);
+        m_common.check_absorption(m_plugin, mu_max, what);
         m_mu_a_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                 m_mu_a_rgb[2] });
         m_mu_f_max = m_fluorescent ? fluo::medium_grid_source_max(**m_model) : 0.0;

@@ -109,8 +109,9 @@ protected:
             }
 
             BSDFPtr bsdf = si.bsdf(ray);
+            typename fluo_detail::FluoWrappers<Float, Spectrum>::Perturbations perturbed;
             if (!m_wrappers.empty())
-                bsdf = m_wrappers.resolve(bsdf, si, sampler);
+                bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed);
             auto vertex = path.begin_vertex(bsdf, si, sampler);
 
             // ---------------------- Emitter sampling ----------------------
@@ -118,7 +119,7 @@ protected:
             em.active = active_next && has_flag(bsdf->flags(), BSDFFlags::Smooth);
             if (em.active) {
                 std::tie(em.ds, em.weight) = scene->sample_emitter_direction(si, sampler->next_2d(), true, em.active);
-                em.active &= (em.ds.pdf != 0.f);
+                em.active &= (em.ds.pdf != 0.f) && perturbed.keeps_side(em.ds.d);
                 em.wo = si.to_local(em.ds.d);
             }
 
@@ -130,6 +131,8 @@ protected:
             ray = si.spawn_ray(si.to_world(bs.wo)); // carries shifted wavelengths, if any
             eta *= bs.eta;
             valid_ray |= active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
+            if (!perturbed.keeps_side(ray.d)) // a normal or bump map's sample across the surface: no weight
+                break;
 
             prev_si = Interaction3f(si);
             prev_bsdf_pdf = bs.pdf;

@@ -13,6 +13,7 @@
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
+#include <array>
 #include <string>
 #include <string_view>
 #include <unordered_map>
@@ -129,7 +130,14 @@ template <typename Float, typename Spectrum> fluo::Range emitters_range(const Sc
 /// Direct children of an object as (name, object), in traverse order.
 struct Children : TraversalCallback {
     std::vector<std::pair<std::string, Object *>> list;
-    void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
+    /// Scalar floating-point parameters by name (e.g. bumpmap's "scale").
+    std::unordered_map<std::string, double> numbers;
+    void put_value(std::string_view name, void *ptr, uint32_t, const std::type_info &type) override {
+        if (type == typeid(float))
+            numbers[std::string(name)] = *static_cast<const float *>(ptr);
+        else if (type == typeid(double))
+            numbers[std::string(name)] = *static_cast<const double *>(ptr);
+    }
     void put_object(std::string_view name, Object *o, uint32_t) override {
         if (o)
             list.emplace_back(std::string(name), o);
@@ -168,26 +176,36 @@ public:
             if (!wraps)
                 continue;
             std::string_view cls = o->class_name();
-            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF" && cls != "MaskBSDF")
+            if (cls != "TwoSidedBRDF" && cls != "BlendBSDF" && cls != "MaskBSDF" && cls != "NormalMap" &&
+                cls != "BumpMap")
                 Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which fluo_path cannot "
                       "see through (its fluorescence would be lost). Supported wrappers: twosided, "
-                      "blendbsdf, mask; use the fluorescent material directly or inside one of those.",
+                      "blendbsdf, mask, normalmap, bumpmap; use the fluorescent material directly or "
+                      "inside one of those.",
                       plugin, std::string(cls));
             Wrapper w{ bsdf, cls == "TwoSidedBRDF" ? Wrapper::TwoSided
-                             : cls == "BlendBSDF" ? Wrapper::Blend : Wrapper::Mask };
+                             : cls == "BlendBSDF"  ? Wrapper::Blend
+                             : cls == "MaskBSDF"   ? Wrapper::Mask
+                             : cls == "NormalMap"  ? Wrapper::NormalMap
+                                                   : Wrapper::BumpMap };
             for (auto &[name, child] : kids.list) {
                 auto *cb = dynamic_cast<BSDF *>(child);
                 if (cb && (name == "brdf_0" || name == "bsdf_0" || name == "nested_bsdf"))
                     w.child[0] = cb;
                 else if (cb && (name == "brdf_1" || name == "bsdf_1"))
                     w.child[1] = cb;
-                else if (name == "weight" || name == "opacity")
+                else if (!cb && dynamic_cast<Texture *>(child) &&
+                         (name == "weight" || name == "opacity" || name == "normalmap" || name == "nested_texture"))
                     w.weight = dynamic_cast<Texture *>(child);
             }
+            if (auto it = kids.numbers.find("scale"); it != kids.numbers.end())
+                w.scale = it->second;
             if (w.kind == Wrapper::TwoSided && !w.child[1])
                 w.child[1] = w.child[0]; // one child: used on both sides
             if (w.kind == Wrapper::Mask)
                 w.child[1] = null_bsdf();
+            if (w.kind == Wrapper::NormalMap || w.kind == Wrapper::BumpMap)
+                w.child[1] = w.child[0];
             if (!w.child[0] || !w.child[1] || (w.kind != Wrapper::TwoSided && !w.weight))
                 Throw("%s: cannot read the children of the \"%s\" BSDF around a fluorescent material",
                       plugin, std::string(cls));
@@ -195,10 +213,31 @@ public:
         }
     }
 
-    /// The BSDF that acts at si: wrappers (twosided, blendbsdf, mask; nested) resolved
-    /// to the child acting at this hit. For a twosided back side the local frame is
-    /// mirrored (n -> -n), as twosided mirrors wi and wo.
-    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler) const {
+    /// The shading frames a vertex's normal and bump maps replaced (each map's input and
+    /// output frame, world space), for the adapters' orientation rule.
+    struct Perturbations {
+        static constexpr size_t Max = 8;
+        std::array<std::pair<Frame3f, Frame3f>, Max> frames;
+        size_t n = 0;
+        /// Whether world direction d lies on the same side of each map's input and output
+        /// shading frames: Mitsuba's normalmap and bumpmap give a direction that changes
+        /// side (through the perturbed frame) no value, pdf or sample.
+        Mask keeps_side(const Vector3f &d) const {
+            Mask ok = true;
+            for (size_t i = 0; i < n; ++i)
+                ok &= dr::dot(frames[i].first.n, d) * dr::dot(frames[i].second.n, d) > 0.f;
+            return ok;
+        }
+    };
+
+    /// The BSDF that acts at si: wrappers (twosided, blendbsdf, mask, normalmap, bumpmap;
+    /// nested) resolved to the child acting at this hit. For a twosided back side the
+    /// local frame is mirrored (n -> -n), as twosided mirrors wi and wo; a normal or bump
+    /// map replaces si's shading frame by the perturbed one (si.wi re-expressed in it), so
+    /// the fluorescent vertex's every lobe uses it, and records both frames in `perturbed`
+    /// (the caller drops directions that change side: Perturbations::keeps_side).
+    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler, Perturbations &perturbed) const {
+        perturbed.n = 0;
         for (size_t guard = 0; guard < 64; ++guard) {
             const Wrapper *w = nullptr;
             for (const Wrapper &x : m_wrappers)
@@ -216,6 +255,15 @@ public:
             } else if (w->kind == Wrapper::Blend) {
                 Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
                 bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
+            } else if (w->kind == Wrapper::NormalMap || w->kind == Wrapper::BumpMap) {
+                Frame3f before = si.sh_frame;
+                si.sh_frame = perturbed_frame(*w, si);
+                si.wi = si.sh_frame.to_local(before.to_world(si.wi));
+                if (perturbed.n == Perturbations::Max)
+                    Throw("fluo_path: more than %zu normal or bump maps nested around one material",
+                          Perturbations::Max);
+                perturbed.frames[perturbed.n++] = { before, si.sh_frame };
+                bsdf = w->child[0];
             } else {
                 Float opacity = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
                 bsdf = w->child[sampler->next_1d() < opacity ? 0 : 1];
@@ -227,12 +275,38 @@ public:
 private:
     /// A supported BSDF wrapper around fluorescent materials.
     struct Wrapper {
-        enum Kind { TwoSided, Blend, Mask };
+        enum Kind { TwoSided, Blend, Mask, NormalMap, BumpMap };
         const BSDF *bsdf;
         Kind kind;
-        const BSDF *child[2]{};          // front/back, bsdf_0/bsdf_1, or nested/null
-        const Texture *weight = nullptr; // blend weight or mask opacity
+        const BSDF *child[2]{};          // front/back, bsdf_0/bsdf_1, nested/null, or nested twice
+        const Texture *weight = nullptr; // blend weight, mask opacity, normal map or height map
+        double scale = 1.0;              // bumpmap's height scale
     };
+
+    /// The shading frame (world space) a normal or bump map gives at si, as Mitsuba's
+    /// adapters build it: normalmap's normal n = 2·rgb − 1 in si's shading frame;
+    /// bumpmap's normal of the surface displaced by scale·height along n (the height's
+    /// uv gradient), turned to the geometric normal's side. The tangent follows dp/du
+    /// (Gram-Schmidt); fluo's materials are isotropic, so only the normal matters.
+    Frame3f perturbed_frame(const Wrapper &w, const SurfaceInteraction3f &si) const {
+        Vector3f n;
+        if (w.kind == Wrapper::NormalMap) {
+            n = si.sh_frame.to_world(dr::normalize(dr::fmadd(w.weight->eval_3(si, true), 2.f, -1.f)));
+        } else {
+            Vector2f grad = (Float) w.scale * w.weight->eval_1_grad(si, true);
+            const Vector3f &sn = si.sh_frame.n;
+            Vector3f dp_du = dr::fmadd(sn, grad.x() - dr::dot(sn, si.dp_du), si.dp_du);
+            Vector3f dp_dv = dr::fmadd(sn, grad.y() - dr::dot(sn, si.dp_dv), si.dp_dv);
+            n = dr::normalize(dr::cross(dp_du, dp_dv));
+            n = dr::select(dr::dot(si.n, n) < 0.f, -n, n);
+        }
+        Vector3f t = dr::fnmadd(n, dr::dot(n, si.dp_du), si.dp_du);
+        Frame3f f(n);
+        Mask tangent = dr::squared_norm(t) > 1e-12f;
+        f.s = dr::select(tangent, dr::normalize(t), f.s);
+        f.t = dr::select(tangent, dr::cross(n, f.s), f.t);
+        return f;
+    }
 
     /// Whether `o` is, or has below it, a material that fluoresces.
     static bool holds_fluorescence(Object *o, std::unordered_set<Object *> &seen) {
