@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import subprocess
 import sys
 from pathlib import Path
@@ -39,11 +38,10 @@ from pathlib import Path
 import mitsuba as mi
 
 from . import out_dir, repo_root, scenes_dir, tool_path
+from .scenes import VARIANTS, scene_fallback_params, scene_variants  # noqa: F401  (demo's; re-exported)
 
 #: Subcommands implemented here; anything else goes to fluo-rs.
 PYTHON_COMMANDS = ("render", "demo", "bench")
-#: Variants ``demo`` renders (the gallery's columns).
-VARIANTS = ("scalar_spectral", "scalar_rgb")
 #: Every variant the plugin library serves (``fluo render --variant``); the cuda ones need
 #: an NVIDIA GPU.
 RENDER_VARIANTS = VARIANTS + ("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb")
@@ -55,10 +53,7 @@ FORWARDED_EXAMPLES = ("patch", "qd", "fit-gmm", "reduce")
 #: Seconds to wait for ``fluo-rs --help`` while printing ``fluo --help``.
 TOOL_HELP_TIMEOUT_S = 10.0
 
-_VARIANTS_COMMENT = re.compile(r"<!--\s*fluo:\s*variants\s*=\s*([^>]*?)\s*-->")
 _LDR_SUFFIXES = (".png", ".jpg", ".jpeg")
-_FALLBACK_COMMENT = re.compile(r"<!--\s*fluo:\s*fallback\s+([A-Za-z_][\w]*)\s*=\s*([^>]*?)\s*-->")
-_DEFAULT_TAG = re.compile(r'<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
 
 
 # ---------------------------------------------------------------------------- parser
@@ -332,37 +327,6 @@ def _cmd_render(args: argparse.Namespace) -> int:
 
 
 # ---------------------------------------------------------------------------- demo
-
-
-def scene_variants(scene: Path) -> tuple[str, ...]:
-    """Variants ``demo`` renders ``scene`` in: all of :data:`VARIANTS`, unless a
-    ``<!-- fluo: variants=a,b -->`` comment restricts them."""
-    match = _VARIANTS_COMMENT.search(scene.read_text(encoding="utf-8"))
-    if match is None:
-        return VARIANTS
-    wanted = {name.strip() for name in match.group(1).split(",") if name.strip()}
-    unknown = wanted - set(VARIANTS)
-    if unknown:
-        print(f"fluo demo: {scene.name}: ignoring unknown variants {sorted(unknown)}",
-              file=sys.stderr)
-    return tuple(v for v in VARIANTS if v in wanted)
-
-
-def scene_fallback_params(scene: Path, force: bool = False) -> dict[str, str]:
-    """Parameters replacing a scene's missing data files (``<!-- fluo: fallback K=PATH -->``).
-
-    For each fallback whose ``<default name="K">`` file (relative to the scene) does not
-    exist, or for every fallback with ``force``: ``K`` -> ``PATH`` resolved against the
-    scene's directory.
-    """
-    text = scene.read_text(encoding="utf-8")
-    defaults = dict(_DEFAULT_TAG.findall(text))
-    params: dict[str, str] = {}
-    for key, path in _FALLBACK_COMMENT.findall(text):
-        default = defaults.get(key)
-        if force or default is None or not (scene.parent / default).exists():
-            params[key] = str((scene.parent / path).resolve())
-    return params
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:

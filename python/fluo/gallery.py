@@ -181,7 +181,7 @@ def run(scenes: list[Path], out: Path, spp: int, res: int | None = None, seed: i
     ``res`` replaces each scene's ``$res`` (film width and height) where it has one;
     ``readme``: also write a :data:`README_WIDTH_PX`-wide copy of ``gallery.png`` there.
     """
-    from .cli import VARIANTS, scene_fallback_params, scene_variants
+    from .scenes import VARIANTS, scene_fallback_params, scene_variants
 
     log = log or (lambda m: print(m, file=sys.stderr, flush=True))
     out.mkdir(parents=True, exist_ok=True)

@@ -36,9 +36,48 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 from pathlib import Path
 
 from . import PLUGIN_KINDS
+
+#: Variants ``fluo demo`` renders every scene in (the gallery's columns).
+VARIANTS = ("scalar_spectral", "scalar_rgb")
+
+_VARIANTS_COMMENT = re.compile(r"<!--\s*fluo:\s*variants\s*=\s*([^>]*?)\s*-->")
+_FALLBACK_COMMENT = re.compile(r"<!--\s*fluo:\s*fallback\s+([A-Za-z_][\w]*)\s*=\s*([^>]*?)\s*-->")
+_DEFAULT_TAG = re.compile(r'<default\s+name="([^"]+)"\s+value="([^"]*)"\s*/>')
+
+
+def scene_variants(scene: Path) -> tuple[str, ...]:
+    """Variants ``demo`` renders ``scene`` in: all of :data:`VARIANTS`, unless a
+    ``<!-- fluo: variants=a,b -->`` comment restricts them."""
+    match = _VARIANTS_COMMENT.search(scene.read_text(encoding="utf-8"))
+    if match is None:
+        return VARIANTS
+    wanted = {name.strip() for name in match.group(1).split(",") if name.strip()}
+    unknown = wanted - set(VARIANTS)
+    if unknown:
+        print(f"fluo demo: {scene.name}: ignoring unknown variants {sorted(unknown)}",
+              file=sys.stderr)
+    return tuple(v for v in VARIANTS if v in wanted)
+
+
+def scene_fallback_params(scene: Path, force: bool = False) -> dict[str, str]:
+    """Parameters replacing a scene's missing data files (``<!-- fluo: fallback K=PATH -->``).
+
+    For each fallback whose ``<default name="K">`` file (relative to the scene) does not
+    exist, or for every fallback with ``force``: ``K`` -> ``PATH`` resolved against the
+    scene's directory.
+    """
+    text = scene.read_text(encoding="utf-8")
+    defaults = dict(_DEFAULT_TAG.findall(text))
+    params: dict[str, str] = {}
+    for key, path in _FALLBACK_COMMENT.findall(text):
+        default = defaults.get(key)
+        if force or default is None or not (scene.parent / default).exists():
+            params[key] = str((scene.parent / path).resolve())
+    return params
 
 #: Names of fluo's fluorescent BSDF plugins (``type="..."`` in XML): every BSDF the
 #: plugin library registers.

@@ -226,7 +226,7 @@ def test08b_fit_gmm_through_the_python_cli(tmp_path):
 def test09_demo_scenes_render(name):
     """With the measured materials when the shared data exists, and with our fallbacks."""
     mi.set_variant("scalar_spectral")
-    from fluo.cli import scene_fallback_params
+    from fluo.scenes import scene_fallback_params
     scene_path = REPO / "scenes" / name
     fallback = scene_fallback_params(scene_path, force=True)
     assert set(fallback) == {"matrix_a", "matrix_b"} and all(Path(p).is_file() for p in fallback.values())
@@ -241,7 +241,7 @@ def test09_demo_scenes_render(name):
 
 
 def test10_demo_uses_fallbacks_only_for_missing_data(tmp_path, scene_xml):
-    from fluo.cli import scene_fallback_params
+    from fluo.scenes import scene_fallback_params
     (tmp_path / "here.csv").write_text("x")
     scene = scene_xml(tmp_path, matrix_xml("$a"), name="s.xml", extra=(
         '<!-- fluo: fallback a=fa.csv -->\n<!-- fluo: fallback b=fb.csv -->\n'

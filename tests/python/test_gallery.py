@@ -25,7 +25,7 @@ from conftest import VARIANTS
 
 import fluo
 from fluo import gallery, scenes
-from fluo.cli import scene_fallback_params, scene_variants
+from fluo.scenes import scene_fallback_params, scene_variants
 
 SCENES = sorted((fluo.repo_root() / "scenes").glob("*.xml"))
 #: The gallery test's scenes: the newcomer's first scene (daylight, fluorescence a

@@ -44,3 +44,33 @@ def test_physics_crate_has_no_cxx():
                           capture_output=True, text=True, check=True).stdout
     assert tree.startswith("fluo v") and "cxx" not in tree, tree
     assert not (REPO / "core" / "build.rs").exists()
+
+
+def python_package_graph() -> dict[str, set[str]]:
+    """The fluo package's modules and the sibling modules each imports (at module level or
+    inside a function: a lazy import is still a dependency), from the source text."""
+    import re
+
+    pkg = REPO / "python" / "fluo"
+    names = {p.stem for p in pkg.glob("*.py")}
+    edges: dict[str, set[str]] = {}
+    for path in pkg.glob("*.py"):
+        deps = set()
+        for line in path.read_text(encoding="utf-8").splitlines():
+            m = re.match(r"\s*from \.(\w*) import (.+)", line)
+            if not m:
+                continue
+            if m.group(1):
+                deps.add(m.group(1))
+            else:  # from . import a, b  (package attributes that are modules)
+                deps |= {n.strip().split(" as ")[0] for n in m.group(2).split("#")[0].split(",")} & names
+        edges[path.stem] = deps - {path.stem}
+    return edges
+
+
+def test_python_package_has_no_import_cycle():
+    """cli.py and gallery.py imported each other (the demo's scene helpers lived in cli.py);
+    they now live in scenes.py, and the package's import graph is acyclic."""
+    edges = python_package_graph()
+    assert "cli" not in edges["gallery"] and "gallery" in edges["cli"]
+    assert module_graph.cycles(edges) == []
