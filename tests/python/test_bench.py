@@ -10,7 +10,7 @@ from pathlib import Path
 import mitsuba as mi
 import pytest
 
-from fluo import bench
+from fluo import bench, bench_methods
 
 
 def test01_equal_error_time_interpolates_in_log_time():
@@ -40,7 +40,7 @@ def _shipped_cube(space):
 @pytest.mark.parametrize("scene, index", _pairs())
 def test02_every_method_loads_every_bench_scene(scene, index, tmp_path, monkeypatch):
     # cubes other than the shipped 33³ take minutes to generate: load with the shipped one
-    monkeypatch.setattr(bench, "cube_path", lambda res, space="acescg": _shipped_cube(space))
+    monkeypatch.setattr(bench_methods, "cube_path", lambda res, space="acescg": _shipped_cube(space))
     method = bench.methods(tmp_path)[index]
     text = method.rewrite(bench._absolutise_includes(scene.read_text(), scene.parent))
     path = tmp_path / "s.xml"
