@@ -99,9 +99,13 @@ impl std::error::Error for Error {}
 /// The crate's result type.
 pub type Result<T> = std::result::Result<T, Error>;
 
-/// Check that `value` is finite and inside `[lo, hi]`; error names the parameter.
+/// Check that `value` is finite and inside `[lo, hi]`; error names the parameter. An end
+/// counts as reached when `value` rounds to it in single precision: values set through
+/// Mitsuba's `Float` parameters (`params.update()`, textures) arrive as the nearest float,
+/// e.g. a documented minimum 0.01 as 0.009999999776 (it was refused).
 pub(crate) fn check_range(name: &str, value: f64, lo: f64, hi: f64) -> Result<f64> {
-    if value.is_finite() && value >= lo && value <= hi {
+    let at = |end: f64| value as f32 == end as f32;
+    if value.is_finite() && (value >= lo || at(lo)) && (value <= hi || at(hi)) {
         Ok(value)
     } else {
         Err(Error::param(name, value, format!("[{}, {}]", num(lo), num(hi))))
@@ -111,6 +115,16 @@ pub(crate) fn check_range(name: &str, value: f64, lo: f64, hi: f64) -> Result<f6
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn range_ends_reached_in_single_precision_are_inside() {
+        // 0.01 and 0.3 as Mitsuba's Float holds them lie just outside [0.01, 0.3] in f64.
+        assert!(check_range("width", f64::from(0.01f32), 0.01, 100.0).is_ok());
+        assert!(check_range("alpha", f64::from(0.3f32), 0.001, 0.3).is_ok());
+        assert!(check_range("width", 0.0099, 0.01, 100.0).is_err());
+        assert!(check_range("quantum_yield", 1.000001, 0.0, 1.0).is_err());
+        assert!(check_range("quantum_yield", f64::NAN, 0.0, 1.0).is_err());
+    }
 
     #[test]
     fn numbers_and_text_are_shown_bounded() {

@@ -386,3 +386,20 @@ def test17_huge_sigmoid_coefficients_agree_across_variants():
         llvm = np.array(res["values"][0])
         np.testing.assert_allclose(scalar, r / np.pi, atol=1e-6, err_msg=coeffs)
         np.testing.assert_allclose(llvm, r / np.pi, atol=1e-6, err_msg=coeffs)
+
+
+@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+def test18_documented_range_ends_survive_single_precision_updates(variant):
+    """params.update() hands values over as Mitsuba's Float: the documented minimum width
+    0.01 arrives as 0.009999999776 and was refused ("valid range is [0.01, 100]"), alpha's
+    maximum 0.3 as 0.30000001. An end reached in single precision is inside the range
+    (one rule in Rust's check_range); a value truly outside is still refused."""
+    mi.set_variant(variant)
+    params = mi.traverse(mi.load_dict({"type": "fluo_qd"}))
+    for key, value in (("width", 0.01), ("width", 100.0), ("alpha", 0.3)):
+        params[key] = value
+        params.update()
+        assert abs(float(params[key]) - value) < 1e-6 * value
+    params["width"] = 0.0099
+    with pytest.raises(RuntimeError, match=r'invalid parameter "width" = 0\.0099.*\[0\.01, 100\]'):
+        params.update()
