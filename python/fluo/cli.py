@@ -38,7 +38,7 @@ from pathlib import Path
 import mitsuba as mi
 
 from . import out_dir, repo_root, scenes_dir, tool_path
-from .scenes import VARIANTS, scene_fallback_params, scene_variants  # noqa: F401  (demo's; re-exported)
+from .scenes import VARIANTS
 
 #: Subcommands implemented here; anything else goes to fluo-rs.
 PYTHON_COMMANDS = ("render", "demo", "bench")

@@ -243,8 +243,8 @@ protected:
             for (float v : mu)
                 mu_max = std::max(mu_max, (double) v);
         }
-        m_majorant_floor = m_common.majorant_floor(mu_max);
         m_common.check_absorption(m_plugin, mu_max, what);
+        m_majorant_floor = m_common.majorant_floor(mu_max);
         m_mu_a_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                 m_mu_a_rgb[2] });
         m_mu_f_max = m_fluorescent ? fluo::medium_grid_source_max(**m_model) : 0.0;

@@ -13,7 +13,6 @@
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
-#include <array>
 #include <string>
 #include <string_view>
 #include <unordered_map>
@@ -213,19 +212,20 @@ public:
         }
     }
 
-    /// The shading frames a vertex's normal and bump maps replaced (each map's input and
-    /// output frame, world space), for the adapters' orientation rule.
+    /// The shading normals a vertex's normal and bump maps replaced (each map's input and
+    /// output normal, world space), for the adapters' orientation rule. Plain arrays,
+    /// left uninitialised: every vertex declares one, most never fill it.
     struct Perturbations {
         static constexpr size_t Max = 8;
-        std::array<std::pair<Frame3f, Frame3f>, Max> frames;
+        Vector3f before[Max], after[Max];
         size_t n = 0;
         /// Whether world direction d lies on the same side of each map's input and output
-        /// shading frames: Mitsuba's normalmap and bumpmap give a direction that changes
+        /// shading normals: Mitsuba's normalmap and bumpmap give a direction that changes
         /// side (through the perturbed frame) no value, pdf or sample.
         Mask keeps_side(const Vector3f &d) const {
             Mask ok = true;
             for (size_t i = 0; i < n; ++i)
-                ok &= dr::dot(frames[i].first.n, d) * dr::dot(frames[i].second.n, d) > 0.f;
+                ok &= dr::dot(before[i], d) * dr::dot(after[i], d) > 0.f;
             return ok;
         }
     };
@@ -256,13 +256,14 @@ public:
                 Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
                 bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
             } else if (w->kind == Wrapper::NormalMap || w->kind == Wrapper::BumpMap) {
+                if (perturbed.n == Perturbations::Max)
+                    Throw("more than %zu normal or bump maps nested around one fluorescent material",
+                          Perturbations::Max);
                 Frame3f before = si.sh_frame;
                 si.sh_frame = perturbed_frame(*w, si);
                 si.wi = si.sh_frame.to_local(before.to_world(si.wi));
-                if (perturbed.n == Perturbations::Max)
-                    Throw("fluo_path: more than %zu normal or bump maps nested around one material",
-                          Perturbations::Max);
-                perturbed.frames[perturbed.n++] = { before, si.sh_frame };
+                perturbed.before[perturbed.n] = before.n;
+                perturbed.after[perturbed.n++] = si.sh_frame.n;
                 bsdf = w->child[0];
             } else {
                 Float opacity = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
