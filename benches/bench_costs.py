@@ -34,6 +34,7 @@ llvm: textured ``fluo_qd`` (both variants)        textured / uniform ``fluo_qd``
 llvm: medium without fluorescence (spectral)      ``fluo_volpath`` / ``volpath``               1.05
 llvm: quantum-dot cuvette, ``llvm_ad_spectral``   ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     report
 llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``fluo_path``    report
+per vertex, closed box (4 models × 4 variants)    fluorescent walls / native walls             1.25
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -53,6 +54,13 @@ with the first value of each; both render with ``fluo_path``. In llvm the textur
 ``fluo_qd`` rows are held to the llvm rows' 1.5, not the scalar rows' 1.30: against the lean
 vectorised baseline each hit's four models (their λ cells, the elastic part's mixture of four
 R_tot) weigh more than in the scalar variant, whose per-call overheads dilute them.
+
+The per-vertex rows render a closed cube whose six walls are one material (``fluo_jung``,
+``fluo_matrix``, ``fluo_gmm`` against ``diffuse``; ``fluo_qd`` against ``roughconductor``), lit
+by a small spherical D65 light inside and seen from inside, with ``fluo_path`` (reduced x7 in
+RGB) against Mitsuba's ``path``, ``max_depth`` 8 and ``rr_depth`` 108: no path escapes and
+none is rouletted, so both sides trace the same vertices and the ratio is the cost of a
+fluorescent vertex over a native one, in all four variants (llvm ones in a worker).
 
 The medium rows render ``MEDIA_SPP_FACTOR`` (4) times the samples of the others (a 16-spp
 cuvette render is too short to time on a shared machine). The llvm rows render
@@ -203,6 +211,45 @@ def qd_medium(q: float, density: dict | None = None) -> dict:
     if density is not None:
         m["density"] = density
     return m
+
+
+#: Per-vertex rows: a closed box whose six walls are one material (fluorescent, or its
+#: native counterpart), lit by a small spherical light inside, seen from inside: every path
+#: meets VERTEX_DEPTH - 1 surfaces, none escapes, and roulette is off (rr_depth > max_depth),
+#: so both sides trace the same number of vertices and the ratio is the per-vertex cost.
+VERTEX_DEPTH = 8
+
+#: (fluorescent, native) wall materials of the per-vertex rows.
+VERTEX_MATERIALS = {
+    "jung": ({"type": "fluo_jung", "reflectance": 0.5, **DYE}, {"type": "diffuse", "reflectance": 0.5}),
+    "matrix": ({"type": "fluo_matrix", "filename": str(MATRICES / "jung_orange.csv")},
+               {"type": "diffuse", "reflectance": 0.5}),
+    "gmm": ({"type": "fluo_gmm", "filename": str(MATRICES / "jung_orange.gmm.json")},
+            {"type": "diffuse", "reflectance": 0.5}),
+    "qd": ({"type": "fluo_qd", "density": 0.8, **ROUGH}, {"type": "roughconductor", **ROUGH}),
+}
+
+
+def closed_box(res: int, integrator: str, bsdf: dict) -> dict:
+    """The per-vertex rows' scene (VERTEX_DEPTH; reduced RGB in x7)."""
+    props = {"basis": "x7"} if integrator == "fluo_path" else {}
+    return {
+        "type": "scene",
+        "integrator": {"type": integrator, "max_depth": VERTEX_DEPTH, "rr_depth": VERTEX_DEPTH + 100, **props},
+        "sensor": {"type": "perspective", "fov": 70,
+                   "to_world": T.look_at(origin=[0, 0, 0.8], target=[0, 0, -1], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent"}},
+        "walls": {"type": "cube", "flip_normals": True, "bsdf": bsdf},
+        "light": {"type": "sphere", "center": [0.3, 0.5, -0.3], "radius": 0.1,
+                  "emitter": {"type": "area", "radiance": D65}},
+    }
+
+
+def vertex_row(variant: str, model: str, res: int, spp: int, rounds: int) -> dict:
+    fl, native = VERTEX_MATERIALS[model]
+    pair = render_pair_jit if variant.startswith("llvm_") else render_pair
+    return pair(variant, closed_box(res, "fluo_path", fl), closed_box(res, "path", native), spp, rounds)
 
 
 def paired(a, b, rounds: int) -> dict:
@@ -394,6 +441,14 @@ WORKER_ROWS = {
     "llvm_volpath_qd_rgb": lambda a: render_pair_jit("llvm_ad_rgb", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
                                                      cuvette(a.res, "volpath", qd_medium(0.0)),
                                                      a.spp * MEDIA_SPP_FACTOR, a.rounds),
+    "vertex_jung_llvm_ad_spectral": lambda a: vertex_row("llvm_ad_spectral", "jung", a.res, a.spp, a.rounds),
+    "vertex_matrix_llvm_ad_spectral": lambda a: vertex_row("llvm_ad_spectral", "matrix", a.res, a.spp, a.rounds),
+    "vertex_gmm_llvm_ad_spectral": lambda a: vertex_row("llvm_ad_spectral", "gmm", a.res, a.spp, a.rounds),
+    "vertex_qd_llvm_ad_spectral": lambda a: vertex_row("llvm_ad_spectral", "qd", a.res, a.spp, a.rounds),
+    "vertex_jung_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "jung", a.res, a.spp, a.rounds),
+    "vertex_matrix_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "matrix", a.res, a.spp, a.rounds),
+    "vertex_gmm_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "gmm", a.res, a.spp, a.rounds),
+    "vertex_qd_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "qd", a.res, a.spp, a.rounds),
     "speedup_scalar_spectral": lambda a: render_times("scalar_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_llvm_spectral": lambda a: render_times("llvm_ad_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_scalar_rgb": lambda a: render_times("scalar_rgb", box(a.res, bsdf=jung, basis="x7"), a.spp, a.rounds),
@@ -467,6 +522,30 @@ ROWS = {
     "volpath_qd_rgb": ("QD cuvette: fluo_volpath reduced x7 (Q 0.8) / volpath (Q 0), scalar_rgb", 1.5,
                        lambda a: render_pair("scalar_rgb", cuvette(a.res, "fluo_volpath", qd_medium(0.8)),
                                              cuvette(a.res, "volpath", qd_medium(0.0)), a.spp * MEDIA_SPP_FACTOR, a.rounds)),
+    "vertex_jung_scalar_spectral": ("per vertex, closed box: fluo_jung / diffuse, scalar_spectral", 1.25,
+                               lambda a: vertex_row("scalar_spectral", "jung", a.res, a.spp, a.rounds)),
+    "vertex_matrix_scalar_spectral": ("per vertex, closed box: fluo_matrix / diffuse, scalar_spectral", 1.25,
+                               lambda a: vertex_row("scalar_spectral", "matrix", a.res, a.spp, a.rounds)),
+    "vertex_gmm_scalar_spectral": ("per vertex, closed box: fluo_gmm / diffuse, scalar_spectral", 1.25,
+                               lambda a: vertex_row("scalar_spectral", "gmm", a.res, a.spp, a.rounds)),
+    "vertex_qd_scalar_spectral": ("per vertex, closed box: fluo_qd / roughconductor, scalar_spectral", 1.25,
+                               lambda a: vertex_row("scalar_spectral", "qd", a.res, a.spp, a.rounds)),
+    "vertex_jung_scalar_rgb": ("per vertex, closed box: fluo_jung / diffuse, scalar_rgb", 1.25,
+                               lambda a: vertex_row("scalar_rgb", "jung", a.res, a.spp, a.rounds)),
+    "vertex_matrix_scalar_rgb": ("per vertex, closed box: fluo_matrix / diffuse, scalar_rgb", 1.25,
+                               lambda a: vertex_row("scalar_rgb", "matrix", a.res, a.spp, a.rounds)),
+    "vertex_gmm_scalar_rgb": ("per vertex, closed box: fluo_gmm / diffuse, scalar_rgb", 1.25,
+                               lambda a: vertex_row("scalar_rgb", "gmm", a.res, a.spp, a.rounds)),
+    "vertex_qd_scalar_rgb": ("per vertex, closed box: fluo_qd / roughconductor, scalar_rgb", 1.25,
+                               lambda a: vertex_row("scalar_rgb", "qd", a.res, a.spp, a.rounds)),
+    "vertex_jung_llvm_ad_spectral": ("per vertex, closed box: fluo_jung / diffuse, llvm_ad_spectral", 1.25, lambda a: in_worker("vertex_jung_llvm_ad_spectral", a)),
+    "vertex_matrix_llvm_ad_spectral": ("per vertex, closed box: fluo_matrix / diffuse, llvm_ad_spectral", 1.25, lambda a: in_worker("vertex_matrix_llvm_ad_spectral", a)),
+    "vertex_gmm_llvm_ad_spectral": ("per vertex, closed box: fluo_gmm / diffuse, llvm_ad_spectral", 1.25, lambda a: in_worker("vertex_gmm_llvm_ad_spectral", a)),
+    "vertex_qd_llvm_ad_spectral": ("per vertex, closed box: fluo_qd / roughconductor, llvm_ad_spectral", 1.25, lambda a: in_worker("vertex_qd_llvm_ad_spectral", a)),
+    "vertex_jung_llvm_ad_rgb": ("per vertex, closed box: fluo_jung / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_jung_llvm_ad_rgb", a)),
+    "vertex_matrix_llvm_ad_rgb": ("per vertex, closed box: fluo_matrix / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_matrix_llvm_ad_rgb", a)),
+    "vertex_gmm_llvm_ad_rgb": ("per vertex, closed box: fluo_gmm / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_gmm_llvm_ad_rgb", a)),
+    "vertex_qd_llvm_ad_rgb": ("per vertex, closed box: fluo_qd / roughconductor, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_qd_llvm_ad_rgb", a)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
     "llvm_plain": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_spectral)", 1.05,

@@ -71,12 +71,6 @@ pub trait Bispectral {
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64;
     /// ∫_{range} ∫_Ω f_fl · cos θo dωo dλi: albedo reaching λo from unit excitation over `range`.
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64;
-    /// Whether [`Bispectral::shift_albedo`] is the same for every ωi above the surface
-    /// (diffuse models), so that it can be tabulated over λo alone
-    /// ([`crate::shift::ShiftTable`]).
-    fn shift_albedo_is_isotropic(&self) -> bool {
-        false
-    }
     /// Sample λi given λo inside `range`: (λi, pdf per nm), or `None`.
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)>;
     /// pdf of [`Bispectral::sample_excitation`].

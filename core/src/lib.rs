@@ -32,7 +32,6 @@ pub mod models;
 pub mod patch;
 pub mod reduce;
 pub mod reports;
-pub mod shift;
 pub mod sigmoid;
 pub mod spectrum;
 pub mod upsample;

@@ -1,4 +1,5 @@
-//! The closed set of fluorescent models ([`Model`], dispatched statically with `match`)
+//! The closed set of fluorescent models ([`Model`], dispatched through the [`Bispectral`]
+//! interface)
 //! and material descriptions for the command line: the only file that names every
 //! model.
 //!
@@ -73,102 +74,52 @@ impl fmt::Display for Model {
     }
 }
 
+impl Model {
+    /// The model behind the handle, as the interface every model implements.
+    pub fn as_dyn(&self) -> &dyn Bispectral {
+        match self {
+            Model::Jung(m) => &**m,
+            Model::Qd(m) => &**m,
+            Model::Matrix(m) => &**m,
+            Model::Gmm(m) => &**m,
+        }
+    }
+}
+
+/// Every method forwards to the model behind the handle ([`Model::as_dyn`]).
 impl Bispectral for Model {
     fn excitation_range(&self) -> Option<(f64, f64)> {
-        match self {
-            Model::Jung(m) => m.excitation_range(),
-            Model::Qd(m) => m.excitation_range(),
-            Model::Matrix(m) => Bispectral::excitation_range(&**m),
-            Model::Gmm(m) => Bispectral::excitation_range(&**m),
-        }
+        self.as_dyn().excitation_range()
     }
     fn emission_range(&self) -> Option<(f64, f64)> {
-        match self {
-            Model::Jung(m) => m.emission_range(),
-            Model::Qd(m) => m.emission_range(),
-            Model::Matrix(m) => Bispectral::emission_range(&**m),
-            Model::Gmm(m) => Bispectral::emission_range(&**m),
-        }
+        self.as_dyn().emission_range()
     }
     fn elastic_albedo(&self, cos_i: f64, lambda: f64) -> f64 {
-        match self {
-            Model::Jung(m) => m.elastic_albedo(cos_i, lambda),
-            Model::Qd(m) => m.elastic_albedo(cos_i, lambda),
-            Model::Matrix(m) => Bispectral::elastic_albedo(&**m, cos_i, lambda),
-            Model::Gmm(m) => Bispectral::elastic_albedo(&**m, cos_i, lambda),
-        }
+        self.as_dyn().elastic_albedo(cos_i, lambda)
     }
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
-        match self {
-            Model::Jung(m) => m.density(cos_i, lambda_i, lambda_o),
-            Model::Qd(m) => m.density(cos_i, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::density(&**m, cos_i, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::density(&**m, cos_i, lambda_i, lambda_o),
-        }
+        self.as_dyn().density(cos_i, lambda_i, lambda_o)
     }
     fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
-        match self {
-            Model::Jung(m) => m.reradiated(illum, domain, lambda_o),
-            Model::Qd(m) => m.reradiated(illum, domain, lambda_o),
-            Model::Matrix(m) => m.reradiated(illum, domain, lambda_o),
-            Model::Gmm(m) => m.reradiated(illum, domain, lambda_o),
-        }
+        self.as_dyn().reradiated(illum, domain, lambda_o)
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        match self {
-            Model::Jung(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
-            Model::Qd(m) => m.reradiation(wi, wo, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::reradiation(&**m, wi, wo, lambda_i, lambda_o),
-        }
+        self.as_dyn().reradiation(wi, wo, lambda_i, lambda_o)
     }
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
-        match self {
-            Model::Jung(m) => m.shift_albedo(wi, lambda_o, range),
-            Model::Qd(m) => m.shift_albedo(wi, lambda_o, range),
-            Model::Matrix(m) => Bispectral::shift_albedo(&**m, wi, lambda_o, range),
-            Model::Gmm(m) => Bispectral::shift_albedo(&**m, wi, lambda_o, range),
-        }
-    }
-    fn shift_albedo_is_isotropic(&self) -> bool {
-        match self {
-            Model::Jung(m) => m.shift_albedo_is_isotropic(),
-            Model::Qd(m) => m.shift_albedo_is_isotropic(),
-            Model::Matrix(m) => m.shift_albedo_is_isotropic(),
-            Model::Gmm(m) => m.shift_albedo_is_isotropic(),
-        }
+        self.as_dyn().shift_albedo(wi, lambda_o, range)
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
-        match self {
-            Model::Jung(m) => m.sample_excitation(wi, lambda_o, xi, range),
-            Model::Qd(m) => m.sample_excitation(wi, lambda_o, xi, range),
-            Model::Matrix(m) => Bispectral::sample_excitation(&**m, wi, lambda_o, xi, range),
-            Model::Gmm(m) => Bispectral::sample_excitation(&**m, wi, lambda_o, xi, range),
-        }
+        self.as_dyn().sample_excitation(wi, lambda_o, xi, range)
     }
     fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
-        match self {
-            Model::Jung(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
-            Model::Qd(m) => m.excitation_pdf(wi, lambda_o, lambda_i, range),
-            Model::Matrix(m) => Bispectral::excitation_pdf(&**m, wi, lambda_o, lambda_i, range),
-            Model::Gmm(m) => Bispectral::excitation_pdf(&**m, wi, lambda_o, lambda_i, range),
-        }
+        self.as_dyn().excitation_pdf(wi, lambda_o, lambda_i, range)
     }
     fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
-        match self {
-            Model::Jung(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
-            Model::Qd(m) => m.sample_emission(wi, lambda_i, xi),
-            Model::Matrix(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
-            Model::Gmm(m) => Bispectral::sample_emission(&**m, wi, lambda_i, xi),
-        }
+        self.as_dyn().sample_emission(wi, lambda_i, xi)
     }
     fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        match self {
-            Model::Jung(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
-            Model::Qd(m) => m.emission_pdf(wi, lambda_i, lambda_o),
-            Model::Matrix(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
-            Model::Gmm(m) => Bispectral::emission_pdf(&**m, wi, lambda_i, lambda_o),
-        }
+        self.as_dyn().emission_pdf(wi, lambda_i, lambda_o)
     }
 }
 

@@ -1,13 +1,12 @@
 // The fluo_dye_medium plugin: a fluorescent dye dissolved in a participating medium,
 // with Jung et al.'s absorption and emission spectra. Its documentation is the comment
 // below. Physics in Rust (DyeMedium in core/src/models/jung.rs); the Medium and the bispectral
-// medium interface for fluo_volpath are include/fluo/fluo_medium_shim.h.
+// medium interface for fluo_volpath are include/fluo/fluo_medium.h.
 #include <initializer_list>
 
 #include <type_traits>
 
-#include "fluo_medium_jit.h"
-#include "fluo_medium_shim.h"
+#include "fluo_medium.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -44,11 +43,11 @@ A dye in solution, with the spectra of Jung et al. (2018, 2019; eqs. 3-6 of the 
 paper): a cubic b-spline emission e(λ) of unit integral around λe and its mirrored
 absorption a(λ) ∈ [0, 1] peaking at λe − s. μa(λ) = σa a(λ); an absorbed photon is
 re-emitted isotropically with probability Q at λo ~ e (the supports never overlap, so
-always at a longer wavelength). With ``fluo_volpath`` in ``scalar_spectral``,
-``llvm_ad_spectral`` or (reduced transport) ``scalar_rgb`` and ``llvm_ad_rgb`` the dye fluoresces (as
-``fluo_qd_medium``: both implement fluo's bispectral medium interface; in the vectorised
-variants μa is linear between 4096 nodes across the absorption band, within 3e-7 of its
-peak, and e between nodes within 1e-5 of its peak); elsewhere it absorbs only (native ``volpath`` warns once per
+always at a longer wavelength). With ``fluo_volpath`` in every variant (spectral: by
+wavelength shifting; RGB: reduced transport) the dye fluoresces (as ``fluo_qd_medium``:
+both implement fluo's bispectral medium interface; in every variant μa is linear between
+4096 nodes across the absorption band, within 3e-7 of its peak, and e between nodes
+within 1e-5 of its peak); elsewhere it absorbs only (native ``volpath`` warns once per
 scene).
 
 .. tabs::
@@ -61,11 +60,9 @@ scene).
             <float name="scale" value="0.01"/>
         </medium>
 */
-template <typename Float, typename Spectrum>
-using DyeMediumBase = std::conditional_t<dr::is_jit_v<Float>, FluoMediumJit<Float, Spectrum>,
-                                         FluoMediumShim<Float, Spectrum>>;
+template <typename Float, typename Spectrum> using DyeMediumBase = FluoMediumBase<Float, Spectrum>;
 
-/// Over either shim, as fluo_qd_medium.
+/// Over Rust's tables (FluoMediumBase, fluo_medium.h), as fluo_qd_medium.
 template <typename Float, typename Spectrum> class FluoDyeMedium final : public DyeMediumBase<Float, Spectrum> {
 public:
     using Base = DyeMediumBase<Float, Spectrum>;
@@ -90,7 +87,6 @@ public:
 };
 
 static const bool fluo_dye_medium_registered =
-    (fluo_detail::register_scalar_plugin<FluoDyeMedium>("fluo_dye_medium", ObjectType::Medium),
-     fluo_detail::register_jit_plugin<FluoDyeMedium>("fluo_dye_medium", ObjectType::Medium), true);
+    (fluo_detail::register_plugin<FluoDyeMedium>("fluo_dye_medium", ObjectType::Medium), true);
 
 NAMESPACE_END(mitsuba)

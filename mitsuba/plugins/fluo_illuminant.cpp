@@ -5,9 +5,8 @@
 #include <cmath>
 #include <sstream>
 
-#include "fluo_bispectral.h"
 #include "fluo_common.h"
-#include "fluo_jit.h"
+#include "fluo_bispectral.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -40,18 +39,19 @@ CIE illuminant or measured emission spectrum (:monosp:`fluo_illuminant`)
 
 Mitsuba's own ``d65`` spectrum and its RGB upsampling stop at 360 nm, where the camera's
 wavelength range starts. Fluorescent materials absorb below that, so lights meant to
-excite them in ``scalar_spectral`` need a spectrum defined in the UV: this plugin serves
+excite them in the spectral variants need a spectrum defined in the UV: this plugin serves
 fluo's tabulated CIE illuminants (``data/spectra``, generated from colour-science) or
 any tabulated spectrum, linearly interpolated and zero outside its domain. It reports
 that domain through ``wavelength_range()``, which ``fluo_path`` uses to decide how far
 into the UV excitation can reach. A spectrum that is entirely UV (no luminance) cannot
 be luminance-normalised: give ``normalize = false``.
 
-In ``scalar_rgb`` it evaluates to the spectrum's linear sRGB (Mitsuba's conversion; a
+In the RGB variants it evaluates to the spectrum's linear sRGB (Mitsuba's conversion; a
 negligible grey of 1e-12 for a spectrum without visible energy), and ``fluo_path``'s
-reduced transport uses the spectrum's own basis coefficients, UV band included.
-In ``llvm_ad_spectral`` and ``llvm_ad_rgb`` it behaves the same, evaluated per lane
-(the spectral table is Mitsuba's own ``regular``/``irregular`` spectrum).
+reduced transport uses the spectrum's own basis coefficients, UV band included. In the
+spectral variants it is evaluated per lane as Mitsuba's own ``regular``/``irregular``
+spectrum through the same nodes (should Mitsuba refuse that table, ``scalar_spectral``
+asks Rust per sample and the llvm/cuda variants raise an error).
 
 .. tabs::
     .. code-tab:: xml
@@ -74,8 +74,8 @@ public:
     FluoIlluminant(const Properties &props) : Texture(props), m_spectrum(create(props)) {
         if constexpr (is_spectral_v<Spectrum>) {
             m_table = native_table(*m_spectrum);
-            if (dr::is_jit_v<Float> && !m_table)
-                Throw("%s: Mitsuba refused the spectrum's table (%s), which the vectorised variants need",
+            if (!m_table)
+                Throw("%s: Mitsuba refused the spectrum's table (%s), which this variant needs",
                       Plugin, std::string(fluo::illuminant_to_string(*m_spectrum)));
         }
         fluo::Range r = fluo::illuminant_range(*m_spectrum);
@@ -95,15 +95,7 @@ public:
 
     UnpolarizedSpectrum eval(const SurfaceInteraction3f &si, Mask active) const override {
         if constexpr (is_spectral_v<Spectrum>) {
-            if constexpr (dr::is_jit_v<Float>) {
-                return m_table->eval(si, active); // the constructor ensured it exists
-            } else {
-                if (m_table)
-                    return m_table->eval(si, active);
-                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-                fluo::illuminant_eval(*m_spectrum, fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
-                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
-            }
+            return m_table->eval(si, active); // the constructor ensured it exists
         } else {
             return m_rgb;
         }
@@ -151,8 +143,8 @@ private:
     /// `regular` spectrum (a uniform grid, as the CIE tables) or `irregular` one: both
     /// interpolate linearly and are zero outside, as the Rust spectrum, so per-sample
     /// evaluation costs what a native spectrum costs (the values agree to float
-    /// rounding; test_fluo_illuminant.py). nullptr (Rust evaluates) if Mitsuba refuses
-    /// the table.
+    /// rounding; test_fluo_illuminant.py). nullptr if Mitsuba refuses the table (the
+    /// constructor then raises an error).
     static ref<Texture> native_table(const fluo::Illuminant &s) {
         rust::Vec<double> wavelengths, values;
         fluo::illuminant_nodes(s, wavelengths, values);
@@ -182,7 +174,7 @@ private:
             return PluginManager::instance()->create_object<Texture>(p);
         } catch (const std::exception &e) {
             if constexpr (dr::is_jit_v<Float>)
-                Throw("%s: Mitsuba refused the spectrum's table, which the vectorised variants need: %s", Plugin,
+                Throw("%s: Mitsuba refused the spectrum's table, which this variant needs: %s", Plugin,
                       e.what());
             return nullptr;
         }
@@ -197,7 +189,6 @@ private:
 };
 
 static const bool fluo_illuminant_registered =
-    (fluo_detail::register_scalar_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture),
-     fluo_detail::register_jit_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
+    (fluo_detail::register_plugin<FluoIlluminant>("fluo_illuminant", ObjectType::Texture), true);
 
 NAMESPACE_END(mitsuba)

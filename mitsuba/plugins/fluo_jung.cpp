@@ -1,17 +1,22 @@
+// fluo_jung, one class template for every variant it serves (the documentation below).
+//
+// Rust validates the parameters and bakes, at load and in parameters_changed(): the dye's
+// absorption on a grid (the table that samples excitation wavelengths), the RGB parts and,
+// through fluo_path, the reduced matrices. Per lane the plugin evaluates Jung's closed forms
+// (fluo_forms.h) with Dr.Jit types, so gradients reach c, Q, λe, s and the reflectance.
+#include <mitsuba/core/distr_1d.h>
 #include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
-#include <mitsuba/core/warp.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/texture.h>
 
 #include <optional>
 #include <vector>
 
-#include "fluo_bispectral.h"
 #include "fluo_common.h"
+#include "fluo_bispectral.h"
 #include "fluo_jung_color.h"
 #include "fluo_lambertian.h"
-#include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -76,8 +81,8 @@ Diffuse fluorescent material (:monosp:`fluo_jung`)
    - For a ``color`` texture: ``nearest`` texel, or ``bilinear``: the four texels around
      the hit mixed with bilinear weights in the elastic part and the reradiation (Jung
      et al. 2019, Fig. 12: interpolate the texels' reradiation rather than their
-     coefficients; ``fluo_path`` picks one texel's dye per vertex with its weight in
-     ``scalar_spectral``, an unbiased estimate of the mixture). (Default: nearest)
+     coefficients; ``fluo_path`` picks one texel's dye per vertex with its weight in the
+     spectral variants, an unbiased estimate of the mixture). (Default: nearest)
  * - fluorescence
    - |bool|
    - ``false`` uses the cube's reflectance-only solutions (for comparisons). (Default: true)
@@ -93,14 +98,21 @@ with a b-spline emission spectrum e (unit integral, eq. 5) and an absorption spe
 a (peak 1, eq. 6) that mirrors it over wavenumber, touching but not overlapping it.
 The physics (equations, sampling, validation) lives in the Rust core, ``core/src/models/jung.rs``.
 
-What this plugin computes in each variant:
+What this plugin computes, in every variant it serves (``scalar_*``, ``llvm_ad_*``,
+``cuda_ad_*``; one class, ``fluo_jung.cpp``): Rust validates the parameters and bakes, at
+load and after every ``mi.traverse`` update, the dye's absorption table (which samples
+excitation wavelengths; the weights use the closed forms, so the estimator stays
+unbiased), the RGB parts and the reduced matrices; per lane the plugin evaluates Jung's
+closed forms (b-spline emission, absorption mirrored over wavenumber, the sigmoid) and
+Mitsuba's reflectance texture with Dr.Jit types. No variant calls Rust per vertex.
 
-- ``scalar_spectral``: the BSDF interface serves the elastic part
+- Spectral variants: the BSDF interface serves the elastic part
   (1 − c a(λ)) r(λ) / π at each hero wavelength, like ``diffuse`` otherwise
   (cosine-weighted sampling). The reradiation c a(λi) Q e(λo) / π is served through
-  fluo's bispectral interface (``include/fluo/fluo_bispectral.h``) to the wavelength-shifting
-  ``fluo_path`` integrator; under Mitsuba's ``path`` the absorbed light is simply lost.
-- ``scalar_rgb``: the albedo the model implies under an equal-energy light, converted
+  fluo's bispectral interface (``BispectralBSDF`` in ``include/fluo/fluo_bispectral.h``) to the
+  wavelength-shifting ``fluo_path`` and ``fluo_volpath`` integrators; under Mitsuba's
+  ``path`` the absorbed light is simply lost (a warning says so once per scene).
+- RGB variants: the albedo the model implies under an equal-energy light, converted
   to linear sRGB the way Mitsuba converts reflectance spectra (CIE 1931, 360–830 nm):
   sRGB[r (1 − c a)] + k sRGB[c Q e ∫a], where negative channels (a saturated emission
   outside the sRGB gamut) are clipped at zero and k ≤ 1 is the largest factor keeping
@@ -109,8 +121,8 @@ What this plugin computes in each variant:
   channels, and a channel above 1 would gain energy in a closed furnace. With a
   textured ``reflectance`` the elastic part is approximated per channel as
   texture ⊙ sRGB(1 − c a)/sRGB(1) (exact for constant r), bounded the same way per hit;
-  a ``color`` bitmap serves each texel's bounded albedo. Under ``fluo_path`` the RGB
-  variant instead transports fluorescence with reduced reradiation matrices.
+  a ``color`` bitmap serves each texel's albedo. Under ``fluo_path`` the RGB
+  variants instead transport fluorescence with reduced reradiation matrices.
 
 **Textured parameters.** ``emission_peak``, ``stokes_shift``, ``concentration`` and
 ``quantum_yield`` each take a float texture (a one-channel ``bitmap``, a ``checkerboard``,
@@ -119,9 +131,9 @@ Mitsuba's plugins read float textures. The model is the one of the hit's paramet
 every variant and integrator: the reradiation c·Q·a(λi)·e(λo) is linear in c and Q and
 the elastic part (1 − c·a) r linear in c, so the plugin builds one dye shape (a, e) per
 (λe, s) pair at load and scales it per hit (``fluo_path``: per-hit wavelength shifting in
-``scalar_spectral``; in ``scalar_rgb`` each shape's reduced matrix, computed once, times
-c·Q, plus the hit's elastic part; Mitsuba's own integrators: the hit's albedo as for a
-uniform material). A filtered lookup between texels interpolates c and Q (exactly
+the spectral variants; in the RGB variants each shape's reduced matrix, computed once,
+times c·Q, plus the hit's elastic part; Mitsuba's own integrators: the hit's albedo as for
+a uniform material). A filtered lookup between texels interpolates c and Q (exactly
 the interpolated material, by linearity); λe and s take the nearest of the texture's
 validated values (emission shapes are not blended: use ``filter_type=nearest`` for
 them). What is validated at load, with the same ranges as the floats: every texel of a
@@ -133,34 +145,25 @@ values cannot be read (a procedural texture without texture children) is checked
 through its mean and maximum, and a hit's value is clamped to [0, 1]; such textures are
 refused for ``emission_peak`` and ``stokes_shift``. A parameter given as a float, or as a
 texture that does not vary, takes the uniform material's code path unchanged. With
-``coefficients`` the textured material's elastic part is the hit's r(1 − c a): in
-``scalar_rgb`` its sRGB (transported as a per-band albedo), where a uniform material's
+``coefficients`` the textured material's elastic part is the hit's r(1 − c a): in the
+RGB variants its sRGB (transported as a per-band albedo), where a uniform material's
 reduced matrix carries it spectrally.
 
-**Vectorised variants** (``llvm_ad_rgb``, ``llvm_ad_spectral``; ``fluo_jung_jit.cpp``).
-The same material, evaluated per lane with Dr.Jit types: Rust validates the parameters
-and bakes, at load and after every ``mi.traverse`` update, the dye's absorption table
-(which samples excitation wavelengths; the weights use the closed forms, so the estimator
-stays unbiased), the RGB parts and the reduced matrices; per lane the shim evaluates
-Jung's closed forms (b-spline emission, absorption mirrored over wavenumber, the sigmoid)
-and Mitsuba's reflectance texture. Rendered with ``fluo_path`` it gives the scalar
-variants' images within noise (``test_llvm.py``). ``mi.traverse`` exposes
-``concentration``, ``quantum_yield``, ``emission_peak``, ``stokes_shift`` and the
-``reflectance`` texture as differentiable parameters: in ``llvm_ad_spectral`` gradients
-reach all of them; in ``llvm_ad_rgb`` the reduced operator is M_r − c·M_ra + c·Q·M_fl
-(exact in c and Q, so their gradients and the reflectance's are exact), while the dye's
-shape (λe, s) is baked into the reduced matrices per render and gets no gradient there.
-A ``color`` texture works with nearest texels (each texel's dye, sigmoid and RGB
-albedo gathered per lane; its excitation wavelength is sampled uniformly over the texel's
-absorption band, weighted by the exact absorption: unbiased, a little noisier than the
-scalar variants' exact inversion). Textured numeric parameters work as in the scalar
-variants: per lane λe and s take the nearest of the texture's validated levels (binary
-search over them), c and Q the texture's value clamped to [0, 1]; in ``llvm_ad_rgb`` each
-dye shape's reduced reradiation matrix (at c = Q = 1, reduced once per render) is
-gathered per lane and scaled by c·Q, the elastic part being the hit's RGB albedo, as in
-``scalar_rgb``. A textured parameter is not differentiable (``mi.traverse`` lists its
-texture; the floats stay differentiable). Not yet available in these variants (a clear
-error at load): ``texel_interpolation = bilinear``.
+**Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``mi.traverse`` exposes ``concentration``,
+``quantum_yield``, ``emission_peak``, ``stokes_shift`` and the ``reflectance`` texture as
+differentiable parameters: in the spectral variants gradients reach all of them; in the RGB
+ones the reduced operator is M_r − c·M_ra + c·Q·M_fl (exact in c and Q, so their gradients
+and the reflectance's are exact), while the dye's shape (λe, s) is baked into the reduced
+matrices per render and gets no gradient there. A ``color`` texture's texels (each texel's
+dye, sigmoid and RGB albedo gathered per lane; its excitation wavelength sampled from the
+texel's absorption band) and a textured parameter are not differentiable (``mi.traverse``
+lists the texture; the floats stay differentiable). Textured numeric parameters: per lane
+λe and s take the nearest of the texture's validated levels (binary search over them), c
+and Q the texture's value clamped to [0, 1]; in the RGB variants each dye shape's reduced
+reradiation matrix (at c = Q = 1, reduced once per render) is gathered per lane and scaled
+by c·Q, the elastic part being the hit's RGB albedo. ``texel_interpolation = bilinear``
+mixes the four texels' elastic albedos with their weights and, in the spectral variants,
+draws one of them by its weight for the reradiation (unbiased for the mixture).
 
 Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, both
 ``reflectance`` and ``coefficients``, colours outside [0, 1], NaN texels, an unknown
@@ -168,7 +171,7 @@ Invalid parameters (negative yield, a Stokes shift that breaks 2λe − s > 0, b
 and the valid range.
 
 The cube's colours are those of the reflected light under CIE D65 (360–830 nm),
-Bradford-adapted to the space's white; see ``core/src/upsample/``. In ``scalar_rgb`` the
+Bradford-adapted to the space's white; see ``core/src/upsample/``. In the RGB variants the
 upsampled material is shown as Mitsuba shows any reflectance spectrum (sRGB under E).
 
 .. tabs::
@@ -212,131 +215,212 @@ upsampled material is shown as Mitsuba shows any reflectance spectrum (sRGB unde
         'emission_peak': 610.0,
         'stokes_shift': 90.0
 */
+
 template <typename Float, typename Spectrum>
-class FluoJung final : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
+class FluoJung final : public BSDF<Float, Spectrum>, public fluo_detail::BispectralBSDF<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture)
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using Dye = fluo_detail::JungDye<UnpolarizedSpectrum>;
+    using fluo_detail::BispectralBSDF<Float, Spectrum>::MaxTerms;
+    using Choice = typename fluo_detail::BispectralBSDF<Float, Spectrum>::Choice;
 
     static constexpr const char *Plugin = "fluo_jung";
+    /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
+    /// (in the b-spline coordinate, mapped to λ per lane: the table does not depend on the
+    /// dye, so parameter updates reuse the compiled kernels; the values weighting a sample
+    /// are the closed forms, the table shapes only the variance). 61 nodes: the linear
+    /// interpolant stays within 0.1 % of b's peak (|b''| ≤ 2/3, step 0.1), and a sample's
+    /// binary search takes 6 steps (601 nodes took 10, for 7 % of a fluorescent render).
+    static constexpr size_t BsplineNodes = 61;
 
     FluoJung(const Properties &props) : Base(props) {
         using namespace fluo_detail;
-        // A numeric parameter is a float (the uniform fast path) or a float texture.
+        // A numeric parameter is a float (differentiable) or a float texture (per lane).
         jung_param_textures(Plugin, props, m_config, m_param_tex);
         if (props.has_property("color"))
             init_color(props);
         else
             m_reflectance = jung_reflectance<Texture>(Plugin, props, m_config);
+        m_peak = (ScalarFloat) m_config.emission_peak;
+        m_shift = (ScalarFloat) m_config.stokes_shift;
+        m_conc = (ScalarFloat) m_config.concentration;
+        m_yield = (ScalarFloat) m_config.quantum_yield;
+        std::vector<float> b(BsplineNodes);
+        for (size_t i = 0; i < BsplineNodes; ++i)
+            b[i] = (float) fluo_detail::JungDye<double>::bspline(6.0 * (double) i / (double) (BsplineNodes - 1) - 3.0);
+        m_bspline = ContinuousDistribution<Wavelength>(ScalarVector2f(0.f, 6.f), b.data(), BsplineNodes);
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();
     }
 
     void traverse(TraversalCallback *cb) override {
+        Base::traverse(cb);
         if (m_color_mode)
             return; // everything derives from the colour and the cube
         if (m_reflectance)
-            cb->put("reflectance", m_reflectance, ParamFlags::NonDifferentiable);
-        ScalarFloat *values[NParams] = { &m_emission_peak, &m_stokes_shift, &m_concentration, &m_quantum_yield };
-        for (size_t i = 0; i < NParams; ++i) {
-            if (m_param_tex[i])
-                cb->put(ParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
+            cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
+        Float *values[fluo_detail::JungParams] = { &m_peak, &m_shift, &m_conc, &m_yield };
+        for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
+            if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load
+                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
             else
-                cb->put(ParamNames[i], *values[i], ParamFlags::NonDifferentiable);
+                cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
         }
     }
 
     void parameters_changed(const std::vector<std::string> &keys) override {
-        // Copy back only what changed, so untouched values keep their double precision.
-        auto changed = [&](const char *name) {
-            return keys.empty() || string::contains(keys, name);
-        };
+        // The JIT values keep their AD graph; Rust sees their detached values and
+        // re-bakes the tables. A rejected update restores the previous values (m_config:
+        // the members already hold the rejected ones), so the material keeps working.
         // A textured parameter's texture may have changed too: rebuild() re-reads them all.
-        fluo_detail::transactional_update(m_config, [&] {
-            if (changed("emission_peak") && !m_param_tex[Peak])  m_config.emission_peak = m_emission_peak;
-            if (changed("stokes_shift") && !m_param_tex[Shift])  m_config.stokes_shift  = m_stokes_shift;
-            if (changed("concentration") && !m_param_tex[Conc])  m_config.concentration = m_concentration;
-            if (changed("quantum_yield") && !m_param_tex[Yield]) m_config.quantum_yield = m_quantum_yield;
-        }, [&] { rebuild(); });
+        fluo::JungConfig previous = m_config;
+        try {
+            if (!m_param_tex[fluo_detail::JungPeak])
+                m_config.emission_peak = fluo_detail::host_param(Plugin, "emission_peak", m_peak);
+            if (!m_param_tex[fluo_detail::JungShift])
+                m_config.stokes_shift = fluo_detail::host_param(Plugin, "stokes_shift", m_shift);
+            if (!m_param_tex[fluo_detail::JungConc])
+                m_config.concentration = fluo_detail::host_param(Plugin, "concentration", m_conc);
+            if (!m_param_tex[fluo_detail::JungYield])
+                m_config.quantum_yield = fluo_detail::host_param(Plugin, "quantum_yield", m_yield);
+            if (m_reflectance) // a texture updated in place: its values must stay in [0, 1]
+                fluo_detail::check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
+            rebuild();
+        } catch (...) {
+            m_config = previous;
+            m_peak = (ScalarFloat) previous.emission_peak;
+            m_shift = (ScalarFloat) previous.stokes_shift;
+            m_conc = (ScalarFloat) previous.concentration;
+            m_yield = (ScalarFloat) previous.quantum_yield;
+            rebuild();
+            throw;
+        }
+        Base::parameters_changed(keys);
     }
 
     FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), this->warn_if_unmanaged(Plugin))
 
-    const fluo::Fluorescence *fluorescence() const override {
-        if (m_shapes) {
-            if (!m_shapes_fluoresce)
-                return nullptr;
-            return &fluo::jung_fluorescence(fluo::jung_shapes_model(**m_shapes, fluo::jung_shapes_representative(**m_shapes)));
-        }
-        if (m_texture_models) {
-            if (!fluo::jung_texture_is_fluorescent(**m_texture_models))
-                return nullptr;
-            return &fluo::jung_fluorescence(fluo::jung_texture_representative(**m_texture_models));
-        }
-        return fluo::jung_is_fluorescent(**m_model) ? &fluo::jung_fluorescence(**m_model) : nullptr;
+    // ------------------------------------------------ fluo_path's interface (fluo_bispectral.h)
+    bool jit_fluorescent() const override {
+        if (m_texels) // RGB: a colour texture is a plain BSDF (the colour the cube reproduces)
+            return is_spectral_v<Spectrum> && fluo::jung_texture_is_fluorescent(**m_texture);
+        if (m_shapes)
+            return m_shapes->fluoresce;
+        return fluo::jung_is_fluorescent(**m_model);
     }
-
-    const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
-        if (m_shapes) {
-            typename BispectralBSDF<Float, Spectrum>::Mixture mix;
-            fluorescence_local(si, mix);
-            return mix[0].model;
-        }
-        if (!m_texture_models)
-            return fluorescence();
-        const fluo::JungModel &m = texel_model(si);
-        return fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr;
-    }
-
-    bool fluorescence_varies() const override { return m_texture_models.has_value() || m_shapes.has_value(); }
-
-    /// Textured parameters: the dye shape of the hit's (λe, s), scaled by its c·Q.
-    size_t fluorescence_local(const SurfaceInteraction3f &si,
-                              typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
-        if (m_texture_models && m_texel_bilinear) {
-            Texels t = texels_at(si);
-            for (size_t i = 0; i < t.n; ++i) {
-                const fluo::JungModel &m = fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]);
-                out[i] = { fluo::jung_is_fluorescent(m) ? &fluo::jung_fluorescence(m) : nullptr,
-                           BispectralBSDF<Float, Spectrum>::NoIndex, 1.0, t.w[i] };
+    fluo::Range jit_emission_range() const override {
+        if (m_shapes) { // the union of the dye shapes' emission
+            fluo::Range r{ 1e30, -1e30 };
+            for (size_t i = 0; i < fluo::jung_shapes_len(**m_shapes->shapes); ++i) {
+                fluo::Range ri = fluo::fluo_emission_range(fluo::jung_fluorescence(shape(i)));
+                r = { std::min(r.lo, ri.lo), std::max(r.hi, ri.hi) };
             }
-            return t.n;
+            return r;
         }
+        return fluo::fluo_emission_range(fluo::jung_fluorescence(
+            m_texels ? fluo::jung_texture_representative(**m_texture) : **m_model));
+    }
+    fluo::Range jit_excitation_range() const override {
+        if (m_shapes || m_texels)
+            return { 0.0, 1e30 };
+        return fluo::fluo_excitation_range(fluo::jung_fluorescence(**m_model));
+    }
+    /// M = M_r − c·M_ra + c·Q·M_fl (fluo::jung_reduced_parts): exact for every c and Q.
+    /// Textured parameters: none here (jit_reduced_table holds the dye shapes' reradiation,
+    /// the elastic part is the hit's RGB albedo).
+    bool jit_reduced_matrices(const fluo::TransportBasis &transport,
+                              std::array<std::vector<double>, MaxTerms> &m) const override {
+        if (m_texels)
+            Throw("%s: a \"color\" texture has no reduced operator (it renders as its RGB albedo)", Plugin);
+        if (m_shapes)
+            return false; // (m stays 0)
+        auto slice = [](std::vector<double> &v) { return rust::Slice<double>(v.data(), v.size()); };
+        return fluo::jung_reduced_parts(**m_model, transport, slice(m[0]), slice(m[1]),
+                                        slice(m[2]));
+    }
+    std::array<Float, MaxTerms> jit_reduced_weights() const override {
+        return { Float(1.f), -m_conc, m_conc * m_yield };
+    }
+
+    /// Textured parameters: each dye shape's reduced reradiation at c = Q = 1, one per
+    /// (λe, s) pair; a hit uses its shape's, times c·Q.
+    size_t jit_reduced_table(const fluo::TransportBasis &transport, std::vector<double> &m) const override {
         if (!m_shapes)
-            return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
-        Hit h = hit_params(si, true);
-        double w = (double) h.c * (double) h.q;
-        out[0] = { w > 0.0 ? &fluo::jung_fluorescence(shape(h.shape)) : nullptr, h.shape, w, 1.0 };
-        return 1;
+            return 0;
+        size_t n = fluo::jung_shapes_len(**m_shapes->shapes), k = fluo::transport_size(transport);
+        m.assign(n * k * k, 0.0);
+        for (size_t i = 0; i < n; ++i) {
+            auto r = fluo_detail::rust_call(
+                Plugin, [&] { return fluo::reduced_new(fluo::jung_fluorescence(shape(i)), transport); });
+            if (!fluo::reduced_lambertian(*r, rust::Slice<double>(m.data() + i * k * k, k * k)))
+                Throw("%s: dye shape %zu has no Lambertian reduced operator", Plugin, i);
+        }
+        return n;
+    }
+    std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
+        Hit h = hit(si, active);
+        return { h.shape, h.t.conc * h.t.yield };
     }
 
-    size_t fluorescence_models() const override { return m_shapes ? fluo::jung_shapes_len(**m_shapes) : 0; }
-
-    const fluo::Fluorescence *fluorescence_model(size_t i) const override {
-        return m_shapes ? &fluo::jung_fluorescence(shape(i)) : nullptr;
-    }
-
-    UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
+    UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
+        if (m_texels)
+            return texel_elastic(si, active);
+        if (m_shapes)
+            return textured_elastic(si, hit(si, active), active);
         if constexpr (is_rgb_v<Spectrum>) {
-            if (m_shapes) {
-                Color3f e = textured_rgb_elastic(si, hit_params(si, true));
-                return m_reflectance ? e : dr::clip(e, 0.f, 1.f);
-            }
-            if (!m_reflectance)
-                return m_rgb_elastic_albedo;
-            UnpolarizedSpectrum r = m_reflectance->eval(si, true);
-            return m_modifies_reflectance ? r * m_rgb_elastic_scale : r;
+            if (m_reflectance)
+                return m_reflectance->eval(si, active) * dr::clip(1.f - m_conc * m_rgb_absorbed_scale, 0.f, 1.f);
+            return dr::clip(m_rgb_reflectance - m_conc * m_rgb_reflectance_absorbed, 0.f, 1.f);
         } else {
-            return albedo(si, true);
+            return reflectance(si, active) * (1.f - m_conc * Dye(m_peak, m_shift).absorption(si.wavelengths));
         }
     }
 
-    UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si, const Vector3f &wo) const override {
-        Float cos_i = Frame3f::cos_theta(si.wi), cos_o = Frame3f::cos_theta(wo);
-        if (!(cos_i > 0.f && cos_o > 0.f))
-            return 0.f;
-        return elastic_albedo(si) * dr::InvPi<Float> * cos_o;
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
+                      double range_hi, Mask active) const override {
+        const Wavelength &lambda_o = si.wavelengths;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            return this->elastic_only(lambda_o);
+        } else {
+            // Probabilities are detached: gradients flow through the values only.
+            Wavelength u2p = u2; // (its first number also picks a texel, then rescaled)
+            Texel t = m_texels   ? texel(pick_texel(si, u2p[0]), active)
+                      : m_shapes ? hit(si, active).t
+                                 : Texel{ m_peak, m_shift, m_conc, m_yield };
+            Dye dye(dr::detach(t.peak), dr::detach(t.shift));
+            fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
+            UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
+            // The excitation range: the dye's absorption band inside the lights' range, as
+            // an interval of the b-spline coordinate v (decreasing in λ).
+            Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
+            Mask overlap = active && hi > lo;
+            Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
+                  v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
+            Float cdf_a = m_bspline.eval_cdf(Wavelength(v_a), overlap)[0],
+                  mass = dr::select(overlap, m_bspline.eval_cdf(Wavelength(v_b), overlap)[0] - cdf_a, 0.f);
+            // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
+            // any positive value where the shift integrand is positive keeps the estimate
+            // unbiased; a close one keeps the variance low.
+            Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
+            UnpolarizedSpectrum wf =
+                dr::select(mass > 0.f, dr::detach(t.conc * t.yield) * dye.emission(lambda_o) * (mass * jacobian), 0.f);
+            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
+            WMask &shifted = choice.shifted;
+            // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
+            // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
+            Wavelength v = m_bspline.sample((cdf_a + u2p * mass) * m_bspline.normalization(), shifted);
+            Wavelength lambda_i = dye.lambda_of(v);
+            UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
+            UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
+            // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
+            Dye exact(t.peak, t.shift);
+            UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
+            rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
+            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0) };
+        }
     }
 
     std::string to_string() const override {
@@ -344,306 +428,394 @@ public:
         oss << "FluoJung[" << std::endl
             << "  model = " << std::string(fluo::jung_to_string(**m_model)) << "," << std::endl;
         if (m_reflectance)
-            oss << "  reflectance = " << string::indent(m_reflectance) << std::endl;
-        for (size_t i = 0; i < NParams; ++i)
-            if (m_param_tex[i])
-                oss << "  " << ParamNames[i] << " = " << string::indent(m_param_tex[i]) << "," << std::endl;
-        if (m_shapes)
-            oss << "  dye shapes = " << fluo::jung_shapes_len(**m_shapes) << " ((emission_peak, stokes_shift) pairs),"
-                << std::endl;
+            oss << "  reflectance = " << string::indent(m_reflectance) << "," << std::endl;
         if (m_color_mode)
-            oss << "  color = " << m_color_text << "," << std::endl
-                << "  cube = " << std::string(fluo::upsample_cube_describe(**m_cube)) << std::endl;
-        oss << "]";
+            oss << "  color = " << m_color_text << "," << std::endl;
+        for (size_t i = 0; i < fluo_detail::JungParams; ++i)
+            if (m_param_tex[i])
+                oss << "  " << fluo_detail::JungParamNames[i] << " = " << string::indent(m_param_tex[i]) << ","
+                    << std::endl;
+        if (m_shapes)
+            oss << "  dye shapes = " << fluo::jung_shapes_len(**m_shapes->shapes)
+                << " ((emission_peak, stokes_shift) pairs)," << std::endl;
+        oss << "  evaluation = closed forms per lane" << std::endl << "]";
         return oss.str();
     }
 
     MI_DECLARE_CLASS(FluoJung)
 
 private:
-    /// Validate the configuration in Rust and precompute what each variant needs.
-    void rebuild() {
-        init_param_textures();
-        m_model = fluo_detail::rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
-        m_build = fluo_detail::WavelengthMemo::next_build();
-        m_emission_peak = (ScalarFloat) m_config.emission_peak;
-        m_stokes_shift  = (ScalarFloat) m_config.stokes_shift;
-        m_concentration = (ScalarFloat) m_config.concentration;
-        m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
-        // c = 0 leaves the elastic part untouched: skip the Rust call per interaction.
-        m_modifies_reflectance = m_config.concentration > 0.0;
-        if constexpr (is_rgb_v<Spectrum>) {
-            auto to_color = [](const fluo::Rgb &c) {
-                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
-            };
-            // Served albedo: elastic + reradiation, bounded to [0, 1] per channel
-            // (fluo::rgb_bounded_albedo; a channel above 1 gains energy in a furnace).
-            m_rgb_albedo = to_color(fluo::jung_rgb_albedo(**m_model));
-            m_rgb_elastic_scale = to_color(fluo::jung_rgb_elastic_scale(**m_model));
-            m_rgb_fluorescence = to_color(fluo::jung_rgb_fluorescence(**m_model));
-            m_rgb_elastic_albedo = dr::clip(to_color(fluo::jung_rgb_elastic(**m_model)), 0.f, 1.f);
-            m_shape_parts.clear();
-            for (size_t i = 0; m_shapes && i < fluo::jung_shapes_len(**m_shapes); ++i)
-                m_shape_parts.push_back(fluo::jung_rgb_parts(shape(i), **m_model));
-        }
-    }
+    /// Per-texel parameters (m_texel_data) in this order.
+    enum TexelField { TPeak, TShift, TConc, TYield, TC0, TC1, TC2, TR, TG, TB, TexelFields };
+    using FloatStorage = DynamicBuffer<Float>;
 
-    /// Textured parameters: read and validate every texture's values (per texel for a
-    /// bitmap, constituent values otherwise), and build one dye shape per (λe, s) pair
-    /// the textures can combine. m_config takes a representative value of each textured
-    /// parameter, so that the base model (the sigmoid reflectance) stays valid.
-    void init_param_textures() {
-        std::optional<fluo_detail::JungShapeSet> set = fluo_detail::jung_shape_set(Plugin, m_param_tex, m_config);
-        if (!set) {
-            m_shapes.reset();
-            return;
-        }
-        m_shapes_fluoresce = set->fluoresce;
-        m_peak_levels = std::move(set->peaks);
-        m_shift_levels = std::move(set->shifts);
-        m_shapes = std::move(set->shapes);
-    }
-
-    /// A textured material's parameters at a hit: its dye shape, c and Q.
-    struct Hit {
-        size_t shape;
-        float c, q;
+    /// A hit's dye: λe, s, c, Q.
+    struct Texel {
+        Float peak, shift, conc, yield;
     };
 
-    /// Evaluate the parameter textures at si (Mitsuba's own lookup: to_uv, filtering).
-    /// c and Q enter linearly and take the texture's value (clamped to [0, 1]: a
-    /// filtered value lies between validated texels); λe and s select the nearest of
-    /// the texture's validated values, so every shape the hit uses was built at load.
-    Hit hit_params(const SurfaceInteraction3f &si, Mask active) const {
-        auto unit = [&](size_t i) {
-            if (!m_param_tex[i])
-                return (float) (i == Conc ? m_config.concentration : m_config.quantum_yield);
-            float v = m_param_tex[i]->eval_1(si, active);
-            return std::isfinite(v) ? std::clamp(v, 0.f, 1.f) : 0.f;
-        };
-        size_t pi = m_param_tex[Peak] ? fluo_detail::nearest_level(m_peak_levels, m_param_tex[Peak]->eval_1(si, active)) : 0;
-        size_t si_ = m_param_tex[Shift] ? fluo_detail::nearest_level(m_shift_levels, m_param_tex[Shift]->eval_1(si, active)) : 0;
-        return { pi * m_shift_levels.size() + si_, unit(Conc), unit(Yield) };
-    }
+    /// A textured material's parameters at a hit (hit()).
+    struct Hit {
+        UInt32 shape; ///< peak-major index of the (λe, s) pair
+        Texel t;
+    };
 
-    const fluo::JungModel &shape(size_t i) const { return fluo::jung_shapes_model(**m_shapes, i); }
-
-    /// RGB variant, textured parameters: the elastic albedo at a hit (unclamped).
-    Color3f textured_rgb_elastic(const SurfaceInteraction3f &si, const Hit &h) const {
-        const fluo::JungRgbParts &p = m_shape_parts[h.shape];
-        auto color = [](const fluo::Rgb &c) { return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b); };
-        if (m_reflectance) {
-            Color3f r = m_reflectance->eval(si, true);
-            return r * dr::clip(1.f - h.c * color(p.absorbed_scale), 0.f, 1.f);
+    /// Validate in Rust and bake what the lanes read.
+    void rebuild() {
+        using namespace fluo_detail;
+        init_param_textures();
+        m_model = rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
+        double peak = m_config.emission_peak, shift = m_config.stokes_shift;
+        m_unit = rust_call(Plugin, [&] {
+            return fluo::jung_shapes_new(rust::Slice<const double>(&peak, 1), rust::Slice<const double>(&shift, 1));
+        });
+        const fluo::JungModel &unit = fluo::jung_shapes_model(**m_unit, 0);
+        if constexpr (is_rgb_v<Spectrum>) {
+            auto color = [](const fluo::Rgb &c) {
+                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
+            };
+            fluo::JungRgbParts p = fluo::jung_rgb_parts(unit, **m_model);
+            m_rgb_reflectance = color(p.reflectance);
+            m_rgb_reflectance_absorbed = color(p.reflectance_absorbed);
+            m_rgb_absorbed_scale = color(p.absorbed_scale);
+            m_rgb_fluorescence = color(p.fluorescence);
+            if (m_shapes) { // per dye shape, gathered per lane
+                size_t n = fluo::jung_shapes_len(**m_shapes->shapes);
+                std::vector<float> parts[ShapeFields];
+                for (auto &f : parts)
+                    f.resize(n);
+                for (size_t i = 0; i < n; ++i) {
+                    fluo::JungRgbParts q = fluo::jung_rgb_parts(shape(i), **m_model);
+                    const fluo::Rgb *rgb[4] = { &q.reflectance, &q.reflectance_absorbed, &q.absorbed_scale,
+                                                &q.fluorescence };
+                    for (size_t c = 0; c < 4; ++c) {
+                        parts[3 * c][i] = (float) rgb[c]->r;
+                        parts[3 * c + 1][i] = (float) rgb[c]->g;
+                        parts[3 * c + 2][i] = (float) rgb[c]->b;
+                    }
+                }
+                for (size_t f = 0; f < ShapeFields; ++f)
+                    m_shape_parts[f] = dr::load<FloatStorage>(parts[f].data(), n);
+            }
         }
-        return color(p.reflectance) - h.c * color(p.reflectance_absorbed);
     }
 
-    /// `color`: load the cube, then look up a constant colour once or every texel of
-    /// a (raw) bitmap texture once.
+    /// Textured parameters: every texture's values validated (Rust names a bad texel) and
+    /// one dye shape per (λe, s) pair (fluo_jung_color.h); the
+    /// levels of λe and s on the device, for the per-lane nearest level.
+    void init_param_textures() {
+        m_shapes = fluo_detail::jung_shape_set(Plugin, m_param_tex, m_config);
+        if (!m_shapes)
+            return;
+        m_peak_levels = dr::load<FloatStorage>(m_shapes->peaks.data(), m_shapes->peaks.size());
+        m_shift_levels = dr::load<FloatStorage>(m_shapes->shifts.data(), m_shapes->shifts.size());
+    }
+
+    const fluo::JungModel &shape(size_t i) const { return fluo::jung_shapes_model(**m_shapes->shapes, i); }
+
+    /// A textured material's dye at a hit: λe and s the nearest of their validated levels
+    /// (every shape a hit uses was built at load), c and Q the textures' values clamped to
+    /// [0, 1] (not finite: 0), read with each texture's own eval_1.
+    Hit hit(const SurfaceInteraction3f &si, Mask active) const {
+        using namespace fluo_detail;
+        auto level = [&](JungParam p, const FloatStorage &levels, size_t n, const Float &uniform) {
+            if (!m_param_tex[p]) // its one level: the (differentiable) float
+                return std::make_pair(UInt32(0), uniform);
+            Float x = m_param_tex[p]->eval_1(si, active);
+            UInt32 i(0);
+            if (n > 1) {
+                i = dr::binary_search<UInt32>(1, (uint32_t) n - 1, [&](const UInt32 &k) {
+                        return dr::gather<Float>(levels, k, active) <= x;
+                    }) - 1;
+                Float a = dr::gather<Float>(levels, i, active), b = dr::gather<Float>(levels, i + 1, active);
+                i = dr::select(dr::isnan(x), 0u, dr::select(x - a <= b - x, i, i + 1));
+            }
+            return std::make_pair(i, Float(dr::gather<Float>(levels, i, active)));
+        };
+        auto unit = [&](JungParam p, const Float &uniform) {
+            if (!m_param_tex[p])
+                return uniform;
+            Float v = m_param_tex[p]->eval_1(si, active);
+            return dr::select(dr::isfinite(v), dr::clip(v, 0.f, 1.f), 0.f);
+        };
+        auto [ip, peak] = level(JungPeak, m_peak_levels, m_shapes->peaks.size(), m_peak);
+        auto [is, shift] = level(JungShift, m_shift_levels, m_shapes->shifts.size(), m_shift);
+        return { ip * (uint32_t) m_shapes->shifts.size() + is,
+                 Texel{ peak, shift, unit(JungConc, m_conc), unit(JungYield, m_yield) } };
+    }
+
+    /// A textured material's elastic albedo at a hit: r(λ)(1 − c a(λ)) of its dye (spectral);
+    /// in RGB its shape's parts (with a reflectance texture, the texture times
+    /// sRGB(1 − c a)/sRGB(1), else clipped to [0, 1]).
+    UnpolarizedSpectrum textured_elastic(const SurfaceInteraction3f &si, const Hit &h, Mask active) const {
+        if constexpr (is_rgb_v<Spectrum>) {
+            auto part = [&](size_t f) {
+                return Color3f(dr::gather<Float>(m_shape_parts[f], h.shape, active),
+                               dr::gather<Float>(m_shape_parts[f + 1], h.shape, active),
+                               dr::gather<Float>(m_shape_parts[f + 2], h.shape, active));
+            };
+            if (m_reflectance)
+                return m_reflectance->eval(si, active) * dr::clip(1.f - h.t.conc * part(SAbsorbedScale), 0.f, 1.f);
+            return dr::clip(part(SReflectance) - h.t.conc * part(SReflectanceAbsorbed), 0.f, 1.f);
+        } else {
+            return reflectance(si, active) * (1.f - h.t.conc * Dye(h.t.peak, h.t.shift).absorption(si.wavelengths));
+        }
+    }
+
+    /// r(λ): the reflectance texture, or the sigmoid of the coefficients.
+    UnpolarizedSpectrum reflectance(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_reflectance)
+            return m_reflectance->eval(si, active);
+        if constexpr (is_spectral_v<Spectrum>)
+            return fluo_detail::sigmoid_polynomial(si.wavelengths, m_config.c0, m_config.c1, m_config.c2);
+        else
+            return m_rgb_reflectance;
+    }
+
+    /// The albedo served to Mitsuba: the elastic part in spectral variants; in RGB ones the
+    /// elastic part plus c·Q times the unit reradiation under equal-energy light, bounded
+    /// per channel (fluo::colour::bounded_rgb_albedo's rule: negative
+    /// channels of each part clipped, the reradiation scaled by the largest k ≤ 1 keeping
+    /// every channel ≤ 1).
+    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
+        if (m_texels)
+            return texel_elastic(si, active);
+        if constexpr (is_rgb_v<Spectrum>) {
+            Color3f e = dr::clip(jit_elastic_albedo(si, active), 0.f, 1.f);
+            Color3f f = dr::maximum(m_conc * m_yield * m_rgb_fluorescence, 0.f);
+            if (m_shapes) { // the hit's dye shape, c and Q
+                Hit h = hit(si, active);
+                Color3f unit(dr::gather<Float>(m_shape_parts[SFluorescence], h.shape, active),
+                             dr::gather<Float>(m_shape_parts[SFluorescence + 1], h.shape, active),
+                             dr::gather<Float>(m_shape_parts[SFluorescence + 2], h.shape, active));
+                f = dr::maximum(h.t.conc * h.t.yield * unit, 0.f);
+            }
+            Float k = 1.f;
+            for (size_t c = 0; c < 3; ++c)
+                k = dr::select(f[c] > 0.f, dr::minimum(k, (1.f - e[c]) / f[c]), k);
+            k = dr::maximum(k, 0.f);
+            return dr::minimum(e + k * f, 1.f);
+        } else {
+            return jit_elastic_albedo(si, active);
+        }
+    }
+
+    /// `color` (a constant <rgb>): the cube's dye and sigmoid.
     void init_color(const Properties &props) {
         using namespace fluo_detail;
         JungColorOptions o = jung_color_options(Plugin, props);
         m_color_mode = true;
-        const std::string &space = o.space, &cube_file = o.cube_file;
-        m_lookup = o.lookup;
-        m_use_fluorescence = o.fluorescence;
-        m_texel_bilinear = o.bilinear;
-        m_cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
-        if (props.type("color") == Properties::Type::Color) {
-            ScalarColor3f c = props.get<ScalarColor3f>("color");
-            std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
-            m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
-            m_config = rust_call(Plugin, [&] {
-                return fluo::upsample_lookup(**m_cube, rust::Slice<const double>(rgb.data(), 3), m_lookup,
-                                             m_use_fluorescence);
-            });
+        const std::string &space = o.space, &cube_file = o.cube_file, &lookup = o.lookup;
+        bool use_fluorescence = o.fluorescence;
+        m_bilinear = o.bilinear;
+        auto cube = rust_call(Plugin, [&] { return fluo::upsample_cube_load(space, cube_file); });
+        if (o.texture) {
+            init_color_texture(props.get_texture<Texture>("color"), *cube, space, lookup, use_fluorescence);
             return;
         }
-        ref<Texture> tex = props.get_texture<Texture>("color"); // jung_color_options checked the type
+        ScalarColor3f c = props.get<ScalarColor3f>("color");
+        std::array<double, 3> rgb = { (double) c[0], (double) c[1], (double) c[2] };
+        m_color_text = tfm::format("(%g, %g, %g) %s", rgb[0], rgb[1], rgb[2], space);
+        m_config = rust_call(Plugin, [&] {
+            return fluo::upsample_lookup(*cube, rust::Slice<const double>(rgb.data(), 3), lookup, use_fluorescence);
+        });
+    }
+
+    /// A `color` texture: every texel's model, looked up once at load (Rust, the cube), and
+    /// its parameters as arrays gathered per lane at the hit's texels (texels_at; repeat
+    /// wrap). The texels are read with the texture's own eval_3 at texel centres: one wide
+    /// call in the llvm/cuda variants, one call per texel in the scalar ones.
+    void init_color_texture(const ref<Texture> &tex, const fluo::UpsampleCube &cube, const std::string &space,
+                            const std::string &lookup, bool use_fluorescence) {
+        using namespace fluo_detail;
         if (!tex->is_spatially_varying())
             Throw("%s: \"color\" is a constant texture; give it as <rgb name=\"color\" value=\"r, g, b\"/> "
                   "(or as a raw bitmap texture)", Plugin);
         ScalarVector2i res = tex->resolution();
         if (!(res.x() > 0 && res.y() > 0))
             Throw("%s: \"color\" texture has no texels", Plugin);
-        std::vector<float> texels((size_t) res.x() * (size_t) res.y() * 3);
-        SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+        size_t w = (size_t) res.x(), h = (size_t) res.y(), n = w * h;
+        std::vector<float> texels(3 * n);
         try {
-            for (int y = 0; y < res.y(); ++y)
-                for (int x = 0; x < res.x(); ++x) {
-                    si.uv = Point2f((x + .5f) / res.x(), (y + .5f) / res.y());
-                    Color3f v = tex->eval_3(si, true);
-                    size_t o = 3 * ((size_t) y * res.x() + x);
-                    texels[o] = v[0]; texels[o + 1] = v[1]; texels[o + 2] = v[2];
+            if constexpr (dr::is_jit_v<Float>) { // one wide call
+                UInt32 i = dr::arange<UInt32>((uint32_t) n);
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(n);
+                si.uv = Point2f((Float(i % (uint32_t) w) + .5f) / (float) w,
+                                (Float(i / (uint32_t) w) + .5f) / (float) h);
+                Color3f v = tex->eval_3(si, true);
+                for (size_t k = 0; k < 3; ++k) {
+                    Float channel = v[k];
+                    dr::eval(channel);
+                    dr::store(texels.data() + k * n, channel); // planar, reordered below
                 }
+            } else { // one call per texel
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
+                for (size_t t = 0; t < n; ++t) {
+                    si.uv = Point2f(((float) (t % w) + .5f) / (float) w, ((float) (t / w) + .5f) / (float) h);
+                    Color3f v = tex->eval_3(si, true);
+                    for (size_t k = 0; k < 3; ++k)
+                        texels[k * n + t] = v[k];
+                }
+            }
         } catch (const std::exception &e) {
             Throw("%s: cannot read the \"color\" texture's RGB texels (it must be a 3-channel "
                   "bitmap with <boolean name=\"raw\" value=\"true\"/>, holding linear %s): %s",
                   Plugin, space, e.what());
         }
-        m_texture_res = res;
-        m_color_text = tfm::format("texture %d x %d %s", res.x(), res.y(), space);
-        m_texture_models = rust_call(Plugin, [&] {
-            return fluo::jung_texture_new(**m_cube, (size_t) res.x(), (size_t) res.y(),
-                                          rust::Slice<const float>(texels.data(), texels.size()),
-                                          m_lookup, m_use_fluorescence);
+        std::vector<float> rgb(3 * n);
+        for (size_t t = 0; t < n; ++t)
+            for (size_t k = 0; k < 3; ++k)
+                rgb[3 * t + k] = texels[k * n + t];
+        m_texture = rust_call(Plugin, [&] {
+            return fluo::jung_texture_new(cube, w, h, rust::Slice<const float>(rgb.data(), rgb.size()), lookup,
+                                          use_fluorescence);
         });
-        m_color_text += tfm::format(", %zu distinct coefficient sets, %s texels",
-                                    fluo::jung_texture_distinct(**m_texture_models),
-                                    m_texel_bilinear ? "bilinear" : "nearest");
+        m_color_text = tfm::format("texture %zu x %zu %s, %zu distinct coefficient sets, %s texels", w, h, space,
+                                   fluo::jung_texture_distinct(**m_texture), m_bilinear ? "bilinear" : "nearest");
+        std::vector<float> fields[TexelFields];
+        for (auto &f : fields)
+            f.resize(n);
+        for (size_t t = 0; t < n; ++t) {
+            int64_t x = (int64_t) (t % w), y = (int64_t) (t / w);
+            const fluo::JungModel &m = fluo::jung_texture_model(**m_texture, x, y);
+            fluo::JungConfig c = fluo::jung_config(m);
+            fluo::Rgb a = fluo::jung_texture_rgb(**m_texture, x, y);
+            double values[TexelFields] = { c.emission_peak, c.stokes_shift, c.concentration, c.quantum_yield,
+                                           c.c0, c.c1, c.c2, a.r, a.g, a.b };
+            for (size_t k = 0; k < TexelFields; ++k)
+                fields[k][t] = (float) values[k];
+        }
+        for (size_t k = 0; k < TexelFields; ++k)
+            m_texel_data[k] = dr::load<FloatStorage>(fields[k].data(), n);
+        m_res = res;
+        m_texels = true;
+        m_config = fluo::jung_config(fluo::jung_texture_representative(**m_texture)); // for rebuild()
     }
 
-    /// texel_interpolation = bilinear: the (up to) four texels around si.uv (texel
-    /// centres, repeat wrap) with their bilinear weights (Jung et al. 2019, Fig. 12:
-    /// interpolate the texels' reradiation, not their coefficients).
-    struct Texels {
-        size_t n = 0;
-        int64_t x[4]{}, y[4]{};
-        double w[4]{};
+    /// Texel (x, y) of a colour texture, repeat wrap.
+    UInt32 texel_at(const Int32 &x, const Int32 &y) const {
+        auto wrap = [](const Int32 &i, int size) {
+            Int32 r = i % size;
+            return UInt32(dr::select(r < 0, r + size, r));
+        };
+        return wrap(y, m_res.y()) * (uint32_t) m_res.x() + wrap(x, m_res.x());
+    }
+
+    /// The texels a hit reads and their weights (summing to 1): its nearest texel, or with
+    /// texel_interpolation = bilinear the four around si.uv (texel centres) with bilinear
+    /// weights (Jung et al. 2019, Fig. 12: interpolate the texels' reradiation, not their
+    /// coefficients). uv that is not finite reads texel 0.
+    struct TexelSet {
+        UInt32 index[4];
+        Float weight[4];
+        size_t n = 1;
     };
-    Texels texels_at(const SurfaceInteraction3f &si) const {
-        Texels t;
-        if (!m_texel_bilinear) {
-            auto [x, y] = texel_of(si);
-            t.n = 1;
-            t.x[0] = x;
-            t.y[0] = y;
-            t.w[0] = 1.0;
-            return t;
+    TexelSet texels_at(const SurfaceInteraction3f &si) const {
+        TexelSet ts;
+        Mask finite = dr::isfinite(si.uv.x()) && dr::isfinite(si.uv.y());
+        if (!m_bilinear) {
+            Float u = dr::select(finite, dr::floor(si.uv.x() * (float) m_res.x()), 0.f),
+                  v = dr::select(finite, dr::floor(si.uv.y() * (float) m_res.y()), 0.f);
+            ts.index[0] = texel_at(Int32(u), Int32(v));
+            ts.weight[0] = 1.f;
+            return ts;
         }
-        double u = (double) si.uv.x() * m_texture_res.x() - 0.5, v = (double) si.uv.y() * m_texture_res.y() - 0.5;
-        if (!std::isfinite(u) || !std::isfinite(v))
-            u = v = 0.0;
-        double fu = std::floor(u), fv = std::floor(v), tu = u - fu, tv = v - fv;
+        Float u = dr::select(finite, dr::fmadd(si.uv.x(), (float) m_res.x(), -.5f), 0.f),
+              v = dr::select(finite, dr::fmadd(si.uv.y(), (float) m_res.y(), -.5f), 0.f);
+        Float fu = dr::floor(u), fv = dr::floor(v), tu = u - fu, tv = v - fv;
+        ts.n = 4;
         for (int a = 0; a < 2; ++a)
             for (int b = 0; b < 2; ++b) {
-                double w = (a ? tu : 1.0 - tu) * (b ? tv : 1.0 - tv);
-                if (!(w > 0.0))
-                    continue;
-                t.x[t.n] = (int64_t) fu + a;
-                t.y[t.n] = (int64_t) fv + b;
-                t.w[t.n++] = w;
+                ts.index[2 * a + b] = texel_at(Int32(fu) + a, Int32(fv) + b);
+                ts.weight[2 * a + b] = (a ? tu : 1.f - tu) * (b ? tv : 1.f - tv);
             }
-        return t;
+        return ts;
     }
 
-    /// Nearest texel (repeat wrap) of the colour texture at si.uv.
-    std::pair<int64_t, int64_t> texel_of(const SurfaceInteraction3f &si) const {
-        return { (int64_t) dr::floor(si.uv.x() * m_texture_res.x()),
-                 (int64_t) dr::floor(si.uv.y() * m_texture_res.y()) };
+    Float texel_field(TexelField k, const UInt32 &index, Mask active) const {
+        return dr::gather<Float>(m_texel_data[k], index, active);
     }
 
-    const fluo::JungModel &texel_model(const SurfaceInteraction3f &si) const {
-        auto [x, y] = texel_of(si);
-        return fluo::jung_texture_model(**m_texture_models, x, y);
+    Texel texel(const UInt32 &i, Mask active) const {
+        return { texel_field(TPeak, i, active), texel_field(TShift, i, active), texel_field(TConc, i, active),
+                 texel_field(TYield, i, active) };
     }
 
-    /// Directional-hemispherical albedo served to Mitsuba (see the doc comment).
-    UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
-        if (m_shapes) {
-            Hit h = hit_params(si, active);
+    /// The texel whose dye a shift at this hit uses: one of texels_at(si) drawn with its
+    /// weight by u (then rescaled to a fresh uniform number): the reradiation estimated
+    /// from the drawn texel's dye is unbiased for the weighted mixture.
+    UInt32 pick_texel(const SurfaceInteraction3f &si, Float &u) const {
+        TexelSet ts = texels_at(si);
+        UInt32 index = ts.index[0];
+        Float lo = 0.f, w = ts.weight[0], cum = ts.weight[0];
+        for (size_t j = 1; j < ts.n; ++j) {
+            dr::mask_t<Float> take = u >= cum && ts.weight[j] > 0.f;
+            index = dr::select(take, ts.index[j], index);
+            lo = dr::select(take, cum, lo);
+            w = dr::select(take, ts.weight[j], w);
+            cum += ts.weight[j];
+        }
+        u = dr::select(w > 0.f, dr::clip((u - lo) / w, 0.f, dr::OneMinusEpsilon<Float>), u);
+        return index;
+    }
+
+    /// A colour texture's elastic albedo: r(λ)(1 − c a(λ)) of the texel's sigmoid and dye
+    /// (spectral), or the texel's RGB albedo (RGB variants, as the cube reproduces it);
+    /// bilinear texels mix their texels' albedos.
+    UnpolarizedSpectrum texel_elastic(const SurfaceInteraction3f &si, Mask active) const {
+        TexelSet ts = texels_at(si);
+        UnpolarizedSpectrum out(0.f);
+        for (size_t j = 0; j < ts.n; ++j) {
+            const UInt32 &i = ts.index[j];
             if constexpr (is_rgb_v<Spectrum>) {
-                Color3f e = textured_rgb_elastic(si, h);
-                if (!(h.c > 0.f && h.q > 0.f))
-                    return m_reflectance ? e : dr::clip(e, 0.f, 1.f);
-                const fluo::JungRgbParts &p = m_shape_parts[h.shape];
-                double w = (double) h.c * (double) h.q;
-                fluo::Rgb b = fluo::rgb_bounded_albedo(fluo::Rgb{ e[0], e[1], e[2] },
-                                                       fluo::Rgb{ w * p.fluorescence.r, w * p.fluorescence.g,
-                                                                  w * p.fluorescence.b });
-                return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
+                out += ts.weight[j] *
+                       Color3f(texel_field(TR, i, active), texel_field(TG, i, active), texel_field(TB, i, active));
             } else {
-                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), a{}, r{};
-                fluo::jung_absorption(shape(h.shape), fluo_detail::slice(lambda), fluo_detail::slice_mut(a));
-                UnpolarizedSpectrum refl;
-                if (m_reflectance) {
-                    refl = m_reflectance->eval(si, active);
-                } else {
-                    fluo::jung_reflectance(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(r));
-                    refl = UnpolarizedSpectrum(r[0], r[1], r[2], r[3]);
-                }
-                return refl * (1.f - h.c * UnpolarizedSpectrum(a[0], a[1], a[2], a[3]));
+                Dye dye(texel_field(TPeak, i, active), texel_field(TShift, i, active));
+                UnpolarizedSpectrum r = fluo_detail::sigmoid_polynomial(si.wavelengths, texel_field(TC0, i, active),
+                                                                        texel_field(TC1, i, active),
+                                                                        texel_field(TC2, i, active));
+                out += ts.weight[j] * r * (1.f - texel_field(TConc, i, active) * dye.absorption(si.wavelengths));
             }
         }
-        if (m_texture_models) {
-            // the texel's value, or the bilinear mixture of the four around si
-            Texels t = texels_at(si);
-            UnpolarizedSpectrum sum(0.f);
-            for (size_t i = 0; i < t.n; ++i) {
-                if constexpr (is_rgb_v<Spectrum>) {
-                    fluo::Rgb c = fluo::jung_texture_rgb(**m_texture_models, t.x[i], t.y[i]);
-                    sum += (float) t.w[i] * Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
-                } else {
-                    std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths), out{};
-                    fluo::jung_elastic_albedo(fluo::jung_texture_model(**m_texture_models, t.x[i], t.y[i]),
-                                              fluo_detail::slice(lambda), fluo_detail::slice_mut(out));
-                    sum += (float) t.w[i] * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
-                }
-            }
-            return sum;
-        }
-        if constexpr (is_rgb_v<Spectrum>) {
-            if (!m_reflectance)
-                return m_rgb_albedo;
-            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
-            if (!m_modifies_reflectance)
-                return r;
-            Color3f e = r * m_rgb_elastic_scale;
-            fluo::Rgb b = fluo::rgb_bounded_albedo(fluo::Rgb{ e[0], e[1], e[2] },
-                                                   fluo::Rgb{ m_rgb_fluorescence[0], m_rgb_fluorescence[1],
-                                                              m_rgb_fluorescence[2] });
-            return Color3f((ScalarFloat) b.r, (ScalarFloat) b.g, (ScalarFloat) b.b);
-        } else {
-            std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths);
-            if (!m_reflectance) {
-                const std::array<float, 4> &out = fluo_detail::WavelengthMemo::get(m_build, lambda, [&](std::array<float, 4> &v) {
-                    fluo::jung_elastic_albedo(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(v));
-                });
-                return UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
-            }
-            UnpolarizedSpectrum r = m_reflectance->eval(si, active);
-            if (!m_modifies_reflectance)
-                return r;
-            const std::array<float, 4> &out = fluo_detail::WavelengthMemo::get(m_build, lambda, [&](std::array<float, 4> &v) {
-                fluo::jung_elastic_factor(**m_model, fluo_detail::slice(lambda), fluo_detail::slice_mut(v));
-            });
-            return r * UnpolarizedSpectrum(out[0], out[1], out[2], out[3]);
-        }
+        return out;
     }
 
-    /// The numeric parameters that take a texture, in the order of m_param_tex.
-    enum Param { Peak = fluo_detail::JungPeak, Shift, Conc, Yield, NParams };
-    static constexpr const char *const *ParamNames = fluo_detail::JungParamNames;
+    fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust
+    std::optional<rust::Box<fluo::JungModel>> m_model;      ///< validated at every rebuild
+    std::optional<rust::Box<fluo::JungShapes>> m_unit;      ///< the dye at c = Q = 1
+    ref<Texture> m_reflectance;                              ///< null: sigmoid coefficients
+    Float m_peak, m_shift, m_conc, m_yield;                  ///< λe, s, c, Q (differentiable)
+    ContinuousDistribution<Wavelength> m_bspline;           ///< b(v − 3) on [0, 6]: samples v
+    Color3f m_rgb_reflectance = 0.f, m_rgb_reflectance_absorbed = 0.f, m_rgb_absorbed_scale = 0.f,
+            m_rgb_fluorescence = 0.f; ///< RGB variant: fluo::JungRgbParts of the unit dye
+    bool m_color_mode = false;
+    std::string m_color_text;
+    bool m_texels = false;   ///< a `color` texture: per-texel dyes (below)
+    bool m_bilinear = false; ///< ... read with bilinear weights (else the nearest texel)
+    std::optional<rust::Box<fluo::JungTexture>> m_texture;
+    FloatStorage m_texel_data[TexelFields];
+    ScalarVector2i m_res = ScalarVector2i(0, 0);
+    // textured numeric parameters (null: the float members)
+    ref<Texture> m_param_tex[fluo_detail::JungParams];
+    std::optional<fluo_detail::JungShapeSet> m_shapes; ///< their levels and dye shapes
+    FloatStorage m_peak_levels, m_shift_levels;        ///< the levels of λe and s, sorted
+    /// RGB variant: per dye shape, fluo::JungRgbParts (reflectance, reflectance_absorbed,
+    /// absorbed_scale, fluorescence; 3 channels each)
+    enum ShapeField {
+        SReflectance = 0,
+        SReflectanceAbsorbed = 3,
+        SAbsorbedScale = 6,
+        SFluorescence = 9,
+        ShapeFields = 12
+    };
+    FloatStorage m_shape_parts[ShapeFields];
 
-    fluo::JungConfig m_config = fluo::jung_default_config(); ///< the defaults live in Rust (JungParams)
-    std::optional<rust::Box<fluo::JungModel>> m_model; ///< set by rebuild() in the constructor
-    /// This model's key in the per-thread memo of its elastic albedo/factor: a vertex
-    /// asks for it up to three times (eval_pdf, sample, fluo_path's elastic/shift
-    /// choice), and a path keeps its wavelengths until a shift.
-    uint64_t m_build = 0;
-    ref<Texture> m_reflectance;
-    ScalarFloat m_emission_peak = 0.f, m_stokes_shift = 0.f, m_concentration = 0.f,
-                m_quantum_yield = 0.f;
-    bool m_modifies_reflectance = false;
-    // `color` (wide-gamut upsampling through a coefficient cube)
-    bool m_color_mode = false, m_use_fluorescence = true;
-    bool m_texel_bilinear = false; ///< texel_interpolation = bilinear
-    std::string m_lookup, m_color_text;
-    std::optional<rust::Box<fluo::UpsampleCube>> m_cube;
-    std::optional<rust::Box<fluo::JungTexture>> m_texture_models; ///< per-texel models
-    ScalarVector2i m_texture_res = ScalarVector2i(0, 0);
-    // textured numeric parameters (null: the float in m_config)
-    ref<Texture> m_param_tex[NParams];
-    std::vector<float> m_peak_levels, m_shift_levels; ///< the validated values of λe and s
-    std::optional<rust::Box<fluo::JungShapes>> m_shapes; ///< one dye shape per (λe, s) pair
-    bool m_shapes_fluoresce = false; ///< some texel has c > 0 and some Q > 0
-    std::vector<fluo::JungRgbParts> m_shape_parts; ///< RGB variant: per dye shape
-    Color3f m_rgb_albedo = 0.f, m_rgb_elastic_scale = 1.f, m_rgb_fluorescence = 0.f,
-            m_rgb_elastic_albedo = 0.f;
+    MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,
+                   m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)
 };
 
-static const bool fluo_jung_registered =
-    (fluo_detail::register_scalar_plugin<FluoJung>("fluo_jung", ObjectType::BSDF), true);
+static const bool fluo_jung_jit_registered =
+    (fluo_detail::register_plugin<FluoJung>("fluo_jung", ObjectType::BSDF), true);
 
 NAMESPACE_END(mitsuba)

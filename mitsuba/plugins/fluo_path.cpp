@@ -1,18 +1,27 @@
-// The fluo_path integrator: Mitsuba's path tracer extended with fluorescence. Its
-// documentation is the comment below. The path loop (include/fluo/fluo_path_loop.h) is written
-// once; the two transports plug into it: wavelength shifting
-// (include/fluo/fluo_transport_spectral.h, also Mitsuba's plain path in either variant) and
-// reduced-RGB matrix throughput (include/fluo/fluo_transport_reduced.h, scalar_rgb).
+// fluo_path, one class template for every variant it serves: Mitsuba's `path` loop
+// (dr::while_loop; one kernel in the llvm/cuda variants) with fluorescence (the
+// documentation below has the estimators): per-lane wavelength shifting in spectral
+// variants, the 3×K reduced matrix throughput in RGB ones. Fluorescent BSDFs are reached
+// through dr::dispatch (a direct call in the scalar variants) and the interface of
+// fluo_bispectral.h; Rust runs once per render (the scene scan, reduced matrices).
 #include <mitsuba/core/properties.h>
+#include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/emitter.h>
 #include <mitsuba/render/integrator.h>
+#include <mitsuba/render/records.h>
+#include <mitsuba/render/scene.h>
 
+#include <array>
+#include <optional>
 #include <sstream>
 #include <string>
+#include <unordered_map>
+#include <vector>
 
 #include "fluo_common.h"
-#include "fluo_path_loop.h"
-#include "fluo_transport_reduced.h"
-#include "fluo_transport_spectral.h"
+#include "fluo_bispectral.h"
+#include "fluo_reduced.h"
+#include "fluo_path_scene.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -36,7 +45,7 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
    - Hide directly visible emitters. (Default: false)
  * - basis
    - |string|
-   - ``scalar_rgb`` only: transport basis for fluorescence, ``rgb`` (3 channels),
+   - RGB variants only: transport basis for fluorescence, ``rgb`` (3 channels),
      ``xyzu`` (CIE 1931 XYZ plus a UV band) or ``x7`` (7 bands: X split in three, Y in two,
      Z, U). (Default: ``x7``: over the ``fluo bench`` scenes its mean ΔE00 against the
      spectral reference is the lowest on average and within noise of the best on each
@@ -52,11 +61,11 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      with a plain RGB renderer. Under narrow UV lamps every basis is coarse: one UV band
      averages a dye's absorption over 300-400 nm (a brightener under a 365 nm lamp glows
      ~5x too dark in ``xyzu``/``x7``, and not at all in ``rgb``); fluo_path warns once per
-     scene when an emitter is mostly ultraviolet. Render such scenes in
-     ``scalar_spectral``.
+     scene when an emitter is mostly ultraviolet. Render such scenes in a spectral
+     variant.
  * - method
    - |string|
-   - ``scalar_rgb`` only: reduction of the reradiation, ``ours`` (dual basis, Fichet et
+   - RGB variants only: reduction of the reradiation, ``ours`` (dual basis, Fichet et
      al. 2024 eq. 15) or ``naive`` (eq. 7, for comparison only). (Default: ``ours``)
  * - lambda_min
    - |float|
@@ -67,20 +76,19 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
 Unidirectional path tracing with next-event estimation and MIS, Russian roulette and
 ``max_depth``/``rr_depth``/``hide_emitters`` exactly as Mitsuba's ``path``, extended
 with fluorescence (wavelength shifting) for fluo's bispectral BSDFs (``fluo_jung``
-and the other ``fluo_*`` materials) in ``scalar_spectral``. Like ``path`` it does not
+and the other ``fluo_*`` materials) in the spectral variants. Like ``path`` it does not
 trace participating media: a scene with media gets one warning per scene pointing to
 ``fluo_volpath`` (which renders media, fluorescent or not).
 
-**Vectorised variants.** In ``llvm_ad_spectral`` and ``llvm_ad_rgb`` (``fluo_path_jit.cpp``)
-the same estimators run inside Mitsuba's ``dr::while_loop`` (one kernel per render): per
-lane and hero wavelength the elastic/shift choice, or the 3×K matrix throughput with
-Mitsuba's RGB throughput until the first fluorescent vertex, as below. The fluorescent
-materials (``fluo_jung``, ``fluo_matrix``, ``fluo_gmm``) are reached through
-``dr::dispatch``; their probabilities are detached, their values differentiable, so
-``mi.render`` with ``params`` gives gradients of dye parameters. The scene is scanned once
-per render as below. Not yet in these variants: fluorescent materials inside wrappers
-(``twosided``, ``blendbsdf``, ``mask``, ``normalmap``, ``bumpmap``: refused at render
-start with an error).
+**Variants.** One implementation serves ``scalar_*``, ``llvm_ad_*`` and ``cuda_ad_*``:
+the estimators below run inside Mitsuba's ``dr::while_loop`` (one kernel per render in
+the llvm/cuda variants): per lane and hero wavelength the elastic/shift choice, or the
+3×K matrix throughput with Mitsuba's RGB throughput until the first fluorescent vertex.
+The fluorescent materials are reached through ``dr::dispatch`` (a direct call in the
+scalar variants) and evaluate baked tables and closed forms per lane; no variant calls
+Rust per vertex. **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials'
+probabilities are detached, their values differentiable, so ``mi.render`` with
+``params`` gives gradients of dye parameters.
 
 **Simulate only what the scene calls for.** At the start of each render the scene is
 scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface
@@ -89,9 +97,9 @@ Light exists only where emitters emit or fluorescence re-emits, so excitation is
 sampled only inside R = [max(emitters' min, lambda_min), max(emitters' max,
 emission max)]. A material whose absorption band misses R is treated as a plain
 BSDF. With nothing left, this integrator runs exactly Mitsuba's ``path`` (the same
-code, the same random numbers: identical images), in both variants.
+loop, the same random numbers: identical images), in every variant.
 
-**Fluorescence in RGB (reduced transport).** In ``scalar_rgb`` a scene with fluorescent
+**Fluorescence in RGB (reduced transport).** In the RGB variants a scene with fluorescent
 materials is rendered with matrix throughput (Fichet et al. 2024, sec. 5.1, adjoint
 transport). A camera path carries Mitsuba's RGB throughput t, exactly as ``path`` does,
 until it meets its first fluorescent vertex: light that never meets a fluorescent
@@ -134,28 +142,29 @@ of either branch's weighted integrand is its term above, and their sum is the wh
 ``p_e`` is positive exactly where ``f_e`` is and ``1 − p_e`` wherever the shift
 integrand is, so no contribution is skipped. (``w_f`` may be positive where the shift
 integrand is zero: the shift then samples nothing and the elastic branch's ``1/p_e``
-weight makes up for it, so only the variance changes. That is why ``w_f`` may come
-from a table: for materials whose ``w_f`` does not depend on ωi, it is tabulated over
-λo once per scene, exact at 1 nm nodes, interpolated between two positive nodes and
-exact elsewhere; ``fluo::shift``.) After the choice the vertex is an
-ordinary (wavelength-changing) BSDF: next-event estimation and BSDF sampling estimate
-the incident radiance L(λi, ω) with the usual MIS weights, which do not depend on
-wavelength. Each hero wavelength is an independent estimator of its camera
-wavelength's radiance, so the film's wavelength weights stay valid.
+weight makes up for it, so only the variance changes. That is why ``w_f`` may be
+approximate, as some materials' per-lane estimate is: ``fluo_jung``'s takes the
+absorption's integral over R times the Jacobian at the absorption peak.) After the
+choice the vertex is an ordinary (wavelength-changing) BSDF: next-event estimation and
+BSDF sampling estimate the incident radiance L(λi, ω) with the usual MIS weights, which
+do not depend on wavelength. Each hero wavelength is an independent estimator of its
+camera wavelength's radiance, so the film's wavelength weights stay valid.
 
-Spatially varying fluorescence (``fluo_jung`` with a ``color`` texture) is looked up
-per vertex through the bispectral interface's ``fluorescence_at(si)``: each vertex
-uses its own texel's model and intersects its excitation band with R.
+Spatially varying fluorescence (``fluo_jung`` with a ``color`` texture or textured
+parameters, ``fluo_qd`` with textured parameters, ``fluo_matrix``/``fluo_gmm`` with an
+``index`` texture) is resolved per vertex by the material's choice (the bispectral
+interface's ``jit_choose``): each vertex uses its own model and intersects its
+excitation band with R.
 
-Fluorescent materials may be wrapped in ``twosided``, ``blendbsdf`` and ``mask``
-(nested too): at each vertex the integrator resolves the wrapper to the BSDF that acts
-there — ``twosided``: the front or back child, with the local frame mirrored for the
-back side exactly as ``twosided`` does; ``blendbsdf``: child 1 with probability w(si),
-else child 0; ``mask``: the nested BSDF with probability opacity(si), else a null
-(pass-through) interaction, as ``mask`` samples it; ``normalmap`` and ``bumpmap`` (in
-the scalar variants): the nested BSDF in the perturbed shading frame, which every lobe
-of the vertex then uses (elastic and fluorescent), with the adapters' rule that a
-direction on different sides of the two frames carries nothing — and treats that child
+Fluorescent materials may be wrapped in ``twosided``, ``blendbsdf``, ``mask``,
+``normalmap`` and ``bumpmap`` (nested too; every variant): at each vertex the integrator
+resolves the wrapper, per lane, to the BSDF that acts there — ``twosided``: the front or
+back child, with the local frame mirrored for the back side exactly as ``twosided`` does;
+``blendbsdf``: child 1 with probability w(si), else child 0; ``mask``: the nested BSDF
+with probability opacity(si), else a null (pass-through) interaction, as ``mask`` samples
+it; ``normalmap`` and ``bumpmap``: the nested BSDF in the perturbed shading frame, which
+every lobe of the vertex then uses (elastic and fluorescent), with the adapters' rule
+that a direction on different sides of the two frames carries nothing — and treats that child
 as an unwrapped material. The selections are unbiased: renders equal the wrapper's within
 noise. Any other BSDF around a fluorescent one is refused with an error at render start
 (the first access the integrator has to the scene) rather than rendered without its
@@ -170,20 +179,23 @@ per scene.
             <integer name="max_depth" value="8"/>
         </integrator>
 */
+
 template <typename Float, typename Spectrum>
-class FluoPath final : public FluoPathLoop<Float, Spectrum> {
+class FluoPath final : public MonteCarloIntegrator<Float, Spectrum> {
 public:
-    MI_IMPORT_BASE(FluoPathLoop, m_max_depth, m_rr_depth)
-    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium)
-    using Spectral = SpectralTransport<Float, Spectrum>;
-    using Reduced = ReducedTransport<Float, Spectrum>;
+    MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
+    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape, Texture)
+    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
 
     static constexpr const char *Plugin = "fluo_path";
+    using Reduced = fluo_detail::ReducedTransport<Float, Spectrum>;
+    using Wrappers = fluo_detail::FluoWrappers<Float, Spectrum>;
 
     FluoPath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
-          m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
-                    fluo_detail::get_string(props, "method", "ours")) {}
+          m_reduced(Plugin, std::string(props.get<std::string_view>("basis", "x7")),
+                    std::string(props.get<std::string_view>("method", "ours"))) {}
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
@@ -192,30 +204,31 @@ public:
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
     }
 
-    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler,
-                                     const RayDifferential3f &ray, const Medium * /* medium */,
-                                     Float * /* aovs */, Bool active) const override {
+    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                     const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
+        if (unlikely(m_max_depth == 0))
+            return { 0.f, false };
         if constexpr (is_rgb_v<Spectrum>) {
-            if (m_reduced.active()) {
-                typename Reduced::Path path(m_reduced);
-                return Base::trace(scene, sampler, ray, active, path);
+            if (m_reduced.size() > 0) {
+                if (m_reduced.bands() == 3)
+                    return sample_reduced<3>(scene, sampler, ray, active);
+                if (m_reduced.bands() == 4)
+                    return sample_reduced<4>(scene, sampler, ray, active);
+                return sample_reduced<Reduced::KMax>(scene, sampler, ray, active);
             }
         }
-        typename Spectral::Path path(m_spectral);
-        return Base::trace(scene, sampler, ray, active, path);
+        return sample_spectral(scene, sampler, ray, active);
     }
 
     std::string to_string() const override {
         std::ostringstream oss;
-        fluo::Range range = m_spectral.range();
         oss << "FluoPath[" << std::endl
             << "  max_depth = " << m_max_depth << "," << std::endl
             << "  rr_depth = " << m_rr_depth << "," << std::endl
             << "  lambda_min = " << m_lambda_min << "," << std::endl
-            << "  basis = " << m_reduced.basis_name() << " (K = " << m_reduced.bands() << ")," << std::endl
-            << "  fluorescent_bsdfs = " << (is_rgb_v<Spectrum> ? m_reduced.size() : m_spectral.size()) << ","
-            << std::endl
-            << "  excitation_range = [" << range.lo << ", " << range.hi << "]" << std::endl
+            << "  basis = " << m_reduced.name() << " (K = " << m_reduced.bands() << ")," << std::endl
+            << "  fluorescent_bsdfs = " << m_bsdfs << "," << std::endl
+            << "  excitation_range = [" << m_range_lo << ", " << m_range_hi << "]" << std::endl
             << "]";
         return oss.str();
     }
@@ -223,24 +236,310 @@ public:
     MI_DECLARE_CLASS(FluoPath)
 
 private:
-    /// Scan the scene once per render for the variant's transport: fluorescent BSDFs,
-    /// their wrappers, and what the emitters emit.
+    /// Once per render: the fluorescent BSDFs and the wrappers around them, the emitters'
+    /// spectral range and, in RGB variants, reduced matrices and the emitters' basis
+    /// coefficients.
     void prepare(Scene *scene) {
         fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
-        Base::m_wrappers.clear();
-        if constexpr (is_rgb_v<Spectrum>)
-            m_reduced.prepare(scene, Base::m_wrappers);
-        else
-            m_spectral.prepare(scene, Base::m_wrappers, m_lambda_min, Plugin);
+        bool directional = false;
+        fluo::Range lights = fluo_detail::emitters_range(scene);
+        double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
+        fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
+        m_wrappers.scan(objects, Plugin);
+        std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
+        for (Bispectral *b : bsdfs)
+            hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
+        if constexpr (is_spectral_v<Spectrum>) // a band the scene's light never reaches: a plain BSDF
+            bsdfs.erase(std::remove_if(bsdfs.begin(), bsdfs.end(),
+                                       [&](Bispectral *b) {
+                                           fluo::Range ex = b->jit_excitation_range();
+                                           return !(std::max(ex.lo, lo) < std::min(ex.hi, hi));
+                                       }),
+                        bsdfs.end());
+        for (Bispectral *b : bsdfs)
+            directional |= !b->jit_lambertian();
+        if (scene->emitters().empty())
+            bsdfs.clear();
+        m_reduced.prepare(scene, bsdfs, false);
+        m_bsdfs = bsdfs.size();
+        m_range_lo = lo;
+        m_range_hi = hi;
+        m_directional = directional && m_bsdfs > 0;
+        m_varying = m_directional && m_reduced.varying();
     }
 
+    /// First intersection of a camera ray, skipping area emitters when they are hidden
+    /// (as path.cpp does at depth 0).
+    PreliminaryIntersection3f camera_intersection(const Scene *scene, const Ray3f &ray, Mask active) const {
+        PreliminaryIntersection3f pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, active);
+        if (m_hide_emitters) {
+            Mask skip = pi.is_valid() && (pi.shape->emitter() != nullptr) && active;
+            if (dr::any_or<true>(skip)) {
+                SurfaceInteraction3f si = pi.compute_surface_interaction(ray, +RayFlags::Minimal, skip);
+                PreliminaryIntersection3f behind = Base::skip_area_emitters(scene, si.spawn_ray(ray.d), true, skip);
+                pi = dr::select(skip, behind, pi);
+            }
+        }
+        return pi;
+    }
+
+    /// Emission found by a BSDF-sampled ray (as path.cpp): emitter, radiance, MIS weight.
+    template <typename State>
+    std::tuple<EmitterPtr, Spectrum, Float> hit_emission(const Scene *scene, const SurfaceInteraction3f &si,
+                                                         const State &ls) const {
+        DirectionSample3f ds(scene, si, ls.prev_si);
+        Float em_pdf = 0.f;
+        if (dr::any_or<true>(!ls.prev_bsdf_delta))
+            em_pdf = scene->pdf_emitter_direction(ls.prev_si, ds, !ls.prev_bsdf_delta);
+        return { ds.emitter, ds.emitter->eval(si, ls.prev_bsdf_pdf > 0.f), mis_weight(ls.prev_bsdf_pdf, em_pdf) };
+    }
+
+    /// Next-event estimation at a vertex with a smooth BSDF (as path.cpp): the direction
+    /// sample, the emitter's weight, the local direction and where the sample is valid.
+    std::tuple<DirectionSample3f, Spectrum, Vector3f, Mask> sample_emitter(const Scene *scene,
+                                                                           const SurfaceInteraction3f &si,
+                                                                           Sampler *sampler, const BSDFPtr &bsdf,
+                                                                           const Mask &active) const {
+        Mask active_em = active && has_flag(bsdf->flags(), BSDFFlags::Smooth);
+        DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+        Spectrum em_weight = dr::zeros<Spectrum>();
+        Vector3f wo = dr::zeros<Vector3f>();
+        if (dr::any_or<true>(active_em)) {
+            std::tie(ds, em_weight) = scene->sample_emitter_direction(si, sampler->next_2d(), true, active_em);
+            active_em &= (ds.pdf != 0.f);
+            wo = si.to_local(ds.d);
+        }
+        return { ds, em_weight, wo, active_em };
+    }
+
+    /// The loop's bookkeeping after a BSDF sample (as path.cpp): the next ray, the alpha
+    /// mask, the previous vertex for MIS, and the depth.
+    template <typename State>
+    static void advance(State &ls, const SurfaceInteraction3f &si, const BSDFSample3f &bs) {
+        ls.ray = si.spawn_ray(si.to_world(bs.wo)); // carries the (shifted) wavelengths
+        ls.eta *= bs.eta;
+        ls.valid_ray |= ls.active && si.is_valid() && !has_flag(bs.sampled_type, BSDFFlags::Null);
+        ls.prev_si = Interaction3f(si);
+        ls.prev_bsdf_pdf = bs.pdf;
+        ls.prev_bsdf_delta = has_flag(bs.sampled_type, BSDFFlags::Delta);
+        dr::masked(ls.depth, si.is_valid()) += 1;
+    }
+
+    /// Russian roulette on `throughput_max` (as path.cpp): returns where the throughput must
+    /// be scaled and by what, and ends the paths that stop.
+    template <typename State>
+    std::pair<Mask, Float> roulette(State &ls, const Float &throughput_max, const Mask &active_next) const {
+        Float rr_prob = dr::minimum(throughput_max * dr::square(ls.eta), .95f);
+        Mask rr_active = ls.depth >= m_rr_depth, rr_continue = ls.sampler->next_1d() < rr_prob;
+        ls.active = active_next && (!rr_active || rr_continue) && (throughput_max != 0.f);
+        return { rr_active, dr::rcp(dr::detach(rr_prob)) };
+    }
+
+    static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
+
+    // ------------------------------------------------------------ spectral (and no fluorescence)
+    struct LoopState {
+        Ray3f ray;
+        PreliminaryIntersection3f pi;
+        Spectrum throughput, result;
+        Float eta;
+        UInt32 depth;
+        Mask valid_ray;
+        Interaction3f prev_si;
+        Float prev_bsdf_pdf;
+        Bool prev_bsdf_delta, active;
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopState, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
+                     prev_bsdf_delta, active, sampler)
+    };
+
+    std::pair<Spectrum, Bool> sample_spectral(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                              Bool active) const {
+        LoopState ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Spectrum(1.f), Spectrum(0.f),
+                         Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
+                         dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
+        ls.pi = camera_intersection(scene, ls.ray, ls.active);
+        const bool fluorescent = is_spectral_v<Spectrum> && m_bsdfs > 0, directional = m_directional;
+        const double range_lo = m_range_lo, range_hi = m_range_hi;
+
+        dr::tie(ls) = dr::while_loop(
+            dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
+            [this, scene, fluorescent, directional, range_lo, range_hi](LoopState &ls) {
+                BSDFContext bsdf_ctx;
+                SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+
+                // ---------------------- Direct emission ----------------------
+                if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
+                    auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
+                    ls.result = dr::fmadd(ls.throughput, le * mis_bsdf, ls.result);
+                }
+
+                Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+                // a directly seen emitter is a valid sample even where the path ends here
+                ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
+                if (dr::none_or<false>(active_next)) {
+                    ls.active = active_next;
+                    return;
+                }
+                BSDFPtr bsdf = si.bsdf(ls.ray);
+                typename Wrappers::Perturbations perturbed;
+                if (!m_wrappers.empty())
+                    bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
+
+                // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
+                fluo_detail::SurfaceShift<Float, Spectrum> shift;
+                if (fluorescent)
+                    shift.choose(bsdf, si, ls.sampler, active_next, range_lo, range_hi);
+
+                // ---------------------- Emitter sampling ----------------------
+                auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
+                active_em &= perturbed.keeps_side(ds.d);
+
+                // ------ Evaluate BSDF * cos(theta) and sample direction -------
+                Float sample_1 = ls.sampler->next_1d();
+                Point2f sample_2 = ls.sampler->next_2d();
+                auto [bsdf_val, bsdf_pdf, bsdf_sample, bsdf_weight] =
+                    bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+
+                if (fluorescent)
+                    shift.apply(bsdf, si, directional, wo, bsdf_sample, active_next, bsdf_val, bsdf_weight);
+
+                if (dr::any_or<true>(active_em)) {
+                    Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                    ls.result[active_em] = dr::fmadd(ls.throughput, bsdf_val * em_weight * mis_em, ls.result);
+                }
+
+                // ---------------------- BSDF sampling ----------------------
+                ls.throughput *= bsdf_weight;
+                advance(ls, si, bsdf_sample);
+                active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
+
+                // -------------------- Stopping criterion ---------------------
+                auto [rr_active, rr_scale] = roulette(ls, dr::max(unpolarized_spectrum(ls.throughput)), active_next);
+                ls.throughput[rr_active] *= rr_scale;
+                ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+            });
+
+        return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
+    }
+
+    // ------------------------------------------------------------ RGB: reduced transport
+    template <size_t K> struct LoopStateR {
+        Ray3f ray;
+        PreliminaryIntersection3f pi;
+        Color3f t;                 ///< RGB throughput until the first fluorescent vertex
+        dr::Array<Float, 3 * K> R; ///< then the 3×K matrix throughput
+        Mask reduced;
+        Color3f result;
+        Float eta;
+        UInt32 depth;
+        Mask valid_ray;
+        Interaction3f prev_si;
+        Float prev_bsdf_pdf;
+        Bool prev_bsdf_delta, active;
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopStateR, ray, pi, t, R, reduced, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
+                     prev_bsdf_delta, active, sampler)
+    };
+
+    template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
+    template <size_t K> using Rows = typename Reduced::template Rows<K>;
+
+    template <size_t K>
+    std::pair<Spectrum, Bool> sample_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                             Bool active) const {
+        if constexpr (!is_rgb_v<Spectrum>) {
+            return { 0.f, false };
+        } else {
+            LoopStateR<K> ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Color3f(1.f),
+                                 dr::zeros<Rows<K>>(), Mask(false), Color3f(0.f), Float(1.f), UInt32(0),
+                                 Mask(!m_hide_emitters && scene->environment() != nullptr), dr::zeros<Interaction3f>(),
+                                 Float(1.f), Bool(true), active, sampler };
+            ls.pi = camera_intersection(scene, ls.ray, ls.active);
+
+            dr::tie(ls) = dr::while_loop(
+                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
+                [this, scene](LoopStateR<K> &ls) {
+                    BSDFContext bsdf_ctx;
+                    SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+
+                    if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
+                        auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
+                        Color3f c =
+                            m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, le, emitter != nullptr);
+                        ls.result = dr::fmadd(c, mis_bsdf, ls.result);
+                    }
+
+                    Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+                    ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
+                    if (dr::none_or<false>(active_next)) {
+                        ls.active = active_next;
+                        return;
+                    }
+                    BSDFPtr bsdf = si.bsdf(ls.ray);
+                    typename Wrappers::Perturbations perturbed;
+                    if (!m_wrappers.empty())
+                        bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
+
+                    auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
+                    active_em &= perturbed.keeps_side(ds.d);
+                    Float sample_1 = ls.sampler->next_1d();
+                    Point2f sample_2 = ls.sampler->next_2d();
+                    auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+                        bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+
+                    // the matrix throughput, diag(t)·O on first entering it
+                    Rows<K> R = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+
+                    // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
+                    // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian), or a
+                    // direction-dependent lobe's R·A(ωo)·cos θo per direction (only in scenes that
+                    // hold one), its elastic part being the BSDF's own value. Towards the emitter
+                    // sample only R·A(ωo)·c (3 values) leaves the call.
+                    const bool any_em = dr::any_or<true>(active_em);
+                    Coeffs<K> c = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
+                    if (any_em)
+                        c = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+                    Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
+                    auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
+                        bsdf, si, R, c, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
+                    if (any_em) {
+                        Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                        Color3f v_red = Reduced::template apply<K>(
+                            Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)), c);
+                        v_fl += dr::select(native_elastic, v_red, 0.f);
+                        Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));
+                        ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
+                    }
+
+                    m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, R, R_fl, is_fl, native_elastic, bsdf_weight,
+                                                  Mask(true));
+
+                    advance(ls, si, bs);
+                    active_next &= perturbed.keeps_side(ls.ray.d);
+
+                    Float r_max = Reduced::template max_abs<K>(ls.R);
+                    auto [rr_active, rr_scale] = roulette(ls, dr::select(ls.reduced, r_max, dr::max(ls.t)), active_next);
+                    ls.R[rr_active] *= rr_scale;
+                    ls.t[rr_active] *= rr_scale;
+                    ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+                });
+            // Out-of-gamut colours are clipped per sample (the docs' reduced transport).
+            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+        }
+    }
+
+    double m_lambda_min = 300.0;
+    Reduced m_reduced;   ///< RGB variants: the reduced transport
+    size_t m_bsdfs = 0; ///< fluorescent BSDFs this render
+    double m_range_lo = 0.0, m_range_hi = 0.0;
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media
-    double m_lambda_min;
-    Reduced m_reduced;   ///< scalar_rgb with fluorescent materials (the basis is checked in both variants)
-    Spectral m_spectral; ///< scalar_spectral, and scalar_rgb without fluorescent materials
+    Wrappers m_wrappers;                   ///< around fluorescent BSDFs, this render
+    bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
+    bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
 };
 
-static const bool fluo_path_registered =
-    (fluo_detail::register_scalar_plugin<FluoPath>("fluo_path", ObjectType::Integrator), true);
+static const bool fluo_path_jit_registered =
+    (fluo_detail::register_plugin<FluoPath>("fluo_path", ObjectType::Integrator), true);
 
 NAMESPACE_END(mitsuba)

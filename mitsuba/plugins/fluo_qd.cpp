@@ -1,20 +1,33 @@
-#include <mitsuba/core/plugin.h>
+// fluo_qd, one class template for every variant it serves (the documentation below).
+//
+// Rust validates the parameters, builds the coating model and bakes, at load and in
+// parameters_changed(), what the plugin interpolates per lane (fluo::qd_jit_tables): on the
+// model's λ grid and JitCosNodes cosines, A_tot (the reradiation's absorption) with its running
+// integral along λ, and the coating's R_spe and pass = (T_spe (1 − A_tf))²; bilinear in
+// (cos θ, λ) they stay within 7e-4 of A_tot's peak and 1.3e-4 of R_spe and pass (Rust test
+// jit_tables_interpolate_the_model). Per lane the plugin evaluates with Dr.Jit types:
+// - the elastic lobe: Mitsuba's microfacet distribution (as roughconductor) with the Fresnel
+//   factor R_tot = R_spe + pass·F/(1 − F·R_spe) over the substrate's own F (its eta/k
+//   textures); RGB variants take R_spe and pass at the channels' wavelengths.
+// - the shift (spectral): λi | λo sampled ∝ the A_tot row nearest cos θi on the excitation
+//   interval (its CDF inverted exactly, the cell's quadratic root), weighted by the logistic
+//   emission e(λo | λi) = L(λo)/I and Q; the reradiation towards ωo is
+//   D G/(4 cos θi)·Q·A_tot(ωi·h, λi)·e(λo | λi).
+// - RGB: Rust's reduced reradiation matrices at the microfacet cosines, as a few terms
+//   s_t(cos θ)·B_t (a truncated SVD, within 1e-5), scaled by the lobe.
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/fresnel.h>
-#include <mitsuba/render/ior.h>
-#include <mitsuba/core/object.h>
 #include <mitsuba/render/microfacet.h>
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
-#include <initializer_list>
 #include <optional>
+#include <string>
 #include <vector>
 
-#include "fluo_bispectral.h"
 #include "fluo_common.h"
-#include "fluo_param_texture.h"
+#include "fluo_bispectral.h"
 #include "fluo_qd_setup.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -104,17 +117,18 @@ absorption of the film over the substrate (multiple scattering, eqs. 23–24), a
 logistic emission band centred on λQD + Sλ (Brus equation and Stokes shift). The
 physics and our reading of each equation are in the Rust core, ``core/src/models/qd/``.
 
-What this plugin computes in each variant:
+What this plugin computes in each variant (``scalar_*``, ``llvm_ad_*``, ``cuda_ad_*``;
+one class, ``fluo_qd.cpp``):
 
-- ``scalar_spectral``: the BSDF interface serves the elastic part, exactly
-  ``roughconductor`` with its Fresnel factor R replaced by
-  R_tot = R_spe + T²(1−A)²R/(1 − R R_spe) (coating coefficients from Rust). The
+- Spectral variants: the BSDF interface serves the elastic part, ``roughconductor``
+  with its Fresnel factor R replaced by R_tot = R_spe + T²(1−A)²R/(1 − R R_spe)
+  (coating coefficients from Rust's tables, the substrate's R per lane). The
   reradiation is served through fluo's bispectral interface to ``fluo_path``; under
   Mitsuba's ``path`` the absorbed light is simply lost.
-- ``scalar_rgb``: the elastic part per hit and per RGB channel, from the substrate's
+- RGB variants: the elastic part per hit and per RGB channel, from the substrate's
   own (coloured) eta/k and the coating coefficients at 611, 549 and 464 nm for the
   red, green and blue channels: a gold substrate stays gold, and with a negligible
-  coating the BSDF is ``roughconductor``'s in both variants. Under ``fluo_path`` the
+  coating the BSDF is ``roughconductor``'s in every variant. Under ``fluo_path`` the
   reradiation is added through reduced transport; its absorption tables are built
   from the substrate's spectral eta/k (a named ``material``'s data files) or, for
   RGB-valued eta/k, from the piecewise-linear spectrum through the three channel
@@ -135,8 +149,8 @@ values when it has at most 9, else on 9 nodes evenly over their range. Each mode
 baked with Q = 1 and scaled by the hit's Q (the reradiation is linear in Q: exact). A
 hit between two levels (a filtered lookup, or a density between grid nodes) mixes the
 neighbouring models with bilinear weights: ``fluo_path`` picks one of them per vertex
-with that probability in ``scalar_spectral`` (an unbiased estimate of the mixture) and
-sums their reduced matrices in ``scalar_rgb``; the elastic part is the same mixture.
+with that probability (an unbiased estimate of the mixture; in the RGB variants its
+reduced reradiation); the elastic part mixes the models' R_tot with those weights.
 Measured interpolation error of the density grid against the exact model at the cell
 centres (reradiated XYZ at normal incidence under equal-energy light, relative to Y;
 ``core/src/models/qd`` test ``texture_grid_interpolation_error``): 0.73 % with 9 nodes
@@ -163,43 +177,41 @@ models per hit): exact at every texel, and a filtered lookup between two texels 
 different roughness snaps the reradiation to the nearer one while the elastic lobe
 takes the filtered α.
 
-**Vectorised variants** (``llvm_ad_rgb``, ``llvm_ad_spectral``, and the cuda ones from the
-same code; ``fluo_qd_jit.cpp``). The same material, evaluated per lane with Dr.Jit types:
-Rust validates the parameters, builds the coating model and bakes, at load and after every
-``mi.traverse`` update, A_tot(θ, λ) with its running integral along λ and the coating's
-R_spe and (T_spe(1 − A_tf))² on the model's λ grid at 129 cosines; the shim interpolates
-them bilinearly (within 7e-4 of A_tot's peak and 1.3e-4 of R_spe, the Rust test
-``jit_tables_interpolate_the_model``), evaluates the substrate's Fresnel factor, the
-microfacet lobe and the logistic emission in closed form, samples λi | λo from the A_tot
-row nearest cos θi (exact inverse CDF) and forms the reradiation towards each direction
-from the half vector, as the scalar variants do. In ``llvm_ad_rgb`` ``fluo_path`` uses
-the scalar variant's reduced reradiation matrices at the microfacet cosines, written by
-Rust as at most three terms s_t(cos θ)·B_t (a truncated SVD, within 1e-5 of the largest
-entry for every coating tested; a warning names the error where it is not), so a lane
-interpolates three weights instead of two K×K matrices. Images equal the scalar
-variants' within noise (``test_llvm.py``). Cost against ``roughconductor`` under llvm
-``path``: the ``llvm_qd`` rows of ``benches/bench_costs.py`` (README).
-``quantum_yield`` is differentiable (the reradiation is linear in it), and in
-``llvm_ad_spectral`` so are ``radius`` and ``density`` of a uniform material: when a render
-asks for their gradient, Rust bakes the tables again at each ± 1e-3 (one-sided at the ends
-of their ranges) on the model's own λ grid, and a lane's table value and emission
-parameters carry value + (θ − detach(θ))·∂/∂θ from those differences (the same value; the
-sampling stays detached). ``test_llvm.py`` holds AD against central differences of the
-image. In ``llvm_ad_rgb`` they are baked into the reduced matrices and ``mi.traverse`` lists
-them as not differentiable, as ``alpha`` and ``width``, which can be updated (the tables
-are baked again) but carry no gradient; at ``density`` = 0 the material is
-``roughconductor`` and has no density derivative. Textured ``radius``, ``density``, ``quantum_yield``
-and ``alpha`` bake the same models on the same levels as the scalar variants (validated
-alike), each with its own tables and λ grid (with its bucket index) on the device (about
-1.4 MB per model). Per lane a hit reads its (radius, density) models at the roughness level
-nearest its alpha, with bilinear weights, and its Q: the elastic lobe uses the hit's own
-alpha and mixes its models' R_tot, as the scalar variants; the reradiation takes one model
-per vertex picked with its weight as probability (an unbiased estimate of the mixture):
-``llvm_ad_spectral`` with the first wavelength's choice number (rescaled within the model's
-share), as ``scalar_spectral`` does with a number of its own, and ``llvm_ad_rgb`` with a
-number drawn for it (``scalar_rgb`` sums the models' reduced matrices instead: the same
-mean; 3·K² gathers of the picked model's terms per vertex instead of up to four times as
-many). A textured parameter is not differentiable (``mi.traverse`` lists its texture).
+**Evaluation** (every variant). Rust validates the parameters, builds the coating model
+and bakes, at load and after every ``mi.traverse`` update, A_tot(θ, λ) with its running
+integral along λ and the coating's R_spe and (T_spe(1 − A_tf))² on the model's λ grid at
+129 cosines; the plugin interpolates them bilinearly per lane (within 7e-4 of A_tot's
+peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``), evaluates
+the substrate's Fresnel factor, the microfacet lobe and the logistic emission in closed
+form, samples λi | λo from the A_tot row nearest cos θi (exact inverse CDF) and forms the
+reradiation towards each direction from the half vector. No variant calls Rust per
+vertex. In the RGB variants ``fluo_path`` uses Rust's reduced reradiation matrices at the
+microfacet cosines, written by Rust as at most three terms s_t(cos θ)·B_t (a truncated
+SVD, within 1e-5 of the largest entry for every coating tested; a warning names the error
+where it is not), so a lane interpolates three weights instead of two K×K matrices. Cost
+against ``roughconductor`` under llvm ``path``: the ``llvm_qd`` rows of
+``benches/bench_costs.py`` (README). Textured ``radius``, ``density``, ``quantum_yield``
+and ``alpha`` bake the models described above, each with its own tables and λ grid (with
+its bucket index; about 1.4 MB per model). Per lane a hit reads its (radius, density)
+models at the roughness level nearest its alpha, with bilinear weights, and its Q: the
+elastic lobe uses the hit's own alpha and mixes its models' R_tot; the reradiation takes
+one model per vertex picked with its weight as probability (an unbiased estimate of the
+mixture): in the spectral variants with the first wavelength's choice number (rescaled
+within the model's share), in the RGB variants with a number drawn for it (3·K² gathers
+of the picked model's terms per vertex instead of up to four times as many).
+
+**Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``quantum_yield`` is differentiable (the
+reradiation is linear in it), and in the spectral variants so are ``radius`` and
+``density`` of a uniform material: when a render asks for their gradient, Rust bakes the
+tables again at each ± 1e-3 (one-sided at the ends of their ranges) on the model's own λ
+grid, and a lane's table value and emission parameters carry value + (θ − detach(θ))·∂/∂θ
+from those differences (the same value; the sampling stays detached). ``test_llvm.py``
+holds AD against central differences of the image. In the RGB variants they are baked
+into the reduced matrices and ``mi.traverse`` lists them as not differentiable, as
+``alpha`` and ``width``, which can be updated (the tables are baked again) but carry no
+gradient; at ``density`` = 0 the material is ``roughconductor`` and has no density
+derivative. A textured parameter is not differentiable (``mi.traverse`` lists its
+texture).
 
 Invalid parameters raise an error naming the parameter, its value and the valid range.
 Directions are always sampled from the visible normals.
@@ -223,100 +235,101 @@ Directions are always sampled from the visible normals.
         'radius': 1.5,
         'quantum_yield': 0.9
 */
+
 template <typename Float, typename Spectrum>
-class FluoQd final : public BSDF<Float, Spectrum>, public BispectralBSDF<Float, Spectrum> {
+class FluoQd final : public BSDF<Float, Spectrum>, public fluo_detail::BispectralBSDF<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(BSDF, m_flags, m_components)
     MI_IMPORT_TYPES(Texture, MicrofacetDistribution)
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using FloatStorage = DynamicBuffer<Float>;
+    using UInt32Storage = DynamicBuffer<UInt32>;
+    using Setup = fluo_detail::QdSetup<Float, Spectrum>;
+    using Tex = fluo_detail::QdTextures<Float, Spectrum>;
+    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
+    using Bispectral::MaxTerms;
+    using Choice = typename Bispectral::Choice;
+    /// A textured hit mixes at most four models: two radii by two densities.
+    static constexpr size_t MaxCorners = 4;
 
     static constexpr const char *Plugin = "fluo_qd";
-    using Samples = fluo_detail::QdSamples;
-    static constexpr const float *RgbWavelengths = fluo_detail::QdSetup<Float, Spectrum>::RgbWavelengths;
-    using Tex = fluo_detail::QdTextures<Float, Spectrum>;
+    /// Rows of the interpolated tables, uniform in cos θ (the Rust test measures the error at
+    /// this many; 4·129·~530 floats per table).
+    static constexpr size_t JitCosNodes = 129;
 
     FluoQd(const Properties &props) : Base(props) {
-        using namespace fluo_detail;
-        fluo::QdConfig &c = m_config; // starts as fluo::qd_default_config(): the defaults live in Rust
-        // radius, density, quantum_yield, alpha: a float (the uniform fast path) or a float
-        // texture; a texture that does not vary is read once as its float.
-        m_tex.read(props, c);
+        m_tex.read(props, m_config);
         m_setup.parse(props, m_config, [&](const char *name) { return m_tex.textured(name); });
         m_type = m_config.ggx ? MicrofacetType::GGX : MicrofacetType::Beckmann;
-
         m_flags = BSDFFlags::GlossyReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();
+        sync_members();
     }
 
+    /// A textured parameter is listed as its texture (not differentiable).
     void traverse(TraversalCallback *cb) override {
-        ScalarFloat *values[Tex::NParams] = { &m_radius, &m_density, &m_quantum_yield, &m_alpha };
-        for (size_t i = 0; i < Tex::NParams; ++i) {
+        Base::traverse(cb);
+        if (m_tex.tex[Tex::Yield])
+            cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
+        else
+            cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
+        // radius and density: differentiable in the spectral variants of a uniform material
+        // (tangents()); RGB bakes them into its reduced matrices
+        auto flag = is_spectral_v<Spectrum> && !m_tex.any() ? ParamFlags::Differentiable
+                                                            : ParamFlags::NonDifferentiable;
+        for (auto [i, value] : { std::pair{ Tex::Radius, &m_radius }, std::pair{ Tex::Density, &m_density } }) {
             if (m_tex.tex[i])
                 cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
             else
-                cb->put(Tex::Names[i], *values[i], ParamFlags::NonDifferentiable);
+                cb->put(Tex::Names[i], *value, flag);
         }
+        if (m_tex.tex[Tex::Alpha])
+            cb->put("alpha", m_tex.tex[Tex::Alpha], ParamFlags::NonDifferentiable);
+        else
+            cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
     }
 
+    /// Rust validates the new values and bakes the tables again (textured parameters: their
+    /// textures are read again); a rejected update restores the previous ones, so the
+    /// material keeps working. Q keeps its AD graph (the reradiation is linear in it).
     void parameters_changed(const std::vector<std::string> &keys) override {
-        auto changed = [&](const char *name) { return keys.empty() || string::contains(keys, name); };
-        fluo_detail::transactional_update(m_config, [&] {
-            // textured parameters: rebuild() re-reads their textures
-            if (changed("radius") && !m_tex.tex[Tex::Radius])       m_config.radius = m_radius;
-            if (changed("width"))                                    m_config.width = m_width;
-            if (changed("quantum_yield") && !m_tex.tex[Tex::Yield]) m_config.quantum_yield = m_quantum_yield;
-            if (changed("density") && !m_tex.tex[Tex::Density])     m_config.density = m_density;
-            if (changed("alpha") && !m_tex.tex[Tex::Alpha])         m_config.alpha = m_alpha;
-        }, [&] { rebuild(); });
+        fluo::QdConfig previous = m_config;
+        try {
+            if (!m_tex.tex[Tex::Yield])
+                m_config.quantum_yield = fluo_detail::host_param(Plugin, "quantum_yield", m_q);
+            if (!m_tex.tex[Tex::Radius])
+                m_config.radius = fluo_detail::host_param(Plugin, "radius", m_radius);
+            if (!m_tex.tex[Tex::Density])
+                m_config.density = fluo_detail::host_param(Plugin, "density", m_density);
+            if (!m_tex.tex[Tex::Alpha])
+                m_config.alpha = m_alpha;
+            m_config.width = m_width;
+            rebuild();
+            // gradients asked for (an optimiser's update): the tangents now, outside any trace
+            tangents();
+        } catch (...) {
+            m_config = previous;
+            rebuild();
+            sync_members();
+            throw;
+        }
+        Base::parameters_changed(keys);
     }
 
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                              Float /* sample1 */, const Point2f &sample2,
                                              Mask active) const override {
         this->warn_if_unmanaged(Plugin);
-        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
-        Float cos_theta_i = Frame3f::cos_theta(si.wi);
-        active &= cos_theta_i > 0.f;
-        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
-            return { bs, 0.f };
-
-        Float alpha = alpha_at(si, active);
-        MicrofacetDistribution distr(m_type, alpha, alpha, true);
-        Normal3f m;
-        std::tie(m, bs.pdf) = distr.sample(si.wi, sample2);
-        bs.wo = reflect(si.wi, m);
-        bs.eta = 1.f;
-        bs.sampled_component = 0;
-        bs.sampled_type = +BSDFFlags::GlossyReflection;
-        active &= (bs.pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
-        if (!active)
-            return { bs, 0.f };
-
-        UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m);
-        bs.pdf /= 4.f * dr::dot(bs.wo, m);
-        UnpolarizedSpectrum F = fresnel_value(si, dr::dot(si.wi, m), active);
-        return { bs, depolarizer<Spectrum>(F * weight) };
+        return sample_with(ctx, si, sample2, active, hit(si, active, true));
     }
 
     Spectrum eval(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
                   Mask active) const override {
-        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
-        active &= cos_theta_i > 0.f && cos_theta_o > 0.f;
-        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
-            return 0.f;
-
-        Vector3f H = dr::normalize(wo + si.wi);
-        Float alpha = alpha_at(si, active);
-        MicrofacetDistribution distr(m_type, alpha, alpha, true);
-        Float D = distr.eval(H);
-        if (D == 0.f)
-            return 0.f;
-        Float G = distr.G(si.wi, wo, H);
-        UnpolarizedSpectrum result = D * G / (4.f * cos_theta_i);
-        return depolarizer<Spectrum>(fresnel_value(si, dr::dot(si.wi, H), active) * result);
+        return eval_pdf_with(ctx, si, wo, active, hit(si, active, true)).first;
     }
 
     Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
@@ -324,92 +337,246 @@ public:
         Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
         Vector3f m = dr::normalize(wo + si.wi);
         active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, m) > 0.f && dr::dot(wo, m) > 0.f;
-        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
+        if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
             return 0.f;
-        Float alpha = alpha_at(si, active);
+        Float alpha = elastic_alpha(param(si, Tex::Alpha, active));
         MicrofacetDistribution distr(m_type, alpha, alpha, true);
-        return distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i);
+        return dr::select(active, distr.eval(m) * distr.smith_g1(si.wi, m) / (4.f * cos_theta_i), 0.f);
     }
 
     std::pair<Spectrum, Float> eval_pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si,
                                         const Vector3f &wo, Mask active) const override {
-        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
-        Vector3f H = dr::normalize(wo + si.wi);
-        active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, H) > 0.f && dr::dot(wo, H) > 0.f;
-        if (!ctx.is_enabled(BSDFFlags::GlossyReflection) || !active)
-            return { 0.f, 0.f };
-        Float alpha = alpha_at(si, active);
-        MicrofacetDistribution distr(m_type, alpha, alpha, true);
-        Float D = distr.eval(H);
-        if (D == 0.f)
-            return { 0.f, 0.f };
-        Float smith_g1_wi = distr.smith_g1(si.wi, H);
-        Float G = smith_g1_wi * distr.smith_g1(wo, H);
-        UnpolarizedSpectrum value = D * G / (4.f * cos_theta_i);
-        UnpolarizedSpectrum F = fresnel_value(si, dr::dot(si.wi, H), active);
-        return { depolarizer<Spectrum>(F * value), D * smith_g1_wi / (4.f * cos_theta_i) };
+        return eval_pdf_with(ctx, si, wo, active, hit(si, active, true));
     }
 
-    /// The coating's model, in both variants: fluo_path shifts wavelengths with it in
-    /// scalar_spectral and reduces it per incidence angle in scalar_rgb.
-    const fluo::Fluorescence *fluorescence() const override {
-        if (!m_tex.models.empty()) // textured: a representative (the largest radius and density)
-            return m_tex.fluoresces ? &fluo::qd_fluorescence(*m_tex.models.back()) : nullptr;
-        return fluo::qd_is_fluorescent(**m_model) ? &fluo::qd_fluorescence(**m_model) : nullptr;
+    /// eval_pdf and sample sharing the hit's models and table cells.
+    std::tuple<Spectrum, Float, BSDFSample3f, Spectrum> eval_pdf_sample(const BSDFContext &ctx,
+                                                                        const SurfaceInteraction3f &si,
+                                                                        const Vector3f &wo, Float /* sample1 */,
+                                                                        const Point2f &sample2,
+                                                                        Mask active) const override {
+        this->warn_if_unmanaged(Plugin);
+        Hit h = hit(si, active, true);
+        auto [value, pdf] = eval_pdf_with(ctx, si, wo, active, h);
+        auto [bs, weight] = sample_with(ctx, si, sample2, active, h);
+        return { value, pdf, bs, weight };
     }
 
-    const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f &si) const override {
-        if (m_tex.models.empty())
-            return fluorescence();
-        typename BispectralBSDF<Float, Spectrum>::Mixture mix;
-        size_t n = fluorescence_local(si, mix);
-        for (size_t i = 0; i < n; ++i)
-            if (mix[i].model && mix[i].weight > 0.0)
-                return mix[i].model;
-        return nullptr;
+    // ------------------------------------------------ fluo_path's interface (fluo_bispectral.h)
+    bool jit_fluorescent() const override {
+        return textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(**m_model);
     }
+    /// The emission range (textured: the hull of the fluorescent models').
+    fluo::Range jit_emission_range() const override {
+        if (!textured())
+            return fluo::fluo_emission_range(fluo::qd_fluorescence(**m_model));
+        std::vector<const fluo::Fluorescence *> f;
+        for (const auto &m : m_tex.models)
+            f.push_back(fluo::qd_is_fluorescent(*m) ? &fluo::qd_fluorescence(*m) : nullptr);
+        return fluo_detail::emission_hull(f);
+    }
+    fluo::Range jit_excitation_range() const override {
+        if (textured())
+            return { 0.0, 1e30 };
+        return fluo::fluo_excitation_range(fluo::qd_fluorescence(**m_model));
+    }
+    bool jit_lambertian() const override { return false; }
 
-    bool fluorescence_varies() const override { return !m_tex.models.empty(); }
-
-    /// Textured: the models of the hit's surrounding (radius, density) nodes, at the alpha
-    /// level nearest the hit's, with their bilinear weights as mixture probabilities, each
-    /// scaled by the hit's Q.
-    size_t fluorescence_local(const SurfaceInteraction3f &si,
-                              typename BispectralBSDF<Float, Spectrum>::Mixture &out) const override {
-        if (m_tex.models.empty())
-            return BispectralBSDF<Float, Spectrum>::fluorescence_local(si, out);
-        Corners c = corners(si, true);
-        for (size_t i = 0; i < c.n; ++i) {
-            const fluo::QdModel &m = *m_tex.models[c.model[i]];
-            out[i] = { fluo::qd_is_fluorescent(m) ? &fluo::qd_fluorescence(m) : nullptr, c.model[i], c.q,
-                       c.weight[i] };
+    /// No Lambertian operator: jit_reduced_nodes (jit_reduced_nodes_table) serves the reradiation.
+    bool jit_reduced_matrices(const fluo::TransportBasis &, std::array<std::vector<double>, MaxTerms> &) const override {
+        return false;
+    }
+    /// Rust's reduced matrices at the microfacet cosines, per unit Q (w_0 = Q carries it), as
+    /// at most MaxTerms terms s_t(cos θ)·B_t (a truncated SVD: within 1e-5 of the largest
+    /// entry for every coating measured; a warning says so where it is not).
+    size_t jit_reduced_nodes(const fluo::TransportBasis &transport, std::array<std::vector<double>, MaxTerms> &m,
+                             std::vector<double> &nodes) const override {
+        // fluo_path asks once per render; the reduction (17 operators) is kept per basis
+        // until the model is rebuilt.
+        std::string key = std::string(fluo::transport_label(transport)) + "/" + std::to_string(m_build);
+        if (key != m_reduced_key) {
+            size_t kk = m[0].size();
+            std::vector<double> basis;
+            double error = 0.0;
+            m_reduced_n = reduce_nodes(**m_model, m_config.quantum_yield, transport, kk, basis, m_reduced_nodes, error);
+            warn_low_rank(error, "this coating");
+            for (size_t t = 0; t < MaxTerms; ++t)
+                m_reduced_m[t].assign(basis.begin() + (std::ptrdiff_t) (t * kk),
+                                      basis.begin() + (std::ptrdiff_t) ((t + 1) * kk));
+            m_reduced_key = key;
         }
-        return c.n;
+        m = m_reduced_m;
+        nodes = m_reduced_nodes;
+        return m_reduced_n;
+    }
+    std::array<Float, MaxTerms> jit_reduced_weights() const override { return { m_q, Float(0.f), Float(0.f) }; }
+
+    /// Textured: every baked model's terms (Q = 1: the hit's Q enters the corners' weights).
+    size_t jit_reduced_nodes_table(const fluo::TransportBasis &transport, std::vector<double> &m,
+                                   std::vector<double> &nodes, size_t &n_nodes) const override {
+        if (!textured())
+            return 0;
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        std::string key = std::string(fluo::transport_label(transport)) + "/" + std::to_string(m_build) + "/table";
+        if (key != m_table_key) {
+            m_table_m.clear();
+            m_table_nodes.clear();
+            double worst = 0.0;
+            for (const auto &model : m_tex.models) {
+                std::vector<double> basis, s;
+                if (fluo::qd_is_fluorescent(*model)) {
+                    double error = 0.0;
+                    m_table_n = reduce_nodes(*model, 1.0, transport, kk, basis, s, error);
+                    worst = std::max(worst, error);
+                } else { // density 0: nothing re-emitted
+                    m_table_n = fluo::reduced_microfacet_nodes();
+                    basis.assign(MaxTerms * kk, 0.0);
+                    s.assign(m_table_n * MaxTerms, 0.0);
+                }
+                m_table_m.insert(m_table_m.end(), basis.begin(), basis.end());
+                m_table_nodes.insert(m_table_nodes.end(), s.begin(), s.end());
+            }
+            warn_low_rank(worst, "the least well held of this material's coatings");
+            m_table_key = key;
+        }
+        m = m_table_m;
+        nodes = m_table_nodes;
+        n_nodes = m_table_n;
+        return m_tex.models.size();
+    }
+    /// One of the hit's (radius, density) models at the alpha level nearest its roughness,
+    /// picked with its bilinear weight as probability by u, and the hit's Q.
+    std::pair<UInt32, Float> jit_reduced_pick(const SurfaceInteraction3f &si, const Float &u,
+                                              Mask active) const override {
+        Hit h = hit(si, active, false);
+        Pick p = pick(h, u);
+        return { p.model.index, h.q };
     }
 
-    size_t fluorescence_models() const override { return m_tex.models.size(); }
-
-    const fluo::Fluorescence *fluorescence_model(size_t i) const override {
-        return i < m_tex.models.size() ? &fluo::qd_fluorescence(*m_tex.models[i]) : nullptr;
+    /// The microfacet lobe D G/(4 cos θi) and cos θ = ωi·h (as the Rust model's lobe, at the
+    /// roughness the hit's models were baked with).
+    std::pair<Float, Float> jit_lobe(const SurfaceInteraction3f &si, const Vector3f &wo, Mask active) const override {
+        Float alpha = m_alpha_f;
+        if (textured())
+            alpha = level_alpha(fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active)));
+        return lobe(si, wo, alpha, active);
     }
 
-    /// The elastic lobe alone: eval() already serves only the elastic part.
-    UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si, const Vector3f &wo) const override {
-        return unpolarized_spectrum(eval(BSDFContext(), si, wo, true));
+    /// Smooth-surface R_tot(θi, λ) (spectral), or per RGB channel.
+    UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
+        return fresnel_value(si, dr::maximum(Frame3f::cos_theta(si.wi), 0.f), active, hit(si, active, true));
     }
 
-    /// Smooth-surface value R_tot(θi, λ): positive wherever the elastic lobe is.
-    UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const override {
-        return fresnel_value(si, dr::maximum(Frame3f::cos_theta(si.wi), 0.f), true);
+    /// Textured: one of the hit's (radius, density) models, picked with its bilinear weight
+    /// as probability by the first wavelength's u1 (then rescaled within the model's share:
+    /// still uniform for the elastic/shift choice), scaled by the hit's Q; its index is
+    /// `local` (an unbiased estimate of the mixture).
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1_, const Wavelength &u2, double range_lo,
+                      double range_hi, Mask active) const override {
+        const Wavelength &lambda_o = si.wavelengths;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) u1_, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(lambda_o);
+        } else {
+            Float cos_i = Frame3f::cos_theta(si.wi);
+            // The cells of λo serve the elastic weight and, where λo is below the range's top,
+            // the excitation interval's upper end. Fluorescent: coated.
+            Hit h = hit(si, active, false);
+            Wavelength u1 = u1_;
+            Pick p = pick(h, u1[0]);
+            const ModelAt &mo = p.model;
+            Cells cells;
+            for (size_t w = 0; w < cells.size(); ++w)
+                cells[w] = cell(mo, lambda_o[w], active);
+            u1[0] = p.u;
+            Emission em = emission_of(mo, active); // with radius's and density's gradients
+            // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
+            // weight positive where the elastic lobe is keeps the estimator unbiased; this one
+            // spares the substrate's eta/k lookups).
+            UnpolarizedSpectrum we;
+            for (size_t w = 0; w < cells.size(); ++w)
+                we[w] = dr::maximum(bilinear(m_r_tot, dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
+            // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
+            // within the model's excitation range.
+            double a_host = std::max(range_lo, (double) m_ex_lo), hi_host = std::min(range_hi, (double) m_ex_hi);
+            Float a_r = textured() ? dr::maximum((float) range_lo, em.ex_lo) : Float((float) a_host),
+                  hi_r = textured() ? dr::minimum((float) range_hi, em.ex_hi) : Float((float) hi_host);
+            Cell ca = textured() ? cell(mo, a_r, active) : host_cell(a_host),
+                 c_hi = textured() ? cell(mo, hi_r, active) : host_cell(hi_host);
+            Wavelength lambda_i = lambda_o;
+            UnpolarizedSpectrum scale(0.f), rerad(0.f);
+            WMask shifted(false);
+            // The A_tot row nearest cos θi (as the Rust model's sampling).
+            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
+            UInt32 last = mo.n - 1;
+            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
+                Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
+                Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
+                Float e_ad = dr::select(ok, emission(lo, em), 0.f), e = dr::detach(e_ad);
+                ok &= e > 0.f;
+                Mask below = lo < hi_r;
+                Cell cb = select_cell(below, cells[w], c_hi);
+                Float c_a = running(row, ca, ok), c_b = running(row, cb, ok);
+                Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
+                ok &= mass > 0.f;
+                fluo_detail::ShiftChoice<Float> choice(we[w], dr::detach(h.q) * e * mass, u1[w], active);
+                // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
+                // then the cell's quadratic root (cancellation-free form); the search runs
+                // over the longest grid, each lane's row clamped to its own.
+                Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
+                UInt32 k = dr::binary_search<UInt32>(1, grid_max() - 1, [&](const UInt32 &i) {
+                               return dr::gather<Float>(m_cdf, row + dr::minimum(i, last), ok) <= target;
+                           }) - 1;
+                k = dr::clip(k, ca.k, cb.k);
+                Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
+                Float f0 = dr::gather<Float>(m_a_tot, row + k, ok), f1 = dr::gather<Float>(m_a_tot, row + k + 1, ok);
+                Float h_ = x1 - x0;
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(m_cdf, row + k, ok));
+                Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
+                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
+                scale[w] = choice.weight(pdf, u1[w]);
+                shifted[w] = choice.shifted;
+                lambda_i[w] = dr::select(choice.shifted, x, lo);
+                rerad[w] = dr::select(choice.shifted, h.q * e_ad, 0.f); // Q·e(λo | λi), nm⁻¹
+            }
+            return { lambda_i, scale, shifted, rerad, mo.index };
+        }
+    }
+
+    /// lobe(ωi, ωo)·A_tot(ωi·h, λi)·rerad towards both directions (si.wavelengths = λi), of
+    /// the model jit_choose picked (`local`; textured: its roughness level's lobe).
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> jit_reradiation(const SurfaceInteraction3f &si,
+                                                                        const UnpolarizedSpectrum &rerad,
+                                                                        const UInt32 &local, const Vector3f &wo_a,
+                                                                        const Vector3f &wo_b,
+                                                                        Mask active) const override {
+        UnpolarizedSpectrum out_a(0.f), out_b(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            ModelAt mo = model_at(local, active);
+            Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : Float(m_alpha_f);
+            auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
+            auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
+            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                Mask on = active && rerad[w] != 0.f;
+                Cell c = cell(mo, si.wavelengths[w], on);
+                out_a[w] = rerad[w] * lobe_a * bilinear_ad(m_a_tot, &Tangents::a_tot, c_a, c, mo, on);
+                out_b[w] = rerad[w] * lobe_b * bilinear_ad(m_a_tot, &Tangents::a_tot, c_b, c, mo, on);
+            }
+        } else {
+            (void) si, (void) rerad, (void) local, (void) wo_a, (void) wo_b, (void) active;
+        }
+        return { out_a, out_b };
     }
 
     std::string to_string() const override {
         std::ostringstream oss;
         oss << "FluoQd[" << std::endl
-            << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl;
-        oss << m_tex.to_string()
+            << "  model = " << std::string(fluo::qd_to_string(**m_model)) << "," << std::endl
+            << m_tex.to_string()
             << "  eta = " << string::indent(m_setup.eta) << "," << std::endl
-            << "  k = " << string::indent(m_setup.k) << std::endl
+            << "  k = " << string::indent(m_setup.k) << "," << std::endl
+            << "  evaluation = tables per lane, " << m_rows << " x " << grid_max() << std::endl
             << "]";
         return oss.str();
     }
@@ -417,142 +584,568 @@ public:
     MI_DECLARE_CLASS(FluoQd)
 
 private:
-    /// Validate the configuration in Rust and bake the model (tables included).
+    /// λ in the table's cell k (λ_k = x0 ≤ λ ≤ λ_{k+1} = x1, clamped to the grid) at fraction f.
+    using Cell = typename fluo_detail::LaneGrid<Float>::Cell;
+    /// The cells of a hit's wavelengths (spectral; unused in RGB).
+    using Cells = std::array<Cell, dr::size_v<UnpolarizedSpectrum>>;
+    using GridAt = typename fluo_detail::LaneGridSet<Float>::At;
+
+    bool textured() const { return !m_tex.models.empty(); }
+    /// The longest λ grid of the baked models.
+    uint32_t grid_max() const { return textured() ? m_grids.n_max : m_grid.n; }
+
+    /// One baked model as a lane reads it: its tables at offset `off` ([rows][n] row major)
+    /// and its λ grid (textured; a uniform material's is m_grid, with its bucket index).
+    struct ModelAt {
+        UInt32 index, off, n;
+        GridAt grid;
+    };
+    ModelAt model_at(const UInt32 &m, const Mask &active) const {
+        if (!textured())
+            return { UInt32(0), UInt32(0), UInt32(m_grid.n), GridAt{} };
+        GridAt g = m_grids.at(m, active);
+        return { m, dr::gather<UInt32>(m_t_off, m, active), g.n, g };
+    }
+    static ModelAt select_model(const Mask &m, const ModelAt &a, const ModelAt &b) {
+        const GridAt &g = a.grid, &h = b.grid;
+        return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.n, b.n),
+                 GridAt{ dr::select(m, g.off, h.off), dr::select(m, g.n, h.n), dr::select(m, g.b_off, h.b_off),
+                         dr::select(m, g.b_n, h.b_n), dr::select(m, g.lo, h.lo), dr::select(m, g.hi, h.hi),
+                         dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) } };
+    }
+    static Cell select_cell(const Mask &m, const Cell &a, const Cell &b) {
+        return { dr::select(m, a.k, b.k), dr::select(m, a.f, b.f), dr::select(m, a.x0, b.x0),
+                 dr::select(m, a.x1, b.x1) };
+    }
+
+    /// The cell of λ in a model's grid (uniform: the bucket index, else binary search).
+    Cell cell(const ModelAt &mo, const Float &lambda, const Mask &active) const {
+        if (!textured())
+            return m_grid.cell(lambda, active);
+        Float x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
+        auto [k, x0, x1] = m_grids.cell(mo.grid, x, active);
+        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
+    }
+    /// Node k of a model's grid.
+    Float node(const ModelAt &mo, const UInt32 &k, const Mask &active) const {
+        if (!textured())
+            return dr::gather<Float>(m_grid.nodes, k, active);
+        return dr::gather<Float>(m_grids.nodes, mo.grid.off + k, active);
+    }
+    /// The cell of a wavelength known on the host (the same for every lane; uniform).
+    Cell host_cell(double lambda) const {
+        auto [k, f] = m_grid.host_cell(lambda);
+        return { UInt32((uint32_t) k), Float((float) f), Float((float) m_grid.host[k]), Float((float) m_grid.host[k + 1]) };
+    }
+
+    /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
+    /// corners at the roughness level nearest its alpha, with bilinear weights), its Q, the
+    /// elastic lobe's roughness (the hit's own) and the cells of its wavelengths in each
+    /// radius corner's grid (spectral, coated, `with_cells`).
+    struct Hit {
+        size_t n = 1, per_radius = 1; ///< corners; corner i reads cells[i / per_radius]
+        std::array<ModelAt, MaxCorners> model;
+        std::array<Float, MaxCorners> weight;
+        Float q, alpha;
+        std::array<Cells, 2> cells;
+        bool has_cells = false;
+    };
+
+    /// One of a hit's models picked with its weight as probability by u (the first with
+    /// u < the running sum of the weights, or the last with a positive weight), its cells,
+    /// and u rescaled within its share (uniform again, for reuse).
+    struct Pick {
+        ModelAt model;
+        Cells cells;
+        Float u;
+    };
+    Pick pick(const Hit &h, const Float &u) const {
+        Pick p{ h.model[0], h.cells[0], u };
+        if (h.n == 1)
+            return p;
+        Float run = 0.f;
+        Mask done = false;
+        for (size_t i = 0; i < h.n; ++i) {
+            const Float &w = h.weight[i];
+            Mask take = !done && w > 0.f;
+            p.model = select_model(take, h.model[i], p.model);
+            if (h.has_cells)
+                for (size_t j = 0; j < p.cells.size(); ++j)
+                    p.cells[j] = select_cell(take, h.cells[i / h.per_radius][j], p.cells[j]);
+            p.u = dr::select(take, dr::clip((u - run) / w, 0.f, 1.f), p.u);
+            done |= take && u < run + w;
+            run += w;
+        }
+        return p;
+    }
+
+    /// A numeric parameter at si: its texture's value (Mitsuba's own eval_1), else the float.
+    Float param(const SurfaceInteraction3f &si, size_t i, const Mask &active) const {
+        if (m_tex.tex[i])
+            return m_tex.tex[i]->eval_1(si, active);
+        return Float((float) Tex::field(m_config, i));
+    }
+    /// The roughness of alpha level i (Mitsuba's clamp of a zero roughness).
+    Float level_alpha(const UInt32 &i) const {
+        Float a((float) m_tex.alphas[0]);
+        for (size_t k = 1; k < m_tex.alphas.size(); ++k)
+            a = dr::select(i == (uint32_t) k, m_tex.alphas[k], a);
+        return dr::maximum(a, 1e-4f);
+    }
+    /// The elastic lobe's roughness given the hit's alpha (param()): its own with a textured
+    /// alpha (clamped as roughconductor clamps it), else the uniform one.
+    Float elastic_alpha(const Float &alpha) const {
+        return m_tex.tex[Tex::Alpha] ? dr::maximum(alpha, 1e-4f) : Float(m_alpha_f);
+    }
+
+    Hit hit(const SurfaceInteraction3f &si, const Mask &active, bool with_cells) const {
+        Hit h;
+        if (!textured()) {
+            h.model[0] = model_at(UInt32(0), active);
+            h.weight[0] = Float(1.f);
+            h.q = m_q;
+            h.alpha = m_alpha_f;
+        } else {
+            auto [ri, rt] = fluo_detail::lane_bracket(m_tex.radii, param(si, Tex::Radius, active));
+            auto [di, dt] = fluo_detail::lane_bracket(m_tex.densities, param(si, Tex::Density, active));
+            Float alpha = param(si, Tex::Alpha, active); // (one texture lookup for both uses)
+            UInt32 ai = fluo_detail::lane_nearest(m_tex.alphas, alpha);
+            if (m_tex.tex[Tex::Yield]) {
+                Float q = m_tex.tex[Tex::Yield]->eval_1(si, active);
+                h.q = dr::select(dr::isfinite(q), dr::clip(q, 0.f, 1.f), 0.f);
+            } else {
+                h.q = m_q; // the float (differentiable)
+            }
+            h.alpha = elastic_alpha(alpha);
+            size_t nr = m_tex.radii.size() > 1 ? 2 : 1, nd = m_tex.densities.size() > 1 ? 2 : 1;
+            uint32_t n_density = (uint32_t) m_tex.densities.size(), n_alpha = (uint32_t) m_tex.alphas.size();
+            h.n = nr * nd;
+            h.per_radius = nd;
+            for (size_t a = 0; a < nr; ++a)
+                for (size_t b = 0; b < nd; ++b) {
+                    UInt32 m = ((ri + (uint32_t) a) * n_density + (di + (uint32_t) b)) * n_alpha + ai;
+                    h.model[a * nd + b] = model_at(m, active);
+                    h.weight[a * nd + b] = (a ? rt : 1.f - rt) * (b ? dt : 1.f - dt);
+                }
+        }
+        if constexpr (is_spectral_v<Spectrum>) {
+            h.has_cells = m_coated && with_cells;
+            if (h.has_cells)
+                for (size_t a = 0; a * h.per_radius < h.n; ++a)
+                    for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
+                        h.cells[a][w] = cell(h.model[a * h.per_radius], si.wavelengths[w], active);
+        } else {
+            (void) with_cells;
+        }
+        return h;
+    }
+
+    /// The microfacet lobe D G/(4 cos θi) at roughness alpha, and cos θ = ωi·h.
+    std::pair<Float, Float> lobe(const SurfaceInteraction3f &si, const Vector3f &wo, const Float &alpha,
+                                 Mask active) const {
+        Float cos_i = Frame3f::cos_theta(si.wi);
+        Vector3f h = dr::normalize(wo + si.wi);
+        MicrofacetDistribution distr(m_type, alpha, alpha, true);
+        Float g = distr.smith_g1(si.wi, h) * distr.smith_g1(wo, h), c = dr::minimum(dr::dot(si.wi, h), 1.f);
+        Float value = distr.eval(h) * g / (4.f * cos_i);
+        active &= cos_i > 0.f && Frame3f::cos_theta(wo) > 0.f && g > 0.f && c > 0.f && dr::isfinite(value);
+        return { dr::select(active, value, 0.f), dr::select(active, c, 0.f) };
+    }
+
+    std::pair<BSDFSample3f, Spectrum> sample_with(const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                                  const Point2f &sample2, Mask active, const Hit &h) const {
+        BSDFSample3f bs = dr::zeros<BSDFSample3f>();
+        Float cos_theta_i = Frame3f::cos_theta(si.wi);
+        active &= cos_theta_i > 0.f;
+        if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
+            return { bs, 0.f };
+        MicrofacetDistribution distr(m_type, h.alpha, h.alpha, true);
+        auto [m, pdf] = distr.sample(si.wi, sample2);
+        bs.wo = reflect(si.wi, m);
+        bs.eta = 1.f;
+        bs.sampled_component = 0;
+        bs.sampled_type = +BSDFFlags::GlossyReflection;
+        active &= (pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
+        bs.pdf = dr::select(active, pdf / (4.f * dr::dot(bs.wo, m)), 0.f);
+        UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m) * fresnel_value(si, dr::dot(si.wi, m), active, h);
+        return { bs, depolarizer<Spectrum>(dr::select(active, weight, 0.f)) };
+    }
+
+    std::pair<Spectrum, Float> eval_pdf_with(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                                             Mask active, const Hit &h) const {
+        Float cos_theta_i = Frame3f::cos_theta(si.wi), cos_theta_o = Frame3f::cos_theta(wo);
+        Vector3f H = dr::normalize(wo + si.wi);
+        active &= cos_theta_i > 0.f && cos_theta_o > 0.f && dr::dot(si.wi, H) > 0.f && dr::dot(wo, H) > 0.f;
+        if (unlikely(!ctx.is_enabled(BSDFFlags::GlossyReflection) || dr::none_or<false>(active)))
+            return { 0.f, 0.f };
+        MicrofacetDistribution distr(m_type, h.alpha, h.alpha, true);
+        Float D = distr.eval(H), smith_g1_wi = distr.smith_g1(si.wi, H);
+        Float G = smith_g1_wi * distr.smith_g1(wo, H);
+        UnpolarizedSpectrum value = fresnel_value(si, dr::dot(si.wi, H), active, h) * (D * G / (4.f * cos_theta_i));
+        Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
+        return { depolarizer<Spectrum>(dr::select(active, value, 0.f)), dr::select(active, pdf, 0.f) };
+    }
+    /// A table's row (offset `row`) at the cell, linear in λ.
+    Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {
+        return dr::lerp(dr::gather<Float>(t, row + c.k, active), dr::gather<Float>(t, row + c.k + 1, active), c.f);
+    }
+    /// The running integral of row `row` (offset) of A_tot up to the cell's λ.
+    Float running(const UInt32 &row, const Cell &c, const Mask &active) const {
+        Float f0 = dr::gather<Float>(m_a_tot, row + c.k, active), f1 = dr::gather<Float>(m_a_tot, row + c.k + 1, active);
+        Float half = .5f * c.f * (c.x1 - c.x0);
+        return dr::gather<Float>(m_cdf, row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
+    }
+    /// Rows j, j + 1 around cos θ and the fraction between them.
+    std::pair<UInt32, Float> rows_at(const Float &cos_theta) const {
+        Float x = dr::clip(cos_theta, 0.f, 1.f) * (float) (m_rows - 1);
+        UInt32 j = dr::minimum(UInt32(dr::floor(x)), m_rows - 2);
+        return { j, x - Float(j) };
+    }
+    /// A model's [rows][λ] table, bilinear in (cos θ, λ).
+    Float bilinear(const FloatStorage &t, const Float &cos_theta, const Cell &c, const ModelAt &mo,
+                   const Mask &active) const {
+        auto [j, fc] = rows_at(cos_theta);
+        UInt32 r0 = mo.off + j * mo.n;
+        return dr::lerp(along(t, r0, c, active), along(t, r0 + mo.n, c, active), fc);
+    }
+    /// Spectral, uniform material: the tables' derivatives in radius (p = 0) and density
+    /// (p = 1), central differences of the tables Rust bakes at the parameter ± h on this
+    /// model's λ grid (one-sided where ± h leaves the valid range), and of the emission's
+    /// peak, scale and 1/normalisation. Built once per build when either carries a gradient:
+    /// in parameters_changed (an update after enabling it), else when a render first asks
+    /// (from the substrate's spectra kept at the build: no texture is evaluated while the
+    /// integrator traces). A value then carries value + (θ − detach(θ))·∂value/∂θ: the same
+    /// value, and its derivative for AD. Sampling stays detached.
+    struct Tangents {
+        uint64_t build = 0;
+        std::array<FloatStorage, 2> a_tot, r_spe, pass;
+        std::array<float, 2> peak{}, scale{}, inv_norm{};
+    };
+    static constexpr double TangentStep[2] = { 1e-3, 1e-3 }; ///< h: radius (nm), density
+
+    /// The tangents where radius or density carry gradients (else null).
+    const Tangents *tangents() const {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            return nullptr;
+        } else {
+            if (textured() || !(wants(0) || wants(1)))
+                return nullptr;
+            if (m_tangents.build != m_build)
+                bake_tangents();
+            return &m_tangents;
+        }
+    }
+    /// Whether radius (p = 0) or density (p = 1) carries a gradient.
+    bool wants(size_t p) const { return dr::grad_enabled(p == 0 ? m_radius : m_density); }
+    /// θ − detach(θ) of radius (p = 0) or density (p = 1): 0 with θ's gradient.
+    Float delta(size_t p) const {
+        const Float &v = p == 0 ? m_radius : m_density;
+        return v - dr::detach(v);
+    }
+
+    void bake_tangents() const {
+        const fluo_detail::QdSamples &eta = m_samples[0], &k = m_samples[1], &qd_eta = m_samples[2],
+                                     &qd_k = m_samples[3];
+        const float *rgb = Setup::RgbWavelengths;
+        std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
+        rust::Slice<const double> grid(m_grid.host.data(), m_grid.host.size());
+        Tangents t;
+        for (size_t p = 0; p < 2; ++p) {
+            // the tables at θ + s·h for s = ±1, or θ where that is out of range
+            auto at = [&](double sign, double &x) -> std::optional<fluo::QdJitTables> {
+                fluo::QdConfig c = m_config;
+                double &field = p == 0 ? c.radius : c.density;
+                x = field + sign * TangentStep[p];
+                field = x;
+                try {
+                    rust::Box<fluo::QdModel> m = fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
+                    return fluo::qd_jit_tables(*m, JitCosNodes, grid,
+                                               rust::Slice<const double>(extra.data(), extra.size()));
+                } catch (const std::exception &) {
+                    return std::nullopt;
+                }
+            };
+            double x_hi = 0.0, x_lo = 0.0;
+            std::optional<fluo::QdJitTables> hi = at(1.0, x_hi), lo = at(-1.0, x_lo);
+            if (!hi)
+                hi = at(0.0, x_hi);
+            if (!lo)
+                lo = at(0.0, x_lo);
+            if (!hi || !lo || !(x_hi > x_lo))
+                Throw("%s: no derivative tables in \"%s\" at %f", Plugin, p == 0 ? "radius" : "density",
+                      p == 0 ? m_config.radius : m_config.density);
+            double inv = 1.0 / (x_hi - x_lo);
+            auto diff = [&](const rust::Vec<double> &a, const rust::Vec<double> &b) {
+                std::vector<float> d(a.size());
+                for (size_t i = 0; i < a.size(); ++i)
+                    d[i] = (float) ((a[i] - b[i]) * inv);
+                return dr::load<FloatStorage>(d.data(), d.size());
+            };
+            t.a_tot[p] = diff(hi->a_tot, lo->a_tot);
+            t.r_spe[p] = diff(hi->r_spe, lo->r_spe);
+            t.pass[p] = diff(hi->pass, lo->pass);
+            auto inv_norm = [](const fluo::QdJitTables &x) { return x.emission_norm > 0.0 ? 1.0 / x.emission_norm : 0.0; };
+            t.peak[p] = (float) ((hi->emission_peak_nm - lo->emission_peak_nm) * inv);
+            t.scale[p] = (float) ((hi->emission_scale_nm - lo->emission_scale_nm) * inv);
+            t.inv_norm[p] = (float) ((inv_norm(*hi) - inv_norm(*lo)) * inv);
+        }
+        t.build = m_build;
+        m_tangents = std::move(t);
+    }
+
+    /// bilinear() of a table, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
+    /// carry gradients (`table`: which of Tangents' arrays).
+    Float bilinear_ad(const FloatStorage &t, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
+                      const Cell &c, const ModelAt &mo, const Mask &active) const {
+        Float v = bilinear(t, cos_theta, c, mo, active);
+        if (const Tangents *tg = tangents())
+            for (size_t p = 0; p < 2; ++p)
+                if (wants(p))
+                    v = dr::fmadd(delta(p), bilinear((tg->*table)[p], cos_theta, c, mo, active), v);
+        return v;
+    }
+
+    /// A model's [rows][3] RGB table at cos θ, per channel.
+    UnpolarizedSpectrum rgb_rows(const FloatStorage &t, const Float &cos_theta, const ModelAt &mo,
+                                 const Mask &active) const {
+        auto [j, fc] = rows_at(cos_theta);
+        UInt32 base = mo.index * (m_rows * 3) + j * 3;
+        UnpolarizedSpectrum out;
+        for (size_t ch = 0; ch < 3; ++ch)
+            out[ch] = dr::lerp(dr::gather<Float>(t, base + (uint32_t) ch, active),
+                               dr::gather<Float>(t, base + (uint32_t) (ch + 3), active), fc);
+        return out;
+    }
+
+    /// A model's logistic emission: peak, scale, 1/normalisation, the range where it is
+    /// defined and the excitation range (uniform: constants; textured: per lane).
+    struct Emission {
+        Float peak, scale, inv_norm, lmin, lmax, ex_lo, ex_hi;
+    };
+    Emission emission_of(const ModelAt &mo, const Mask &active) const {
+        if (!textured()) {
+            Emission e{ Float(m_peak), Float(m_scale), Float(m_inv_norm), Float(m_lmin), Float(m_lmax), Float(m_ex_lo),
+                        Float(m_ex_hi) };
+            if (const Tangents *t = tangents())
+                for (size_t p = 0; p < 2; ++p) {
+                    if (!wants(p))
+                        continue;
+                    Float d = delta(p);
+                    e.peak = dr::fmadd(d, t->peak[p], e.peak);
+                    e.scale = dr::fmadd(d, t->scale[p], e.scale);
+                    e.inv_norm = dr::fmadd(d, t->inv_norm[p], e.inv_norm);
+                }
+            return e;
+        }
+        Emission e;
+        Float *fields[EmissionFields] = { &e.peak, &e.scale, &e.inv_norm, &e.lmin, &e.lmax, &e.ex_lo, &e.ex_hi };
+        for (uint32_t i = 0; i < EmissionFields; ++i)
+            *fields[i] = dr::gather<Float>(m_emission, mo.index * EmissionFields + i, active);
+        return e;
+    }
+    static constexpr uint32_t EmissionFields = 7;
+
+    /// e(λo | λi) = L(λo)/I (λo > λi, within [λmin, λmax], checked by the caller): the
+    /// logistic density exp(−|u|)/(s(1 + exp(−|u|))²), u = (λo − peak)/s, as band.rs.
+    static Float emission(const Float &lambda_o, const Emission &em) {
+        Float e = dr::exp(-dr::abs((lambda_o - em.peak) / em.scale));
+        return e / (em.scale * dr::square(1.f + e)) * em.inv_norm;
+    }
+
+    /// The substrate's Fresnel factor F (its eta/k textures, as roughconductor), and with a
+    /// coating R_tot = R_spe + pass·F/(1 − F·R_spe) (eq. 23); textured: the hit's models'
+    /// values mixed with their weights.
+    UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, const Float &cos_m, const Mask &active,
+                                      const Hit &h) const {
+        dr::Complex<UnpolarizedSpectrum> eta_c(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
+        UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
+        if (!m_coated)
+            return F;
+        UnpolarizedSpectrum mixed(0.f);
+        for (size_t i = 0; i < h.n; ++i) {
+            Mask on = active && h.weight[i] > 0.f;
+            UnpolarizedSpectrum r_spe, pass;
+            if constexpr (is_spectral_v<Spectrum>) {
+                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                    const Cell &c = h.cells[i / h.per_radius][w];
+                    r_spe[w] = bilinear_ad(m_r_spe, &Tangents::r_spe, cos_m, c, h.model[i], on);
+                    pass[w] = bilinear_ad(m_pass, &Tangents::pass, cos_m, c, h.model[i], on);
+                }
+            } else {
+                r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
+                pass = rgb_rows(m_rgb_pass, cos_m, h.model[i], on);
+            }
+            UnpolarizedSpectrum v = r_spe + pass * F / dr::maximum(1.f - F * r_spe, 1e-12f);
+            mixed = h.n == 1 ? v : dr::fmadd(h.weight[i], v, mixed);
+        }
+        return mixed;
+    }
+
+    static std::vector<float> floats(const rust::Vec<double> &v) { return std::vector<float>(v.begin(), v.end()); }
+
+    /// A model's reduced reradiation at the microfacet cosines as MaxTerms terms per unit Q:
+    /// B_t into `basis` ([MaxTerms][kk]) and their weights at the nodes into `nodes`
+    /// ([n][MaxTerms]); returns n, and the truncation's error (of the largest entry) in
+    /// `error`. `q`: the model's own Q (its tables scale with it).
+    size_t reduce_nodes(const fluo::QdModel &model, double q, const fluo::TransportBasis &transport, size_t kk,
+                        std::vector<double> &basis, std::vector<double> &nodes, double &error) const {
+        size_t n = fluo::reduced_microfacet_nodes();
+        basis.assign(MaxTerms * kk, 0.0);
+        nodes.assign(n * MaxTerms, 0.0);
+        auto reduced = fluo::reduced_new(fluo::qd_fluorescence(model), transport);
+        error = fluo::reduced_microfacet_low_rank(*reduced, MaxTerms, rust::Slice<double>(basis.data(), basis.size()),
+                                                  rust::Slice<double>(nodes.data(), nodes.size()));
+        if (!(error >= 0.0) || !std::isfinite(error))
+            Throw("%s: no microfacet reduced operator", Plugin);
+        for (double &v : basis)
+            v /= q; // fluorescent: Q > 0
+        return n;
+    }
+
+    /// One warning per reduction (a textured material: its worst model) where MaxTerms terms
+    /// hold the reduced reradiation less well than expected.
+    static void warn_low_rank(double error, const char *what) {
+        if (error > fluo::reduced_low_rank_tolerance())
+            Log(Warn, "%s: the reduced reradiation of %s is held by %zu terms to %.2g of its largest entry "
+                      "(expected below %.2g): RGB renders may be off by about that much", Plugin, what, MaxTerms,
+                error, fluo::reduced_low_rank_tolerance());
+    }
+
+    /// Validate the configuration in Rust, build the model (textured: one per level triple)
+    /// and bake the tables.
     void rebuild() {
-        Samples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
+        fluo_detail::QdSamples eta, k, qd_eta, qd_k; // qd_eta, qd_k empty: built-in CdSe
         m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
-        m_tex.bake(m_config, eta, k, qd_eta, qd_k);
+        m_tex.bake(m_config, eta, k, qd_eta, qd_k); // textured: m_config takes the largest levels
+        m_samples = { eta, k, qd_eta, qd_k };       // (sampled once: the tangents reuse them)
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
-        if (fluo::qd_is_fluorescent(*model) &&
-            !m_setup.uniform_substrate())
+        bool fluorescent = textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(*model);
+        if (fluorescent && !m_setup.uniform_substrate())
             Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
                   "with a fluorescent coating: the coating's absorption tables are baked for one "
                   "substrate (the elastic part alone is evaluated per hit); give constant "
                   "\"eta\"/\"k\", or \"density\" = 0 or \"quantum_yield\" = 0",
                   Plugin);
+        const float *rgb = Setup::RgbWavelengths;
+        std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
+        std::vector<const fluo::QdModel *> models;
+        if (textured())
+            for (const auto &m : m_tex.models)
+                models.push_back(&*m);
+        else
+            models.push_back(&*model);
+        std::vector<float> a_tot, cdf, r_spe, pass, r_tot, rgb_r_spe, rgb_pass, emission;
+        std::vector<uint32_t> t_off;
+        m_grids = fluo_detail::LaneGridSet<Float>();
+        for (const fluo::QdModel *m : models) {
+            fluo::QdJitTables t =
+                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(extra.data(), extra.size()));
+            if (t.lambda.size() < 2 || t.rows < 2)
+                Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
+                      Plugin, t.lambda.size(), t.rows);
+            m_rows = (uint32_t) t.rows;
+            t_off.push_back((uint32_t) a_tot.size());
+            for (auto [dst, src] : { std::pair{ &a_tot, &t.a_tot }, std::pair{ &cdf, &t.cdf },
+                                     std::pair{ &r_spe, &t.r_spe }, std::pair{ &pass, &t.pass },
+                                     std::pair{ &r_tot, &t.r_tot }, std::pair{ &rgb_r_spe, &t.extra_r_spe },
+                                     std::pair{ &rgb_pass, &t.extra_pass } })
+                dst->insert(dst->end(), src->begin(), src->end());
+            for (double v : { t.emission_peak_nm, t.emission_scale_nm,
+                              t.emission_norm > 0.0 ? 1.0 / t.emission_norm : 0.0, t.lambda_min, t.lambda_max,
+                              t.excitation_lo, t.excitation_hi })
+                emission.push_back((float) v);
+            if (textured())
+                m_grids.add(t.lambda, true);
+            else
+                m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
+        }
+        // A hit finds its λ cells once per radius (Hit::cells): every model of one radius
+        // must share its grid (Rust's grid depends on the band, i.e. on the radius, alone).
+        for (size_t m = 0, per_radius = m_tex.densities.size() * m_tex.alphas.size(); textured() && m < models.size();
+             ++m) {
+            size_t first = m - m % per_radius;
+            if (m_grids.n[m] != m_grids.n[first] ||
+                !std::equal(m_grids.host.begin() + m_grids.off[m], m_grids.host.begin() + m_grids.off[m] + m_grids.n[m],
+                            m_grids.host.begin() + m_grids.off[first]))
+                Throw("%s: the coatings of one radius have different wavelength grids (models %zu and %zu)", Plugin,
+                      first, m);
+        }
+        if (textured()) {
+            m_grids.upload();
+            m_t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
+        }
         m_model = std::move(model);
-        m_radius = (ScalarFloat) m_config.radius;
-        m_width = (ScalarFloat) m_config.width;
-        m_quantum_yield = (ScalarFloat) m_config.quantum_yield;
-        m_density = (ScalarFloat) m_config.density;
-        m_alpha = (ScalarFloat) m_config.alpha;
+        auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
+        m_a_tot = load(a_tot);
+        m_cdf = load(cdf);
+        m_r_spe = load(r_spe);
+        m_pass = load(pass);
+        m_r_tot = load(r_tot);
+        m_rgb_r_spe = load(rgb_r_spe);
+        m_rgb_pass = load(rgb_pass);
+        m_emission = load(emission);
+        // uniform: the model's emission as constants of the kernel
+        m_peak = emission[0];
+        m_scale = emission[1];
+        m_inv_norm = emission[2];
+        m_lmin = emission[3];
+        m_lmax = emission[4];
+        m_ex_lo = emission[5];
+        m_ex_hi = emission[6];
         // Mitsuba's own clamp of a zero roughness.
         m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
-        // ρ = 0: no coating, the elastic part is exactly roughconductor's.
-        m_coated = m_config.density > 0.0 || (!m_tex.models.empty() && m_tex.densities.back() > 0.f);
-        m_uniform_substrate = m_setup.uniform_substrate();
-        m_build = fluo_detail::WavelengthMemo::next_build();
+        m_coated = m_config.density > 0.0; // textured: the largest density level
+        ++m_build;
     }
 
-    /// A textured material at a hit: up to four (radius, density) models, at the alpha
-    /// level nearest the hit's, with their bilinear weights, and the hit's Q.
-    struct Corners {
-        size_t n = 0;
-        size_t model[4]{};
-        double weight[4]{};
-        double q = 1.0;
-    };
-
-    /// Evaluate the parameter textures at si (Mitsuba's own eval_1: to_uv, filtering).
-    Corners corners(const SurfaceInteraction3f &si, Mask active) const {
-        auto value = [&](size_t i) {
-            return m_tex.tex[i] ? (float) m_tex.tex[i]->eval_1(si, active)
-                                : (float) Tex::field(m_config, i);
-        };
-        auto [ri, rt] = Tex::bracket(m_tex.radii, value(Tex::Radius));
-        auto [di, dt] = Tex::bracket(m_tex.densities, value(Tex::Density));
-        size_t ai = fluo_detail::nearest_level(m_tex.alphas, value(Tex::Alpha));
-        float q = value(Tex::Yield);
-        Corners c;
-        c.q = std::isfinite(q) ? std::clamp((double) q, 0.0, 1.0) : 0.0;
-        for (size_t a = 0; a < 2; ++a)
-            for (size_t b = 0; b < 2; ++b) {
-                double w = (a ? rt : 1.0 - rt) * (b ? dt : 1.0 - dt);
-                if (!(w > 0.0))
-                    continue;
-                c.model[c.n] = m_tex.index(ri + a, di + b, ai);
-                c.weight[c.n++] = w;
-            }
-        return c;
-    }
-
-    /// The elastic lobe's roughness at si: the hit's own with a textured alpha (clamped
-    /// as Mitsuba's roughconductor clamps it), else the uniform m_alpha_f.
-    Float alpha_at(const SurfaceInteraction3f &si, Mask active) const {
-        if (!m_tex.tex[Tex::Alpha])
-            return m_alpha_f;
-        return dr::maximum(m_tex.tex[Tex::Alpha]->eval_1(si, active), 1e-4f);
-    }
-
-    /// The substrate's Fresnel factor, times the coating's effect when coated (eq. 23).
-    UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, Float cos_m, Mask active) const {
-        dr::Complex<UnpolarizedSpectrum> eta_c;
-        if constexpr (is_spectral_v<Spectrum>) {
-            if (m_uniform_substrate) {
-                // η(λ), k(λ) of a substrate uniform over the surface: per thread, asked
-                // once for the wavelengths a vertex evaluates up to three times.
-                std::array<float, 4> lambda = fluo_detail::wavelengths_of(si.wavelengths);
-                const std::array<float, 4> &eta = fluo_detail::WavelengthMemo::get(
-                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_setup.eta->eval(si, active), v); });
-                const std::array<float, 4> &k = fluo_detail::WavelengthMemo::get(
-                    m_build, lambda, [&](std::array<float, 4> &v) { store(m_setup.k->eval(si, active), v); });
-                eta_c = dr::Complex<UnpolarizedSpectrum>(UnpolarizedSpectrum(eta[0], eta[1], eta[2], eta[3]),
-                                                         UnpolarizedSpectrum(k[0], k[1], k[2], k[3]));
-            } else {
-                eta_c = dr::Complex<UnpolarizedSpectrum>(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
-            }
-        } else {
-            eta_c = dr::Complex<UnpolarizedSpectrum>(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
-        }
-        UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
-        if (!m_coated)
-            return F;
-        std::array<float, 4> lambda{}, r_spe{}, pass{};
-        if constexpr (is_spectral_v<Spectrum>)
-            lambda = fluo_detail::wavelengths_of(si.wavelengths);
-        else
-            lambda = { RgbWavelengths[0], RgbWavelengths[1], RgbWavelengths[2], RgbWavelengths[2] };
-        auto coated = [&](const fluo::QdModel &model) {
-            fluo::qd_elastic_coefficients(model, (float) cos_m, fluo_detail::slice(lambda),
-                                          fluo_detail::slice_mut(r_spe), fluo_detail::slice_mut(pass));
-            UnpolarizedSpectrum out = F;
-            for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
-                float den = dr::maximum(1.f - F[j] * r_spe[j], 1e-12f);
-                out[j] = r_spe[j] + pass[j] * F[j] / den;
-            }
-            return out;
-        };
-        if (m_tex.models.empty())
-            return coated(**m_model);
-        // textured: the elastic parts of the hit's models, mixed with their weights
-        Corners c = corners(si, active);
-        UnpolarizedSpectrum mixed(0.f);
-        for (size_t i = 0; i < c.n; ++i)
-            mixed += (float) c.weight[i] * coated(*m_tex.models[c.model[i]]);
-        return mixed;
+    /// The traversed members from the configuration (at load, and after a rejected update;
+    /// an accepted one keeps Q's AD graph).
+    void sync_members() {
+        m_q = (ScalarFloat) m_config.quantum_yield;
+        m_radius = (ScalarFloat) m_config.radius;
+        m_density = (ScalarFloat) m_config.density;
+        m_alpha = (ScalarFloat) m_config.alpha;
+        m_width = (ScalarFloat) m_config.width;
     }
 
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
-    std::optional<rust::Box<fluo::QdModel>> m_model; ///< set by rebuild() in the constructor
+    std::optional<rust::Box<fluo::QdModel>> m_model; ///< textured: at the largest levels (a representative)
+    Setup m_setup;
+    Tex m_tex; ///< textured radius, density, quantum_yield, alpha: textures, levels, baked models
     MicrofacetType m_type = MicrofacetType::Beckmann;
-    fluo_detail::QdSetup<Float, Spectrum> m_setup; ///< substrate, dot index
-    ScalarFloat m_radius = 0.f, m_width = 0.f, m_quantum_yield = 0.f, m_density = 0.f, m_alpha = 0.f;
     ScalarFloat m_alpha_f = 0.1f;
     bool m_coated = false;
-    bool m_uniform_substrate = true; ///< η and k do not vary over the surface
-    uint64_t m_build = 0;            ///< this build's key in the per-thread η, k memo
+    /// the tables ([rows][λ] row major per model, the models' blocks concatenated at m_t_off;
+    /// RGB ones [model][rows][3]) and their grids (uniform: m_grid; textured: m_grids)
+    FloatStorage m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass;
+    FloatStorage m_emission; ///< [model][EmissionFields] (textured)
+    UInt32Storage m_t_off;   ///< each model's table offset (textured)
+    uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
+    uint64_t m_build = 0; ///< counts rebuilds: keys the reductions below and the tangents
+    mutable Tangents m_tangents; ///< the spectral tables' derivatives (tangents())
+    std::array<fluo_detail::QdSamples, 4> m_samples; ///< eta, k, qd_eta, qd_k as Rust got them
+    // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes), and
+    // every textured model's (jit_reduced_nodes_table)
+    mutable std::string m_reduced_key, m_table_key;
+    mutable std::array<std::vector<double>, MaxTerms> m_reduced_m;
+    mutable std::vector<double> m_reduced_nodes, m_table_m, m_table_nodes;
+    mutable size_t m_reduced_n = 0, m_table_n = 0;
+    fluo_detail::LaneGrid<Float> m_grid; ///< a uniform material's λ grid and its bucket index
+    fluo_detail::LaneGridSet<Float> m_grids; ///< the textured models' λ grids
+    float m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
+    float m_ex_lo = 0.f, m_ex_hi = 0.f;
+    Float m_q = 0.f; ///< Q (differentiable)
+    Float m_radius = 0.f, m_density = 0.f; ///< differentiable in the spectral variants (uniform material)
+    ScalarFloat m_alpha = 0.f, m_width = 0.f;
 
-    static void store(const UnpolarizedSpectrum &s, std::array<float, 4> &out) {
-        for (size_t j = 0; j < 4; ++j)
-            out[j] = s[j];
-    }
-    /// textured radius, density, quantum_yield, alpha: their textures, levels, baked models
-    Tex m_tex;
+    MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
+                   m_a_tot, m_cdf,
+                   m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q)
 };
 
-static const bool fluo_qd_registered =
-    (fluo_detail::register_scalar_plugin<FluoQd>("fluo_qd", ObjectType::BSDF), true);
+static const bool fluo_qd_jit_registered =
+    (fluo_detail::register_plugin<FluoQd>("fluo_qd", ObjectType::BSDF), true);
 
 NAMESPACE_END(mitsuba)

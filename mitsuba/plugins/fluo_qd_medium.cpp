@@ -2,13 +2,12 @@
 // host (Benamira & Pattanaik 2023, sec. 4.1). Its documentation is the comment below.
 // Physics in Rust (core/src/models/qd/medium.rs, through the bridge's fluo_qd_medium
 // section); the Medium and the bispectral medium interface for fluo_volpath are
-// include/fluo/fluo_medium_shim.h, shared with fluo_dye_medium.
+// include/fluo/fluo_medium.h, shared with fluo_dye_medium.
 #include <initializer_list>
 
 #include <type_traits>
 
-#include "fluo_medium_jit.h"
-#include "fluo_medium_shim.h"
+#include "fluo_medium.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -84,16 +83,17 @@ piecewise linear between them, within 0.5 % of the formula); that table is the
 medium's absorption everywhere, including fluo_volpath's excitation sampling, which
 inverts its CDF exactly.
 
-**Rendering.** With ``fluo_volpath`` in ``scalar_spectral`` or ``llvm_ad_spectral`` the
-medium fluoresces by wavelength shifting (the integrator's docs have the estimator; in the vectorised variants
-the medium interpolates Rust's tables: μa linear between the model's own table nodes,
+**Rendering.** With ``fluo_volpath`` in the spectral variants the medium fluoresces by
+wavelength shifting (the integrator's docs have the estimator). In every variant the
+medium interpolates Rust's tables: μa linear between the model's own table nodes,
 exactly as above, extended at 0.5 nm steps to 200-1200 nm (within 5e-5 of its peak),
-and the emission line between nodes that hold it within 1e-5 of its peak). Mitsuba's own ``volpath`` (and any other
-integrator) renders it as an absorbing, scattering medium without re-emission — exactly
-its Q = 0 limit — and warns once per scene when Q > 0. In the RGB variants the absorption
-other integrators see is μa's linear sRGB as Mitsuba converts any spectrum (CIE 1931,
-white = 1; negative channels clipped to 0); ``fluo_volpath`` in ``scalar_rgb`` and
-``llvm_ad_rgb`` carries the medium's reduced operators instead (its docs).
+and the emission line between nodes that hold it within 1e-5 of its peak. Mitsuba's own
+``volpath`` (and any other integrator) renders it as an absorbing, scattering medium
+without re-emission — exactly its Q = 0 limit — and warns once per scene when Q > 0. In
+the RGB variants the absorption other integrators see is μa's linear sRGB as Mitsuba
+converts any spectrum (CIE 1931, white = 1; negative channels clipped to 0);
+``fluo_volpath`` in the RGB variants carries the medium's reduced operators instead (its
+docs).
 
 .. tabs::
     .. code-tab:: xml
@@ -127,11 +127,8 @@ inline rust::Box<fluo::FluoMedium> qd_medium_model(const Properties &props, cons
     return fluo_detail::rust_call(plugin, [&] { return fluo::qd_medium_new(c); });
 }
 
-/// The plugin over either shim: Rust per collision (scalar variants) or its tables
-/// (vectorised variants, fluo_medium_jit.h).
-template <typename Float, typename Spectrum>
-using QdMediumBase = std::conditional_t<dr::is_jit_v<Float>, FluoMediumJit<Float, Spectrum>,
-                                        FluoMediumShim<Float, Spectrum>>;
+/// The plugin over Rust's tables (FluoMediumBase, fluo_medium.h), in every variant.
+template <typename Float, typename Spectrum> using QdMediumBase = FluoMediumBase<Float, Spectrum>;
 
 template <typename Float, typename Spectrum> class FluoQdMedium final : public QdMediumBase<Float, Spectrum> {
 public:
@@ -151,7 +148,6 @@ public:
 };
 
 static const bool fluo_qd_medium_registered =
-    (fluo_detail::register_scalar_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium),
-     fluo_detail::register_jit_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium), true);
+    (fluo_detail::register_plugin<FluoQdMedium>("fluo_qd_medium", ObjectType::Medium), true);
 
 NAMESPACE_END(mitsuba)

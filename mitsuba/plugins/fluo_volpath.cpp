@@ -1,35 +1,30 @@
-// The fluo_volpath integrator: Mitsuba's volumetric path tracer (volpath) extended with
-// fluorescence in participating media and at surfaces. Its documentation is the
-// comment below. The loop is a scalar port of Mitsuba 3.8's volpath.cpp; what a path
-// carries and what a surface vertex does to it is fluo_path's wavelength-shifting
-// transport (include/fluo/fluo_transport_spectral.h), and media are seen through fluo's
-// bispectral medium interface (include/fluo/fluo_bispectral_medium.h).
+// fluo_volpath, one class template for every variant it serves: Mitsuba's volpath loop
+// (dr::while_loop; one kernel in the llvm/cuda variants) with fluorescence (the
+// documentation below has the estimators): in spectral variants fluorescent media
+// (fluo_qd_medium, fluo_dye_medium through fluo_medium.h) re-emit at real collisions and
+// fluorescent BSDFs shift at surfaces as in fluo_path; in RGB variants the path carries
+// fluo_path's reduced transport (fluo_reduced.h), on which fluorescent media act through
+// their reduced operators. Without fluorescence the render is Mitsuba's own volpath (the
+// integrator hands the render to one), in every variant.
 #include <mitsuba/core/properties.h>
-#include <mitsuba/core/ray.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/emitter.h>
 #include <mitsuba/render/integrator.h>
 #include <mitsuba/render/medium.h>
 #include <mitsuba/render/phase.h>
 #include <mitsuba/render/records.h>
+#include <mitsuba/render/scene.h>
 #include <mitsuba/render/sensor.h>
-#include <mitsuba/render/shape.h>
 
-#include <algorithm>
-#include <limits>
-#include <array>
 #include <sstream>
 #include <string>
-#include <unordered_map>
 #include <vector>
 
-#include "fluo_bispectral.h"
-#include "fluo_bispectral_medium.h"
 #include "fluo_common.h"
-#include "fluo_path_loop.h"
+#include "fluo_bispectral.h"
+#include "fluo_reduced.h"
+#include "fluo_medium.h"
 #include "fluo_path_scene.h"
-#include "fluo_transport_reduced.h"
-#include "fluo_transport_spectral.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -57,25 +52,19 @@ Wavelength-shifting volumetric path tracer (:monosp:`fluo_volpath`)
      ``fluo_path``. (Default: 300)
  * - basis
    - |string|
-   - ``scalar_rgb`` only: transport basis of the reduced transport, ``rgb``, ``xyzu`` or
+   - RGB variants only: transport basis of the reduced transport, ``rgb``, ``xyzu`` or
      ``x7``, as for ``fluo_path`` (whose documentation says which when).
      (Default: ``x7``)
  * - method
    - |string|
-   - ``scalar_rgb`` only: reduction, ``ours`` or ``naive``, as for ``fluo_path``.
+   - RGB variants only: reduction, ``ours`` or ``naive``, as for ``fluo_path``.
      (Default: ``ours``)
- * - closed_form_shadows
-   - |bool|
-   - ``scalar_rgb`` only: shadow rays through a fluorescent medium of constant density
-     and scattering take its reduced transfer exp(−(d·A + σs)·t) in closed form
-     (diagonalised once per render) instead of ratio tracking it; ``false`` tracks it
-     (the reference the tests compare with). Media whose operator cannot be diagonalised
-     well (complex or repeated eigenvalues) are tracked either way. (Default: true)
 
 Mitsuba's ``volpath`` (delta tracking with null collisions, next-event estimation
 through media with ratio-tracked transmittance, MIS between emitter and phase/BSDF
-sampling, index-matched ``null`` boundaries, Russian roulette) in ``scalar_spectral``
-and ``scalar_rgb``, extended with fluorescence:
+sampling, index-matched ``null`` boundaries, Russian roulette), extended with
+fluorescence, in every variant fluo serves (one class and one loop per transport,
+``dr::while_loop`` as Mitsuba's integrators):
 
 * **in media** that implement fluo's bispectral medium interface (``fluo_qd_medium``):
   at an absorption event the medium re-emits isotropically at a longer wavelength;
@@ -86,9 +75,9 @@ and ``scalar_rgb``, extended with fluorescence:
 **Without fluorescence it is volpath.** At render start the scene is scanned for
 fluorescent BSDFs and media (and the emitters' spectral range R, as ``fluo_path`` does;
 re-emission by media extends R to the media's emission range). With none left the
-loop draws the same random numbers in the same order and does the same arithmetic as
-``volpath``: identical images (tested for homogeneous and grid media, both variants).
-A medium with ``quantum_yield`` 0 is a plain absorbing, scattering medium.
+render is handed to Mitsuba's own ``volpath`` with the same ``max_depth``, ``rr_depth``
+and ``hide_emitters``: identical images, seed for seed. A medium with
+``quantum_yield`` 0 is a plain absorbing, scattering medium.
 
 **Fluorescent collisions (the estimator).** A camera path carries four hero
 wavelengths λo. Delta tracking samples a tentative collision with the medium's majorant
@@ -113,10 +102,11 @@ real collision, for each λo the radiative transfer equation's source is
     σs(λo) ∫ p(ω, ω') L(λo, ω') dω'  +  ∫_R μa(λi) f(λi → λo) (1/4π) ∫ L(λi, ω') dω' dλi
 
 (elastic in-scattering plus isotropic re-emission of light absorbed at λi ∈ R; f is the
-medium's reradiation per unit absorbed power). With μf(λo) = ∫_R μa f dλi (the
-medium's ``shift_coefficients``), each λo independently picks the elastic event with
-probability pe = σs/(σs + μf), else a shift, sampling λi ∝ μa(λi) f(λi → λo) (exactly:
-the medium inverts its CDF). Both branches then carry the same weight σs + μf in place
+medium's reradiation per unit absorbed power). With μf(λo) = ∫_R μa f dλi (from the
+medium's tables), each λo independently picks the elastic event with
+probability pe = σs/(σs + μf), else a shift, sampling λi ∝ μa(λi) f(λi → λo) (the
+medium inverts the CDF of its tabulated μa, linear between nodes, within 3e-7 of μa's
+peak for a dye). Both branches then carry the same weight σs + μf in place
 of volpath's σs, so the estimator of each λo's source is unbiased, and a wavelength with
 σs + μf = 0 stops contributing. The new direction is shared: it is sampled from the
 medium's phase function, and the shifted wavelengths weigh it by the isotropic 1/(4π)
@@ -129,13 +119,13 @@ exceeds the yield times the absorbed power (a closed-furnace test checks it).
 
 **Cost.** Tracking takes about one tentative collision per unit optical depth of the
 most opaque hero wavelength (the medium's absorption and re-emission coefficients at a
-path's wavelengths are looked up once per flight and per thread, not per collision):
+path's wavelengths are looked up once per flight, not per collision):
 optically thick fluorescent media (τ ≫ 100 over the scene) render slowly; fluorescence
 itself costs one excitation sample per shifted wavelength at real collisions, and the
 paths it continues (re-emitted light goes on where volpath's absorbed light stops).
 
-**Reduced RGB transport (scalar_rgb).** With fluorescent media or BSDFs in the scene,
-``scalar_rgb`` carries fluo_path's reduced transport (its ``basis``: K bands; the RGB
+**Reduced RGB transport (RGB variants).** With fluorescent media or BSDFs in the scene,
+the RGB variants carry fluo_path's reduced transport (its ``basis``: K bands; the RGB
 throughput t until the first fluorescent event, then the 3×K matrix R). A fluorescent
 medium acts on the K basis coefficients through two K×K operators that Rust reduces at
 render start from its spectra (``fluo::medium_reduced``): its absorption A (the
@@ -147,13 +137,8 @@ reduced operators: a null collision multiplies R by (μ̄ − σs − d·A)/(μ�
 real one by the collision's source σs·p + d·F/(4π) over μ̄ p_real (p: the phase
 function's value, or weight with the sampled direction; d: the density there), with the
 probabilities of spectral tracking over R's columns (bands instead of wavelengths,
-the same fluorescent-source rule). Shadow rays through fluorescent media carry their
-transmittance as the list of those null operators, applied to the emitter's basis
-coefficients at the end (K² per collision); through a medium of constant density and
-scattering the segment's transfer is exp(−(d·A + diag σs)·t) = V·diag(e^{−λt})·V⁻¹ in
-closed form instead (``closed_form_shadows``; Rust diagonalises the operator once per
-render and refuses complex, repeated or negative eigenvalues and ill-conditioned V, where
-tracking stays): the same expectation (test05d) with less noise, ~6 % faster. Native
+the same fluorescent-source rule). A shadow ray through fluorescent media multiplies the
+vertex's 3×K row block by each null operator it meets (3K² per collision). Native
 media and null interfaces act on R through their RGB weights' per-band factors, as native BSDFs do in fluo_path.
 Accuracy: that of the basis (the dots' glow in a thin 2 cm cube under D65 within 3 %
 of the spectral reference with ``x7`` and ``xyzu``, test05), plus the reduction of
@@ -165,19 +150,11 @@ the spectral red). Under narrow UV lamps one UV band averages the absorption ove
 a 300-380 nm lamp came out within 16 % of the spectral render here, but a narrow
 365 nm line can be off several-fold).
 
-**Variants.** ``scalar_spectral`` (wavelength shifting) and ``scalar_rgb`` (reduced
-transport); without fluorescence both render exactly as ``volpath``. ``llvm_ad_spectral``
-and ``llvm_ad_rgb`` (and ``cuda_ad_*``, the same code) run the same estimators in one
-vectorised kernel (``fluo_volpath_jit.cpp``; the media interpolate Rust's tables of μa and
-the emission, ``fluo_medium_jit.h``; the reduced transport and the fluorescent BSDFs'
-matrices are fluo_path's, ``fluo_jit_reduced.h``): the same images within noise
-(tests/python/test_llvm.py test16). Differences of those variants: the μa table of a dye
-medium is linear between 4096 nodes across its absorption band (within 3e-7 of its peak),
-shadow rays always ratio-track (``closed_form_shadows`` has no effect there; in RGB a
-shadow ray multiplies the vertex's 3×K row block by each null operator, 3K² per
-collision, instead of keeping the list), and a path's random numbers differ. Without
-fluorescence the vectorised variants hand the render to Mitsuba's own ``volpath`` (the
-same image, seed for seed).
+**Variants.** Spectral variants shift wavelengths, RGB variants carry the reduced
+transport; the media interpolate Rust's tables of μa and the emission
+(``fluo_medium.h``), the fluorescent BSDFs' matrices are fluo_path's
+(``fluo_reduced.h``). Gradients (``llvm_ad_*``, ``cuda_ad_*``) reach the
+surfaces' differentiable parameters through this loop; the media's parameters have none.
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.
@@ -189,19 +166,20 @@ and warns once per scene.
             <integer name="max_depth" value="16"/>
         </integrator>
 */
+
 template <typename Float, typename Spectrum>
 class FluoVolpath final : public MonteCarloIntegrator<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
-    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Emitter, EmitterPtr, BSDF, BSDFPtr, Medium, MediumPtr, Shape,
-                    PhaseFunctionContext)
-    using Spectral = SpectralTransport<Float, Spectrum>;
-    using Path = typename Spectral::Path;
-    using EmitterSample = fluo_detail::EmitterSample<Float, Spectrum>;
-    using BMedium = BispectralMedium<Float, Spectrum>;
-    using Reduced = ReducedTransport<Float, Spectrum>;
-    using Square = typename Reduced::Square;
-    using Coeffs = typename Reduced::Coeffs;
+    MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, MediumPtr, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape,
+                    PhaseFunctionContext, PhaseFunction, PhaseFunctionPtr)
+    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
+    using BMedium = fluo_detail::BispectralMedium<Float, Spectrum>;
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    using Reduced = fluo_detail::ReducedTransport<Float, Spectrum>;
+    using Wrappers = fluo_detail::FluoWrappers<Float, Spectrum>;
+    template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
+    template <size_t K> using Rows = typename Reduced::template Rows<K>;
 
     static constexpr const char *Plugin = "fluo_volpath";
     static constexpr float InvFourPi = fluo_detail::InvFourPi;
@@ -209,378 +187,50 @@ public:
     FluoVolpath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
           m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
-                    fluo_detail::get_string(props, "method", "ours")),
-          m_closed_shadows(props.get<bool>("closed_form_shadows", true)) {}
+                    fluo_detail::get_string(props, "method", "ours")) {
+        Properties vp("volpath");
+        vp.set("max_depth", (int64_t) props.get<int64_t>("max_depth", -1));
+        vp.set("rr_depth", (int64_t) props.get<int64_t>("rr_depth", 5));
+        vp.set("hide_emitters", props.get<bool>("hide_emitters", false));
+        m_volpath = PluginManager::instance()->create_object<Base>(vp);
+    }
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
                     bool evaluate) override {
         prepare(scene);
+        if (!m_fluorescent)
+            return m_volpath->render(scene, sensor, seed, spp, develop, evaluate);
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
     }
 
-    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                     const Medium *initial_medium, Float * /* aovs */,
-                                     Bool active) const override {
-        if constexpr (is_rgb_v<Spectrum>) {
-            if (m_use_reduced) {
-                typename Reduced::Path path(m_reduced);
-                return trace(scene, sampler, ray_, initial_medium, active, path);
-            }
+    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                     const Medium *medium, Float *aovs, Bool active) const override {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            if (!m_fluorescent)
+                return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
+            if (m_reduced.bands() == 3)
+                return trace_reduced<3>(scene, sampler, ray, medium, active);
+            if (m_reduced.bands() == 4)
+                return trace_reduced<4>(scene, sampler, ray, medium, active);
+            return trace_reduced<Reduced::KMax>(scene, sampler, ray, medium, active);
+        } else {
+            if (!m_fluorescent)
+                return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
+            return trace(scene, sampler, ray, medium, active);
         }
-        Path path(m_spectral);
-        return trace(scene, sampler, ray_, initial_medium, active, path);
-    }
-
-    /// volpath's loop; `path` is fluo_path's spectral transport (every variant without
-    /// fluorescence, and scalar_spectral) or its reduced transport (scalar_rgb with
-    /// fluorescence), whose fluorescent media act on basis coefficients.
-    template <typename PathT>
-    std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                    const Medium *initial_medium, Bool active, PathT &path) const {
-        constexpr bool IsReduced = !std::is_same_v<PathT, Path>;
-        // A wavelength-preserving weight.
-        auto scale = [&path](const Spectrum &w) {
-            if constexpr (IsReduced)
-                path.scale(w);
-            else
-                path.throughput() *= w;
-        };
-        Bool valid_ray = !m_hide_emitters && (scene->environment() != nullptr);
-        Ray3f ray = Ray3f(ray_);
-        Float eta = 1.f;
-        MediumPtr medium = initial_medium;
-        MediumInteraction3f mei = dr::zeros<MediumInteraction3f>();
-        Bool specular_chain = active && !m_hide_emitters;
-        uint32_t depth = 0;
-
-        uint32_t channel = 0;
-        if constexpr (is_rgb_v<Spectrum>) {
-            uint32_t n = (uint32_t) dr::size_v<Spectrum>;
-            channel = (uint32_t) dr::minimum(sampler->next_1d(active) * (float) n, (float) (n - 1));
-        }
-
-        SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-        Interaction3f last_scatter_event = dr::zeros<Interaction3f>();
-        Bool needs_intersection = true;
-        Float last_scatter_direction_pdf = 1.f;
-        double flight_inv_len = 0.0;
-        // A flight through a fluorescent medium: its surface hit, not yet a full interaction
-        // (si.t alone is kept, as volpath keeps it, until the flight reaches the surface).
-        PreliminaryIntersection3f pending_pi = dr::zeros<PreliminaryIntersection3f>();
-        Ray3f pending_ray = ray;
-        bool pending = false;
-
-        while (active) {
-            // ----------------- Russian roulette, max_depth -----------------
-            if constexpr (IsReduced) {
-                double t_max = path.throughput_max();
-                active &= t_max != 0.0;
-                Float q = dr::minimum((Float) t_max * dr::square(eta), .95f);
-                Bool perform_rr = depth > (uint32_t) m_rr_depth;
-                active &= sampler->next_1d(active) < q || !perform_rr;
-                if (perform_rr)
-                    path.roulette(q);
-            } else {
-                Spectrum &throughput = path.throughput();
-                active &= dr::any(unpolarized_spectrum(throughput) != 0.f);
-                Float q = dr::minimum(dr::max(unpolarized_spectrum(throughput)) * dr::square(eta), .95f);
-                Bool perform_rr = depth > (uint32_t) m_rr_depth;
-                active &= sampler->next_1d(active) < q || !perform_rr;
-                if (perform_rr)
-                    throughput *= dr::rcp(q);
-            }
-            active &= depth < (uint32_t) m_max_depth;
-            if (!active)
-                break;
-
-            // ------------------------ Sampling the RTE ---------------------
-            Bool active_medium = medium != nullptr;
-            Bool active_surface = !active_medium;
-            Bool act_null_scatter = false, act_medium_scatter = false, escaped_medium = false;
-            Bool is_spectral = active_medium, not_spectral = false;
-            Float null_scatter_prob = 0.f, real_scatter_prob = 1.f;
-            const MediumEntry *fluo_entry = nullptr;
-            const ReducedMedium *rmed = nullptr; // reduced: a fluorescent medium
-            Collision col;                       // reduced: its real collision
-            if (active_medium) {
-                is_spectral = medium->has_spectral_extinction();
-                not_spectral = !is_spectral;
-                // A fluorescent medium: its entry in the spectral or the reduced transport.
-                if constexpr (IsReduced)
-                    rmed = find_reduced(medium);
-                else
-                    fluo_entry = find_medium(medium);
-                bool fluorescent_here = fluo_entry || rmed;
-                if (fluorescent_here && needs_intersection) {
-                    // Only the distance is read until the flight ends at the surface: the
-                    // full interaction is computed then (most flights end in the medium).
-                    pending_pi = scene->ray_intersect_preliminary(ray, true, false, 0, 0, true);
-                    pending_ray = ray;
-                    pending = true;
-                    si = dr::zeros<SurfaceInteraction3f>();
-                    si.t = pending_pi.t;
-                    needs_intersection = false;
-                    // 1/ℓ for the flight that starts here (ℓ: its length to the next
-                    // surface; 0 without one): the fluorescent source is sampled at rate
-                    // up to 1/ℓ (spectral_tracking), and the majorant covers it.
-                    flight_inv_len = si.is_valid() ? 1.0 / std::max((double) si.t, 1e-30) : 0.0;
-                }
-                {
-                    fluo_detail::ScopedSourceRate rate(
-                        !fluorescent_here ? 0.0
-                                          : (flight_inv_len > 0.0 ? flight_inv_len
-                                                                   : std::numeric_limits<double>::infinity()));
-                    mei = medium->sample_interaction(ray, sampler->next_1d(active_medium), channel, active_medium);
-                }
-                if (medium->is_homogeneous() && mei.is_valid())
-                    ray.maxt = mei.t;
-                if (needs_intersection)
-                    si = scene->ray_intersect(ray, true);
-                needs_intersection = false;
-                if (si.t < mei.t)
-                    mei.t = dr::Infinity<Float>;
-                // (a fluorescent medium's majorant is one for all bands: weight 1 to escape,
-                // 1/μ̄ at a tentative collision, applied below)
-                if (is_spectral && !rmed) {
-                    auto [tr, free_flight_pdf] = medium->transmittance_eval_pdf(mei, si, true);
-                    Float tr_pdf = free_flight_pdf[channel];
-                    scale(dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f));
-                }
-                escaped_medium = !mei.is_valid();
-                active_medium = mei.is_valid();
-                is_spectral &= active_medium;
-                not_spectral &= active_medium;
-                if (active_medium) {
-                    // Null or real: volpath's rule (the hero wavelengths' mean null
-                    // probability), or spectral tracking in fluorescent media (over the
-                    // bands' columns of R in the reduced transport).
-                    if constexpr (IsReduced) {
-                        if (rmed) {
-                            path.to_reduced();
-                            col = collision(*rmed, mei);
-                            std::tie(null_scatter_prob, real_scatter_prob) =
-                                band_tracking(*rmed, col, path.column_max(), flight_inv_len);
-                        }
-                    }
-                    if (rmed) {
-                        // (set above)
-                    } else if (fluo_entry && is_spectral) {
-                        if constexpr (!IsReduced) {
-                            std::array<float, 4> bound{};
-                            fluo_entry->medium->source_bound(mei, bound);
-                            std::tie(null_scatter_prob, real_scatter_prob) =
-                                spectral_tracking(mei, path.throughput(), bound, flight_inv_len);
-                        }
-                    } else {
-                        null_scatter_prob = dr::mean(mei.sigma_n / mei.combined_extinction);
-                        real_scatter_prob = dr::mean(mei.sigma_t / mei.combined_extinction);
-                    }
-                    Bool null_scatter = sampler->next_1d(active_medium) < null_scatter_prob;
-                    act_null_scatter = null_scatter;
-                    act_medium_scatter = !null_scatter;
-                    if constexpr (IsReduced) {
-                        if (rmed && act_null_scatter) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
-                            Coeffs g{};
-                            for (size_t k = 0; k < m_reduced.bands(); ++k)
-                                g[k] = col.majorant - col.sigma_s[k];
-                            path.multiply_null(rmed->a, col.density, g,
-                                               1.0 / (col.majorant * (double) null_scatter_prob));
-                        }
-                    }
-                    if (is_spectral && act_null_scatter && !rmed)
-                        scale(mei.sigma_n / null_scatter_prob);
-                    if (act_medium_scatter) {
-                        depth += 1;
-                        last_scatter_event = Interaction3f(mei);
-                    }
-                }
-            }
-
-            active &= depth < (uint32_t) m_max_depth;
-            act_medium_scatter &= active;
-
-            if (act_null_scatter) {
-                ray.o = mei.p;
-                si.t = si.t - mei.t;
-            }
-
-            if (act_medium_scatter) {
-                // Elastic scattering, or fluorescence per wavelength (see the docs).
-                UnpolarizedSpectrum sigma_s = mei.sigma_s;
-                MediumShift shift;
-                if (fluo_entry && !IsReduced)
-                    shift = choose_medium_shift(*fluo_entry, mei, sampler, sigma_s);
-
-                // A fluorescent medium's real collision (reduced): the source operator
-                // W = σs·p + d·F/(4π) over μ̄ p_real, applied with the direction below.
-                double real_scale = rmed ? 1.0 / (col.majorant * (double) real_scatter_prob) : 1.0;
-                if (is_spectral && !rmed)
-                    scale(sigma_s / real_scatter_prob);
-                if (not_spectral)
-                    scale(sigma_s / mei.sigma_t);
-                if constexpr (!IsReduced) {
-                    // In a fluorescent medium, a collision that absorbed every wavelength for
-                    // good (none scatters or shifts) ends the path here, before an emitter
-                    // sample it could only weigh by 0 (volpath's own media keep volpath's
-                    // steps, random numbers included).
-                    if (fluo_entry && !dr::any(unpolarized_spectrum(path.throughput()) != 0.f))
-                        break;
-                }
-
-                PhaseFunctionContext phase_ctx(sampler);
-                const auto *phase = mei.medium->phase_function();
-
-                // ------------------------ Emitter sampling -----------------
-                Bool sample_emitters = mei.medium->use_emitter_sampling();
-                valid_ray = true;
-                specular_chain = !sample_emitters;
-                if (sample_emitters) {
-                    Shadow shadow;
-                    auto [emitted, ds] =
-                        sample_emitter(mei, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
-                    auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, mei, ds.d, true);
-                    Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
-                    if constexpr (IsReduced) {
-                        Coeffs c{};
-                        if (shadow.active || rmed)
-                            c = shadow_light(shadow, m_reduced.emitter_coefficients(ds.emitter, emitted));
-                        if (rmed)
-                            path.add(source_matrix(*rmed, col, phase_val, InvFourPi), c, real_scale * (double) mis);
-                        else
-                            path.add_light(phase_val, ds.emitter, emitted, shadow.active ? &c : nullptr,
-                                           (double) mis);
-                    } else {
-                        shift.apply(phase_val);
-                        path.add_radiance(phase_val * emitted * mis);
-                    }
-                }
-
-                // ---------------------- Phase function sampling ------------
-                // volpath passes next_1d(), next_2d() as call arguments; the Linux wheel's
-                // build evaluates them right to left, so the 2D sample is drawn first (and
-                // so here: the same random numbers, test_fluo_volpath.py test01).
-                Point2f phase_2 = sampler->next_2d(true);
-                Float phase_1 = sampler->next_1d(true);
-                auto [wo, phase_weight, phase_pdf] = phase->sample(phase_ctx, mei, phase_1, phase_2, true);
-                act_medium_scatter &= phase_pdf > 0.f;
-                if (act_medium_scatter) {
-                    if (shift.any)
-                        shift.apply_weight(phase_weight, phase_pdf);
-                    ray = mei.spawn_ray(wo);
-                    needs_intersection = true;
-                    last_scatter_direction_pdf = phase_pdf;
-                    if constexpr (IsReduced) {
-                        if (rmed)
-                            path.multiply(source_matrix(*rmed, col, phase_weight, InvFourPi / (double) phase_pdf),
-                                          real_scale);
-                    }
-                    if (!rmed)
-                        scale(phase_weight);
-                }
-            }
-
-            // ----------------------- Surface interactions ------------------
-            active_surface |= escaped_medium;
-            if (pending && active_surface && !needs_intersection) {
-                Float t = si.t; // (shortened by the flight's null collisions)
-                si = pending_pi.compute_surface_interaction(pending_ray, +RayFlags::All, true);
-                si.t = t;
-                pending = false;
-            }
-            if (needs_intersection) // a new ray: the flight ended at a collision
-                pending = false;
-            Bool intersected = active_surface && needs_intersection;
-            if (intersected)
-                si = scene->ray_intersect(ray, true);
-
-            if (active_surface) {
-                // Hidden area emitters on the camera ray are skipped, as volpath does.
-                if (m_hide_emitters && depth == 0u && intersected && si.is_valid() &&
-                    si.shape->emitter() != nullptr) {
-                    Ray3f skip_ray = si.spawn_ray(ray.d);
-                    PreliminaryIntersection3f pi = Base::skip_area_emitters(scene, skip_ray, true, true);
-                    si = pi.compute_surface_interaction(skip_ray, +RayFlags::All, true);
-                }
-                Bool count_direct = (depth == 0u) || specular_chain;
-                const Emitter *emitter = si.emitter(scene);
-                if (emitter != nullptr && !(depth == 0u && m_hide_emitters)) {
-                    Float emitter_pdf = 1.f;
-                    if (!count_direct) {
-                        DirectionSample3f ds(scene, si, last_scatter_event);
-                        emitter_pdf = scene->pdf_emitter_direction(last_scatter_event, ds, true);
-                    }
-                    Spectrum emitted = emitter->eval(si, true);
-                    path.on_emission(emitter, emitted,
-                                     count_direct ? Float(1.f)
-                                                  : fluo_detail::mis_weight(last_scatter_direction_pdf, emitter_pdf));
-                }
-            }
-            active_surface &= si.is_valid();
-            if (active_surface) {
-                BSDFPtr bsdf = si.bsdf(ray);
-                typename fluo_detail::FluoWrappers<Float, Spectrum>::Perturbations perturbed;
-                if (!m_wrappers.empty())
-                    bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed);
-                auto vertex = path.begin_vertex(bsdf, si, sampler);
-
-                // ------------------------ Emitter sampling -----------------
-                EmitterSample em;
-                em.active = has_flag(bsdf->flags(), BSDFFlags::Smooth) && (depth + 1 < (uint32_t) m_max_depth);
-                Shadow shadow;
-                if (em.active) {
-                    auto [emitted, ds] =
-                        sample_emitter(si, scene, sampler, medium, channel, IsReduced ? &shadow : nullptr);
-                    em.ds = ds;
-                    em.weight = emitted;
-                    em.wo = si.to_local(ds.d);
-                    em.active &= perturbed.keeps_side(ds.d);
-                }
-                Coeffs light;
-                if constexpr (IsReduced) {
-                    if (shadow.active)
-                        light = shadow_light(shadow, m_reduced.emitter_coefficients(em.ds.emitter, em.weight));
-                    path.set_light(shadow.active ? &light : nullptr);
-                }
-
-                // ---------------- Emitter contribution, BSDF sampling ------
-                Point2f sample_2 = sampler->next_2d(true); // 2D first, as for the phase function
-                // (volpath's arguments, evaluated right to left in the wheel)
-                Float sample_1 = sampler->next_1d(true);
-                BSDFSample3f bs = path.scatter(vertex, bsdf, si, em, sample_1, sample_2);
-                eta *= bs.eta;
-                ray = si.spawn_ray(si.to_world(bs.wo)); // carries shifted wavelengths, if any
-                needs_intersection = true;
-
-                Bool non_null_bsdf = !has_flag(bs.sampled_type, BSDFFlags::Null);
-                if (non_null_bsdf) {
-                    depth += 1;
-                    last_scatter_event = Interaction3f(si);
-                    last_scatter_direction_pdf = bs.pdf;
-                    valid_ray = true;
-                }
-                if (!perturbed.keeps_side(ray.d)) // a normal or bump map's sample across the surface: no weight
-                    break;
-                specular_chain |= non_null_bsdf && has_flag(bs.sampled_type, BSDFFlags::Delta);
-                specular_chain &= !has_flag(bs.sampled_type, BSDFFlags::Smooth);
-                if (si.is_medium_transition())
-                    medium = si.target_medium(ray.d);
-            }
-            active &= (active_surface || active_medium);
-        }
-        return { path.radiance(), valid_ray };
     }
 
     std::string to_string() const override {
         std::ostringstream oss;
-        fluo::Range range = m_spectral.range();
         oss << "FluoVolpath[" << std::endl
             << "  max_depth = " << m_max_depth << "," << std::endl
             << "  rr_depth = " << m_rr_depth << "," << std::endl
             << "  lambda_min = " << m_lambda_min << "," << std::endl
-            << "  fluorescent_bsdfs = " << m_spectral.size() << "," << std::endl
+            << "  fluorescent_bsdfs = " << m_bsdfs.size() << "," << std::endl
             << "  fluorescent_media = " << m_media.size() << "," << std::endl
-            << "  excitation_range = [" << range.lo << ", " << range.hi << "]" << std::endl
+            << "  excitation_range = [" << m_range_lo << ", " << m_range_hi << "]," << std::endl
+            << "  basis = " << m_reduced.name() << " (RGB variants)" << std::endl
             << "]";
         return oss.str();
     }
@@ -588,552 +238,1080 @@ public:
     MI_DECLARE_CLASS(FluoVolpath)
 
 private:
-    /// A fluorescent medium of the scene with the excitation range it can use.
-    struct MediumEntry {
-        const BMedium *medium;
-        fluo::Range range;
-    };
-
-    /// A shadow ray's transfer through fluorescent media (reduced transport): its
-    /// operators T_i = diag(g) − d·A in the ray's order from the vertex, applied to the
-    /// emitter's coefficients c at the end, T_1·(T_2·(…·c)) at K² each (multiplying
-    /// them out as they come would cost K³ each); beyond Capacity they are multiplied
-    /// out into p.
-    struct Shadow {
-        using Coeffs = typename ReducedTransport<Float, Spectrum>::Coeffs;
-        using Square = typename ReducedTransport<Float, Spectrum>::Square;
-        /// diag(g) − d·A; or, with v set, the closed-form transfer V·diag(g)·V⁻¹.
-        struct Op {
-            const Square *a; ///< nullptr: diagonal only
-            double d;
-            Coeffs g;
-            const Square *v = nullptr, *v_inv = nullptr;
-        };
-        static constexpr size_t Capacity = 32;
-        bool active = false; ///< a fluorescent medium was met: the light is light(c)
-        size_t n = 0;
-        std::array<Op, Capacity> ops;
-        bool folded = false; ///< p holds the operators before ops
-        Square p;            ///< (set when folded)
-    };
-
-    /// The per-wavelength choice at a real collision in a fluorescent medium.
-    struct MediumShift {
-        bool any = false;
-        std::array<bool, 4> shifted{};
-        /// Shifted wavelengths see the isotropic 1/(4π) instead of the phase value.
-        void apply(Spectrum &phase_val) const {
-            if constexpr (is_spectral_v<Spectrum>) {
-                for (size_t j = 0; j < 4; ++j)
-                    if (shifted[j])
-                        phase_val[j] = InvFourPi;
+    /// Once per render: the fluorescent media and BSDFs (and the wrappers around those) and
+    /// the emitters' spectral range; whether
+    /// anything fluoresces. RGB variants: the reduced transport's matrices (the BSDFs' and
+    /// the media's operators) and the emitters' basis coefficients.
+    void prepare(Scene *scene) {
+        m_media.clear();
+        m_bsdfs.clear();
+        m_rmedia.clear();
+        std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
+        fluo::Range lights = fluo_detail::emitters_range(scene);
+        double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
+        bool directional = false;
+        fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
+        m_wrappers.scan(objects, Plugin);
+        std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
+        for (Bispectral *b : bsdfs)
+            hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
+        for (const BMedium *b : media)
+            if (b->jit_fluorescent(0.0, 1e30))
+                hi = std::max(hi, b->jit_range().hi);
+        if constexpr (is_spectral_v<Spectrum>) // a band the scene's light never reaches: a plain BSDF
+            bsdfs.erase(std::remove_if(bsdfs.begin(), bsdfs.end(),
+                                       [&](Bispectral *b) {
+                                           fluo::Range ex = b->jit_excitation_range();
+                                           return !(std::max(ex.lo, lo) < std::min(ex.hi, hi));
+                                       }),
+                        bsdfs.end());
+        for (Bispectral *b : bsdfs)
+            directional |= !b->jit_lambertian();
+        m_range_lo = lo;
+        m_range_hi = hi;
+        if (scene->emitters().empty())
+            bsdfs.clear();
+        else
+            for (const BMedium *b : media)
+                if (b->jit_fluorescent(lo, hi))
+                    m_media.push_back(b);
+        m_bsdfs.assign(bsdfs.begin(), bsdfs.end());
+        m_directional = directional && !m_bsdfs.empty();
+        m_fluorescent = !m_media.empty() || !m_bsdfs.empty();
+        if constexpr (is_rgb_v<Spectrum>) {
+            m_reduced.prepare(scene, bsdfs, !m_media.empty());
+            m_varying = m_directional && m_reduced.varying();
+            size_t k = m_reduced.bands();
+            for (const BMedium *b : m_media) {
+                ReducedMedium r{ dynamic_cast<const Medium *>(b), std::vector<double>(k * k),
+                                 std::vector<double>(k * k), std::vector<double>(k, 0.0), { 0.0 }, { 0.0 } };
+                fluo_detail::rust_call(Plugin, [&] {
+                    b->jit_reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
+                                             rust::Slice<double>(r.f.data(), k * k));
+                    return 0;
+                });
+                for (size_t i = 0; i < k; ++i) {
+                    for (size_t j = 0; j < k; ++j)
+                        r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
+                    r.f_max[0] = std::max(r.f_max[0], r.f_rows[i]);
+                    r.a_max[0] = std::max(r.a_max[0], r.a[i * k + i]);
+                }
+                m_rmedia.push_back(std::move(r));
             }
         }
-        void apply_weight(Spectrum &phase_weight, Float phase_pdf) const {
-            if constexpr (is_spectral_v<Spectrum>) {
-                for (size_t j = 0; j < 4; ++j)
-                    if (shifted[j])
-                        phase_weight[j] = InvFourPi / phase_pdf;
-            }
-        }
-    };
-
-    const MediumEntry *find_medium(const Medium *m) const {
-        if (m_media.empty())
-            return nullptr;
-        auto it = m_media.find(static_cast<const void *>(m));
-        return it == m_media.end() ? nullptr : &it->second;
     }
 
-    /// Null and real collision probabilities in a fluorescent medium. Spectral tracking
-    /// (Kutz et al. 2017): in proportion to max_j |T_j| σn_j and max_j |T_j| σt_j over the
-    /// hero wavelengths' throughputs T. Where the first hero wavelength is in the
-    /// absorption band and the others are not, volpath's mean rule would keep killing
-    /// the transparent ones with it (their transmittance estimate survives n null
-    /// collisions with probability ~0.75^n); here, once a wavelength's throughput is 0 it
-    /// no longer votes. Then p_real is raised to at least min(κ/μ̄, 1/2), κ = max_j
-    /// min(σs_j + μf_j, 1/ℓ) over the carried wavelengths (μf: the medium's
-    /// source_bound; ℓ: the length of the current straight flight, no cap without a
-    /// surface ahead): a real collision's weight (σs + μf)/(μ̄ p_real) is non-zero where
-    /// the medium re-emits at λo also where it is transparent at λo (blue dots seen at
-    /// 470 nm absorb only below 420 nm: μf(λo) > 0 = σt(λo)). With σt alone such
-    /// collisions happened only near where other hero wavelengths were absorbed and the
-    /// glow came out ~9x too dark. At rate ≤ 1/ℓ (the majorant covers it: fluo_volpath
-    /// asks the medium for it, fluo_detail::ScopedSourceRate) this makes about one
-    /// fluorescent collision per flight, spread along it, and the transparent
-    /// wavelengths' null weights grow by at most ~e over the flight. Unbiased: either
-    /// event has positive probability wherever its weight is non-zero for a carried
-    /// wavelength (p_null stays ≥ 1/2 unless every carried σn is 0).
+    static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
+
+    /// Where `medium` is one of the scene's fluorescent media (a handful: compared by pointer).
+    Mask is_fluorescent_medium(const MediumPtr &medium, const Mask &active) const {
+        Mask out = false;
+        for (const BMedium *b : m_media)
+            out |= active && medium == MediumPtr(dynamic_cast<const Medium *>(b));
+        return out;
+    }
+
+    /// μa and μf (1/m at density 1) of the fluorescent media at the wavelengths, once per flight.
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> rates(const MediumPtr &medium, const Wavelength &lambda,
+                                                              const Mask &active) const {
+        const double lo = m_range_lo, hi = m_range_hi;
+        return fluo_detail::dispatch_any(
+            medium,
+            [lo, hi](const Medium *m, const Wavelength &lambda_, const Mask &on) {
+                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi))
+                    return f->jit_rates(lambda_, lo, hi, on);
+                return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+            },
+            lambda, active);
+    }
+
+    /// A tentative collision: fluorescent media through jit_sample_interaction with the
+    /// flight's rates (their majorant covering the source up to `rate`), the others through
+    /// Mitsuba's sample_interaction with the path's distance-sampling `channel` (as volpath).
+    /// Returns it, μf there (0 for the others), where it is fluorescent and the factor d
+    /// (density·scale: 1/m at density 1 to inverse scene units).
+    std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Mask, Float>
+    sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const UInt32 &channel,
+                  const Float &rate, const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f,
+                  const Mask &active) const {
+        const double lo = m_range_lo, hi = m_range_hi;
+        return fluo_detail::dispatch_any(
+            medium,
+            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const UInt32 &channel_, const Float &rate_,
+                     const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
+                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi)) {
+                    auto [mei, mf, d] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
+                    return std::make_tuple(mei, mf, Mask(true), d);
+                }
+                return std::make_tuple(m->sample_interaction(ray_, u_, channel_, on), UnpolarizedSpectrum(0.f),
+                                       Mask(false), Float(0.f));
+            },
+            ray, u, channel, rate, mu_a, mu_f, active);
+    }
+
+    /// Channel `c` of a per-channel value (volpath's distance-sampling channel: random per
+    /// path in RGB variants, 0 in spectral ones, where the hero wavelength samples distances).
+    static Float channel_of(const UnpolarizedSpectrum &v, const UInt32 &c) {
+        if constexpr (is_rgb_v<Spectrum>)
+            return dr::select(c == 0u, v[0], dr::select(c == 1u, v[1], v[2]));
+        else
+            return (void) c, v[0];
+    }
+
+    /// Null and real collision probabilities in a fluorescent medium: spectral tracking
+    /// with the fluorescent source's floor on p_real (collision_probabilities; the docs'
+    /// estimator).
     static std::pair<Float, Float> spectral_tracking(const MediumInteraction3f &mei, const Spectrum &throughput,
-                                                     const std::array<float, 4> &source_bound, double inv_len) {
+                                                     const UnpolarizedSpectrum &mu_f, const Float &inv_len) {
         UnpolarizedSpectrum t = dr::abs(unpolarized_spectrum(throughput));
-        double q_null = (double) dr::max(t * mei.sigma_n), q_real = (double) dr::max(t * mei.sigma_t);
-        double kappa = 0.0;
-        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum> && j < 4; ++j) {
-            if (!(t[j] > 0.f))
-                continue;
-            kappa = std::max(kappa, source_rate(std::max(0.0, (double) mei.sigma_s[j]) +
-                                                    std::max(0.0, (double) source_bound[j]),
-                                                inv_len));
+        Float q_null = dr::max(t * mei.sigma_n), q_real = dr::max(t * mei.sigma_t);
+        Float kappa = 0.f;
+        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+            Float source = dr::maximum(mei.sigma_s[j], 0.f) + dr::maximum(mu_f[j], 0.f);
+            Float rate = dr::select(inv_len > 0.f, dr::minimum(source, inv_len), source);
+            kappa = dr::select(t[j] > 0.f, dr::maximum(kappa, rate), kappa);
         }
-        return collision_probabilities(q_null, q_real, kappa, (double) dr::max(mei.combined_extinction));
-    }
-
-    /// The rate at which a flight samples a source (σs + μf) for its real collisions: the
-    /// source capped at 1/ℓ (inv_len), uncapped without a surface ahead (inv_len = 0).
-    static double source_rate(double source, double inv_len) {
-        return inv_len > 0.0 ? std::min(source, inv_len) : source;
+        return collision_probabilities(q_null, q_real, kappa, mei.combined_extinction[0]);
     }
 
     /// (p_null, p_real) from the tracking weights q_null, q_real and the source rate κ
-    /// (spectral_tracking; band_tracking for the reduced transport).
-    static std::pair<Float, Float> collision_probabilities(double q_null, double q_real, double kappa,
-                                                           double majorant) {
-        double total = q_null + q_real;
-        if (!(total > 0.0) || !std::isfinite(total))
-            return { 0.f, 1.f }; // nothing carried: a real collision with weight 0 ends it
-        double p_real = q_real / total;
-        if (majorant > 0.0 && std::isfinite(majorant))
-            p_real = std::max(p_real, std::min(kappa / majorant, 0.5));
-        p_real = std::clamp(p_real, 0.0, 1.0);
-        return { (Float) (1.0 - p_real), (Float) p_real };
+    /// (p_real at least min(κ/μ̄, 1/2)).
+    static std::pair<Float, Float> collision_probabilities(const Float &q_null, const Float &q_real,
+                                                           const Float &kappa, const Float &majorant) {
+        Float total = q_null + q_real;
+        Mask ok = total > 0.f && dr::isfinite(total);
+        Float p_real = dr::select(ok, q_real / total, 1.f);
+        p_real = dr::select(ok && majorant > 0.f && dr::isfinite(majorant),
+                            dr::maximum(p_real, dr::minimum(kappa / majorant, .5f)), p_real);
+        p_real = dr::clip(p_real, 0.f, 1.f);
+        return { 1.f - p_real, p_real };
     }
 
-    /// Per hero wavelength: elastic with probability σs/(σs + μf), else a shift to λi
-    /// (mei.wavelengths[j] = λi); `sigma_s` becomes σs + μf where the wavelength goes on,
-    /// 0 where it cannot.
-    MediumShift choose_medium_shift(const MediumEntry &e, MediumInteraction3f &mei, Sampler *sampler,
-                                    UnpolarizedSpectrum &sigma_s) const {
-        MediumShift shift;
-        if constexpr (is_spectral_v<Spectrum>) {
-            std::array<Point2f, 4> us;
-            std::array<double, 4> xi{};
-            for (size_t j = 0; j < 4; ++j) {
-                us[j] = sampler->next_2d();
-                xi[j] = (double) us[j].y();
-            }
-            std::array<float, 4> mu_f{};
-            std::array<fluo::Sample, 4> samples;
-            e.medium->shift_and_sample(mei, e.range, xi, mu_f, samples);
-            for (size_t j = 0; j < 4; ++j) {
-                double ss = std::max(0.0, (double) sigma_s[j]);
-                double sf = std::max(0.0, (double) mu_f[j]);
-                double total = ss + sf;
-                const Point2f &u = us[j];
-                if (!(total > 0.0) || !std::isfinite(total)) {
-                    sigma_s[j] = 0.f;
-                    continue;
-                }
-                sigma_s[j] = (float) total;
-                if (u.x() * total < ss)
-                    continue; // elastic: weight ss / pe = total
-                const fluo::Sample &s = samples[j];
-                if (!(s.pdf > 0.0)) {
-                    sigma_s[j] = 0.f;
-                    continue;
-                }
-                // Shift: weight μa f / ((1 − pe) p) = μf / (1 − pe) = total.
-                shift.shifted[j] = true;
-                shift.any = true;
-                mei.wavelengths[j] = (float) s.value;
+    /// At a surface the path reached (`intersect`: by a new ray): hidden area emitters on the
+    /// camera ray skipped (hide_emitters), then the emission found there with
+    /// its MIS weight (volpath's): the emitter, its radiance, the weight and where it counts.
+    template <typename State>
+    std::tuple<EmitterPtr, Spectrum, Float, Mask> surface_emission(const Scene *scene, State &ls,
+                                                                   const Mask &active_surface,
+                                                                   const Mask &intersect) const {
+        if (m_hide_emitters) {
+            Mask skip = intersect && ls.depth == 0u && ls.si.is_valid() && ls.si.shape->emitter() != nullptr;
+            if (dr::any_or<true>(skip)) {
+                Ray3f skip_ray = ls.si.spawn_ray(ls.ray.d);
+                PreliminaryIntersection3f pi = Base::skip_area_emitters(scene, skip_ray, true, skip);
+                dr::masked(ls.si, skip) = pi.compute_surface_interaction(skip_ray, +RayFlags::All, skip);
             }
         }
-        return shift;
+        Mask count_direct = ls.depth == 0u || ls.specular_chain;
+        EmitterPtr emitter = ls.si.emitter(scene);
+        Mask active_e = active_surface && emitter != nullptr && !(ls.depth == 0u && m_hide_emitters);
+        Float weight = 1.f;
+        Spectrum emitted = 0.f;
+        if (dr::any_or<true>(active_e)) {
+            Float emitter_pdf = 1.f;
+            Mask mis_e = active_e && !count_direct;
+            if (dr::any_or<true>(mis_e)) {
+                DirectionSample3f ds(scene, ls.si, ls.last_scatter_event);
+                dr::masked(emitter_pdf, mis_e) = scene->pdf_emitter_direction(ls.last_scatter_event, ds, mis_e);
+            }
+            emitted = emitter->eval(ls.si, active_e);
+            weight = dr::select(count_direct, 1.f, mis_weight(ls.last_scatter_direction_pdf, emitter_pdf));
+        }
+        return { emitter, emitted, weight, active_e };
     }
 
-    // ------------------ scalar_rgb: reduced transport in fluorescent media -----------
+    /// volpath's loop state at the camera ray (the fields both loops share; the path's
+    /// throughput is the caller's).
+    template <typename State>
+    void start(State &ls, const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+               const Medium *initial_medium, const Bool &active) const {
+        ls.active = active;
+        ls.depth = UInt32(0);
+        ls.ray = Ray3f(ray);
+        ls.si = dr::zeros<SurfaceInteraction3f>();
+        ls.mei = dr::zeros<MediumInteraction3f>();
+        ls.medium = MediumPtr(initial_medium);
+        ls.eta = Float(1.f);
+        ls.last_scatter_event = dr::zeros<Interaction3f>();
+        ls.last_scatter_direction_pdf = Float(1.f);
+        ls.needs_intersection = Mask(true);
+        ls.specular_chain = Mask(active && !m_hide_emitters);
+        ls.valid_ray = Mask(!m_hide_emitters && scene->environment() != nullptr);
+        ls.inv_len = Float(0.f);
+        ls.mu_a = UnpolarizedSpectrum(0.f);
+        ls.sampler = sampler;
+        // volpath's distance-sampling channel: one per path in RGB variants
+        ls.channel = UInt32(0);
+        if constexpr (is_rgb_v<Spectrum>)
+            ls.channel = UInt32(dr::minimum(sampler->next_1d(active) * 3.f, 2.f));
+    }
 
-    /// A fluorescent medium's reduced operators A and F, per scene unit at density 1.
-    struct ReducedMedium {
-        const BMedium *medium;
-        Square a{}, f{};
-        Coeffs f_rows{}; ///< Σ_i |F_ki| / (4π): the re-emission into band k per unit density
-        /// Constant density and scattering: d·A + diag(σs) = V·diag(λ)·V⁻¹, so that a
-        /// shadow ray's transfer over t is V·diag(e^{−λt})·V⁻¹ (closed_form_shadows).
-        bool closed = false;
-        Square v{}, v_inv{};
-        Coeffs lambda{};
+    /// Where the path reaches a surface (`active`, or an escaped medium flight): its
+    /// intersection when the ray is new. Returns where it was intersected here.
+    template <typename State> Mask reach_surface(const Scene *scene, State &ls, const Mask &active) const {
+        Mask intersect = active && ls.needs_intersection;
+        if (dr::any_or<true>(intersect))
+            dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
+        ls.needs_intersection &= !intersect;
+        return intersect;
+    }
+
+    /// A new flight in a fluorescent medium (where `active` and the ray is new): its length to
+    /// the next surface first (the source rate of its tentative collisions is at most 1/ℓ).
+    /// Returns where a flight starts; the caller looks up its rates there.
+    template <typename State> Mask start_flight(const Scene *scene, State &ls, const Mask &active) const {
+        Mask flight = ls.needs_intersection && is_fluorescent_medium(ls.medium, active);
+        if (dr::any_or<true>(flight)) {
+            dr::masked(ls.si, flight) = scene->ray_intersect(ls.ray, flight);
+            dr::masked(ls.inv_len, flight) = dr::select(ls.si.is_valid(), dr::rcp(dr::maximum(ls.si.t, 1e-30f)), 0.f);
+            ls.needs_intersection &= !flight;
+        }
+        return flight;
+    }
+
+    /// A tentative collision `mei` sampled where `active`: kept, the ray clipped at it in
+    /// homogeneous media (as volpath), the surface ahead found, and a collision beyond it
+    /// dropped.
+    template <typename State>
+    void place_collision(const Scene *scene, State &ls, const MediumInteraction3f &mei, const Mask &active) const {
+        dr::masked(ls.mei, active) = mei;
+        dr::masked(ls.ray.maxt, active && ls.medium->is_homogeneous() && ls.mei.is_valid()) = ls.mei.t;
+        Mask intersect = ls.needs_intersection && active;
+        if (dr::any_or<true>(intersect))
+            dr::masked(ls.si, intersect) = scene->ray_intersect(ls.ray, intersect);
+        ls.needs_intersection &= !active;
+        dr::masked(ls.mei.t, active && ls.si.t < ls.mei.t) = dr::Infinity<Float>;
+    }
+
+    /// A tentative collision placed (place_collision): the free flight's weight tr/pdf where the
+    /// medium's extinction is spectral (native media; volpath's, applied by the caller where
+    /// is_spectral held on entry, escaping flights included), the masks following the flight
+    /// (`escaped` where it left the medium), and volpath's null and real probabilities (the mean
+    /// over the channels).
+    template <typename State>
+    std::tuple<UnpolarizedSpectrum, Float, Float> end_flight(const State &ls, Mask &active_medium, Mask &escaped,
+                                                             Mask &is_spectral, Mask &not_spectral,
+                                                             Mask &is_fluo) const {
+        UnpolarizedSpectrum w(1.f);
+        if (dr::any_or<true>(is_spectral)) {
+            auto [tr, free_flight_pdf] = ls.medium->transmittance_eval_pdf(ls.mei, ls.si, is_spectral);
+            Float tr_pdf = channel_of(free_flight_pdf, ls.channel);
+            w = dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+        }
+        escaped = active_medium && !ls.mei.is_valid();
+        active_medium &= ls.mei.is_valid();
+        is_spectral &= active_medium;
+        not_spectral &= active_medium;
+        is_fluo &= active_medium;
+        return { w, dr::mean(ls.mei.sigma_n / ls.mei.combined_extinction),
+                 dr::mean(ls.mei.sigma_t / ls.mei.combined_extinction) };
+    }
+
+    /// Russian roulette on the throughput's largest entry `t_max` and max_depth (as volpath;
+    /// `alive`: where the throughput is not all 0): ends the paths that stop; returns where the
+    /// survivors' throughput must be scaled, and by what.
+    template <typename State>
+    std::pair<Mask, Float> roulette(State &ls, const Float &t_max, const Mask &alive) const {
+        ls.active &= alive;
+        Float q = dr::minimum(t_max * dr::square(ls.eta), .95f);
+        Mask perform_rr = ls.depth > (uint32_t) m_rr_depth;
+        ls.active &= ls.sampler->next_1d(ls.active) < q || !perform_rr;
+        ls.active &= ls.depth < (uint32_t) m_max_depth;
+        return { perform_rr, dr::rcp(dr::detach(q)) };
+    }
+
+    /// After the null/real choice: a real collision (`scatter`) counts towards the depth and
+    /// is the last scattering event (as volpath), paths at max_depth stop, and a null one
+    /// moves the ray's origin to it.
+    template <typename State> void settle_collision(State &ls, const Mask &null, Mask &scatter) const {
+        dr::masked(ls.depth, scatter) += 1;
+        dr::masked(ls.last_scatter_event, scatter) = Interaction3f(ls.mei);
+        ls.active &= ls.depth < (uint32_t) m_max_depth;
+        scatter &= ls.active;
+        dr::masked(ls.ray.o, null) = ls.mei.p;
+        dr::masked(ls.si.t, null) = ls.si.t - ls.mei.t;
+    }
+
+    /// A real collision where `scatter`: valid ray, specular chain (as volpath); returns the
+    /// medium's phase function (nullptr elsewhere) and where emitters are sampled.
+    template <typename State> std::pair<PhaseFunctionPtr, Mask> begin_scatter(State &ls, const Mask &scatter) const {
+        PhaseFunctionPtr phase = ls.mei.medium->phase_function();
+        dr::masked(phase, !scatter) = nullptr;
+        Mask sample_emitters = ls.mei.medium->use_emitter_sampling();
+        ls.valid_ray |= scatter;
+        ls.specular_chain &= !scatter;
+        ls.specular_chain |= scatter && !sample_emitters;
+        return { phase, scatter && sample_emitters };
+    }
+
+    /// After a BSDF sample `bs` at si where `active`: the next ray (carrying the path's
+    /// wavelengths), η, the depth and the previous vertex for MIS, the specular chain and the
+    /// medium behind a transition (as volpath).
+    template <typename State>
+    void leave_surface(State &ls, const SurfaceInteraction3f &si, const BSDFSample3f &bs, const Mask &active) const {
+        dr::masked(ls.eta, active) *= bs.eta;
+        dr::masked(ls.ray, active) = si.spawn_ray(si.to_world(bs.wo));
+        ls.needs_intersection |= active;
+        Mask non_null = active && !has_flag(bs.sampled_type, BSDFFlags::Null);
+        dr::masked(ls.depth, non_null) += 1;
+        dr::masked(ls.last_scatter_event, non_null) = Interaction3f(si);
+        dr::masked(ls.last_scatter_direction_pdf, non_null) = bs.pdf;
+        ls.valid_ray |= non_null;
+        ls.specular_chain |= non_null && has_flag(bs.sampled_type, BSDFFlags::Delta);
+        ls.specular_chain &= !(active && has_flag(bs.sampled_type, BSDFFlags::Smooth));
+        Mask transition = active && si.is_medium_transition();
+        dr::masked(ls.medium, transition) = si.target_medium(ls.ray.d);
+    }
+
+    struct LoopState {
+        Mask active;
+        UInt32 depth;
+        Ray3f ray;
+        Spectrum throughput, result;
+        SurfaceInteraction3f si;
+        MediumInteraction3f mei;
+        MediumPtr medium;
+        Float eta;
+        Interaction3f last_scatter_event;
+        Float last_scatter_direction_pdf;
+        Mask needs_intersection, specular_chain, valid_ray;
+        Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
+        /// μa, μf of a fluorescent medium at the flight's wavelengths (density 1)
+        UnpolarizedSpectrum mu_a, mu_f;
+        UInt32 channel; ///< volpath's distance-sampling channel (0: spectral variants)
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopState, active, depth, ray, throughput, result, si, mei, medium, eta, last_scatter_event,
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, mu_f,
+                     channel, sampler)
     };
-    /// A tentative collision in a fluorescent medium: density, per-band σs, majorant μ̄.
-    struct Collision {
-        double density = 0.0, majorant = 1.0;
-        Coeffs sigma_s{};
-    };
 
-    const ReducedMedium *find_reduced(const Medium *m) const {
-        if (m_rmedia.empty() || m == nullptr)
-            return nullptr;
-        auto it = m_rmedia.find(static_cast<const void *>(m));
-        return it == m_rmedia.end() ? nullptr : &it->second;
-    }
+    /// volpath's loop with fluorescence (spectral variants with fluorescence only).
+    std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                    const Medium *initial_medium, Bool active) const {
+        LoopState ls;
+        start(ls, scene, sampler, ray_, initial_medium, active);
+        ls.throughput = Spectrum(1.f);
+        ls.result = Spectrum(0.f);
+        ls.mu_f = UnpolarizedSpectrum(0.f);
+        const bool directional = m_directional, surfaces = !m_bsdfs.empty(), media = !m_media.empty();
+        const double range_lo = m_range_lo, range_hi = m_range_hi;
 
-    Collision collision(const ReducedMedium &r, const MediumInteraction3f &mei) const {
-        Collision c;
-        c.density = std::max(0.0, (double) r.medium->density_at(mei));
-        c.majorant = (double) dr::max(mei.combined_extinction);
-        c.sigma_s = m_reduced.band_albedo(Spectrum(mei.sigma_s));
-        return c;
-    }
+        dr::tie(ls) = dr::while_loop(
+            dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
+            [this, scene, directional, surfaces, media, range_lo, range_hi](LoopState &ls) {
+                Mask &active = ls.active;
+                Spectrum &throughput = ls.throughput;
+                Sampler *sampler = ls.sampler;
 
-    /// Null and real probabilities over the bands, as spectral_tracking over the hero
-    /// wavelengths: the bands R carries (w_k = column_max of R) take the wavelengths'
-    /// place, in proportion to max_k w_k |μ̄ − σt_k| and max_k w_k σt_k (σt_k = d·A_kk +
-    /// σs_k), with the source rate min(σs_k + d·Σ_i |F_ki|/(4π), 1/ℓ) (band k of R meets
-    /// row k of the collision's operators). The weights are exact whatever the split.
-    std::pair<Float, Float> band_tracking(const ReducedMedium &r, const Collision &c, const Coeffs &w,
-                                          double inv_len) const {
-        size_t k = m_reduced.bands();
-        double q_null = 0.0, q_real = 0.0, kappa = 0.0;
-        for (size_t i = 0; i < k; ++i) {
-            if (!(w[i] > 0.0))
-                continue;
-            double st = std::max(0.0, c.density * r.a[i * k + i] + c.sigma_s[i]);
-            q_null = std::max(q_null, w[i] * std::abs(c.majorant - st));
-            q_real = std::max(q_real, w[i] * st);
-            kappa = std::max(kappa, source_rate(std::max(0.0, c.sigma_s[i]) + c.density * r.f_rows[i], inv_len));
-        }
-        return collision_probabilities(q_null, q_real, kappa, c.majorant);
-    }
+                // ----------------- Russian roulette, max_depth -----------------
+                auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(throughput)),
+                                                 dr::any(unpolarized_spectrum(throughput) != 0.f));
+                dr::masked(throughput, perform_rr) *= rr;
+                if (dr::none_or<false>(active))
+                    return;
 
-    /// diag(σs ∘ p) + d·F·iso: the collision's source for an elastic weight p (phase
-    /// value or weight) and the isotropic re-emission's iso (1/4π, over the pdf if sampled).
-    Square source_matrix(const ReducedMedium &r, const Collision &c, const Spectrum &p, double iso) const {
-        size_t k = m_reduced.bands();
-        Coeffs pk = m_reduced.band_albedo(p);
-        Square w{};
-        for (size_t i = 0; i < k * k; ++i)
-            w[i] = c.density * r.f[i] * iso;
-        for (size_t i = 0; i < k; ++i)
-            w[i * k + i] += c.sigma_s[i] * pk[i];
-        return w;
-    }
-
-    /// p ← p·n·s (K×K).
-    void multiply(Square &p, const Square &n, double s) const {
-        size_t k = m_reduced.bands();
-        Square out{};
-        for (size_t i = 0; i < k; ++i)
-            for (size_t j = 0; j < k; ++j) {
-                double acc = 0.0;
-                for (size_t l = 0; l < k; ++l)
-                    acc += p[i * k + l] * n[l * k + j];
-                out[i * k + j] = acc * s;
-            }
-        p = out;
-    }
-
-    /// Move a shadow ray's RGB transmittance t so far into its transfer (a diagonal
-    /// operator of t's band factors, unless t = 1), and mark the transfer active; t ← 1.
-    void flush(Shadow &shadow, Spectrum &t) const {
-        shadow.active = true;
-        if (dr::all(t == 1.f))
-            return;
-        push(shadow, typename Shadow::Op{ nullptr, 0.0, m_reduced.band_albedo(t) });
-        t = Spectrum(1.f);
-    }
-
-    /// Append an operator to a shadow ray's transfer (multiplying the list out into p
-    /// when it is full).
-    void push(Shadow &shadow, const typename Shadow::Op &op) const {
-        if (shadow.n == Shadow::Capacity) {
-            size_t k = m_reduced.bands();
-            if (!shadow.folded) {
-                shadow.p.fill(0.0);
-                for (size_t i = 0; i < k; ++i)
-                    shadow.p[i * k + i] = 1.0;
-                shadow.folded = true;
-            }
-            for (size_t i = 0; i < shadow.n; ++i) {
-                const auto &o = shadow.ops[i];
-                Square m{};
-                if (o.v) {
-                    for (size_t r = 0; r < k; ++r)
-                        for (size_t c = 0; c < k; ++c)
-                            for (size_t j = 0; j < k; ++j)
-                                m[r * k + c] += (*o.v)[r * k + j] * o.g[j] * (*o.v_inv)[j * k + c];
-                } else {
-                    for (size_t j = 0; j < k * k; ++j)
-                        m[j] = o.a ? -o.d * (*o.a)[j] : 0.0;
-                    for (size_t j = 0; j < k; ++j)
-                        m[j * k + j] += o.g[j];
-                }
-                multiply(shadow.p, m, 1.0);
-            }
-            shadow.n = 0;
-        }
-        shadow.ops[shadow.n++] = op;
-    }
-
-    /// A shadow ray's transfer applied to light c: T_1·(T_2·(…·c)), K² per operator.
-    Coeffs shadow_light(const Shadow &shadow, Coeffs c) const {
-        size_t k = m_reduced.bands();
-        for (size_t i = shadow.n; i-- > 0;) {
-            const auto &o = shadow.ops[i];
-            Coeffs out{};
-            if (o.v) { // V·diag(g)·V⁻¹·c
-                Coeffs y{};
-                for (size_t r = 0; r < k; ++r) {
-                    for (size_t j = 0; j < k; ++j)
-                        y[r] += (*o.v_inv)[r * k + j] * c[j];
-                    y[r] *= o.g[r];
-                }
-                for (size_t r = 0; r < k; ++r)
-                    for (size_t j = 0; j < k; ++j)
-                        out[r] += (*o.v)[r * k + j] * y[j];
-                c = out;
-                continue;
-            }
-            for (size_t r = 0; r < k; ++r) {
-                double acc = o.g[r] * c[r];
-                if (o.a)
-                    for (size_t j = 0; j < k; ++j)
-                        acc -= o.d * (*o.a)[r * k + j] * c[j];
-                out[r] = acc;
-            }
-            c = out;
-        }
-        if (shadow.folded) {
-            Coeffs out{};
-            for (size_t r = 0; r < k; ++r)
-                for (size_t j = 0; j < k; ++j)
-                    out[r] += shadow.p[r * k + j] * c[j];
-            c = out;
-        }
-        return c;
-    }
-
-    /// Scan the scene once per render: fluorescent media and BSDFs, emitters' range.
-    void prepare(Scene *scene) {
-        m_wrappers.clear();
-        m_media.clear();
-        std::vector<const BMedium *> media;
-        for (const BMedium *b : fluo_detail::managed_media<BMedium>(scene))
-            if (b->fluorescent())
-                media.push_back(b);
-
-        if constexpr (is_rgb_v<Spectrum>) {
-            // Reduced transport when anything fluoresces, else volpath.
-            m_rmedia.clear();
-            size_t k = m_reduced.bands();
-            for (const BMedium *b : media) {
-                ReducedMedium r{ b, {}, {}, {} };
-                b->reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
-                                     rust::Slice<double>(r.f.data(), k * k));
-                double a_max = 0.0;
-                for (size_t i = 0; i < k; ++i) {
-                    a_max = std::max(a_max, r.a[i * k + i]);
-                    for (size_t j = 0; j < k; ++j)
-                        r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
-                }
-                b->set_band_absorption_max(a_max);
-                MediumInteraction3f at = dr::zeros<MediumInteraction3f>();
-                UnpolarizedSpectrum sigma_t;
-                const Medium *medium = dynamic_cast<const Medium *>(b);
-                if (m_closed_shadows && b->constant_extinction(at, sigma_t)) {
-                    auto [sigma_s, sigma_n, sigma_tt] = medium->get_scattering_coefficients(at, true);
-                    double d = std::max(0.0, (double) b->density_at(at));
-                    Coeffs s = m_reduced.band_albedo(Spectrum(sigma_s));
-                    Square m{};
-                    for (size_t i = 0; i < k; ++i) {
-                        for (size_t j = 0; j < k; ++j)
-                            m[i * k + j] = d * r.a[i * k + j];
-                        m[i * k + i] += s[i];
+                // ------------------------ Sampling the RTE ---------------------
+                Mask active_medium = active && ls.medium != nullptr;
+                Mask active_surface = active && !active_medium;
+                Mask act_null = false, act_scatter = false, escaped = false;
+                Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
+                Float p_null = 0.f, p_real = 1.f;
+                UnpolarizedSpectrum mu_f = 0.f;
+                if (dr::any_or<true>(active_medium)) {
+                    is_spectral &= ls.medium->has_spectral_extinction();
+                    not_spectral = !is_spectral && active_medium;
+                    Mask fluo_flight = start_flight(scene, ls, active_medium);
+                    if (dr::any_or<true>(fluo_flight)) {
+                        auto [mu_a, mu_f_] = rates(ls.medium, ls.ray.wavelengths, fluo_flight);
+                        dr::masked(ls.mu_a, fluo_flight) = mu_a;
+                        dr::masked(ls.mu_f, fluo_flight) = mu_f_;
                     }
-                    r.closed = fluo::reduced_eigen(rust::Slice<const double>(m.data(), k * k),
-                                                   rust::Slice<double>(r.v.data(), k * k),
-                                                   rust::Slice<double>(r.v_inv.data(), k * k),
-                                                   rust::Slice<double>(r.lambda.data(), k));
+                    Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
+                    auto [mei, mf, fl, d] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
+                                                          ls.channel, rate, ls.mu_a, ls.mu_f, active_medium);
+                    (void) d;
+                    place_collision(scene, ls, mei, active_medium);
+                    mu_f = mf;
+                    is_fluo = fl && active_medium;
+                    Mask weighted = is_spectral; // (escaping flights too)
+                    auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
+                    dr::masked(throughput, weighted) *= w;
+
+                    // Null or real: volpath's rule, spectral tracking in fluorescent media.
+                    p_null = pn;
+                    p_real = pr;
+                    if (media && dr::any_or<true>(is_fluo)) {
+                        auto [pn, pr] = spectral_tracking(ls.mei, throughput, mu_f, ls.inv_len);
+                        p_null = dr::select(is_fluo, pn, p_null);
+                        p_real = dr::select(is_fluo, pr, p_real);
+                    }
+                    Mask null_scatter = sampler->next_1d(active_medium) < p_null;
+                    act_null = null_scatter && active_medium;
+                    act_scatter = !null_scatter && active_medium;
+                    dr::masked(throughput, act_null && is_spectral) *= ls.mei.sigma_n / p_null;
                 }
-                m_rmedia.emplace(static_cast<const void *>(medium), r);
-            }
-            m_reduced.prepare(scene, m_wrappers, !media.empty());
-            m_use_reduced = m_reduced.active() || !m_rmedia.empty();
-            if (!m_use_reduced) {
-                m_wrappers.clear();
-                m_spectral.prepare(scene, m_wrappers, m_lambda_min, Plugin);
-            }
-            return;
-        } else {
-            double hi = -1e30;
-            for (const BMedium *b : media)
-                hi = std::max(hi, b->lambda_range().hi);
-            m_spectral.prepare(scene, m_wrappers, m_lambda_min, Plugin, media.empty() ? -1e30 : hi);
-            fluo::Range r = m_spectral.range();
-            if (scene->emitters().empty())
-                return;
-            for (const BMedium *b : media) {
-                fluo::Range lr = b->lambda_range();
-                fluo::Range range{ std::max(lr.lo, r.lo), std::min(lr.hi, r.hi) };
-                if (range.lo < range.hi)
-                    m_media.emplace(static_cast<const void *>(static_cast<const Medium *>(
-                                        dynamic_cast<const Medium *>(b))),
-                                    MediumEntry{ b, range });
-            }
-        }
+                settle_collision(ls, act_null, act_scatter);
+
+                if (dr::any_or<true>(act_scatter)) {
+                    // Elastic scattering, or per wavelength a shift to λi (the docs' estimator).
+                    UnpolarizedSpectrum sigma_s = ls.mei.sigma_s;
+                    WMask shifted = false;
+                    Mask fl_scatter = act_scatter && is_fluo;
+                    if (media && dr::any_or<true>(fl_scatter)) {
+                        Wavelength ux, uy;
+                        for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
+                            Point2f u = sampler->next_2d(fl_scatter);
+                            ux[j] = u.x();
+                            uy[j] = u.y();
+                        }
+                        auto [li, ok] = fluo_detail::dispatch_any(
+                            ls.medium,
+                            [range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_, const Wavelength &u_,
+                                                 const Mask &on) {
+                                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(range_lo, range_hi))
+                                    return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
+                                return std::make_pair(mei_.wavelengths, WMask(false));
+                            },
+                            ls.mei, uy, fl_scatter);
+                        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+                            Float ss = dr::maximum(ls.mei.sigma_s[j], 0.f), sf = dr::maximum(mu_f[j], 0.f);
+                            Float total = ss + sf;
+                            Mask valid = total > 0.f && dr::isfinite(total);
+                            Mask elastic = ux[j] * total < ss;
+                            Mask shift = fl_scatter && valid && !elastic && ok[j];
+                            // both events weigh σs + μf (over their probability); 0 where none can go on
+                            sigma_s[j] = dr::select(fl_scatter, dr::select(valid && (elastic || shift), total, 0.f),
+                                                    sigma_s[j]);
+                            shifted[j] = shift;
+                        }
+                        ls.mei.wavelengths = dr::select(shifted, li, ls.mei.wavelengths);
+                    }
+                    dr::masked(throughput, act_scatter && is_spectral) *= sigma_s / p_real;
+                    dr::masked(throughput, act_scatter && not_spectral) *= ls.mei.sigma_s / ls.mei.sigma_t;
+                    // A collision that absorbed every wavelength for good ends the path.
+                    Mask dead = fl_scatter && dr::all(unpolarized_spectrum(throughput) == 0.f);
+                    active &= !dead;
+                    act_scatter &= !dead;
+
+                    PhaseFunctionContext phase_ctx(sampler);
+                    auto [phase, active_e] = begin_scatter(ls, act_scatter);
+
+                    // ------------------------ Emitter sampling -----------------
+                    if (dr::any_or<true>(active_e)) {
+                        auto [emitted, ds] = sample_emitter(ls.mei, scene, sampler, ls.medium, active_e);
+                        auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
+                        // shifted wavelengths re-emit isotropically
+                        phase_val = dr::select(shifted, InvFourPi, phase_val);
+                        Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                        dr::masked(ls.result, active_e) += throughput * phase_val * emitted * mis;
+                    }
+
+                    // ---------------------- Phase function sampling ------------
+                    if (dr::any_or<true>(act_scatter)) { // (phase is null elsewhere)
+                        Float phase_1 = sampler->next_1d(act_scatter);
+                        Point2f phase_2 = sampler->next_2d(act_scatter);
+                        auto [wo, phase_weight, phase_pdf] =
+                            phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
+                        act_scatter &= phase_pdf > 0.f;
+                        phase_weight = dr::select(shifted, InvFourPi / phase_pdf, phase_weight);
+                        dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo); // carries λi where shifted
+                        ls.needs_intersection |= act_scatter;
+                        dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
+                        dr::masked(throughput, act_scatter) *= phase_weight;
+                    }
+                }
+
+                // ----------------------- Surface interactions ------------------
+                active_surface |= escaped;
+                Mask intersect = reach_surface(scene, ls, active_surface);
+
+                if (dr::any_or<true>(active_surface)) {
+                    auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
+                    (void) emitter;
+                    dr::masked(ls.result, active_e) += throughput * emitted * weight;
+                }
+                active_surface &= ls.si.is_valid();
+                if (dr::any_or<true>(active_surface)) {
+                    BSDFContext ctx;
+                    SurfaceInteraction3f &si = ls.si;
+                    BSDFPtr bsdf = si.bsdf(ls.ray);
+                    typename Wrappers::Perturbations perturbed;
+                    if (!m_wrappers.empty())
+                        bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
+                    fluo_detail::SurfaceShift<Float, Spectrum> shift;
+                    if (surfaces)
+                        shift.choose(bsdf, si, sampler, active_surface, range_lo, range_hi);
+
+                    // ------------------------ Emitter sampling -----------------
+                    Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
+                                    ls.depth + 1 < (uint32_t) m_max_depth;
+                    Spectrum emitted = 0.f;
+                    DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+                    if (dr::any_or<true>(active_e))
+                        std::tie(emitted, ds) = sample_emitter(si, scene, sampler, ls.medium, active_e);
+                    active_e &= perturbed.keeps_side(ds.d);
+                    Vector3f wo = si.to_local(ds.d);
+
+                    // ---------------- Emitter contribution, BSDF sampling ------
+                    Float sample_1 = sampler->next_1d(active_surface);
+                    Point2f sample_2 = sampler->next_2d(active_surface);
+                    auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+                        bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
+                    if (surfaces)
+                        shift.apply(bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
+                    if (dr::any_or<true>(active_e)) {
+                        Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+                        dr::masked(ls.result, active_e) += throughput * bsdf_val * mis * emitted;
+                    }
+
+                    dr::masked(throughput, active_surface) *= bsdf_weight;
+                    leave_surface(ls, si, bs, active_surface); // the ray carries λi where shifted
+                    active_surface &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
+                }
+                active &= active_surface || active_medium;
+            });
+        return { ls.result, ls.valid_ray };
     }
 
-    /// An emitter sample seen from `ref` and its transmittance through media and null
-    /// interfaces (ratio tracking, as volpath's sample_emitter).
-    /// With the reduced transport, fluorescent media on the way act on basis
-    /// coefficients: `shadow` then receives the ray's K×K transfer (everything after the
-    /// first such medium is in it; the returned radiance is then the emitter's alone).
-    template <typename Interaction>
-    std::pair<Spectrum, DirectionSample3f> sample_emitter(const Interaction &ref, const Scene *scene,
-                                                         Sampler *sampler, MediumPtr medium, uint32_t channel,
-                                                         Shadow *shadow) const {
-        Spectrum transmittance(1.0f);
-        auto [ds, emitter_val] = scene->sample_emitter_direction(ref, sampler->next_2d(true), false, true);
-        if (ds.pdf == 0.f)
-            return { Spectrum(0.f), ds };
+    /// RGB variants: the 3×K block a shadow ray multiplies by the fluorescent media's
+    /// operators on its way (a placeholder in spectral variants, K = 0).
+    template <size_t K> using Block = std::conditional_t<K == 0, Float, Rows<(K == 0 ? 1 : K)>>;
 
+    template <size_t K> struct ShadowState {
+        Mask active;
+        Ray3f ray;
+        Float total_dist;
+        Mask needs_intersection;
+        MediumPtr medium;
+        SurfaceInteraction3f si;
+        MediumInteraction3f mei;
+        Spectrum transmittance;
+        UnpolarizedSpectrum mu_a; ///< μa of a fluorescent medium at the ray's wavelengths (density 1)
+        Block<K> B;
+        Mask met; ///< K > 0: a fluorescent medium acted on B
+        Sampler *sampler;
+        DRJIT_STRUCT(ShadowState, active, ray, total_dist, needs_intersection, medium, si, mei, transmittance, mu_a, B,
+                     met, sampler)
+    };
+
+    /// An emitter sample seen from `ref` (at ref.wavelengths) and its transmittance
+    /// through media and null interfaces (spectral variants).
+    template <typename Interaction>
+    std::pair<Spectrum, DirectionSample3f> sample_emitter(const Interaction &ref, const Scene *scene, Sampler *sampler,
+                                                          MediumPtr medium, Mask active) const {
+        auto [ds, emitter_val] = scene->sample_emitter_direction(ref, sampler->next_2d(active), false, active);
+        dr::masked(emitter_val, ds.pdf == 0.f) = 0.f;
+        active &= ds.pdf != 0.f;
+        if (dr::none_or<false>(active))
+            return { emitter_val, ds };
+        auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, UInt32(0), Float(0.f), active);
+        (void) b, (void) met;
+        return { emitter_val * tr, ds };
+    }
+
+    /// The transmittance from `ref` to the emitter sample ds through media (ratio tracking;
+    /// fluorescent media with their absorption majorant) and null interfaces, as volpath's
+    /// sample_emitter. K > 0 (the reduced transport): a fluorescent medium's null collision
+    /// multiplies B (given on entry) by its operator diag(μ̄ − σs)/μ̄ − (d/μ̄)·A, after the RGB
+    /// transmittance so far (folded into B as per-band factors, then reset to 1); returns
+    /// the transmittance, B and where a fluorescent medium was met (B multiplied out
+    /// row-wise from the vertex).
+    template <size_t K, typename Interaction>
+    std::tuple<Spectrum, Block<K>, Mask> transmit(const Interaction &ref, const DirectionSample3f &ds,
+                                                  const Scene *scene, Sampler *sampler, MediumPtr medium,
+                                                  const UInt32 &channel, const Block<K> &B, Mask active) const {
         Ray3f ray = ref.spawn_ray_to(ds.p);
         Float max_dist = ray.maxt;
         if constexpr (std::is_convertible_v<Interaction, SurfaceInteraction3f>)
-            if (ref.is_medium_transition())
-                medium = ref.target_medium(ray.d);
+            dr::masked(medium, ref.is_medium_transition()) = ref.target_medium(ray.d);
 
-        Float total_dist = 0.f;
-        SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();
-        MediumInteraction3f mei = dr::zeros<MediumInteraction3f>();
-        Bool needs_intersection = true;
-        Bool active = true;
-        while (active) {
-            Float remaining_dist = max_dist - total_dist;
-            ray.maxt = remaining_dist;
-            active &= remaining_dist > 0.f;
-            if (!active)
-                break;
+        ShadowState<K> ss = { active,
+                              ray,
+                              Float(0.f),
+                              Mask(true),
+                              medium,
+                              dr::zeros<SurfaceInteraction3f>(),
+                              dr::zeros<MediumInteraction3f>(),
+                              Spectrum(1.f),
+                              UnpolarizedSpectrum(0.f),
+                              B,
+                              Mask(false),
+                              sampler };
+        dr::tie(ss) = dr::while_loop(
+            dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
+            [this, scene, max_dist, ds, channel](ShadowState<K> &ss) {
+                Float remaining = max_dist - ss.total_dist;
+                ss.ray.maxt = remaining;
+                ss.active &= remaining > 0.f;
+                if (dr::none_or<false>(ss.active))
+                    return;
+                Mask escaped = false;
+                Mask active_medium = ss.active && ss.medium != nullptr;
+                Mask active_surface = ss.active && !active_medium;
+                if (dr::any_or<true>(active_medium)) {
+                    // a fluorescent medium's μa, once per segment (the rate is 0: absorption alone)
+                    Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
+                    if (dr::any_or<true>(segment))
+                        dr::masked(ss.mu_a, segment) = absorption_bound<K>(ss.medium, ss.ray.wavelengths, segment);
+                    auto [mei, mu_f, fl, d] =
+                        sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium), channel, Float(0.f),
+                                      ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
+                    (void) mu_f;
+                    dr::masked(ss.mei, active_medium) = mei;
+                    dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =
+                        dr::minimum(ss.mei.t, remaining);
+                    Mask intersect = ss.needs_intersection && active_medium;
+                    if (dr::any_or<true>(intersect))
+                        dr::masked(ss.si, intersect) = scene->ray_intersect(ss.ray, intersect);
+                    dr::masked(ss.mei.t, active_medium && ss.si.t < ss.mei.t) = dr::Infinity<Float>;
+                    ss.needs_intersection &= !active_medium;
 
-            Bool escaped_medium = false;
-            Bool active_medium = medium != nullptr;
-            Bool active_surface = !active_medium;
-            // A fluorescent medium whose extinction is the same everywhere: its
-            // transmittance to the next surface in closed form, exp(−σt·t) per
-            // wavelength, instead of ratio tracking's ~μ̄·t steps (scalar_spectral).
-            const MediumEntry *constant_entry = active_medium ? find_medium(medium) : nullptr;
-            UnpolarizedSpectrum constant_sigma_t(0.f);
-            if (constant_entry) {
-                MediumInteraction3f at = dr::zeros<MediumInteraction3f>();
-                at.wavelengths = ray.wavelengths;
-                at.p = ray.o;
-                if (!constant_entry->medium->constant_extinction(at, constant_sigma_t))
-                    constant_entry = nullptr;
-            }
-            // The same in reduced transport: the K×K transfer V·diag(e^{−λt})·V⁻¹.
-            const ReducedMedium *closed = shadow && m_use_reduced && active_medium ? find_reduced(medium) : nullptr;
-            if (closed && !closed->closed)
-                closed = nullptr;
-
-            if (constant_entry || closed) {
-                if (needs_intersection)
-                    si = scene->ray_intersect(ray, true);
-                needs_intersection = false;
-                bool reaches_surface = si.is_valid() && si.t < remaining_dist;
-                double t = (double) (reaches_surface ? si.t : remaining_dist);
-                if (closed) {
-                    flush(*shadow, transmittance);
-                    typename Shadow::Op op{ nullptr, 0.0, {}, &closed->v, &closed->v_inv };
-                    for (size_t j = 0; j < m_reduced.bands(); ++j)
-                        op.g[j] = std::exp(-closed->lambda[j] * t);
-                    push(*shadow, op);
-                } else {
-                    transmittance *= dr::exp(-(Float) t * constant_sigma_t);
+                    // reduced transport: fluorescent media act on B (weight 1 to escape, the
+                    // majorant being one for all bands)
+                    Mask reduced_fl = K > 0 ? Mask(fl && active_medium) : Mask(false);
+                    Mask is_spectral = ss.medium->has_spectral_extinction() && active_medium && !reduced_fl;
+                    Mask not_spectral = !ss.medium->has_spectral_extinction() && active_medium;
+                    if (dr::any_or<true>(is_spectral)) {
+                        Float t = dr::minimum(remaining, dr::minimum(ss.mei.t, ss.si.t)) - ss.mei.mint;
+                        UnpolarizedSpectrum tr = dr::exp(-t * ss.mei.combined_extinction);
+                        UnpolarizedSpectrum pdf = dr::select(ss.si.t < ss.mei.t || ss.mei.t > remaining, tr,
+                                                             tr * ss.mei.combined_extinction);
+                        Float tr_pdf = channel_of(pdf, channel);
+                        dr::masked(ss.transmittance, is_spectral) *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+                    }
+                    dr::masked(ss.total_dist, active_medium && ss.mei.t > remaining && ss.mei.is_valid()) = ds.dist;
+                    dr::masked(ss.mei.t, active_medium && ss.mei.t > remaining) = dr::Infinity<Float>;
+                    escaped = active_medium && !ss.mei.is_valid();
+                    active_medium &= ss.mei.is_valid();
+                    is_spectral &= active_medium;
+                    not_spectral &= active_medium;
+                    reduced_fl &= active_medium;
+                    dr::masked(ss.total_dist, active_medium) += ss.mei.t;
+                    dr::masked(ss.ray.o, active_medium) = ss.mei.p;
+                    dr::masked(ss.si.t, active_medium) = ss.si.t - ss.mei.t;
+                    dr::masked(ss.transmittance, is_spectral) *= ss.mei.sigma_n;
+                    dr::masked(ss.transmittance, not_spectral) *= ss.mei.sigma_n / ss.mei.combined_extinction;
+                    if constexpr (K > 0) {
+                        if (dr::any_or<true>(reduced_fl)) {
+                            Mask flush = reduced_fl && dr::any(ss.transmittance != 1.f);
+                            ss.B = dr::select(flush,
+                                              Reduced::template scale_columns<K>(
+                                                  ss.B, m_reduced.template band_albedo<K>(ss.transmittance)),
+                                              ss.B);
+                            dr::masked(ss.transmittance, reduced_fl) = 1.f;
+                            ss.met |= reduced_fl;
+                            Float mu = ss.mei.combined_extinction[0], inv_mu = dr::rcp(mu);
+                            Coeffs<K> g = m_reduced.template band_albedo<K>(ss.mei.sigma_s);
+                            for (size_t k = 0; k < K; ++k)
+                                g[k] = (mu - g[k]) * inv_mu;
+                            ss.B = dr::select(reduced_fl,
+                                              medium_product<K>(ss.B, g, -d * inv_mu, &ReducedMedium::a,
+                                                                which_media(ss.medium)),
+                                              ss.B);
+                        }
+                    } else {
+                        (void) d;
+                    }
                 }
-                if (!reaches_surface)
-                    break; // the emitter lies inside this medium
-                escaped_medium = true;
-                active_medium = false;
-            } else if (active_medium) {
-                mei = medium->sample_interaction(ray, sampler->next_1d(true), channel, true);
-                if (medium->is_homogeneous() && mei.is_valid())
-                    ray.maxt = dr::minimum(mei.t, remaining_dist);
-                if (needs_intersection)
-                    si = scene->ray_intersect(ray, true);
-                if (si.t < mei.t)
-                    mei.t = dr::Infinity<Float>;
-                needs_intersection = false;
 
-                const ReducedMedium *rmed = shadow && m_use_reduced ? find_reduced(medium) : nullptr;
-                Bool is_spectral = medium->has_spectral_extinction();
-                Bool not_spectral = !is_spectral;
-                if (is_spectral && !rmed) {
-                    Float t = dr::minimum(remaining_dist, dr::minimum(mei.t, si.t)) - mei.mint;
-                    UnpolarizedSpectrum tr = dr::exp(-t * mei.combined_extinction);
-                    UnpolarizedSpectrum free_flight_pdf =
-                        dr::select(si.t < mei.t || mei.t > remaining_dist, tr, tr * mei.combined_extinction);
-                    Float tr_pdf = free_flight_pdf[channel];
-                    transmittance *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+                Mask intersect = active_surface && ss.needs_intersection;
+                if (dr::any_or<true>(intersect))
+                    dr::masked(ss.si, intersect) = scene->ray_intersect(ss.ray, intersect);
+                ss.needs_intersection &= !intersect;
+                active_surface |= escaped;
+                dr::masked(ss.total_dist, active_surface) += ss.si.t;
+
+                active_surface &= ss.si.is_valid() && ss.active && !active_medium;
+                if (dr::any_or<true>(active_surface)) {
+                    BSDFPtr bsdf = ss.si.bsdf(ss.ray);
+                    Spectrum v = bsdf->eval_null_transmission(ss.si, active_surface);
+                    dr::masked(ss.transmittance, active_surface) *= v;
                 }
-
-                if (mei.t > remaining_dist && mei.is_valid())
-                    total_dist = ds.dist;
-                if (mei.t > remaining_dist)
-                    mei.t = dr::Infinity<Float>;
-
-                escaped_medium = !mei.is_valid();
-                active_medium = mei.is_valid();
-                is_spectral &= active_medium;
-                not_spectral &= active_medium;
-
-                if (active_medium) {
-                    total_dist += mei.t;
-                    ray.o = mei.p;
-                    si.t = si.t - mei.t;
-                    if (rmed) { // ratio tracking on coefficients: T = (μ̄ − σs − d·A)/μ̄
-                        Collision c = collision(*rmed, mei);
-                        flush(*shadow, transmittance);
-                        typename Shadow::Op op{ &rmed->a, c.density / c.majorant, {} };
-                        for (size_t k = 0; k < m_reduced.bands(); ++k)
-                            op.g[k] = (c.majorant - c.sigma_s[k]) / c.majorant;
-                        push(*shadow, op);
-                    } else if (is_spectral)
-                        transmittance *= mei.sigma_n;
-                    if (not_spectral)
-                        transmittance *= mei.sigma_n / mei.combined_extinction;
-                }
-            }
-
-            if (active_surface && needs_intersection) {
-                si = scene->ray_intersect(ray, true);
-                needs_intersection = false;
-            }
-            active_surface |= escaped_medium;
-            if (active_surface)
-                total_dist += si.t;
-
-            active_surface &= si.is_valid() && active && !active_medium;
-            if (active_surface) {
-                const BSDF *bsdf = si.bsdf(ray);
-                Spectrum bsdf_val = bsdf->eval_null_transmission(si, true);
-                bsdf_val = si.to_world_mueller(bsdf_val, si.wi, si.wi);
-                transmittance *= bsdf_val;
-                ray = si.spawn_ray(ray.d);
-                ray.maxt = remaining_dist;
-                needs_intersection = true;
-            }
-
-            active &= (active_medium || active_surface) && dr::any(unpolarized_spectrum(transmittance) != 0.f);
-            if (active_surface && si.is_medium_transition())
-                medium = si.target_medium(ray.d);
-        }
-        if (shadow && shadow->active) {
-            flush(*shadow, transmittance);
-            return { emitter_val, ds };
-        }
-        return { emitter_val * transmittance, ds };
+                dr::masked(ss.ray, active_surface) = ss.si.spawn_ray(ss.ray.d);
+                ss.ray.maxt = remaining;
+                ss.needs_intersection |= active_surface;
+                ss.active &= (active_medium || active_surface) &&
+                             dr::any(unpolarized_spectrum(ss.transmittance) != 0.f);
+                Mask transition = active_surface && ss.si.is_medium_transition();
+                dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);
+            });
+        return { ss.transmittance, ss.B, ss.met };
     }
 
-    double m_lambda_min;
-    Spectral m_spectral;
-    Reduced m_reduced; ///< scalar_rgb with fluorescence (the basis is checked in both variants)
-    bool m_use_reduced = false;
-    bool m_closed_shadows = true; ///< closed_form_shadows
-    std::unordered_map<const void *, ReducedMedium> m_rmedia;
-    fluo_detail::FluoWrappers<Float, Spectrum> m_wrappers;
-    std::unordered_map<const void *, MediumEntry> m_media;
+    // ------------------------------------------------ RGB: reduced transport
+
+    /// A fluorescent medium's reduced operators (RGB variants), 1/m at density 1.
+    struct ReducedMedium {
+        const Medium *medium;
+        std::vector<double> a, f;
+        std::vector<double> f_rows; ///< Σ_j |F_kj|/(4π) per band k: its re-emission into band k
+        std::vector<double> f_max;  ///< { the largest of f_rows }
+        std::vector<double> a_max;  ///< { the largest diagonal entry of A }: the majorant's bound
+    };
+
+    /// What a fluorescent medium's majorant must cover, 1/m at density 1: μa at the
+    /// wavelengths (spectral); in the reduced transport (K > 0) μa's sRGB and the largest
+    /// diagonal entry of its reduced absorption A (a bound over the bands, narrower than
+    /// the spectrum's maximum: fewer null collisions, each 3K² products).
+    template <size_t K>
+    UnpolarizedSpectrum absorption_bound(const MediumPtr &medium, const Wavelength &lambda, const Mask &active) const {
+        UnpolarizedSpectrum mu_a = rates(medium, lambda, active).first;
+        if constexpr (K > 0)
+            mu_a = dr::maximum(mu_a, per_medium(which_media(medium), &ReducedMedium::a_max, 0));
+        return mu_a;
+    }
+
+    /// Per lane, whether `medium` is each of the scene's fluorescent media (compared by
+    /// pointer; a handful per scene).
+    std::vector<Mask> which_media(const MediumPtr &medium) const {
+        std::vector<Mask> which;
+        for (const ReducedMedium &r : m_rmedia)
+            which.push_back(medium == MediumPtr(r.medium));
+        return which;
+    }
+
+    /// Entry i of a fluorescent medium's constant table (`field`) per lane: a select over the
+    /// media (a constant in the kernel for one medium; 0 without any: the llvm/cuda loop
+    /// traces every branch, also where no lane takes it).
+    Float per_medium(const std::vector<Mask> &which, std::vector<double> ReducedMedium::*field, size_t i) const {
+        if (m_rmedia.empty())
+            return Float(0.f);
+        Float v = (float) (m_rmedia[0].*field)[i];
+        for (size_t m = 1; m < m_rmedia.size(); ++m)
+            v = dr::select(which[m], (float) (m_rmedia[m].*field)[i], v);
+        return v;
+    }
+
+    /// R·diag(g) + s·R·M, M a fluorescent medium's A or F (`field`): a null collision's
+    /// operator (g = μ̄ − σs, s = −d) or a real one's source (g = σs∘p, s = d/(4π)), each
+    /// times the event's weight. 3K² products; entries that are 0 for every medium are skipped.
+    template <size_t K>
+    Rows<K> medium_product(const Rows<K> &R, const Coeffs<K> &g, const Float &s,
+                           std::vector<double> ReducedMedium::*field, const std::vector<Mask> &which) const {
+        Rows<K> out = Reduced::template scale_columns<K>(R, g);
+        for (size_t j = 0; j < K; ++j) {
+            std::array<Float, 3> acc = { 0.f, 0.f, 0.f };
+            bool any = false;
+            for (size_t k = 0; k < K; ++k) {
+                bool zero = true;
+                for (const ReducedMedium &r : m_rmedia)
+                    zero &= (r.*field)[k * K + j] == 0.0;
+                if (zero)
+                    continue;
+                Float m = per_medium(which, field, k * K + j);
+                for (size_t r = 0; r < 3; ++r)
+                    acc[r] = any ? dr::fmadd(R[r * K + k], m, acc[r]) : R[r * K + k] * m;
+                any = true;
+            }
+            if (any)
+                for (size_t r = 0; r < 3; ++r)
+                    out[r * K + j] = dr::fmadd(s, acc[r], out[r * K + j]);
+        }
+        return out;
+    }
+
+    /// Null and real probabilities over the bands (the docs' reduced transport): the bands
+    /// R carries (w_k: column maxima) in place of the hero wavelengths.
+    template <size_t K>
+    std::pair<Float, Float> band_tracking(const Rows<K> &R, const Coeffs<K> &sigma_s, const Float &d,
+                                          const Float &majorant, const Float &inv_len,
+                                          const std::vector<Mask> &which) const {
+        Coeffs<K> w = Reduced::template column_max<K>(R);
+        Float q_null = 0.f, q_real = 0.f, kappa = 0.f;
+        for (size_t k = 0; k < K; ++k) {
+            Mask live = w[k] > 0.f;
+            Float st = dr::maximum(dr::fmadd(d, per_medium(which, &ReducedMedium::a, k * K + k), sigma_s[k]), 0.f);
+            Float source = dr::fmadd(d, per_medium(which, &ReducedMedium::f_rows, k), dr::maximum(sigma_s[k], 0.f));
+            Float rate = dr::select(inv_len > 0.f, dr::minimum(source, inv_len), source);
+            q_null = dr::select(live, dr::maximum(q_null, w[k] * dr::abs(majorant - st)), q_null);
+            q_real = dr::select(live, dr::maximum(q_real, w[k] * st), q_real);
+            kappa = dr::select(live, dr::maximum(kappa, rate), kappa);
+        }
+        return collision_probabilities(q_null, q_real, kappa, majorant);
+    }
+
+    template <size_t K> struct LoopStateR {
+        Mask active;
+        UInt32 depth;
+        Ray3f ray;
+        Color3f t;   ///< RGB throughput until the first fluorescent event
+        Rows<K> R;   ///< then the 3×K matrix throughput
+        Mask reduced;
+        Color3f result;
+        SurfaceInteraction3f si;
+        MediumInteraction3f mei;
+        MediumPtr medium;
+        Float eta;
+        Interaction3f last_scatter_event;
+        Float last_scatter_direction_pdf;
+        Mask needs_intersection, specular_chain, valid_ray;
+        Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
+        UnpolarizedSpectrum mu_a; ///< μa's RGB of a fluorescent medium (density 1)
+        UInt32 channel;           ///< volpath's distance-sampling channel
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopStateR, active, depth, ray, t, R, reduced, result, si, mei, medium, eta, last_scatter_event,
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, channel,
+                     sampler)
+    };
+
+    /// The emitter sample's contribution through a shadow ray from a vertex whose operator
+    /// towards it is B (3×K, `matrix`: the path is in matrix form there) or, in RGB form,
+    /// `rgb` (the throughput times the vertex's value).
+    template <size_t K, typename Interaction>
+    Color3f reduced_light(const Interaction &ref, const DirectionSample3f &ds, const Color3f &emitter_val,
+                          const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
+                          const Rows<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active) const {
+        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, channel, B, active);
+        // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
+        Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
+        Color3f le = dr::select(met, emitter_val, emitter_val * tr);
+        Color3f via_matrix =
+            Reduced::template apply<K>(dr::select(met, B_met, B_out),
+                                       m_reduced.template emitter_coefficients<K>(ds.emitter, le, active));
+        return dr::select(met || matrix, via_matrix, rgb * emitter_val * tr);
+    }
+
+    /// volpath's loop with the reduced transport (RGB variants with fluorescence).
+    template <size_t K>
+    std::pair<Spectrum, Bool> trace_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                            const Medium *initial_medium, Bool active) const {
+        if constexpr (!is_rgb_v<Spectrum>) {
+            (void) scene, (void) sampler, (void) ray_, (void) initial_medium, (void) active;
+            return { 0.f, false };
+        } else {
+            LoopStateR<K> ls;
+            start(ls, scene, sampler, ray_, initial_medium, active);
+            ls.t = Color3f(1.f);
+            ls.R = dr::zeros<Rows<K>>();
+            ls.reduced = Mask(false);
+            ls.result = Color3f(0.f);
+            const bool surfaces = m_reduced.size() > 0, media = !m_rmedia.empty();
+
+            dr::tie(ls) = dr::while_loop(
+                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
+                [this, scene, surfaces, media](LoopStateR<K> &ls) {
+                    Mask &active = ls.active;
+                    Sampler *sampler = ls.sampler;
+                    // A wavelength-preserving weight w: t·w, or R·diag(band albedos of w).
+                    auto scale = [this, &ls](const Color3f &w, const Mask &m) {
+                        Rows<K> scaled =
+                            Reduced::template scale_columns<K>(ls.R, m_reduced.template band_albedo<K>(w));
+                        ls.R = dr::select(m && ls.reduced, scaled, ls.R);
+                        dr::masked(ls.t, m && !ls.reduced) *= w;
+                    };
+
+                    // ----------------- Russian roulette, max_depth -----------------
+                    Float t_max = dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t));
+                    auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
+                    dr::masked(ls.t, perform_rr) *= rr;
+                    dr::masked(ls.R, perform_rr) *= rr;
+                    if (dr::none_or<false>(active))
+                        return;
+
+                    // ------------------------ Sampling the RTE ---------------------
+                    Mask active_medium = active && ls.medium != nullptr;
+                    Mask active_surface = active && !active_medium;
+                    Mask act_null = false, act_scatter = false, escaped = false;
+                    Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
+                    Float p_null = 0.f, p_real = 1.f, d = 0.f;
+                    Coeffs<K> sigma_s = dr::zeros<Coeffs<K>>(); // a fluorescent collision's σs per band
+                    std::vector<Mask> which;
+                    if (dr::any_or<true>(active_medium)) {
+                        is_spectral &= ls.medium->has_spectral_extinction();
+                        not_spectral = !is_spectral && active_medium;
+                        Mask fluo_flight = start_flight(scene, ls, active_medium);
+                        if (dr::any_or<true>(fluo_flight))
+                            dr::masked(ls.mu_a, fluo_flight) =
+                                absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
+                        if (media)
+                            which = which_media(ls.medium);
+                        // the majorant covers the source rate up to 1/ℓ (its bound over the bands)
+                        UnpolarizedSpectrum source_bound(media ? per_medium(which, &ReducedMedium::f_max, 0)
+                                                               : Float(0.f));
+                        Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
+                        auto [mei, mf, fl, dd] =
+                            sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), ls.channel, rate,
+                                          ls.mu_a, source_bound, active_medium);
+                        (void) mf;
+                        place_collision(scene, ls, mei, active_medium);
+                        d = dd;
+                        is_fluo = fl && active_medium;
+                        is_spectral &= !is_fluo;
+                        Mask weighted = is_spectral; // (escaping flights too)
+                        auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
+                        scale(Color3f(w), weighted);
+
+                        // Null or real: volpath's rule, band tracking in fluorescent media (on R).
+                        p_null = pn;
+                        p_real = pr;
+                        Float majorant = ls.mei.combined_extinction[0];
+                        if (media && dr::any_or<true>(is_fluo)) {
+                            ls.R = dr::select(is_fluo && !ls.reduced, m_reduced.template output_rows<K>(ls.t), ls.R);
+                            ls.reduced |= is_fluo;
+                            sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
+                            auto [pn, pr] = band_tracking<K>(ls.R, sigma_s, d, majorant, ls.inv_len, which);
+                            p_null = dr::select(is_fluo, pn, p_null);
+                            p_real = dr::select(is_fluo, pr, p_real);
+                        }
+                        Mask null_scatter = sampler->next_1d(active_medium) < p_null;
+                        act_null = null_scatter && active_medium;
+                        act_scatter = !null_scatter && active_medium;
+                        scale(ls.mei.sigma_n / p_null, act_null && is_spectral);
+                        Mask fl_null = act_null && is_fluo;
+                        if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
+                            Float s = dr::rcp(majorant * p_null);
+                            Coeffs<K> g;
+                            for (size_t k = 0; k < K; ++k)
+                                g[k] = (majorant - sigma_s[k]) * s;
+                            ls.R = dr::select(fl_null, medium_product<K>(ls.R, g, -d * s, &ReducedMedium::a, which),
+                                              ls.R);
+                        }
+                    }
+                    settle_collision(ls, act_null, act_scatter);
+
+                    if (dr::any_or<true>(act_scatter)) {
+                        // A fluorescent medium's real collision: the source operator
+                        // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
+                        Mask fl_scatter = act_scatter && is_fluo;
+                        Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
+                        scale(ls.mei.sigma_s / p_real, act_scatter && is_spectral);
+                        scale(ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
+
+                        PhaseFunctionContext phase_ctx(sampler);
+                        auto [phase, active_e] = begin_scatter(ls, act_scatter);
+
+                        // ------------------------ Emitter sampling -----------------
+                        if (dr::any_or<true>(active_e)) {
+                            auto [ds, emitter_val] =
+                                scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
+                            active_e &= ds.pdf != 0.f;
+                            auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
+                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                            Color3f pv(phase_val);
+                            Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+                            Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
+                            if (media && dr::any_or<true>(fl_scatter))
+                                B = dr::select(fl_scatter, source_product<K>(ls.R, sigma_s, pv, d, InvFourPi,
+                                                                             real_scale, which),
+                                               B);
+                            Color3f v = reduced_light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium,
+                                                         ls.channel, B, ls.t * pv, ls.reduced, active_e);
+                            dr::masked(ls.result, active_e) += v * mis;
+                        }
+
+                        // ---------------------- Phase function sampling ------------
+                        Float phase_1 = sampler->next_1d(act_scatter);
+                        Point2f phase_2 = sampler->next_2d(act_scatter);
+                        auto [wo, phase_weight, phase_pdf] =
+                            phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
+                        act_scatter &= phase_pdf > 0.f;
+                        fl_scatter &= act_scatter;
+                        if (media && dr::any_or<true>(fl_scatter))
+                            ls.R = dr::select(fl_scatter,
+                                              source_product<K>(ls.R, sigma_s, Color3f(phase_weight), d,
+                                                                InvFourPi / phase_pdf, real_scale, which),
+                                              ls.R);
+                        scale(Color3f(phase_weight), act_scatter && !is_fluo);
+                        dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo);
+                        ls.needs_intersection |= act_scatter;
+                        dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
+                    }
+
+                    // ----------------------- Surface interactions ------------------
+                    active_surface |= escaped;
+                    Mask intersect = reach_surface(scene, ls, active_surface);
+
+                    if (dr::any_or<true>(active_surface)) {
+                        auto [emitter, emitted, weight, active_e] =
+                            surface_emission(scene, ls, active_surface, intersect);
+                        if (dr::any_or<true>(active_e))
+                            dr::masked(ls.result, active_e) +=
+                                m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, emitted, active_e) *
+                                weight;
+                    }
+                    active_surface &= ls.si.is_valid();
+                    if (dr::any_or<true>(active_surface)) {
+                        BSDFContext ctx;
+                        SurfaceInteraction3f &si = ls.si;
+                        BSDFPtr bsdf = si.bsdf(ls.ray);
+                        typename Wrappers::Perturbations perturbed;
+                        if (!m_wrappers.empty())
+                            bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
+
+                        // ------------------------ Emitter sampling -----------------
+                        Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
+                                        ls.depth + 1 < (uint32_t) m_max_depth;
+                        DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+                        Color3f emitter_val = 0.f;
+                        if (dr::any_or<true>(active_e)) {
+                            std::tie(ds, emitter_val) =
+                                scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
+                            active_e &= ds.pdf != 0.f && perturbed.keeps_side(ds.d);
+                        }
+                        Vector3f wo = si.to_local(ds.d);
+
+                        // ---------------- Emitter contribution, BSDF sampling ------
+                        Float sample_1 = sampler->next_1d(active_surface);
+                        Point2f sample_2 = sampler->next_2d(active_surface);
+                        auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+                            bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
+
+                        Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+                        Mask is_fl = false, native_elastic = false;
+                        Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
+                        if (surfaces)
+                            std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
+                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
+                                m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
+                        Mask matrix = ls.reduced || is_fl;
+                        if (dr::any_or<true>(active_e)) {
+                            Rows<K> B_red =
+                                Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
+                            Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
+                            Color3f v = reduced_light<K>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel,
+                                                         B, ls.t * bsdf_val, matrix, active_e);
+                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+                            dr::masked(ls.result, active_e) += v * mis;
+                        }
+
+                        m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, Rm, R_fl, is_fl, native_elastic,
+                                                      bsdf_weight, active_surface);
+                        leave_surface(ls, si, bs, active_surface);
+                        active_surface &= perturbed.keeps_side(ls.ray.d);
+                    }
+                    active &= active_surface || active_medium;
+                });
+            // Out-of-gamut colours are clipped per sample (as fluo_path does).
+            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+        }
+    }
+
+    /// R·W·s with W = diag(σs∘p) + d·iso·F: a fluorescent medium's real collision for the
+    /// elastic weight p (phase value, or weight) and the isotropic re-emission's iso (1/4π,
+    /// over the pdf if sampled), s = 1/(μ̄ p_real).
+    template <size_t K>
+    Rows<K> source_product(const Rows<K> &R, const Coeffs<K> &sigma_s, const Color3f &p, const Float &d,
+                           const Float &iso, const Float &s, const std::vector<Mask> &which) const {
+        Coeffs<K> pk = m_reduced.template band_albedo<K>(p);
+        Coeffs<K> g;
+        for (size_t k = 0; k < K; ++k)
+            g[k] = sigma_s[k] * pk[k] * s;
+        return medium_product<K>(R, g, d * iso * s, &ReducedMedium::f, which);
+    }
+
+    double m_lambda_min = 300.0;
+    ref<Base> m_volpath; ///< the render without fluorescence
+    std::vector<const BMedium *> m_media;
+    std::vector<const Bispectral *> m_bsdfs;
+    Reduced m_reduced;                     ///< RGB variants: the reduced transport
+    std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
+    double m_range_lo = 0.0, m_range_hi = 0.0;
+    bool m_fluorescent = false, m_directional = false;
+    bool m_varying = false; ///< RGB: a direction-dependent lobe varies over the surface (a model picked per vertex)
+    Wrappers m_wrappers;    ///< around fluorescent BSDFs, this render
 };
 
-static const bool fluo_volpath_registered =
-    (fluo_detail::register_scalar_plugin<FluoVolpath>("fluo_volpath", ObjectType::Integrator), true);
+static const bool fluo_volpath_jit_registered =
+    (fluo_detail::register_plugin<FluoVolpath>("fluo_volpath", ObjectType::Integrator), true);
 
 NAMESPACE_END(mitsuba)

@@ -13,6 +13,8 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import VARIANTS
+
 import fluo
 from test_fluo_volpath import cube_scene, render, slab_reference, slab_scene
 
@@ -21,7 +23,7 @@ DYE = {"emission_peak": 515.0, "stokes_shift": 25.0, "quantum_yield": 0.9, "sigm
 BANDS = [(480, 490), (490, 505), (505, 515), (515, 527)]
 
 
-@pytest.mark.parametrize("variant", ("scalar_spectral", "scalar_rgb"))
+@pytest.mark.parametrize("variant", VARIANTS)
 def test01_create_and_validate(variant):
     mi.set_variant(variant)
     m = mi.load_dict({"type": "fluo_dye_medium", **DYE, "scale": 0.01})

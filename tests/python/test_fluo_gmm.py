@@ -18,7 +18,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import scene_text
+from conftest import VARIANTS, scene_text
 
 import fluo
 
@@ -48,7 +48,7 @@ def check_converges(fit_path: Path, illuminant: str):
     assert want[1] - elastic[1] > 0.03, (want, elastic)  # fluorescence ≥ 3 × the tolerance
 
 
-@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("variant", VARIANTS)
 def test01_create_and_errors(variant, tmp_path):
     mi.set_variant(variant)
     b = mi.load_dict({"type": "fluo_gmm", "filename": str(OWN_FIT)})

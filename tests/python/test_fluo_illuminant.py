@@ -14,8 +14,12 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
+from conftest import VARIANTS
+
 REPO = Path(__file__).resolve().parents[2]
 UV_LAMP = REPO / "scenes" / "spectra" / "uv_lamp_365.csv"
+#: The spectral variants of the run (conftest.VARIANTS: scalar here, llvm in test_variants.py).
+SPECTRAL = [v for v in VARIANTS if "spectral" in v]
 
 
 def _eval(tex, wavelengths):
@@ -25,26 +29,28 @@ def _eval(tex, wavelengths):
     for i in range(0, len(wl), 4):
         chunk = (wl[i:i + 4] + [wl[i]] * 4)[:4]
         si = mi.SurfaceInteraction3f()
-        si.wavelengths = mi.Spectrum(*chunk)
-        out.extend(np.array(tex.eval(si))[:len(wl[i:i + 4])])
+        si.wavelengths = mi.Spectrum(*[float(x) for x in chunk])
+        out.extend(np.array(tex.eval(si)).ravel()[:len(wl[i:i + 4])])
     return np.array(out)
 
 
-def test01_cie_illuminant_is_luminance_normalised():
-    mi.set_variant("scalar_spectral")
+@pytest.mark.parametrize("variant", SPECTRAL)
+def test01_cie_illuminant_is_luminance_normalised(variant):
+    mi.set_variant(variant)
     tex = mi.load_dict({"type": "fluo_illuminant", "illuminant": "d65", "scale": 2.0})
     lo, hi = tex.wavelength_range()
     assert (lo, hi) == (300, 830)
     lam = np.arange(360.0, 831.0, 1.0)
     values = _eval(tex, lam)
-    ybar = np.array([mi.cie1931_y(float(x)) for x in lam])
+    ybar = np.array([mi.cie1931_y(float(x)) for x in lam], dtype=np.float64).ravel()
     # ∫ I ȳ / ∫ ȳ over the camera's range = scale (the normalisation fluo_illuminant promises)
     assert np.sum(values * ybar) / np.sum(ybar) == pytest.approx(2.0, rel=2e-3)
     assert np.all(_eval(tex, [300.0, 320.0]) > 0)  # the UV end is there for fluorescence
 
 
-def test02_file_lamp_follows_its_csv():
-    mi.set_variant("scalar_spectral")
+@pytest.mark.parametrize("variant", SPECTRAL)
+def test02_file_lamp_follows_its_csv(variant):
+    mi.set_variant(variant)
     tex = mi.load_dict({"type": "fluo_illuminant", "filename": str(UV_LAMP), "normalize": False})
     data = np.loadtxt(UV_LAMP, delimiter=",", comments="#", skiprows=3)
     lam, want = data[:, 0], data[:, 1]
@@ -83,11 +89,12 @@ def test04_bad_input_names_the_parameter(bad, needle):
 
 
 @pytest.mark.parametrize("grid", ["uniform", "irregular"])
-def test05_spectral_evaluation_is_the_tabulated_spectrum(tmp_path, grid):
+@pytest.mark.parametrize("variant", SPECTRAL)
+def test05_spectral_evaluation_is_the_tabulated_spectrum(tmp_path, grid, variant):
     """In scalar_spectral the light is evaluated per sample by Mitsuba's own regular or
     irregular spectrum built from the Rust nodes: the file's values at its nodes, the
     linear interpolant between them, zero outside, on either kind of grid."""
-    mi.set_variant("scalar_spectral")
+    mi.set_variant(variant)
     lam = np.linspace(320.0, 700.0, 39) if grid == "uniform" else np.array([320.0, 321.5, 340.0, 410.25, 555.0, 700.0])
     val = 1.0 + np.sin(lam / 37.0) ** 2
     f = tmp_path / "lamp.csv"

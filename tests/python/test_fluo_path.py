@@ -19,7 +19,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from conftest import scene_text
+from conftest import VARIANTS, scene_text
 
 import fluo
 
@@ -58,7 +58,7 @@ def render(scene, seed=1):
     return np.array(mi.render(scene, seed=seed), dtype=np.float64)
 
 
-@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("variant", VARIANTS)
 def test01_create(variant):
     mi.set_variant(variant)
     integrator = mi.load_dict({"type": "fluo_path", "max_depth": 5, "rr_depth": 3})
@@ -67,7 +67,7 @@ def test01_create(variant):
         mi.load_dict({"type": "fluo_path", "lambda_min": 100.0})
 
 
-@pytest.mark.parametrize("variant", ["scalar_spectral", "scalar_rgb"])
+@pytest.mark.parametrize("variant", VARIANTS)
 def test02_non_fluorescent_scene_matches_native_path(variant):
     """Cornell box, same seed and spp: the same code and random numbers as `path`."""
     mi.set_variant(variant)

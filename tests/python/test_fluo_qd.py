@@ -92,7 +92,7 @@ def test02_zero_density_matches_roughconductor(variant, distribution, substrate,
     """Acceptance: ρ = 0 renders as native roughconductor (same seed, same spp), < 0.5 %."""
     common = f'<string name="distribution" value="{distribution}"/><float name="alpha" value="0.2"/>'
     common += SUBSTRATES[substrate]
-    integrators = ["path"] + (["fluo_path"] if variant == "scalar_spectral" else [])
+    integrators = ["path"] + (["fluo_path"] if "spectral" in variant else [])
     for integrator in integrators:
         ours = scene_xml(tmp_path, f'<bsdf type="fluo_qd">{common}<float name="density" value="0"/></bsdf>',
                          integrator=integrator, name=f"ours_{integrator}.xml", **CROSS)
@@ -160,11 +160,11 @@ def test06_hard_cases_are_finite(variant):
                 bs, w = b.sample(ctx, si, float(s[0]), mi.Point2f(float(s[1]), float(s[2])))
                 w = np.array(w)
                 assert np.isfinite(w).all() and (w >= 0).all(), (props, cos_i, w)
-                assert math.isfinite(bs.pdf) and bs.pdf >= 0
+                assert np.all(np.isfinite(np.array(bs.pdf))) and np.all(np.array(bs.pdf) >= 0)
                 wo = mi.Vector3f(*np.array(bs.wo)) if bs.pdf > 0 else mi.Vector3f(0.3, 0.1, 0.95)
                 v, p = b.eval_pdf(ctx, si, wo)
                 v = np.array(v)
-                assert np.isfinite(v).all() and (v >= 0).all() and math.isfinite(p) and p >= 0
+                assert np.isfinite(v).all() and (v >= 0).all() and np.all(np.isfinite(np.array(p))) and np.all(np.array(p) >= 0)
                 albedo = np.array(b.eval(ctx, si, wo))
                 assert np.allclose(albedo, v)
 
@@ -329,12 +329,14 @@ def test12_checkerboard_parameter_renders_as_average_of_uniforms(variant, param)
     # alpha changes the sampled lobe itself: the checkerboard's samples then decorrelate
     # from the uniform renders' (measured got/want − 1 in RGB: 1.6e-3 / 6e-4 / 1.4e-4 at
     # 64 / 256 / 1024 spp, shrinking as noise), hence 1024 spp for it.
-    spp = 1024 if param == "alpha" else 64
+    # Reduced RGB draws one of the hit's baked models per vertex (its weight): 64 spp scatter
+    # the mean by ~0.6 %, 1024 by < 0.05 %.
+    spp = 1024 if param == "alpha" or "rgb" in variant else 64
     ua = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: a}), spp=spp, light="constant"))
     ub = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: b}), spp=spp, light="constant"))
     got = mean_rgb(textured_plane(variant, dict(QD_BASE, **{param: checkerboard(a, b)}), spp=spp, light="constant"))
     want = (ua + ub) / 2
-    rtol = 0.012 if variant == "scalar_spectral" else 1e-3  # measured ≤ 0.27 % / 1.1e-4
+    rtol = 0.012 if "spectral" in variant else 1e-3  # measured ≤ 0.27 % / 6e-4
     np.testing.assert_allclose(got, want, rtol=rtol)
     assert np.abs(ua - ub).max() > 8 * rtol * want.max(), (ua, ub)
     assert min(np.abs(got - ua).max(), np.abs(got - ub).max()) > 4 * rtol * want.max()
@@ -359,7 +361,7 @@ def test13_density_grid_interpolates_within_measured_error(variant):
     uniform = [mean_rgb(textured_plane(variant, dict(QD_BASE, density=float(v)), spp=32, light="constant"))
                for v in values.flat]
     want = np.mean(uniform, axis=0)
-    rtol = 0.015 if variant == "scalar_spectral" else 0.008
+    rtol = 0.015 if "spectral" in variant else 0.008
     np.testing.assert_allclose(got, want, rtol=rtol)
     assert np.abs(uniform[0] - uniform[-1]).max() > 8 * rtol * want.max()
 
@@ -412,15 +414,16 @@ def test15_textured_alpha_elastic_lobe_is_the_hits(variant):
         si = surface_interaction(wi=(0.3, 0.0, math.sqrt(0.91)))
         si.uv = mi.Point2f(*uv)
         got, want = np.array(textured.eval(ctx, si, wo)), np.array(uniform.eval(ctx, si, wo))
-        np.testing.assert_allclose(got, want, rtol=1e-6)
-        assert float(textured.pdf(ctx, si, wo)) == pytest.approx(float(uniform.pdf(ctx, si, wo)), rel=1e-6)
+        np.testing.assert_allclose(got, want, rtol=1e-5)
+        assert np.array(textured.pdf(ctx, si, wo)).ravel()[0] == pytest.approx(
+            np.array(uniform.pdf(ctx, si, wo)).ravel()[0], rel=1e-5)
         (ev, pd), (ev_u, pd_u) = textured.eval_pdf(ctx, si, wo), uniform.eval_pdf(ctx, si, wo)
-        np.testing.assert_allclose(np.array(ev), np.array(ev_u), rtol=1e-6)
-        assert float(pd) == pytest.approx(float(pd_u), rel=1e-6)
+        np.testing.assert_allclose(np.array(ev), np.array(ev_u), rtol=1e-5)
+        assert np.array(pd).ravel()[0] == pytest.approx(np.array(pd_u).ravel()[0], rel=1e-5)
         bs, w = textured.sample(ctx, si, 0.5, mi.Point2f(0.3, 0.7))
         bs_u, w_u = uniform.sample(ctx, si, 0.5, mi.Point2f(0.3, 0.7))
-        np.testing.assert_allclose(np.array(bs.wo), np.array(bs_u.wo), rtol=1e-6, atol=1e-7)
-        assert float(bs.pdf) == pytest.approx(float(bs_u.pdf), rel=1e-6)
-        np.testing.assert_allclose(np.array(w), np.array(w_u), rtol=1e-6)
+        np.testing.assert_allclose(np.array(bs.wo), np.array(bs_u.wo), rtol=1e-5, atol=1e-7)
+        assert np.array(bs.pdf).ravel()[0] == pytest.approx(np.array(bs_u.pdf).ravel()[0], rel=1e-5)
+        np.testing.assert_allclose(np.array(w), np.array(w_u), rtol=1e-5)
         evals[alpha] = got
     assert np.abs(evals[lo] - evals[hi]).max() > 0.5 * np.abs(evals[hi]).max(), evals

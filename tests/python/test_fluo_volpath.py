@@ -30,7 +30,7 @@ import pytest
 
 import fluo
 
-VARIANTS = ("scalar_spectral", "scalar_rgb")
+from conftest import VARIANTS  # noqa: E402
 
 
 def T():
@@ -307,9 +307,11 @@ def test04_hard_cases(case):
             assert np.all(re == 0.0)
         else:
             # Re-emitted light the dots absorb again (their emission overlaps their band
-            # edge) and re-emit at Q = 1 adds ~3.5 % to band 6 (seeds 1-4: 96.3-96.5
-            # against 92.7 at max_depth 2); nothing is lost elsewhere.
-            deep = slab_bands(2048, concentration=0.15, radius=2.7, quantum_yield=q, max_depth=8)
+            # edge) and re-emit at Q = 1 adds ~3.5 % to band 6 (seeds 2-5: 94.4-98.0, mean
+            # 96.1, against 92.4 at max_depth 2); nothing is lost elsewhere.
+            # (the mean of four seeds: one seed's band 6 scatters by ~1.7 %)
+            deep = np.mean([slab_bands(2048, seed=s, concentration=0.15, radius=2.7, quantum_yield=q, max_depth=8)
+                            for s in range(1, 5)], axis=0)
             assert 1.015 * bands[6] < deep[6] < 1.07 * bands[6], (bands, deep)
             np.testing.assert_allclose(np.delete(deep, 6), np.delete(bands, 6), rtol=0.03)
     elif case == "lamp_outside_band":
@@ -338,7 +340,7 @@ def d65_cube_scene(variant: str, medium: dict, basis: str = "x7", res: int = 24,
     """A 2 cm cube of `medium` (null boundary) in a D65 environment from 300 nm, seen
     face on: the centre of the image looks through 2 cm of it."""
     integrator = {"type": "fluo_volpath", "max_depth": 8}
-    if variant == "scalar_rgb":
+    if "rgb" in variant:
         integrator["basis"] = basis
     return {
         "type": "scene",
@@ -380,30 +382,6 @@ def test05_rgb_reduced_media_match_the_spectral_reference(basis):
     assert abs(glow_rgb[1]) < 0.03 and abs(glow_rgb[2]) < 0.03, glow_rgb
 
 
-def test05d_rgb_closed_form_shadows_equal_tracked_ones():
-    """scalar_rgb: shadow rays through a fluorescent medium of constant density take the
-    reduced transfer V·diag(e^{-λt})·V⁻¹ in closed form; images equal those with the
-    transfer ratio-tracked (closed_form_shadows = false) within noise, for dots that make
-    the cube thin and 30x denser (τ ≈ 1 in the green), and with less noise."""
-    mi.set_variant("scalar_rgb")
-    for concentration in (0.01, 0.3):
-        medium = medium_dict(radius=2.7, width=15.0, quantum_yield=0.8, concentration=concentration, scale=0.01,
-                             phase={"type": "isotropic"})
-        means = {}
-        for closed in (True, False):
-            scene = d65_cube_scene("scalar_rgb", medium, res=16, spp=64)
-            scene["integrator"]["closed_form_shadows"] = closed
-            loaded = mi.load_dict(scene)
-            means[closed] = np.array([np.array(mi.render(loaded, seed=s), dtype=np.float64)[..., :3].mean(axis=(0, 1))
-                                      for s in range(6)])
-        a, b = means[True], means[False]
-        se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
-        z = (a.mean(axis=0) - b.mean(axis=0)) / np.maximum(se, 1e-12)
-        print(concentration, a.mean(axis=0), b.mean(axis=0), "z", z)
-        assert np.all(np.abs(z) < 4.5) and np.allclose(a.mean(axis=0), b.mean(axis=0), rtol=0.02), (a, b)
-        assert a.std(axis=0).sum() < b.std(axis=0).sum()
-
-
 RENDER_BOUNDED = """
 import json, sys
 import numpy as np
@@ -411,13 +389,8 @@ sys.path.insert(0, {here!r})
 import mitsuba as mi
 mi.set_variant("scalar_rgb")
 from test_fluo_volpath import d65_cube_scene
-out = {{}}
-for closed in (True, False):
-    scene = d65_cube_scene("scalar_rgb", {medium!r}, res=8, spp=64)
-    scene["integrator"]["closed_form_shadows"] = closed
-    loaded = mi.load_dict(scene)
-    out[str(closed)] = [np.array(mi.render(loaded, seed=s), dtype=np.float64)[..., :3].mean(axis=(0, 1)).tolist()
-                        for s in range(4)]
+loaded = mi.load_dict(d65_cube_scene("scalar_rgb", {medium!r}, res=8, spp=64))
+out = [np.array(mi.render(loaded, seed=s), dtype=np.float64)[..., :3].mean(axis=(0, 1)).tolist() for s in range(4)]
 print("RESULT " + json.dumps(out))
 """
 
@@ -429,23 +402,19 @@ print("RESULT " + json.dumps(out))
     {"type": "fluo_qd_medium", "sigma_s": 30.0, "concentration": 0.3, "scale": 0.01},
 ], ids=["dye_0.1", "dye_10", "dye_10_cm", "qd_30_cm"])
 def test05e_rgb_scattering_media_render_in_bounded_time(medium):
-    """scalar_rgb: a scattering fluorescent medium's closed-form shadow transfer (M = d·A +
-    σs·I, diagonalised in Rust) hung at render start in nalgebra's unbounded Schur
-    iteration for most (σa, σs) (fluo_dye_medium with sigma_s 0.1 or 10). Each render now
-    returns (in a subprocess with a time limit: a hang inside Mitsuba cannot be
-    interrupted), finite, and equal to the ratio-tracked shadows within noise (the dye's
-    operators have repeated eigenvalues, refused by the closed form: tracked both ways)."""
+    """scalar_rgb: scattering fluorescent media (fluo_dye_medium with sigma_s 0.1 or 10 once
+    hung at render start in nalgebra's unbounded Schur iteration, diagonalising the shadow
+    transfer): each render returns (in a subprocess with a time limit: a hang inside Mitsuba
+    cannot be interrupted), finite and lit, four seeds within 50 % of their mean (8×8 pixels at
+    64 spp scatter by ~30 %)."""
     code = RENDER_BOUNDED.format(here=str(Path(__file__).resolve().parent), medium=medium)
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=240)
     lines = [ln[7:] for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
     assert proc.returncode == 0 and lines, proc.stderr[-3000:]
-    got = json.loads(lines[-1])
-    a, b = np.array(got["True"]), np.array(got["False"])
-    assert np.all(np.isfinite(a)) and np.all(np.isfinite(b))
-    se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
-    z = (a.mean(axis=0) - b.mean(axis=0)) / np.maximum(se, 1e-6 * np.abs(b.mean(axis=0)) + 1e-12)
-    print(medium, a.mean(axis=0), b.mean(axis=0), "z", z)
-    assert np.all(np.abs(z) < 4.5), (a, b)
+    a = np.array(json.loads(lines[-1]))
+    print(medium, a.mean(axis=0))
+    assert np.all(np.isfinite(a)) and np.all(a.mean(axis=0) > 0.0), a
+    assert np.all(np.abs(a - a.mean(axis=0)) < 0.5 * a.mean(axis=0)), a
 
 
 def test05b_rgb_fluorescent_surfaces_with_media_render_as_fluo_path():

@@ -677,9 +677,6 @@ impl Bispectral for JungFluorescence {
         let hi = range.1.min(lambda_o);
         p.concentration * p.quantum_yield * e * self.absorption_integral_range(range.0, hi)
     }
-    fn shift_albedo_is_isotropic(&self) -> bool {
-        true // Lambertian
-    }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         if !(wi[2] > 0.0) || !(self.emission(lambda_o) > 0.0) {
             return None;
@@ -728,9 +725,6 @@ impl Bispectral for JungMaterial {
     }
     fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
         self.fluorescence.shift_albedo(wi, lambda_o, range)
-    }
-    fn shift_albedo_is_isotropic(&self) -> bool {
-        true
     }
     fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
         self.fluorescence.sample_excitation(wi, lambda_o, xi, range)

@@ -37,9 +37,6 @@ macro_rules! lambertian_measured {
                 }
                 self.absorbed_into(lambda_o, range.0, range.1) // Lambertian: ∫ cos/π dω = 1
             }
-            fn shift_albedo_is_isotropic(&self) -> bool {
-                true
-            }
             fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
                 if !(wi[2] > 0.0) {
                     return None;

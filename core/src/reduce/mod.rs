@@ -61,7 +61,7 @@
 //! A. Fichet, L. Belcour, P. Barla, "Non-Orthogonal Reduction for Rendering Fluorescent
 //! Materials in Non-Spectral Engines", CGF 43(4), 2024.
 
-use nalgebra::{DMatrix, DVector, Schur, SymmetricEigen, SVD};
+use nalgebra::{DMatrix, DVector, SymmetricEigen, SVD};
 
 use crate::interface::Bispectral;
 use crate::patch::normalise_patch;
@@ -470,91 +470,6 @@ pub fn spectral_patch_xyz(material: &Operator, basis: &Basis, illum: &dyn Spectr
     Ok((xyz.map(|v| v * k), white))
 }
 
-/// A diagonalisation M = V·diag(λ)·V⁻¹ of a real K×K matrix (row major) with real,
-/// distinct, non-negative eigenvalues, for transfers exp(−M t) = V·diag(e^{−λt})·V⁻¹ in
-/// closed form (a reduced medium's attenuation over a segment). `None` when M has complex
-/// or repeated eigenvalues, a negative one, eigenvectors too close to dependent (the
-/// product would amplify rounding), or when the decompositions do not converge within
-/// their iteration cap: the caller keeps tracking collisions then. Bounded in time for
-/// every input.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RealEigen {
-    /// Eigenvectors as columns, row major.
-    pub v: Vec<f64>,
-    /// V⁻¹, row major.
-    pub v_inv: Vec<f64>,
-    /// Eigenvalues.
-    pub lambda: Vec<f64>,
-}
-
-/// Largest accepted condition number ‖V‖·‖V⁻¹‖ (Frobenius) of [`RealEigen`].
-const EIGEN_MAX_CONDITION: f64 = 1e6;
-
-impl RealEigen {
-    /// Diagonalise `m` (K×K, row major), or `None` (see the type's docs).
-    pub fn new(m: &[f64], k: usize) -> Option<Self> {
-        if k == 0 || m.len() != k * k || !m.iter().all(|v| v.is_finite()) {
-            return None;
-        }
-        // Decompose M − σI, σ the mean of M's diagonal: the same eigenvectors, eigenvalues
-        // shifted by σ, and tolerances relative to what tells the eigenvalues apart (a
-        // medium's σs on the diagonal would otherwise drown its absorption's structure).
-        let shift = (0..k).map(|i| m[i * k + i]).sum::<f64>() / k as f64;
-        let mm = DMatrix::from_row_slice(k, k, m) - DMatrix::identity(k, k) * shift;
-        let scale = mm.amax();
-        let floor = -1e-9 * scale.max(shift.abs());
-        if scale == 0.0 {
-            return (shift >= floor).then(|| Self {
-                v: identity_rows(k),
-                v_inv: identity_rows(k),
-                lambda: vec![shift.max(0.0); k],
-            });
-        }
-        let ev = bounded_schur(&mm)?.complex_eigenvalues();
-        let mut lambda = Vec::with_capacity(k);
-        for c in ev.iter() {
-            if c.im.abs() > 1e-9 * scale || c.re + shift < floor {
-                return None;
-            }
-            lambda.push(c.re);
-        }
-        // Repeated eigenvalues are refused: a band the medium does not absorb in makes
-        // one (σs added to a zero eigenvalue), and there the reduced transfer's entries
-        // grow large (exp(−M t) up to ~14 in x7), so the closed form's shadow weights
-        // were measured heavier-tailed than tracking's (fireflies 50× brighter).
-        for i in 0..k {
-            for j in 0..i {
-                if (lambda[i] - lambda[j]).abs() <= 1e-6 * scale {
-                    return None;
-                }
-            }
-        }
-        // Each eigenvector: the right singular vector of M − λI with the smallest
-        // singular value.
-        let mut v = DMatrix::zeros(k, k);
-        for (col, &l) in lambda.iter().enumerate() {
-            let shifted = &mm - DMatrix::identity(k, k) * l;
-            let svd = SVD::try_new(shifted, false, true, f64::EPSILON, max_iterations(k))?;
-            let v_t = svd.v_t?;
-            let imin = (0..svd.singular_values.len())
-                .min_by(|&a, &b| svd.singular_values[a].total_cmp(&svd.singular_values[b]))?;
-            for r in 0..k {
-                v[(r, col)] = v_t[(imin, r)];
-            }
-        }
-        let v_inv = v.clone().try_inverse()?;
-        if !(v.norm() * v_inv.norm() <= EIGEN_MAX_CONDITION) {
-            return None;
-        }
-        let back = &v * DMatrix::from_diagonal(&DVector::from_vec(lambda.clone())) * &v_inv;
-        if !back.iter().zip(mm.iter()).all(|(a, b)| (a - b).abs() <= 1e-8 * scale) {
-            return None;
-        }
-        let rows = |x: &DMatrix<f64>| x.transpose().iter().copied().collect::<Vec<f64>>();
-        Some(Self { v: rows(&v), v_inv: rows(&v_inv), lambda: lambda.iter().map(|l| (l + shift).max(0.0)).collect() })
-    }
-}
-
 /// A family of matrices M_j (flattened, all of one length) written as
 /// M_j = Σ_t w[j][t]·B_t with few terms: the truncated singular value decomposition of the
 /// rows M_j. A direction-dependent reduced operator tabulated at cosines (fluo_qd's
@@ -610,26 +525,13 @@ impl LowRank {
     }
 }
 
-/// Iteration cap of nalgebra's iterative decompositions (Schur, SVD, symmetric
-/// eigenvalues) for an n×n problem: theirs is unbounded by default, and the implicit
-/// double-shift QR has no exceptional shifts, so it can cycle forever on some matrices
-/// (a reduced medium operator hung a render at start). Converging problems take a few
-/// iterations per eigenvalue; past the cap the caller takes its documented fallback.
+/// Iteration cap of nalgebra's iterative decompositions (SVD, symmetric eigenvalues) for
+/// an n×n problem: theirs is unbounded by default, and an iteration without exceptional
+/// shifts can cycle forever on some matrices (a Schur decomposition once hung a render at
+/// start). Converging problems take a few iterations per eigenvalue; past the cap the
+/// caller takes its documented fallback.
 fn max_iterations(n: usize) -> usize {
     100 * n.max(1)
-}
-
-/// The real Schur form of `m`, with a bounded iteration count; where the QR iteration
-/// stalls at machine precision, again with a looser deflation threshold (the caller
-/// checks the reconstruction to 1e-8 anyway). `None` when neither converges.
-fn bounded_schur(m: &DMatrix<f64>) -> Option<Schur<f64, nalgebra::Dyn>> {
-    let n = m.nrows();
-    [f64::EPSILON, 1e-13, 1e-11].into_iter().find_map(|eps| Schur::try_new(m.clone(), eps, max_iterations(n)))
-}
-
-/// The K×K identity, row major.
-fn identity_rows(k: usize) -> Vec<f64> {
-    (0..k * k).map(|i| if i % (k + 1) == 0 { 1.0 } else { 0.0 }).collect()
 }
 
 #[cfg(test)]
@@ -752,53 +654,6 @@ mod tests {
                 assert!(ours.is_finite() && ours < 6.0, "{name} {}: ours {ours}", b.kind().name());
             }
         }
-    }
-
-    #[test]
-    fn real_eigen_reconstructs_and_refuses_what_it_cannot_diagonalise() {
-        // A reduced-looking matrix (distinct positive eigenvalues, not symmetric).
-        let m = [3.0, 0.4, -0.2, 0.1, 1.5, 0.3, -0.05, 0.2, 0.7];
-        let e = RealEigen::new(&m, 3).expect("diagonalisable");
-        // exp(−M t) by the decomposition against a Taylor series at t = 0.3.
-        let t = 0.3;
-        let mut closed = [0.0; 9];
-        for r in 0..3 {
-            for c in 0..3 {
-                closed[r * 3 + c] =
-                    (0..3).map(|j| e.v[r * 3 + j] * (-e.lambda[j] * t).exp() * e.v_inv[j * 3 + c]).sum();
-            }
-        }
-        let mut term = identity_rows(3);
-        let mut series = identity_rows(3);
-        for n in 1..40 {
-            let mut next = [0.0; 9];
-            for r in 0..3 {
-                for c in 0..3 {
-                    next[r * 3 + c] = (0..3).map(|j| term[r * 3 + j] * (-t * m[j * 3 + c])).sum::<f64>() / n as f64;
-                }
-            }
-            term = next.to_vec();
-            for i in 0..9 {
-                series[i] += term[i];
-            }
-        }
-        for i in 0..9 {
-            assert!((closed[i] - series[i]).abs() < 1e-12, "{i}: {} vs {}", closed[i], series[i]);
-        }
-        assert!(RealEigen::new(&[0.0, -1.0, 1.0, 0.0], 2).is_none()); // complex pair
-        assert!(RealEigen::new(&[1.0, 1.0, 0.0, 1.0], 2).is_none()); // defective (repeated)
-
-        // A constant on the diagonal (a medium's σs) shifts the eigenvalues and keeps the
-        // eigenvectors: the same matrix plus 1e4·I is told apart as well.
-        let shifted: Vec<f64> = m.iter().enumerate().map(|(i, v)| if i % 4 == 0 { v + 1e4 } else { *v }).collect();
-        let f = RealEigen::new(&shifted, 3).expect("diagonalisable");
-        for (a, b) in f.lambda.iter().zip(&e.lambda) {
-            assert!((a - b - 1e4).abs() < 1e-9, "{:?} vs {:?}", f.lambda, e.lambda);
-        }
-        assert!(RealEigen::new(&[-3.0, 0.0, 0.0, -3.0], 2).is_none()); // negative multiple of I
-        assert!(RealEigen::new(&[-1.0, 0.0, 0.0, 2.0], 2).is_none()); // negative: would grow
-        assert!(RealEigen::new(&[1.0, f64::NAN, 0.0, 2.0], 2).is_none());
-        assert_eq!(RealEigen::new(&[0.0; 4], 2).unwrap().lambda, vec![0.0, 0.0]);
     }
 
     #[test]

@@ -1,133 +1,344 @@
-// The bispectral interface that fluo's fluorescent BSDFs implement next to Mitsuba's
-// BSDF interface, and that the fluo_path integrator discovers at scene load with
-// dynamic_cast (Mitsuba itself is unchanged).
+// The bispectral interface every fluorescent BSDF implements next to Mitsuba's BSDF
+// interface (BispectralBSDF), which fluo_path and fluo_volpath reach per lane through
+// dr::dispatch in every variant, the elastic/shift choice at a fluorescent vertex
+// (ShiftChoice, SurfaceShift), and the registration of a plugin class template for every
+// variant fluo serves.
 //
-// Everything spectral (reradiation values, wavelength sampling and pdfs, excitation
-// and emission ranges) is answered by the Rust model behind fluorescence(), through
-// the generic fluo_* functions of the bridge (core/src/interface.rs documents them).
-// The shim adds only what depends on Mitsuba objects: the elastic albedo, which may
-// come from a texture.
+// Dr.Jit cannot trace calls into Rust, so Rust runs at load time and in
+// parameters_changed() only: it validates the parameters and bakes tables (absorption CDFs,
+// reduced matrices, RGB parts), which the plugins evaluate per lane with Dr.Jit types in
+// every variant (the closed forms and table lookups are fluo_forms.h).
 #pragma once
 
+#include <mitsuba/core/distr_1d.h>
+#include <mitsuba/core/plugin.h>
+#include <mitsuba/render/bsdf.h>
+
+#include <algorithm>
 #include <array>
 #include <atomic>
+#include <cmath>
+#include <tuple>
+#include <vector>
 
-#include <mitsuba/core/logger.h>
-#include <mitsuba/render/bsdf.h>
-#include <mitsuba/render/interaction.h>
-
-#include "fluo-mitsuba/src/bridge.rs.h"
+#include "fluo_common.h"
+#include "fluo_forms.h"
 
 NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
 
-namespace fluo_detail {
-/// Armed when a fluorescent material is constructed (a scene is being loaded),
-/// disarmed by the first warning: one "needs fluo_path" warning per loaded scene.
+/// Register plugin class template T, once, for every variant it serves: scalar_rgb,
+/// scalar_spectral, llvm_ad_rgb, llvm_ad_spectral, cuda_ad_rgb and cuda_ad_spectral (the
+/// CUDA ones compile without a GPU and run where one is present); every other variant of
+/// the wheel gets a factory that names the plugin and the variant (register_unavailable).
+template <template <typename, typename> class T> void register_plugin(const char *name, ObjectType type) {
+    fluo::note_plugin(name, type == ObjectType::BSDF ? "bsdf"
+                            : type == ObjectType::Integrator ? "integrator"
+                            : type == ObjectType::Medium     ? "medium"
+                                                             : "texture",
+                      true);
+    register_unavailable(name, type);
+    using LFloat = dr::DiffArray<JitBackend::LLVM, float>;
+    using CFloat = dr::DiffArray<JitBackend::CUDA, float>;
+    PluginManager *pm = PluginManager::instance();
+    pm->register_plugin(
+        name, "scalar_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "scalar_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<float, Spectrum<float, 4>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "llvm_ad_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Color<LFloat, 3>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "llvm_ad_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Spectrum<LFloat, 4>>(p); },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "cuda_ad_rgb", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Color<CFloat, 3>>(p); }, nullptr,
+        nullptr);
+    pm->register_plugin(
+        name, "cuda_ad_spectral", type,
+        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Spectrum<CFloat, 4>>(p); },
+        nullptr, nullptr);
+}
+
+/// dr::dispatch exists for JIT pointer arrays only; a scalar pointer is called directly.
+template <typename Ptr, typename Func, typename... Args>
+auto dispatch_any(const Ptr &self, const Func &func, const Args &...args) {
+    if constexpr (dr::is_jit_v<Ptr>)
+        return dr::dispatch(self, func, args...);
+    else
+        return func(self, args...);
+}
+
+/// A differentiable scalar parameter's value after an update through mi.traverse, read on
+/// the host: it must still hold one value (an array of several would otherwise render
+/// with its first, or fail inside Dr.Jit at render time).
+template <typename Float> double host_param(const char *plugin, const char *name, const Float &v) {
+    if constexpr (dr::is_jit_v<Float>) {
+        if (dr::width(v) != 1)
+            Throw("%s: parameter \"%s\" must hold one value, got an array of %zu", plugin, name,
+                  (size_t) dr::width(v));
+        return (double) dr::slice(dr::detach(v), 0);
+    } else {
+        (void) plugin, (void) name;
+        return (double) v;
+    }
+}
+
+/// A single-lane JIT (or scalar) value read on the host.
+template <typename Float> double host_value(const Float &v) {
+    if constexpr (dr::is_jit_v<Float>)
+        return (double) dr::slice(dr::detach(v), 0);
+    else
+        return (double) v;
+}
+
+/// The elastic/shift choice at a fluorescent vertex, per hero wavelength (the estimator of
+/// every material's jit_choose): with elastic weight `we` and shift weight `wf` ≥ 0 (any
+/// positive value where the shift integrand is, so the estimate stays unbiased), the shift
+/// is taken with probability 1 − pe, pe = we/(we + wf), decided by u1.
+template <typename Value> struct ShiftChoice {
+    using VMask = dr::mask_t<Value>;
+    VMask valid, shifted;
+    Value pe;
+
+    template <typename ActiveMask>
+    ShiftChoice(const Value &we, const Value &wf, const Value &u1, const ActiveMask &active) {
+        Value total = we + wf;
+        valid = VMask(active) && total > 0.f && dr::isfinite(total);
+        pe = dr::select(valid, we / total, 1.f);
+        shifted = valid && u1 >= pe && wf > 0.f;
+    }
+
+    /// 1/probability of the event taken, given the sampled shift's density `pdf` (0 where
+    /// nothing valid was taken); lanes whose pdf is 0 or not finite leave `shifted`.
+    Value weight(const Value &pdf, const Value &u1) {
+        Value scale = dr::select(shifted, dr::rcp((1.f - pe) * pdf), dr::rcp(pe));
+        shifted &= pdf > 0.f && dr::isfinite(pdf);
+        return dr::select(valid && dr::isfinite(scale) && (shifted || u1 < pe), scale, 0.f);
+    }
+};
+
+/// Armed when a fluorescent material is constructed (a scene is being loaded), disarmed by
+/// the first warning: one "needs fluo_path" warning per loaded scene.
 inline std::atomic<bool> &unmanaged_warning_armed() {
     static std::atomic<bool> armed{ true };
     return armed;
 }
-} // namespace fluo_detail
 
+/// What fluo_path and fluo_volpath need of a fluorescent BSDF, per lane, in every variant.
 template <typename Float, typename Spectrum> class BispectralBSDF {
 public:
-    using SurfaceInteraction3f = SurfaceInteraction<Float, Spectrum>;
-    using UnpolarizedSpectrum = unpolarized_spectrum_t<Spectrum>;
-
-    BispectralBSDF() { fluo_detail::unmanaged_warning_armed().store(true, std::memory_order_relaxed); }
+    MI_IMPORT_TYPES()
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+    BispectralBSDF() { unmanaged_warning_armed().store(true, std::memory_order_relaxed); }
     virtual ~BispectralBSDF() = default;
 
-    /// fluo_path marks the materials it transports (wrapped ones included) when it
-    /// prepares a render. A fluorescent material sampled by any other integrator
-    /// (Mitsuba's path, volpath, direct, ...) renders its elastic part only: it says so
-    /// once per loaded scene (warn_if_unmanaged, called from sample()).
+    /// fluo_path/fluo_volpath mark the materials they transport (wrapped ones included)
+    /// when they prepare a render. A fluorescent material sampled by any other integrator
+    /// (Mitsuba's path, volpath, direct, ...) renders its elastic part only, and says so
+    /// once per loaded scene (warn_if_unmanaged, called from sample(); in the llvm/cuda
+    /// variants at trace time).
     void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
 
-    /// The fluorescent model, or nullptr when this material never re-emits
-    /// (e.g. concentration or quantum yield 0).
-    virtual const fluo::Fluorescence *fluorescence() const = 0;
-
-    /// Directional-hemispherical albedo of the elastic part at si.wavelengths, for
-    /// light leaving along si.wi. Used only to choose between elastic and shifted
-    /// events, so it must be positive wherever the elastic BSDF is.
-    virtual UnpolarizedSpectrum elastic_albedo(const SurfaceInteraction3f &si) const = 0;
-
-    /// The elastic part of eval() alone (f·cos θo), without any reradiation. In the
-    /// RGB variant eval() serves an equal-energy approximation that includes
-    /// fluorescence; reduced transport (fluo_path in scalar_rgb) adds the reradiation
-    /// itself as a reduced matrix and needs the elastic part separately.
-    virtual UnpolarizedSpectrum eval_elastic(const SurfaceInteraction3f &si,
-                                             const Vector<Float, 3> &wo) const = 0;
-
-    // Spatially varying fluorescence (e.g. fluo_jung with a colour texture). The
-    // defaults describe a uniform material; a varying one returns its model at si
-    // (nullptr where it does not re-emit) and fluorescence() becomes a representative
-    // used only to decide that the material fluoresces somewhere.
-
-    /// The fluorescent model at si, or nullptr where the material does not re-emit.
-    virtual const fluo::Fluorescence *fluorescence_at(const SurfaceInteraction3f & /* si */) const {
-        return fluorescence();
-    }
-
-    /// Whether fluorescence_at() depends on si.
-    virtual bool fluorescence_varies() const { return false; }
-
-    /// A varying material's fluorescence at si as a mixture of at most MaxMix models
-    /// from a finite set (fluorescence_model(index)): f_fl(si) = Σ prob·weight·f_fl[model],
-    /// Σ prob = 1. fluo_jung with textured parameters gives one dye shape per (λe, s)
-    /// pair scaled by the hit's c·Q (one entry); fluo_qd interpolates models baked on a
-    /// (radius, density) grid (up to four entries, bilinear weights as `prob`).
-    /// fluo_path picks one entry with probability `prob` in scalar_spectral (an unbiased
-    /// estimate of the mixture) and sums the entries' reduced matrices in scalar_rgb.
-    struct Local {
-        const fluo::Fluorescence *model = nullptr; ///< nullptr: no re-emission from this entry
-        size_t index = NoIndex; ///< < fluorescence_models(), or NoIndex
-        double weight = 1.0;    ///< scale of the model's reradiation
-        double prob = 1.0;      ///< mixture probability
-    };
-    static constexpr size_t NoIndex = (size_t) -1;
-    static constexpr size_t MaxMix = 4;
-    using Mixture = std::array<Local, MaxMix>;
-
-    /// The mixture at si: fills `out` and returns its size (default: one entry,
-    /// fluorescence_at(si) with weight 1, no index).
-    virtual size_t fluorescence_local(const SurfaceInteraction3f &si, Mixture &out) const {
-        out[0] = Local{ fluorescence_at(si), NoIndex, 1.0, 1.0 };
-        return 1;
-    }
-
-    /// Number of models fluorescence_local() indexes (0: it gives no index, and reduced
-    /// RGB transport serves the material as a plain BSDF).
-    virtual size_t fluorescence_models() const { return 0; }
-    /// Model i < fluorescence_models().
-    virtual const fluo::Fluorescence *fluorescence_model(size_t /* i */) const { return nullptr; }
-
-protected:
-    /// The once-per-scene warning of set_managed(); an atomic load when managed.
     void warn_if_unmanaged(const char *plugin) const {
-        if (m_managed.load(std::memory_order_relaxed) || !fluorescence())
+        if (m_managed.load(std::memory_order_relaxed) || !jit_fluorescent())
             return;
-        if (fluo_detail::unmanaged_warning_armed().exchange(false, std::memory_order_relaxed)) {
+        if (unmanaged_warning_armed().exchange(false, std::memory_order_relaxed)) {
             constexpr const char *ClassName = "fluo";
             Log(Warn, "%s: this material fluoresces, but the scene's integrator does not transport "
-                      "fluorescence: only its elastic (non-shifted) part is rendered (in scalar_rgb an "
+                      "fluorescence: only its elastic (non-shifted) part is rendered (in RGB variants an "
                       "equal-energy approximation). Use <integrator type=\"fluo_path\"/> to render "
                       "fluorescence. (This warning is printed once per scene.)", plugin);
         }
+    }
+
+    /// Host: whether the material re-emits at all (e.g. c > 0 and Q > 0).
+    virtual bool jit_fluorescent() const = 0;
+    /// Host: the emission range (nm) it re-emits into.
+    virtual fluo::Range jit_emission_range() const = 0;
+    /// Host: the excitation range (nm) it absorbs to re-emit from; a material that varies
+    /// over the surface gives everything (each vertex intersects its own band).
+    virtual fluo::Range jit_excitation_range() const { return { 0.0, 1e30 }; }
+
+    /// RGB reduced transport: the vertex operator is Σ_t w_t·M_t with f = M/π, the K×K
+    /// matrices M_t reduced once per render for `transport` (host, row major, sized K·K
+    /// by the caller) and the weights w_t per lane (differentiable). Returns whether the
+    /// operator includes the elastic part (otherwise fluo_path adds jit_elastic_albedo as
+    /// per-band albedos).
+    static constexpr size_t MaxTerms = 3;
+    virtual bool jit_reduced_matrices(const fluo::TransportBasis &transport,
+                                      std::array<std::vector<double>, MaxTerms> &m) const = 0;
+    virtual std::array<Float, MaxTerms> jit_reduced_weights() const = 0;
+
+    /// Elastic albedo at si.wavelengths (spectral), or its linear sRGB (RGB variant).
+    virtual UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const = 0;
+
+    /// Spectral: per hero wavelength λo = si.wavelengths, choose the elastic event or a
+    /// shift to λi ∈ [range_lo, range_hi] (the lights' range), with uniform numbers u1
+    /// (choice), u2 (λi). Returns the wavelengths to continue with, the estimator's
+    /// weight (1/probability; detached), which wavelengths shifted, and for those the
+    /// reradiation π·f_fl(λi, λo) (differentiable), and the model a varying material picked
+    /// at this vertex (`local`, handed back to jit_reradiation; 0 for the others). A
+    /// Lambertian lobe (f_fl·cos θo = that value·cos θo/π) needs no further call.
+    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32>;
+    /// The choice that keeps every wavelength (RGB variants, where fluo_path does not call
+    /// jit_choose, and materials that do not re-emit).
+    static Choice elastic_only(const Wavelength &lambda_o) {
+        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f), UInt32(0) };
+    }
+    virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
+                              double range_lo, double range_hi, Mask active) const = 0;
+
+    /// RGB reduced transport of a material whose reradiation varies over the surface among
+    /// a finite set of Lambertian operators (fluo_jung's textured parameters: one per dye
+    /// shape): the K×K matrices M_n (host, row major, f = M_n/π; into `m`, sized by the
+    /// callee), of which a lane's vertex adds w·M_n with (n, w) from jit_reduced_select.
+    /// Returns how many (0: none, the default).
+    virtual size_t jit_reduced_table(const fluo::TransportBasis & /* transport */,
+                                     std::vector<double> & /* m */) const {
+        return 0;
+    }
+    virtual std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f & /* si */,
+                                                        Mask /* active */) const {
+        return { UInt32(0), Float(0.f) };
+    }
+
+    // A reradiation lobe that depends on the directions (fluo_qd's microfacet lobe)
+    // overrides the three methods below; fluo_path then calls them per vertex (and only
+    // in scenes holding such a material: the Lambertian ones keep the calls above).
+
+    /// Host: whether the reradiation lobe is Lambertian (f_fl·cos θo = rerad·cos θo/π).
+    virtual bool jit_lambertian() const { return true; }
+
+    /// cos θo/π where both directions are above the surface, else 0.
+    static Float lambert(const SurfaceInteraction3f &si, const Vector3f &wo) {
+        return dr::select(Frame3f::cos_theta(si.wi) > 0.f && Frame3f::cos_theta(wo) > 0.f,
+                          Frame3f::cos_theta(wo) * dr::InvPi<Float>, 0.f);
+    }
+
+    /// Spectral: f_fl·cos θo towards wo_a and wo_b, given jit_choose's `rerad` and `local`
+    /// for the shifted wavelengths, with si.wavelengths = λi.
+    virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    jit_reradiation(const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad, const UInt32 & /* local */,
+                    const Vector3f &wo_a, const Vector3f &wo_b, Mask /* active */) const {
+        return { rerad * lambert(si, wo_a), rerad * lambert(si, wo_b) };
+    }
+
+    /// RGB: a direction-dependent reradiation operator lobe(ωi, ωo)·w_0·M(cos θ) (cos θ = ωi·h
+    /// and the lobe from jit_lobe, w_0 from jit_reduced_weights) written as
+    /// M(cos θ) = Σ_t s_t(cos θ)·B_t, s_t linear between n nodes at cos θ = j/(n − 1): the
+    /// K×K matrices B_t into `m` (host, row major, sized K·K by the caller; as
+    /// jit_reduced_matrices) and s into `nodes` ([n][MaxTerms], sized by the callee). Returns
+    /// n; 0 for a Lambertian material (jit_reduced_matrices serves it). The elastic part is
+    /// the BSDF's own value, reduced as a native BSDF's.
+    virtual size_t jit_reduced_nodes(const fluo::TransportBasis & /* transport */,
+                                     std::array<std::vector<double>, MaxTerms> & /* m */,
+                                     std::vector<double> & /* nodes */) const {
+        return 0;
+    }
+    /// The lobe factor and cos θ of a direction-dependent operator for direction wo.
+    virtual std::pair<Float, Float> jit_lobe(const SurfaceInteraction3f &si, const Vector3f &wo,
+                                             Mask /* active */) const {
+        return { lambert(si, wo), Float(0.f) };
+    }
+
+    /// A direction-dependent operator that varies over the surface among a finite set of
+    /// models (fluo_qd's textured parameters: coatings baked on levels): every model's
+    /// jit_reduced_nodes terms, B_t into `m` ([model][MaxTerms][K][K], sized by the callee)
+    /// and their weights at the n cosine nodes into `nodes` ([model][n][MaxTerms]), n into
+    /// `n_nodes`. Returns how many models (0: none, the default). Per lane the vertex's
+    /// operator is then estimated as lobe·w·M_m(cos θ) for the (model m, weight w) that
+    /// jit_reduced_pick draws with the uniform number u (a model of the hit's mixture picked
+    /// with its probability: unbiased for the mixture, as jit_choose's pick in the spectral
+    /// variants), the lobe from jit_lobe.
+    virtual size_t jit_reduced_nodes_table(const fluo::TransportBasis & /* transport */,
+                                           std::vector<double> & /* m */, std::vector<double> & /* nodes */,
+                                           size_t & /* n_nodes */) const {
+        return 0;
+    }
+    virtual std::pair<UInt32, Float> jit_reduced_pick(const SurfaceInteraction3f & /* si */, const Float & /* u */,
+                                                      Mask /* active */) const {
+        return { UInt32(0), Float(0.f) };
     }
 
 private:
     mutable std::atomic<bool> m_managed{ false };
 };
 
-/// A texture that knows its emission spectrum (fluo_illuminant), so that reduced
-/// transport can use the spectrum's own basis coefficients, including the UV band.
-class SpectralSource {
-public:
-    virtual ~SpectralSource() = default;
-    virtual const fluo::Illuminant &illuminant() const = 0;
-    /// Luminance of the RGB value the texture evaluates to in scalar_rgb (never 0).
-    virtual double rgb_luminance() const = 0;
+/// A fluorescent surface vertex of the spectral integrators (fluo_path,
+/// fluo_volpath): per lane and hero wavelength the elastic event or a shift (the material's
+/// jit_choose), then the shifted wavelengths' reradiation lobe in place of the BSDF's value
+/// and weight. The estimator is fluo_path.cpp's (its docs).
+template <typename Float, typename Spectrum> struct SurfaceShift {
+    MI_IMPORT_TYPES(BSDF, BSDFPtr, Sampler)
+    using Bispectral = BispectralBSDF<Float, Spectrum>;
+    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+
+    UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
+    WMask shifted = false;
+    UInt32 local = 0; ///< the model a varying material picked (jit_choose)
+
+    /// Choose per hero wavelength (four 2D numbers from `sampler`); si.wavelengths become
+    /// the wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range.
+    void choose(const BSDFPtr &bsdf, SurfaceInteraction3f &si, Sampler *sampler, const Mask &active, double lo,
+                double hi) {
+        Wavelength u1, u2;
+        for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
+            Point2f u = sampler->next_2d(active);
+            u1[j] = u.x();
+            u2[j] = u.y();
+        }
+        auto [li, sc, sh, rr, lc] = dispatch_any(
+            bsdf,
+            [lo, hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_, const Wavelength &u2_,
+                     const Mask &on) {
+                if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                    return f->jit_choose(si_, u1_, u2_, lo, hi, on);
+                return Bispectral::elastic_only(si_.wavelengths);
+            },
+            si, u1, u2, active);
+        Mask has_bsdf = active && bsdf != nullptr;
+        si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
+        scale = dr::select(has_bsdf, sc, 1.f);
+        shifted = WMask(has_bsdf) && sh;
+        rerad = dr::select(shifted, rr, 0.f);
+        local = dr::select(has_bsdf, lc, 0u);
+    }
+
+    /// The vertex's f·cos towards the emitter sample `wo` (`val`, the BSDF's value on entry)
+    /// and its weight for the sampled direction `bs` (`weight`, the BSDF's on entry): the
+    /// shifted wavelengths' reradiation lobe, Lambertian unless the scene holds a
+    /// direction-dependent one (`directional`: asked per direction), times the choice's weight.
+    void apply(const BSDFPtr &bsdf, const SurfaceInteraction3f &si, bool directional, const Vector3f &wo,
+               const BSDFSample3f &bs, const Mask &active, UnpolarizedSpectrum &val,
+               UnpolarizedSpectrum &weight) const {
+        UnpolarizedSpectrum v_em, v_bs;
+        if (directional) {
+            std::tie(v_em, v_bs) = dispatch_any(
+                bsdf,
+                [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_, const UInt32 &lc_,
+                   const Vector3f &wa, const Vector3f &wb, const Mask &on) {
+                    if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                        return f->jit_reradiation(si_, rr_, lc_, wa, wb, on);
+                    return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                },
+                si, rerad, local, wo, bs.wo, active && dr::any(shifted));
+        } else {
+            v_em = rerad * Bispectral::lambert(si, wo);
+            v_bs = rerad * Bispectral::lambert(si, bs.wo);
+        }
+        val = dr::select(shifted, v_em, val) * scale;
+        UnpolarizedSpectrum w_bs = dr::select(bs.pdf > 0.f, v_bs / bs.pdf, 0.f);
+        weight = dr::select(shifted, w_bs, weight) * scale;
+    }
 };
 
+NAMESPACE_END(fluo_detail)
 NAMESPACE_END(mitsuba)

@@ -1,8 +1,9 @@
-// Shared helpers for the fluo Mitsuba plugin shims.
+// Shared helpers for the fluo Mitsuba plugins.
 //
-// The shims are thin: they parse Mitsuba Properties, hand the numbers to the Rust
-// core through the cxx bridge (fluo-mitsuba/src/bridge.rs.h), and evaluate Mitsuba textures.
-// They serve the scalar variants only (Dr.Jit cannot trace calls into Rust).
+// The plugins parse Mitsuba Properties and hand the numbers to the Rust core through the
+// cxx bridge (fluo-mitsuba/src/bridge.rs.h) at load and on parameter updates; Rust
+// validates them and bakes what the plugins evaluate per lane at render time (Dr.Jit
+// cannot trace calls into Rust, and no variant calls Rust per vertex).
 #pragma once
 
 #include <mitsuba/core/logger.h>
@@ -12,7 +13,6 @@
 
 #include <array>
 #include <atomic>
-#include <cstring>
 #include <deque>
 #include <string>
 #include <string_view>
@@ -142,64 +142,11 @@ std::array<double, N> parse_list(const char *plugin, const char *name, const std
     return out;
 }
 
-/// Wavelengths of a spectral-variant interaction as a float array.
-template <typename Wavelength> std::array<float, 4> wavelengths_of(const Wavelength &w) {
-    std::array<float, 4> out{};
-    for (size_t i = 0; i < 4; ++i)
-        out[i] = w[i];
-    return out;
-}
-
-/// A per-thread memo of a pure function of four wavelengths, for a BSDF asked the same
-/// value several times at a vertex. One entry per thread and call site (each `compute`
-/// lambda has its own type, hence its own entry), keyed by a model build number
-/// (next_build(), never reused: a rebuilt or reallocated model cannot hit a stale
-/// entry) and the wavelengths, bitwise; a miss calls `compute(values)`.
-class WavelengthMemo {
-public:
-    static uint64_t next_build() {
-        static std::atomic<uint64_t> counter{ 0 };
-        return ++counter;
-    }
-    template <typename F>
-    static const std::array<float, 4> &get(uint64_t build, const std::array<float, 4> &lambda, F &&compute) {
-        thread_local Entry entry;
-        if (entry.build != build || std::memcmp(entry.lambda.data(), lambda.data(), sizeof(lambda)) != 0) {
-            entry.build = 0; // invalid until computed (compute may throw)
-            compute(entry.values);
-            entry.lambda = lambda;
-            entry.build = build;
-        }
-        return entry.values;
-    }
-
-private:
-    struct Entry {
-        uint64_t build = 0;
-        std::array<float, 4> lambda{}, values{};
-    };
-};
-
-inline rust::Slice<const float> slice(const std::array<float, 4> &a) {
-    return rust::Slice<const float>(a.data(), a.size());
-}
-inline rust::Slice<float> slice_mut(std::array<float, 4> &a) {
-    return rust::Slice<float>(a.data(), a.size());
-}
-
-/// The plugins that also run in the vectorised variants (fluo_jit.h registers them).
-inline bool jit_plugin(std::string_view name) {
-    return name == "fluo_illuminant" || name == "fluo_jung" || name == "fluo_path" || name == "fluo_matrix" ||
-           name == "fluo_gmm" || name == "fluo_qd" || name == "fluo_qd_medium" || name == "fluo_dye_medium" ||
-           name == "fluo_volpath";
-}
-
-/// Whether plugin `name` serves `variant`; every other variant of the wheel gets a stub.
-inline bool served_variant(std::string_view name, std::string_view variant) {
-    if (variant == "scalar_rgb" || variant == "scalar_spectral")
-        return true;
-    return jit_plugin(name) && (variant == "llvm_ad_rgb" || variant == "llvm_ad_spectral" ||
-                                variant == "cuda_ad_rgb" || variant == "cuda_ad_spectral");
+/// The variants every plugin serves (register_plugin in fluo_bispectral.h registers each class
+/// template for all of them); every other variant of the wheel gets a stub.
+inline bool served_variant(std::string_view variant) {
+    return variant == "scalar_rgb" || variant == "scalar_spectral" || variant == "llvm_ad_rgb" ||
+           variant == "llvm_ad_spectral" || variant == "cuda_ad_rgb" || variant == "cuda_ad_spectral";
 }
 
 /// Register, for every variant of the wheel (MI_VARIANTS) that the plugins do not
@@ -215,44 +162,32 @@ inline void register_unavailable(const char *name, ObjectType type) {
         size_t end = all.find('\n');
         std::string_view variant = all.substr(0, end);
         all = end == std::string_view::npos ? std::string_view() : all.substr(end + 1);
-        if (variant.empty() || served_variant(name, variant))
+        if (variant.empty() || served_variant(variant))
             continue;
         entries.push_back({ name, std::string(variant) });
         PluginManager::instance()->register_plugin(
             name, variant, type,
             [](void *payload, const Properties &) -> ref<Object> {
                 auto *u = static_cast<const Unavailable *>(payload);
-                Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb and "
-                      "scalar_spectral (mi.set_variant(\"scalar_spectral\") or \"scalar_rgb\"), and "
-                      "fluo_illuminant, fluo_jung, fluo_matrix, fluo_gmm, fluo_qd, fluo_qd_medium, fluo_dye_medium, fluo_volpath and "
-                      "fluo_path also in llvm_ad_rgb, "
-                      "llvm_ad_spectral, cuda_ad_rgb and "
-                      "cuda_ad_spectral",
+                Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb, "
+                      "scalar_spectral, llvm_ad_rgb, llvm_ad_spectral, cuda_ad_rgb and cuda_ad_spectral "
+                      "(e.g. mi.set_variant(\"scalar_spectral\"))",
                       u->name, u->variant);
             },
             nullptr, &entries.back());
     }
 }
 
-/// Register plugin class template T for the two scalar variants.
-template <template <typename, typename> class T>
-void register_scalar_plugin(const char *name, ObjectType type) {
-    fluo::note_plugin(name, type == ObjectType::BSDF ? "bsdf"
-                            : type == ObjectType::Integrator ? "integrator"
-                            : type == ObjectType::Medium     ? "medium"
-                                                             : "texture",
-                      jit_plugin(name));
-    PluginManager *pm = PluginManager::instance();
-    register_unavailable(name, type);
-    pm->register_plugin(
-        name, "scalar_rgb", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); },
-        nullptr, nullptr);
-    pm->register_plugin(
-        name, "scalar_spectral", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<float, Spectrum<float, 4>>(p); },
-        nullptr, nullptr);
-}
-
 NAMESPACE_END(fluo_detail)
+
+/// A texture that knows its emission spectrum (fluo_illuminant), so that reduced
+/// transport can use the spectrum's own basis coefficients, including the UV band.
+class SpectralSource {
+public:
+    virtual ~SpectralSource() = default;
+    virtual const fluo::Illuminant &illuminant() const = 0;
+    /// Luminance of the RGB value the texture evaluates to in the RGB variants (never 0).
+    virtual double rgb_luminance() const = 0;
+};
+
 NAMESPACE_END(mitsuba)

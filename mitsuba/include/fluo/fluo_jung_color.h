@@ -1,6 +1,5 @@
 // fluo_jung's reflectance, `color` options (wide-gamut upsampling through a coefficient
-// cube) and textured numeric parameters, parsed and checked once for the scalar shim
-// (fluo_jung.cpp) and the vectorised one (fluo_jung_jit.cpp).
+// cube) and textured numeric parameters, parsed and checked at load (fluo_jung.cpp).
 #pragma once
 
 #include <mitsuba/core/fresolver.h>

@@ -1,7 +1,6 @@
 // The files of the measured-material plugins fluo_matrix and fluo_gmm: one "filename", or
 // several ("filename0", "filename1", ...) selected per hit by a material-index texture
-// "index". Shared by the scalar shim (fluo_measured.h) and the vectorised one
-// (fluo_measured_jit.cpp), so that both read, resolve and validate them alike.
+// "index": read, resolved and validated once at load (fluo_measured.cpp).
 #pragma once
 
 #include <mitsuba/core/fresolver.h>

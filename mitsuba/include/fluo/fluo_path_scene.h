@@ -1,8 +1,7 @@
-// Scene scanning for the fluo_path integrator: walking the scene graph, and the BSDF
-// wrappers (twosided, blendbsdf, mask; nested too) that fluo_path sees through to the
-// fluorescent material acting at a vertex. Shared by both transports
-// (fluo_transport_spectral.h, fluo_transport_reduced.h); the path loop
-// (fluo_path_loop.h) resolves the wrappers at each vertex.
+// Scene scanning for fluo_path and fluo_volpath (every variant): walking the scene graph,
+// the fluorescent BSDFs and media they transport, and the BSDF wrappers (twosided,
+// blendbsdf, mask, normalmap, bumpmap; nested too) that they see through, per lane, to the
+// fluorescent material acting at a vertex.
 #pragma once
 
 #include <mitsuba/core/plugin.h>
@@ -24,6 +23,16 @@
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
+
+/// Power heuristic, as in path.cpp (non-finite weights become 0), without gradients (as
+/// Mitsuba's integrators: MIS weights are not differentiated).
+template <typename Float> Float mis_weight(const Float &pdf_a, const Float &pdf_b) {
+    Float a = dr::detach<true>(pdf_a), b = dr::detach<true>(pdf_b);
+    a *= a;
+    b *= b;
+    Float w = a / (a + b);
+    return dr::select(dr::isfinite(w), w, 0.f);
+}
 
 /// Collects every object reachable from a root (each once).
 struct Collector : TraversalCallback {
@@ -59,26 +68,26 @@ template <typename M, typename Scene> std::vector<const M *> managed_media(const
     return media;
 }
 
-/// The fluorescent BSDFs of the scene for a vectorised integrator (interface B, whose
-/// jit_fluorescent() holds), refusing one inside a wrapper BSDF (twosided, blendbsdf, mask):
-/// the vectorised loops cannot see through wrappers, and its fluorescence would be lost.
-template <typename B, typename Scene> std::vector<B *> jit_fluorescent_bsdfs(const char *plugin, const Scene *scene) {
-    std::unordered_set<const Object *> direct;
+/// Every object reachable from the scene's shapes (their BSDFs, wrapped ones, textures).
+template <typename Scene> Collector shape_objects(const Scene *scene) {
     Collector c;
-    for (const auto &shape : scene->shapes()) {
-        direct.insert(shape->bsdf());
+    for (const auto &shape : scene->shapes())
         c.visit(const_cast<Object *>(static_cast<const Object *>(shape.get())));
-    }
+    return c;
+}
+
+/// The fluorescent BSDFs among `c`'s objects (interface B, whose jit_fluorescent() holds),
+/// wrapped ones included (FluoWrappers::scan refuses the wrappers it cannot see through);
+/// every bispectral one is marked as transported this render.
+template <typename B> std::vector<B *> fluorescent_bsdfs(const Collector &c) {
     std::vector<B *> out;
     for (Object *o : c.objects) {
         auto *b = dynamic_cast<B *>(o);
-        if (!b || !b->jit_fluorescent())
+        if (!b)
             continue;
-        if (!direct.count(o))
-            Throw("%s: a fluorescent material is wrapped in another BSDF (twosided, blendbsdf, mask, ...), "
-                  "which the vectorised variants cannot see through yet (its fluorescence would be lost): "
-                  "use it directly, or render in scalar_spectral/scalar_rgb", plugin);
-        out.push_back(b);
+        b->set_managed(true);
+        if (b->jit_fluorescent())
+            out.push_back(b);
     }
     return out;
 }
@@ -144,26 +153,26 @@ struct Children : TraversalCallback {
 };
 
 /// The supported wrappers around fluorescent materials found in a scene, and their
-/// resolution at a vertex to the child BSDF that acts there (see fluo_path's docs).
+/// resolution, per lane, to the child BSDF that acts at a vertex (fluo_path's docs).
 template <typename Float, typename Spectrum> class FluoWrappers {
 public:
     /// Errors and warnings read "[FluoPath] ...", as if raised by the integrator itself.
     static constexpr const char *ClassName = "FluoPath";
     MI_IMPORT_TYPES(BSDF, BSDFPtr, Sampler, Texture)
+    using Bispectral = BispectralBSDF<Float, Spectrum>;
+
+    /// Most wrappers nested around one material (each level may hold a normal or bump map).
+    static constexpr size_t MaxDepth = 8;
 
     bool empty() const { return m_wrappers.empty(); }
-    void clear() { m_wrappers.clear(); }
 
-    /// Mark every bispectral material among `c`'s objects as transported by fluo_path,
-    /// and record the wrappers around fluorescent ones; refuse wrappers it cannot see
-    /// through (`plugin` names the integrator in the error).
+    /// Record the wrappers around fluorescent materials among the scene's objects `c`;
+    /// refuse wrappers it cannot see through (`plugin` names the integrator in the error).
     void scan(const Collector &c, const char *plugin) {
         m_wrappers.clear();
         for (Object *o : c.objects) {
-            if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
-                b->set_managed(true);
             auto *bsdf = dynamic_cast<BSDF *>(o);
-            if (!bsdf || dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o))
+            if (!bsdf || dynamic_cast<Bispectral *>(o))
                 continue;
             Children kids;
             o->traverse(&kids);
@@ -177,11 +186,11 @@ public:
             std::string_view cls = o->class_name();
             if (cls != "TwoSidedBRDF" && cls != "BlendBSDF" && cls != "MaskBSDF" && cls != "NormalMap" &&
                 cls != "BumpMap")
-                Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which fluo_path cannot "
+                Throw("%s: a fluorescent material is wrapped in a \"%s\" BSDF, which %s cannot "
                       "see through (its fluorescence would be lost). Supported wrappers: twosided, "
                       "blendbsdf, mask, normalmap, bumpmap; use the fluorescent material directly or "
                       "inside one of those.",
-                      plugin, std::string(cls));
+                      plugin, std::string(cls), plugin);
             Wrapper w{ bsdf, cls == "TwoSidedBRDF" ? Wrapper::TwoSided
                              : cls == "BlendBSDF"  ? Wrapper::Blend
                              : cls == "MaskBSDF"   ? Wrapper::Mask
@@ -210,14 +219,21 @@ public:
                       plugin, std::string(cls));
             m_wrappers.push_back(w);
         }
+        m_depth = 0;
+        for (const Wrapper &w : m_wrappers)
+            m_depth = std::max(m_depth, depth(w.bsdf));
+        if (m_depth > MaxDepth)
+            Throw("%s: %zu BSDF wrappers (twosided, blendbsdf, mask, normalmap, bumpmap) nested around one "
+                  "fluorescent material; at most %zu are supported",
+                  plugin, m_depth, MaxDepth);
     }
 
-    /// The shading normals a vertex's normal and bump maps replaced (each map's input and
-    /// output normal, world space), for the adapters' orientation rule. Plain arrays,
-    /// left uninitialised: every vertex declares one, most never fill it.
+    /// The shading normals a vertex's normal and bump maps replaced (each level's input and
+    /// output normal, world space, and the lanes it applies to), for the adapters'
+    /// orientation rule.
     struct Perturbations {
-        static constexpr size_t Max = 8;
-        Vector3f before[Max], after[Max];
+        Vector3f before[MaxDepth], after[MaxDepth];
+        Mask applied[MaxDepth];
         size_t n = 0;
         /// Whether world direction d lies on the same side of each map's input and output
         /// shading normals: Mitsuba's normalmap and bumpmap give a direction that changes
@@ -225,50 +241,57 @@ public:
         Mask keeps_side(const Vector3f &d) const {
             Mask ok = true;
             for (size_t i = 0; i < n; ++i)
-                ok &= dr::dot(before[i], d) * dr::dot(after[i], d) > 0.f;
+                ok &= !applied[i] || dr::dot(before[i], d) * dr::dot(after[i], d) > 0.f;
             return ok;
         }
     };
 
-    /// The BSDF that acts at si: wrappers (twosided, blendbsdf, mask, normalmap, bumpmap;
-    /// nested) resolved to the child acting at this hit. For a twosided back side the
-    /// local frame is mirrored (n -> -n), as twosided mirrors wi and wo; a normal or bump
-    /// map replaces si's shading frame by the perturbed one (si.wi re-expressed in it), so
-    /// the fluorescent vertex's every lobe uses it, and records both frames in `perturbed`
-    /// (the caller drops directions that change side: Perturbations::keeps_side).
-    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler, Perturbations &perturbed) const {
+    /// The BSDF that acts at si, per lane: wrappers (twosided, blendbsdf, mask, normalmap,
+    /// bumpmap; nested) resolved to the child acting at this hit, one nesting level at a
+    /// time. For a twosided back side the local frame is mirrored (n -> -n), as twosided
+    /// mirrors wi and wo; a normal or bump map replaces si's shading frame by the perturbed
+    /// one (si.wi re-expressed in it), so the fluorescent vertex's every lobe uses it, and
+    /// records both normals in `perturbed` (the caller drops directions that change side:
+    /// Perturbations::keeps_side). blendbsdf and mask draw one number per level they occur in.
+    BSDFPtr resolve(BSDFPtr bsdf, SurfaceInteraction3f &si, Sampler *sampler, Perturbations &perturbed,
+                    Mask active) const {
         perturbed.n = 0;
-        for (size_t guard = 0; guard < 64; ++guard) {
-            const Wrapper *w = nullptr;
-            for (const Wrapper &x : m_wrappers)
-                if (x.bsdf == bsdf)
-                    w = &x;
-            if (!w)
-                return bsdf;
-            if (w->kind == Wrapper::TwoSided) {
-                bool back = Frame3f::cos_theta(si.wi) < 0.f;
-                if (back) {
-                    si.sh_frame.n = -si.sh_frame.n;
-                    si.wi.z() = -si.wi.z();
+        for (size_t level = 0; level < m_depth; ++level) {
+            BSDFPtr next = bsdf;
+            Frame3f mapped_frame = si.sh_frame;
+            Mask mapped = false;
+            for (const Wrapper &w : m_wrappers) {
+                Mask on = active && (bsdf == BSDFPtr(w.bsdf));
+                if (dr::none_or<false>(on))
+                    continue;
+                BSDFPtr c0(w.child[0]), c1(w.child[1]);
+                if (w.kind == Wrapper::TwoSided) {
+                    Mask back = on && Frame3f::cos_theta(si.wi) < 0.f;
+                    dr::masked(si.sh_frame.n, back) = -si.sh_frame.n;
+                    dr::masked(si.wi.z(), back) = -si.wi.z();
+                    next = dr::select(on, dr::select(back, c1, c0), next);
+                } else if (w.kind == Wrapper::Blend) {
+                    Float weight = dr::clip(w.weight->eval_1(si, on), 0.f, 1.f);
+                    next = dr::select(on, dr::select(sampler->next_1d(on) < weight, c1, c0), next);
+                } else if (w.kind == Wrapper::Mask) {
+                    Float opacity = dr::clip(w.weight->eval_1(si, on), 0.f, 1.f);
+                    next = dr::select(on, dr::select(sampler->next_1d(on) < opacity, c0, c1), next);
+                } else {
+                    mapped_frame = dr::select(on, perturbed_frame(w, si, on), mapped_frame);
+                    mapped |= on;
+                    next = dr::select(on, c0, next);
                 }
-                bsdf = w->child[back ? 1 : 0];
-            } else if (w->kind == Wrapper::Blend) {
-                Float weight = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
-                bsdf = w->child[sampler->next_1d() < weight ? 1 : 0];
-            } else if (w->kind == Wrapper::NormalMap || w->kind == Wrapper::BumpMap) {
-                if (perturbed.n == Perturbations::Max)
-                    Throw("more than %zu normal or bump maps nested around one fluorescent material",
-                          Perturbations::Max);
-                Frame3f before = si.sh_frame;
-                si.sh_frame = perturbed_frame(*w, si);
-                si.wi = si.sh_frame.to_local(before.to_world(si.wi));
-                perturbed.before[perturbed.n] = before.n;
-                perturbed.after[perturbed.n++] = si.sh_frame.n;
-                bsdf = w->child[0];
-            } else {
-                Float opacity = dr::clip(w->weight->eval_1(si, true), 0.f, 1.f);
-                bsdf = w->child[sampler->next_1d() < opacity ? 0 : 1];
             }
+            if (dr::any_or<true>(mapped)) {
+                size_t i = perturbed.n++;
+                perturbed.before[i] = si.sh_frame.n;
+                perturbed.after[i] = mapped_frame.n;
+                perturbed.applied[i] = mapped;
+                Vector3f wi_world = si.sh_frame.to_world(si.wi);
+                si.sh_frame = dr::select(mapped, mapped_frame, si.sh_frame);
+                si.wi = dr::select(mapped, mapped_frame.to_local(wi_world), si.wi);
+            }
+            bsdf = next;
         }
         return bsdf;
     }
@@ -284,17 +307,25 @@ private:
         double scale = 1.0;              // bumpmap's height scale
     };
 
+    /// Wrapper levels from `b` down to a material (0: not a wrapper).
+    size_t depth(const BSDF *b) const {
+        for (const Wrapper &w : m_wrappers)
+            if (w.bsdf == b)
+                return 1 + std::max(depth(w.child[0]), depth(w.child[1]));
+        return 0;
+    }
+
     /// The shading frame (world space) a normal or bump map gives at si, as Mitsuba's
     /// adapters build it: normalmap's normal n = 2·rgb − 1 in si's shading frame;
     /// bumpmap's normal of the surface displaced by scale·height along n (the height's
     /// uv gradient), turned to the geometric normal's side. The tangent follows dp/du
     /// (Gram-Schmidt); fluo's materials are isotropic, so only the normal matters.
-    Frame3f perturbed_frame(const Wrapper &w, const SurfaceInteraction3f &si) const {
+    Frame3f perturbed_frame(const Wrapper &w, const SurfaceInteraction3f &si, const Mask &active) const {
         Vector3f n;
         if (w.kind == Wrapper::NormalMap) {
-            n = si.sh_frame.to_world(dr::normalize(dr::fmadd(w.weight->eval_3(si, true), 2.f, -1.f)));
+            n = si.sh_frame.to_world(dr::normalize(dr::fmadd(w.weight->eval_3(si, active), 2.f, -1.f)));
         } else {
-            Vector2f grad = (Float) w.scale * w.weight->eval_1_grad(si, true);
+            Vector2f grad = (Float) w.scale * w.weight->eval_1_grad(si, active);
             const Vector3f &sn = si.sh_frame.n;
             Vector3f dp_du = dr::fmadd(sn, grad.x() - dr::dot(sn, si.dp_du), si.dp_du);
             Vector3f dp_dv = dr::fmadd(sn, grad.y() - dr::dot(sn, si.dp_dv), si.dp_dv);
@@ -313,7 +344,7 @@ private:
     static bool holds_fluorescence(Object *o, std::unordered_set<Object *> &seen) {
         if (!o || !seen.insert(o).second)
             return false;
-        if (auto *b = dynamic_cast<BispectralBSDF<Float, Spectrum> *>(o); b && b->fluorescence())
+        if (auto *b = dynamic_cast<Bispectral *>(o); b && b->jit_fluorescent())
             return true;
         Children c;
         o->traverse(&c);
@@ -332,46 +363,8 @@ private:
     }
 
     std::vector<Wrapper> m_wrappers;
-    ref<BSDF> m_null; ///< see null_bsdf()
-};
-
-/// The fluorescent BSDFs a transport found at prepare time (`Entry` has a `bsdf`
-/// pointer), looked up per vertex by pointer in O(1): the cost of a vertex does not grow
-/// with the number of fluorescent materials, and a scene without any pays one branch.
-template <typename Entry> class EntryTable {
-public:
-    void clear() {
-        m_entries.clear();
-        m_keys.clear();
-        m_index.clear();
-    }
-    /// Add an entry; a BSDF added twice keeps its first entry.
-    void add(const Entry &e) {
-        if (m_index.emplace(static_cast<const void *>(e.bsdf), m_entries.size()).second) {
-            m_entries.push_back(e);
-            m_keys.push_back(e.bsdf);
-        }
-    }
-    const Entry *find(const void *bsdf) const {
-        size_t n = m_keys.size();
-        if (n <= LinearScanMax) { // a few materials: a scan beats hashing
-            for (size_t i = 0; i < n; ++i)
-                if (m_keys[i] == bsdf)
-                    return &m_entries[i];
-            return nullptr;
-        }
-        auto it = m_index.find(bsdf);
-        return it == m_index.end() ? nullptr : &m_entries[it->second];
-    }
-    size_t size() const { return m_entries.size(); }
-    bool empty() const { return m_entries.empty(); }
-
-private:
-    /// Up to this many entries, find() scans m_keys.
-    static constexpr size_t LinearScanMax = 8;
-    std::vector<Entry> m_entries;
-    std::vector<const void *> m_keys; ///< m_entries[i].bsdf
-    std::unordered_map<const void *, size_t> m_index;
+    size_t m_depth = 0; ///< the longest chain of wrappers
+    ref<BSDF> m_null;   ///< see null_bsdf()
 };
 
 NAMESPACE_END(fluo_detail)

@@ -1,5 +1,5 @@
-// fluo_qd's parameters, substrate and dot index, parsed and sampled for Rust once for the
-// scalar shim (fluo_qd.cpp) and the vectorised one (fluo_qd_jit.cpp).
+// fluo_qd's parameters, substrate and dot index, parsed and sampled for Rust (fluo_qd.cpp,
+// every variant).
 #pragma once
 
 #include <mitsuba/core/plugin.h>
@@ -20,7 +20,7 @@
 #include <vector>
 
 #include "fluo_common.h"
-#include "fluo_jit.h"
+#include "fluo_bispectral.h"
 #include "fluo_param_texture.h"
 
 NAMESPACE_BEGIN(mitsuba)
@@ -147,7 +147,7 @@ template <typename Float, typename Spectrum> struct QdSetup {
     }
 
     /// Sample a texture at λ = lambda_min..lambda_max (spectral) or its channel mean (RGB).
-    /// In the vectorised variants the wavelengths are evaluated as one wide call.
+    /// In the llvm/cuda variants the wavelengths are evaluated as one wide call.
     static void sample_texture(const fluo::QdConfig &c, const Texture *tex, QdSamples &out) {
         std::vector<double> &wavelengths = out.wavelengths, &values = out.values;
         wavelengths.clear();
@@ -256,9 +256,9 @@ template <typename Float, typename Spectrum> struct QdSetup {
     }
 };
 
-/// fluo_qd's textured numeric parameters, in both shims: `radius`, `density`,
-/// `quantum_yield` and `alpha` each a float or a float texture; the textures' validated
-/// levels and the coating models baked on them (fluo_qd.cpp's docs, "Textured parameters").
+/// fluo_qd's textured numeric parameters: `radius`, `density`, `quantum_yield` and `alpha`
+/// each a float or a float texture; the textures' validated levels and the coating models
+/// baked on them (fluo_qd.cpp's docs, "Textured parameters").
 template <typename Float, typename Spectrum> struct QdTextures {
     MI_IMPORT_TYPES(Texture)
     enum Param { Radius, Density, Yield, Alpha, NParams };
@@ -383,20 +383,6 @@ template <typename Float, typename Spectrum> struct QdTextures {
         for (size_t i = 0; i < NParams; ++i)
             field(c, i) = (double) levels[i].back();
     }
-
-    /// The bracketing levels of x: (i, t) with x = (1 − t) levels[i] + t levels[i + 1],
-    /// t = 0 at (or beyond) the ends.
-    static std::pair<size_t, double> bracket(const std::vector<float> &levels, float x) {
-        if (!(x > levels.front()))
-            return { 0, 0.0 };
-        if (!(x < levels.back()))
-            return { levels.size() - 1, 0.0 };
-        size_t i = (size_t) (std::upper_bound(levels.begin(), levels.end(), x) - levels.begin()) - 1;
-        return { i, ((double) x - levels[i]) / ((double) levels[i + 1] - levels[i]) };
-    }
-
-    /// How many (radius, density) models a hit mixes: 2 per parameter with several levels.
-    size_t corner_count() const { return (radii.size() > 1 ? 2 : 1) * (densities.size() > 1 ? 2 : 1); }
 
     std::string to_string() const {
         std::ostringstream oss;

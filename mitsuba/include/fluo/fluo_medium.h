@@ -1,10 +1,8 @@
-// fluo's fluorescent participating media (fluo_qd_medium, fluo_dye_medium) in the
-// vectorised variants (llvm_ad_*, cuda_ad_*): a Mitsuba Medium with Dr.Jit types that
-// interpolates what Rust baked at load time (fluo::medium_jit_tables; the
+// fluo's fluorescent participating media (fluo_qd_medium, fluo_dye_medium) in every
+// variant: the parameters they share (MediumCommon), a Mitsuba Medium with Dr.Jit types
+// that interpolates what Rust baked at load time (fluo::medium_jit_tables; the
 // MediumJitTables docs in core/src/model.rs hold the contract), and the interface
-// fluo_volpath's vectorised loop reaches it through (dr::dispatch over the media). The
-// scalar variants keep fluo_medium_shim.h (Rust per collision), the reference the tests
-// hold this one against.
+// fluo_volpath reaches it through per lane (dr::dispatch over the media).
 #pragma once
 
 #include <mitsuba/core/properties.h>
@@ -24,15 +22,124 @@
 
 #include "fluo_bispectral_medium.h"
 #include "fluo_common.h"
-#include "fluo_jit.h"
-#include "fluo_medium_shim.h"
+#include "fluo_bispectral.h"
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
-/// What fluo_volpath needs of a fluorescent medium in the vectorised variants, per lane
+/// A fluo medium's double property, rejecting non-numeric input with a message naming it.
+inline double medium_double(const Properties &props, const char *plugin, const char *name, double def) {
+    if (!props.has_property(name))
+        return def;
+    try {
+        return props.get<double>(name);
+    } catch (const std::exception &e) {
+        Throw("%s: parameter \"%s\" must be a number (%s)", plugin, name, e.what());
+    }
+}
+
+/// The majorant's floor relative to its largest value over the spectrum: null collisions
+/// where the medium is (nearly) transparent, at most one per 10⁶ mean free paths of its
+/// most opaque wavelength.
+constexpr double MediumMajorantFloor = 1e-6;
+/// Absolute floor (a medium with no absorbers and no scattering), inverse scene units.
+constexpr double MediumMinMajorant = 1e-30;
+/// Largest accepted peak absorption, inverse scene units: μa varies over the spectrum and
+/// the majorant is shared by the hero wavelengths, so a wavelength the medium does not
+/// absorb meets about this many null collisions per scene unit it crosses. Beyond it a
+/// render does not finish in reasonable time (1e7 per unit: > 120 s for 16×16 at 8 spp).
+constexpr double MediumMaxAbsorption = 1e5;
+
+/// What every fluo medium parses in every variant: scale (metres per scene unit), the
+/// optional density grid and the host's scattering σs, with their maxima (the majorant's
+/// parts). Such a medium is never "homogeneous" to Mitsuba, even without a grid: volpath
+/// then clips the ray at each tentative collision (ray.maxt = t), which is exact only
+/// without null collisions, and these media have them (their majorant is shared by the
+/// hero wavelengths). `bounded`: whether the density grid bounds the medium.
+template <typename Float, typename Spectrum> struct MediumCommon {
+    MI_IMPORT_TYPES(Volume)
+    double scale = 1.0, max_density = 1.0, max_sigma_s = 0.0;
+    bool bounded = false;
+    /// No density grid and a constant σs: the extinction is the same everywhere.
+    bool constant = false;
+    ref<Volume> density, sigma_s;
+
+    MediumCommon(const Properties &props, const char *plugin) {
+        scale = medium_double(props, plugin, "scale", 1.0);
+        if (!(scale > 0.0) || !std::isfinite(scale))
+            Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)", plugin,
+                  scale);
+        bounded = props.has_property("density");
+        density = props.get_volume<Volume>("density", 1.f);
+        sigma_s = props.get_volume<Volume>("sigma_s", 0.f);
+        // a density scales the dye's concentration: one channel (a 3-channel grid rendered
+        // in RGB variants and failed at render time in spectral ones), asked once here
+        try {
+            (void) density->eval_1(dr::zeros<Interaction3f>(), true);
+        } catch (const std::exception &e) {
+            Throw("%s: invalid parameter \"density\": the density must have one channel (a scalar grid "
+                  "or a float): %s",
+                  plugin, e.what());
+        }
+        refresh(plugin);
+    }
+
+    /// Read (at load, and after an update through mi.traverse) and check the maxima of the
+    /// density and σs, which the majorant is made of.
+    void refresh(const char *plugin) {
+        double d = (double) density->max(), s = (double) sigma_s->max();
+        if (!(d >= 0.0) || !std::isfinite(d))
+            Throw("%s: invalid parameter \"density\": its maximum %g must be finite and >= 0", plugin, d);
+        if (!(s >= 0.0) || !std::isfinite(s))
+            Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", plugin, s);
+        max_density = d;
+        max_sigma_s = s;
+        constant = !bounded && dr::all(sigma_s->resolution() == ScalarVector3i(1, 1, 1));
+    }
+
+    /// The majorant's floor for a medium whose μa peaks at mu_max (1/m at density 1): where
+    /// μa and σs vanish (beyond an absorption band) σt = 0, and volpath's mean null
+    /// probability σn/μ̄ would be 0/0 (NaN) without it.
+    double majorant_floor(double mu_max) const {
+        return std::max(MediumMajorantFloor * (mu_max * max_density + max_sigma_s) * scale, MediumMinMajorant);
+    }
+
+    /// Refuse, at load, a medium whose tracking cannot finish: μa's peak mu_max (1/m at
+    /// density 1) × the largest density × scale above MediumMaxAbsorption per scene unit.
+    /// `what` names the model parameter that sets μa (e.g. "sigma_a = 1e9 1/m").
+    void check_absorption(const char *plugin, double mu_max, const std::string &what) const {
+        double per_unit = mu_max * max_density * scale;
+        if (per_unit > MediumMaxAbsorption)
+            Throw("%s: absorption too strong to track: μa peaks at %g per scene unit (%g 1/m from %s, x the "
+                  "largest density %g, x scale %g m per unit), above the %g per scene unit that fluo's media "
+                  "accept (delta tracking meets about that many null collisions per scene unit at the "
+                  "wavelengths the medium does not absorb: the render would not finish). Lower %s, the "
+                  "density or \"scale\" (metres per scene unit)",
+                  plugin, per_unit, mu_max, what.c_str(), max_density, scale, MediumMaxAbsorption, what.c_str());
+    }
+
+    /// "Name[ model, scale, density, sigma_s, phase(, extra) ]".
+    std::string describe(const char *name, const fluo::FluoMedium &model, const Object *phase,
+                         const std::string &extra) const {
+        std::ostringstream oss;
+        oss << name << "[" << std::endl
+            << "  model = " << std::string(fluo::medium_to_string(model)) << "," << std::endl
+            << "  scale = " << scale << "," << std::endl
+            << "  density_grid = " << bounded << "," << std::endl
+            << "  density = " << string::indent(density) << "," << std::endl
+            << "  sigma_s = " << string::indent(sigma_s) << "," << std::endl
+            << "  phase_function = " << string::indent(phase) << (extra.empty() ? "" : ",") << std::endl;
+        if (!extra.empty())
+            oss << "  " << extra << std::endl;
+        oss << "]";
+        return oss.str();
+    }
+};
+
+
+/// What fluo_volpath needs of a fluorescent medium, per lane, in every variant
 /// (spectral variants: wavelength shifting; RGB variants: the reduced operators).
-template <typename Float, typename Spectrum> class JitBispectralMedium : public ManagedMedium {
+template <typename Float, typename Spectrum> class BispectralMedium : public ManagedMedium {
 public:
     MI_IMPORT_TYPES()
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
@@ -66,28 +173,28 @@ public:
                                                         double lo, double hi, Mask active) const = 0;
 
     /// Host, RGB variants: the absorption A and reradiation F reduced for the transport
-    /// basis `t` (fluo::medium_reduced, as scalar_rgb), K×K row major each, 1/m at density
-    /// 1: at a point, μa acts on basis coefficients as d·A and light c re-emits d·F·c/(4π)
-    /// per steradian (d from jit_sample_interaction).
+    /// basis `t` (fluo::medium_reduced), K×K row major each, 1/m at density 1: at a point,
+    /// μa acts on basis coefficients as d·A and light c re-emits d·F·c/(4π) per steradian
+    /// (d from jit_sample_interaction).
     virtual void jit_reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
                                        rust::Slice<double> f) const = 0;
 };
 
 NAMESPACE_END(fluo_detail)
 
-/// The Medium of fluo_qd_medium and fluo_dye_medium in the vectorised variants: the
-/// parameters of fluo_medium_shim.h (MediumCommon), μa and the emission from Rust's
-/// tables. A plugin parses its own physical parameters, builds the Rust model and hands
-/// it to init(). Spectral variants: μa at the path's wavelengths; RGB variants: μa's
-/// linear sRGB (as scalar_rgb).
+/// The Medium of fluo_qd_medium and fluo_dye_medium in every variant: the common
+/// parameters (MediumCommon), μa and the emission from Rust's tables. A plugin parses its
+/// own physical parameters, builds the Rust model and hands it to init(). Spectral
+/// variants: μa at the path's wavelengths; RGB variants: μa's linear sRGB.
 template <typename Float, typename Spectrum>
-class FluoMediumJit : public Medium<Float, Spectrum>, public fluo_detail::JitBispectralMedium<Float, Spectrum> {
+class FluoMediumBase : public Medium<Float, Spectrum>, public fluo_detail::BispectralMedium<Float, Spectrum> {
 public:
     MI_IMPORT_BASE(Medium, m_is_homogeneous, m_has_spectral_extinction, m_phase_function)
     MI_IMPORT_TYPES(Scene, Sampler, Texture, Volume)
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
-    using Grid = fluo_detail::JitGrid<Float>;
+    using Grid = fluo_detail::LaneGrid<Float>;
     using Cell = typename Grid::Cell;
+    using FloatStorage = DynamicBuffer<Float>;
     static constexpr size_t NW = dr::size_v<UnpolarizedSpectrum>;
 
     void traverse(TraversalCallback *cb) override {
@@ -207,7 +314,7 @@ public:
     }
 
 protected:
-    FluoMediumJit(const Properties &props, const char *plugin)
+    FluoMediumBase(const Properties &props, const char *plugin)
         : Base(props), m_plugin(plugin), m_common(props, plugin) {
         m_is_homogeneous = false; // MediumCommon says why
         m_has_spectral_extinction = true;
@@ -233,24 +340,34 @@ protected:
         m_cum = load(t.cum);
         m_emission = load(t.emission);
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
-        double mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
-        m_common.check_absorption(m_plugin, mu_max, what);
-        m_majorant_floor = m_common.majorant_floor(mu_max);
+        m_mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
+        m_what = what;
+        m_common.check_absorption(m_plugin, m_mu_max, what);
+        m_majorant_floor = m_common.majorant_floor(m_mu_max);
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                   m_mu_a_rgb[2] });
     }
 
+    /// An update of the density or σs (mi.traverse): the majorant's maxima, the absorption
+    /// check and the majorant's floor follow it (a stale majorant biases tracking).
+    void parameters_changed(const std::vector<std::string> &keys) override {
+        m_common.refresh(m_plugin);
+        m_common.check_absorption(m_plugin, m_mu_max, m_what);
+        m_majorant_floor = m_common.majorant_floor(m_mu_max);
+        Base::parameters_changed(keys);
+    }
+
     std::string describe(const char *name) const {
         std::ostringstream extra;
-        extra << "variant = vectorised (tables: " << m_grid.n << " absorption nodes, " << m_egrid.n
-              << " emission nodes)";
+        extra << "tables = " << m_grid.n << " absorption nodes, " << m_egrid.n
+              << " emission nodes";
         return m_common.describe(name, **m_model, m_phase_function.get(), extra.str());
     }
 
 private:
-    static Float load(const rust::Vec<double> &v) {
+    static FloatStorage load(const rust::Vec<double> &v) {
         std::vector<float> f(v.begin(), v.end());
-        return dr::load<Float>(f.data(), f.size());
+        return dr::load<FloatStorage>(f.data(), f.size());
     }
 
     Float density(const Interaction3f &mi, const Mask &active) const {
@@ -278,9 +395,11 @@ private:
     }
 
     /// μ̄: the largest over the wavelengths of (max density · bound + max σs)·scale, at least
-    /// the floor, shared by the hero wavelengths (fluo_medium_shim.h's majorant says why);
-    /// in RGB under Mitsuba's interface (`spectrum_bound`) the spectrum's maximum bounds
-    /// every channel (as scalar_rgb without fluo_volpath; fluo_volpath passes its bound).
+    /// the floor, shared by the hero wavelengths (μa varies a hundredfold over the spectrum,
+    /// and a per-wavelength majorant would let the first hero wavelength, which samples the
+    /// distance, fly through where the others collide, leaving their collisions to rare,
+    /// huge weights); in RGB under Mitsuba's interface (`spectrum_bound`) the spectrum's
+    /// maximum bounds every channel (fluo_volpath passes its own bound).
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */,
                                  bool spectrum_bound = true) const {
         const double s = m_common.scale;
@@ -330,8 +449,10 @@ private:
     fluo::Range m_range{ 0, 0 };
     std::array<double, 3> m_mu_a_rgb{};
     double m_rgb_mu_max = 0.0, m_majorant_floor = fluo_detail::MediumMinMajorant;
+    double m_mu_max = 0.0; ///< μa's peak, 1/m at density 1
+    std::string m_what;   ///< what sets μa (the absorption check's message)
     Grid m_grid, m_egrid; ///< μa's nodes, the emission's
-    Float m_mu_a, m_cum, m_emission;
+    FloatStorage m_mu_a, m_cum, m_emission;
     std::vector<double> m_mu_a_host, m_cum_host;
 };
 

@@ -1,9 +1,9 @@
-// The reduced RGB transport of the vectorised integrators (fluo_path and fluo_volpath in
+// The reduced RGB transport of fluo_path and fluo_volpath in the RGB variants (scalar_rgb,
 // llvm_ad_rgb, cuda_ad_rgb): the transport basis and its constants, the scene's
 // fluorescent BSDFs reduced once per render, the emitters' basis coefficients, and the
 // per-lane products of a 3×K matrix throughput R with a vertex's operator. The estimator
-// is the scalar one (fluo_transport_reduced.h, fluo_path's docs): RGB throughput t until
-// the first fluorescent event, then R = diag(t)·O, multiplied by K×K operators.
+// (fluo_path's docs): RGB throughput t until the first fluorescent event, then
+// R = diag(t)·O, multiplied by K×K operators.
 #pragma once
 
 #include <mitsuba/core/properties.h>
@@ -17,24 +17,23 @@
 #include <unordered_map>
 #include <vector>
 
-#include "fluo_bispectral.h"
 #include "fluo_common.h"
-#include "fluo_jit.h"
+#include "fluo_bispectral.h"
 #include "fluo_path_scene.h"
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
-template <typename Float, typename Spectrum> class JitReduced {
+template <typename Float, typename Spectrum> class ReducedTransport {
 public:
     MI_IMPORT_TYPES(Scene, Emitter, EmitterPtr, BSDF, BSDFPtr)
-    using Bispectral = JitBispectral<Float, Spectrum>;
+    using Bispectral = BispectralBSDF<Float, Spectrum>;
     static constexpr size_t KMax = 7;
     template <size_t K> using Coeffs = dr::Array<Float, K>;
     template <size_t K> using Rows = dr::Array<Float, 3 * K>;
 
     /// The basis `basis` with reduction `method`; errors name `plugin`.
-    JitReduced(const char *plugin, const std::string &basis, const std::string &method) : m_plugin(plugin) {
+    ReducedTransport(const char *plugin, const std::string &basis, const std::string &method) : m_plugin(plugin) {
         m_transport = rust_call(plugin, [&] { return fluo::transport_new(basis, method); });
         m_k = fluo::transport_size(**m_transport);
         if (m_k != 3 && m_k != 4 && m_k != KMax)
@@ -130,8 +129,8 @@ public:
         return out;
     }
 
-    /// Per-band albedo a_k = (F·v)_k / (F·1)_k of an RGB value (a native BSDF, medium or
-    /// phase weight on the K coefficients; fluo_transport_reduced.h's band_albedo).
+    /// Per-band albedo a_k = (F·v)_k / (F·1)_k of an RGB value: how a native
+    /// (wavelength-preserving) BSDF, medium or phase weight acts on the K coefficients.
     template <size_t K> Coeffs<K> band_albedo(const Color3f &v) const {
         Coeffs<K> d;
         Float mean = (v[0] + v[1] + v[2]) * (1.f / 3.f);

@@ -1,0 +1,339 @@
+// The closed forms and table lookups the plugins evaluate per lane, one C++ home each:
+// Jung's dye, the sigmoid polynomial, piecewise-linear tables (LaneGrid, LaneGridSet) and
+// their inverse CDF within a cell, and parameter levels. Written with Dr.Jit types: Float
+// is a scalar in scalar_* variants and a JIT array in llvm_ad_* / cuda_ad_* ones.
+#pragma once
+
+#include <mitsuba/core/fwd.h>
+#include <mitsuba/core/vector.h>
+
+#include <algorithm>
+#include <cmath>
+#include <tuple>
+#include <utility>
+#include <vector>
+
+#include "fluo_common.h"
+
+NAMESPACE_BEGIN(mitsuba)
+NAMESPACE_BEGIN(fluo_detail)
+
+/// Jung et al.'s dye in closed form (core/src/models/jung.rs has the equations and their
+/// reading):
+/// α = λe·s/(2λe − s), e(λ) = b(3(λ − λe)/α)·9/(8α), a(λ) = b(v − 3) with
+/// v = 3(2 − kλ)/(αk(kλ − 1)), k = 2/(λe − α), on the support ((λe−α)(λe+α)/(λe+3α), λe − α).
+/// Written with Dr.Jit types so that gradients reach λe and s.
+template <typename Value> struct JungDye {
+    Value peak, alpha, edge, k, lo;
+
+    template <typename Param> JungDye(const Param &emission_peak, const Param &stokes_shift) {
+        peak = Value(emission_peak);
+        Value s = Value(stokes_shift);
+        alpha = peak * s / (2.f * peak - s);
+        edge = peak - alpha;
+        k = 2.f / edge;
+        lo = edge * (peak + alpha) / (peak + 3.f * alpha);
+    }
+
+    /// Quadratic b-spline of eq. 3: support (−3, 3), b(0) = 1.
+    static Value bspline(const Value &x) {
+        Value ax = dr::abs(x), d = 3.f - ax;
+        return dr::select(ax <= 1.f, 1.f - x * x * (1.f / 3.f), dr::select(ax < 3.f, d * d * (1.f / 6.f), 0.f));
+    }
+
+    /// e(λ), nm⁻¹, unit integral (eq. 5).
+    Value emission(const Value &lambda) const {
+        return bspline(3.f * (lambda - peak) / alpha) * (9.f / 8.f) / alpha;
+    }
+
+    /// The absorption's b-spline coordinate v(λ) = 3(2 − kλ)/(αk(kλ − 1)) ∈ (0, 6) on the
+    /// support (decreasing in λ), its inverse λ(v) = (2 + q)/(k(1 + q)) with q = vαk/3, and
+    /// |dv/dλ| = 3/(α(kλ − 1)²): excitation wavelengths are sampled in v from a fixed table
+    /// of b(v − 3) and mapped to λ, with the exact Jacobian in the pdf.
+    Value v_of(const Value &lambda) const {
+        Value kl = k * lambda;
+        return 3.f * (2.f - kl) / (alpha * k * (kl - 1.f));
+    }
+    Value lambda_of(const Value &v) const {
+        Value q = v * alpha * k * (1.f / 3.f);
+        return (2.f + q) / (k * (1.f + q));
+    }
+    Value dv_dlambda(const Value &lambda) const {
+        Value d = k * lambda - 1.f;
+        return 3.f / (alpha * d * d);
+    }
+
+    /// a(λ) ∈ [0, 1], peak 1 at λe − s (eq. 6, mirrored over wavenumber).
+    Value absorption(const Value &lambda) const {
+        dr::mask_t<Value> inside = lambda > lo && lambda < edge;
+        return dr::select(inside, bspline(dr::select(inside, v_of(lambda), 0.f) - 3.f), 0.f);
+    }
+};
+
+/// Inverse CDF within a cell of width h where a density is linear from f0 to f1: the offset
+/// whose integral from the cell's start is delta (clamped to the cell's mass), the
+/// quadratic's root in the cancellation-free form 2δ/(f0 + √(f0² + 2(f1 − f0)δ/h)) (as
+/// matrix.rs and the QD model's row sampling).
+template <typename Value> Value linear_cell_inverse(const Value &f0, const Value &f1, const Value &h, const Value &delta) {
+    Value d = dr::clip(delta, 0.f, .5f * h * (f0 + f1));
+    Value disc = dr::maximum(dr::fmadd(f0, f0, 2.f * (f1 - f0) / h * d), 0.f);
+    Value denom = f0 + dr::sqrt(disc);
+    return dr::select(denom > 0.f, 2.f * d / denom, 0.f);
+}
+
+/// A piecewise-linear function's nodes on the device with a bucket index (one bucket per
+/// `step` nm, never wider than a cell: a node's cell is its bucket's or the next), else
+/// binary search.
+template <typename Float> struct LaneGrid {
+    using UInt32 = dr::uint32_array_t<Float>;
+    using Mask = dr::mask_t<Float>;
+    static constexpr size_t MaxBuckets = 1 << 16;
+    /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f.
+    struct Cell {
+        UInt32 k;
+        Float f, x0, x1;
+    };
+
+    std::vector<double> host;
+    DynamicBuffer<Float> nodes;
+    DynamicBuffer<UInt32> buckets;
+    float step = 1.f, l0 = 0.f, l1 = 1.f;
+    uint32_t n = 2, n_buckets = 0;
+    bool bucketed = false;
+
+    void set(const std::vector<double> &x) {
+        host = x;
+        n = (uint32_t) x.size();
+        std::vector<float> f(x.begin(), x.end());
+        nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+        l0 = (float) x.front();
+        l1 = (float) x.back();
+        double narrowest = x.back() - x.front();
+        for (size_t k = 0; k + 1 < x.size(); ++k)
+            narrowest = std::min(narrowest, x[k + 1] - x[k]);
+        double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
+        size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
+        bucketed = count >= 1 && count <= MaxBuckets;
+        if (!bucketed)
+            return;
+        std::vector<uint32_t> b(count);
+        for (size_t i = 0, k = 0; i < count; ++i) {
+            double at = x.front() + (double) i * s;
+            while (k + 2 < x.size() && x[k + 1] <= at)
+                ++k;
+            b[i] = (uint32_t) k;
+        }
+        buckets = dr::load<DynamicBuffer<UInt32>>(b.data(), b.size());
+        step = (float) s;
+        n_buckets = (uint32_t) count;
+    }
+
+    Cell cell(const Float &lambda, const Mask &active) const {
+        Float x = dr::clip(lambda, l0, l1);
+        UInt32 k;
+        if (bucketed) {
+            UInt32 b = UInt32(dr::minimum(dr::floor((x - l0) * (1.f / step)), (float) (n_buckets - 1)));
+            k = dr::gather<UInt32>(buckets, b, active);
+            k = dr::select(k + 2 < n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
+        } else {
+            k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
+                    return dr::gather<Float>(nodes, i, active) <= x;
+                }) - 1;
+        }
+        Float x0 = dr::gather<Float>(nodes, k, active), x1 = dr::gather<Float>(nodes, k + 1, active);
+        return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
+    }
+
+    /// The cell index of λ known on the host, and its fraction.
+    std::pair<size_t, double> host_cell(double lambda) const {
+        double x = std::clamp(lambda, host.front(), host.back());
+        size_t k = (size_t) (std::upper_bound(host.begin(), host.end(), x) - host.begin());
+        k = std::clamp(k, (size_t) 1, host.size() - 1) - 1;
+        return { k, std::clamp((x - host[k]) / (host[k + 1] - host[k]), 0.0, 1.0) };
+    }
+};
+
+/// Several piecewise-linear functions' nodes (one grid per measured file, per baked coating
+/// model), concatenated on the device: per grid its offset, size, ends and step (> 0 where it
+/// is uniform, as BFC files and most CSV ones are: a cell is then one multiplication), else
+/// (`bucketed` grids: the coatings' piecewise-uniform ones) a bucket index as LaneGrid's, else
+/// a binary search per lane over the longest grid; a lane reads the grid it selects. Each
+/// grid is strictly increasing with at least 2 nodes (checked by Rust).
+template <typename Float> struct LaneGridSet {
+    using UInt32 = dr::uint32_array_t<Float>;
+    using Mask = dr::mask_t<Float>;
+    using FloatStorage = DynamicBuffer<Float>;
+    using UInt32Storage = DynamicBuffer<UInt32>;
+
+    std::vector<float> host;
+    std::vector<uint32_t> off, n, b_off, b_n;
+    std::vector<float> lo, hi, step, b_step;
+    std::vector<uint32_t> host_buckets;
+    FloatStorage nodes;
+    FloatStorage d_ends;  ///< per grid: lo, hi, step, bucket step (several grids)
+    UInt32Storage d_size; ///< per grid: offset, size, bucket offset, bucket count (several grids)
+    UInt32Storage buckets;
+    uint32_t n_max = 2;
+    bool any_uniform = false, all_uniform = true, bucketed = true;
+
+    /// Append a grid (host); upload() once all are in. `bucketed`: index its cells (every
+    /// grid of a set alike).
+    template <typename Nodes> void add(const Nodes &v, bool with_buckets = false) {
+        off.push_back((uint32_t) host.size());
+        n.push_back((uint32_t) v.size());
+        n_max = std::max(n_max, (uint32_t) v.size());
+        double h = (v.back() - v.front()) / (double) (v.size() - 1);
+        bool uniform = true;
+        for (size_t i = 0; i < v.size(); ++i)
+            uniform &= std::abs(v[i] - (v.front() + (double) i * h)) <= 1e-6 * h;
+        any_uniform |= uniform;
+        all_uniform &= uniform;
+        lo.push_back((float) v.front());
+        hi.push_back((float) v.back());
+        step.push_back(uniform ? (float) h : 0.f);
+        host.insert(host.end(), v.begin(), v.end());
+        // the bucket index (LaneGrid::set): one bucket per narrowest cell
+        double narrowest = v.back() - v.front();
+        for (size_t k = 0; k + 1 < v.size(); ++k)
+            narrowest = std::min(narrowest, (double) (v[k + 1] - v[k]));
+        double bs = narrowest * (1.0 - 1e-6);
+        size_t count = bs > 0.0 ? (size_t) std::ceil((v.back() - v.front()) / bs) + 1 : 0;
+        bucketed &= with_buckets && count >= 1 && count <= LaneGrid<Float>::MaxBuckets;
+        b_off.push_back((uint32_t) host_buckets.size());
+        b_n.push_back((uint32_t) count);
+        b_step.push_back((float) bs);
+        if (!with_buckets || count > LaneGrid<Float>::MaxBuckets)
+            return;
+        for (size_t i = 0, k = 0; i < count; ++i) {
+            double at = v.front() + (double) i * bs;
+            while (k + 2 < v.size() && v[k + 1] <= at)
+                ++k;
+            host_buckets.push_back((uint32_t) k);
+        }
+    }
+    void upload() {
+        nodes = dr::load<FloatStorage>(host.data(), host.size());
+        if (bucketed)
+            buckets = dr::load<UInt32Storage>(host_buckets.data(), host_buckets.size());
+        if (off.size() > 1) {
+            std::vector<uint32_t> size;
+            std::vector<float> ends;
+            for (size_t i = 0; i < off.size(); ++i) {
+                size.insert(size.end(), { off[i], n[i], b_off[i], b_n[i] });
+                ends.insert(ends.end(), { lo[i], hi[i], step[i], b_step[i] });
+            }
+            d_size = dr::load<UInt32Storage>(size.data(), size.size());
+            d_ends = dr::load<FloatStorage>(ends.data(), ends.size());
+        }
+    }
+
+    /// A lane's grid `which` (literals when there is one).
+    struct At {
+        UInt32 off, n, b_off, b_n;
+        Float lo, hi, step, b_step;
+    };
+    At at(const UInt32 &which, const Mask &active) const {
+        if (off.size() == 1)
+            return { UInt32(off[0]), UInt32(n[0]), UInt32(b_off[0]), UInt32(b_n[0]),
+                     Float(lo[0]),   Float(hi[0]), Float(step[0]),   Float(b_step[0]) };
+        UInt32 i = which * 4;
+        return { dr::gather<UInt32>(d_size, i, active),     dr::gather<UInt32>(d_size, i + 1, active),
+                 dr::gather<UInt32>(d_size, i + 2, active), dr::gather<UInt32>(d_size, i + 3, active),
+                 dr::gather<Float>(d_ends, i, active),      dr::gather<Float>(d_ends, i + 1, active),
+                 dr::gather<Float>(d_ends, i + 2, active),  dr::gather<Float>(d_ends, i + 3, active) };
+    }
+
+    /// The cell j ∈ [0, n − 2] (within the lane's grid) holding x ∈ [lo, hi] (the last
+    /// node ≤ x), and its ends.
+    std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
+        UInt32 j(0);
+        if (!all_uniform && bucketed) {
+            UInt32 b = UInt32(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Float(g.b_n - 1)));
+            j = dr::gather<UInt32>(buckets, g.b_off + b, active);
+            j = dr::select(j + 2 < g.n && dr::gather<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
+        } else if (!all_uniform) {
+            // over the longest grid, each lane's nodes clamped to its own last one
+            UInt32 last = g.n - 1;
+            j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
+                    return dr::gather<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
+                }) - 1;
+            j = dr::minimum(j, g.n - 2);
+        }
+        Float x0(0.f), x1(0.f);
+        if (!all_uniform) {
+            x0 = dr::gather<Float>(nodes, g.off + j, active);
+            x1 = dr::gather<Float>(nodes, g.off + j + 1, active);
+        }
+        if (any_uniform) {
+            Mask uniform = g.step > 0.f;
+            Float s = dr::select(uniform, g.step, 1.f);
+            UInt32 ju = UInt32(dr::clip(dr::floor((x - g.lo) / s), 0.f, Float(g.n - 2)));
+            Float u0 = dr::fmadd(Float(ju), s, g.lo);
+            j = dr::select(uniform, ju, j);
+            x0 = dr::select(uniform, u0, x0);
+            x1 = dr::select(uniform, u0 + s, x1);
+        }
+        return { j, x0, x1 };
+    }
+};
+
+/// The hull of the emission ranges of several models (a material that varies over the
+/// surface; nullptr: a model that does not re-emit, left out); {0, 0} if none re-emits.
+inline fluo::Range emission_hull(const std::vector<const fluo::Fluorescence *> &models) {
+    fluo::Range r{ 0.0, 0.0 };
+    bool any = false;
+    for (const fluo::Fluorescence *m : models) {
+        if (!m)
+            continue;
+        fluo::Range e = fluo::fluo_emission_range(*m);
+        r = any ? fluo::Range{ std::min(r.lo, e.lo), std::max(r.hi, e.hi) } : e;
+        any = true;
+    }
+    return r;
+}
+
+/// Per lane, the bracketing levels of x among `levels` (host, sorted, at most a few dozen:
+/// compared as constants): (i, t) with x = (1 − t)·levels[i] + t·levels[i + 1], t = 0 at or
+/// below the first level (and for x NaN), 1 at or above the last (i = n − 2); one level:
+/// (0, 0).
+template <typename Float> std::pair<dr::uint32_array_t<Float>, Float> lane_bracket(const std::vector<float> &levels,
+                                                                                  const Float &x) {
+    using UInt32 = dr::uint32_array_t<Float>;
+    size_t n = levels.size();
+    if (n < 2)
+        return { UInt32(0), Float(0.f) };
+    UInt32 i(0);
+    Float l0(levels[0]), l1(levels[1]);
+    for (size_t k = 1; k + 1 < n; ++k) {
+        dr::mask_t<Float> above = x >= levels[k];
+        i = dr::select(above, (uint32_t) k, i);
+        l0 = dr::select(above, levels[k], l0);
+        l1 = dr::select(above, levels[k + 1], l1);
+    }
+    Float t = (x - l0) / (l1 - l0);
+    return { i, dr::select(dr::isnan(t), 0.f, dr::clip(t, 0.f, 1.f)) };
+}
+
+/// Per lane, the index of the level nearest x (ties: the lower; NaN: the first), as
+/// nearest_level (fluo_param_texture.h).
+template <typename Float> dr::uint32_array_t<Float> lane_nearest(const std::vector<float> &levels, const Float &x) {
+    using UInt32 = dr::uint32_array_t<Float>;
+    UInt32 i(0);
+    for (size_t k = 1; k < levels.size(); ++k)
+        i = dr::select(x - levels[k - 1] > levels[k] - x, (uint32_t) k, i);
+    return i;
+}
+
+/// Jakob & Hanika's sigmoid of a polynomial in λ (nm): S(x) = 1/2 + x / (2√(1 + x²))
+/// (core/src/sigmoid.rs). x is clamped to ±1e18 first, where S is 0 or 1 in single
+/// precision already: x² of a larger x overflows a float (coefficients such as
+/// (0, 0, 1e20) gave 0.5 instead of 1).
+template <typename Value, typename Coeff>
+Value sigmoid_polynomial(const Value &lambda, const Coeff &c0, const Coeff &c1, const Coeff &c2) {
+    Value x = dr::fmadd(dr::fmadd(Value(c0), lambda, Value(c1)), lambda, Value(c2));
+    x = dr::clip(x, -1e18f, 1e18f);
+    return .5f + .5f * x * dr::rsqrt(dr::fmadd(x, x, 1.f));
+}
+
+NAMESPACE_END(fluo_detail)
+NAMESPACE_END(mitsuba)
