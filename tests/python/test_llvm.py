@@ -1,12 +1,12 @@
-"""fluo_illuminant, fluo_jung, fluo_matrix, fluo_gmm, fluo_qd and fluo_path in the vectorised
-variants (llvm_ad_rgb, llvm_ad_spectral) against the scalar variants, which call the Rust reference per sample.
+"""fluo's plugins in the vectorised variants (llvm_ad_rgb, llvm_ad_spectral): rendering,
+gradients, updates and refusals that need an llvm process.
 
+Every plugin is one class serving every variant, so the image comparisons here (llvm image
+means within Z standard errors of the scalar variants' images, the per-pixel variance from
+the scalar images) check the variant plumbing (dispatch, loops, registration), not a second
+implementation; each plugin's own references run in llvm through test_variants.py.
 The llvm renders run in a fresh process (``llvm_worker.py``: Mitsuba 3.8 cannot load an
-llvm scene after a scalar render in one process). Each comparison renders the scene twice
-in the scalar variant (seeds 0 and 1) and once in llvm, and tests every channel's mean with
-a z-score: the per-pixel Monte Carlo variance is estimated from the two scalar images,
-var ≈ mean((a − b)²)/2, so the llvm mean must lie within Z standard errors of the scalar
-one. Same estimator, same physics: only the random numbers differ.
+llvm scene after a scalar render in one process).
 """
 
 from __future__ import annotations
