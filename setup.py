@@ -27,6 +27,7 @@ from setuptools import setup
 from setuptools.command.bdist_wheel import bdist_wheel
 from setuptools.command.build_py import build_py
 from setuptools_rust import Binding, RustBin, RustExtension
+from setuptools_rust.build import build_rust
 
 ROOT = Path(__file__).resolve().parent
 #: Package data: fluo/data/<name> <- <repository>/<source>.
@@ -55,6 +56,19 @@ class AnyPythonWheel(bdist_wheel):
         return "py3", "none", platform
 
 
+class BuildRustPlainName(build_rust):
+    """The plugin library keeps its own name in the wheel, ``fluo/libfluo_mitsuba.so``:
+    it is not a Python extension module (nothing in it links Python), so it takes no
+    interpreter's suffix (setuptools-rust would name it ``*.cpython-311-*.so`` after the
+    Python that built the wheel, misleading in a py3-none wheel)."""
+
+    def get_dylib_ext_path(self, ext: RustExtension, target_fname: str) -> str:
+        path = Path(super().get_dylib_ext_path(ext, target_fname))
+        if ext.binding == Binding.NoBinding and path.name.startswith("libfluo_mitsuba."):
+            return str(path.with_name("libfluo_mitsuba.so"))
+        return str(path)
+
+
 def rust_targets() -> list:
     if os.environ.get("FLUO_SKIP_RUST"):
         return []
@@ -70,5 +84,6 @@ def rust_targets() -> list:
     ]
 
 
-setup(rust_extensions=rust_targets(), cmdclass={"build_py": BuildPyWithData, "bdist_wheel": AnyPythonWheel},
+setup(rust_extensions=rust_targets(),
+      cmdclass={"build_py": BuildPyWithData, "bdist_wheel": AnyPythonWheel, "build_rust": BuildRustPlainName},
       zip_safe=False)

@@ -68,6 +68,24 @@ fn find_wheels(manifest: &Path) -> Wheels {
     Wheels { mitsuba: dirs[0].clone(), drjit: dirs[1].clone(), nanobind: dirs[2].clone() }
 }
 
+/// Every file's path and content under `dir`, sorted, appended to `out` (the plugin cache key).
+fn hash_tree(dir: &Path, out: &mut Vec<u8>) {
+    let mut entries: Vec<PathBuf> =
+        std::fs::read_dir(dir).map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
+    entries.sort();
+    for p in entries {
+        let link = std::fs::symlink_metadata(&p).map(|m| m.file_type().is_symlink()).unwrap_or(true);
+        if link {
+            continue; // cxxbridge/crate/<crate> links back to this crate: its sources are keyed per file
+        } else if p.is_dir() {
+            hash_tree(&p, out);
+        } else if let Ok(bytes) = std::fs::read(&p) {
+            out.extend(p.to_string_lossy().bytes());
+            out.extend(bytes);
+        }
+    }
+}
+
 fn cpp_sources(dir: &Path) -> Vec<PathBuf> {
     let mut files: Vec<PathBuf> =
         std::fs::read_dir(dir).map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect()).unwrap_or_default();
@@ -94,24 +112,65 @@ fn build_plugins() {
         println!("cargo:rerun-if-changed={}", s.display());
     }
 
-    cc::Build::new()
-        .cpp(true)
-        .std("c++17")
-        .files(&sources)
-        .include(manifest.join("include/fluo"))
-        .include(out_dir.join("cxxbridge/include"))
-        .include(out_dir.join("cxxbridge/crate"))
-        .include(w.mitsuba.join("include"))
-        .include(w.drjit.join("include"))
-        .include(w.nanobind.join("include"))
-        .include(w.nanobind.join("ext/robin_map/include"))
-        .flag("-msse4.2")
-        .flags(CXX_FLAGS)
-        .flag("-fPIC")
-        .flag_if_supported("-fno-math-errno")
-        .warnings(false)
-        .cargo_metadata(false)
-        .compile("fluo_plugins");
+    let include = [
+        manifest.join("include/fluo"),
+        out_dir.join("cxxbridge/include"),
+        out_dir.join("cxxbridge/crate"),
+        w.mitsuba.join("include"),
+        w.drjit.join("include"),
+        w.nanobind.join("include"),
+        w.nanobind.join("ext/robin_map/include"),
+    ];
+    let build = || {
+        let mut b = cc::Build::new();
+        b.cpp(true).std("c++17").includes(&include);
+        b.flag("-msse4.2").flags(CXX_FLAGS).flag("-fPIC").flag_if_supported("-fno-math-errno");
+        b.warnings(false).cargo_metadata(false);
+        b
+    };
+    // Each translation unit's object is cached under a hash of everything it can see (its
+    // source, every header of include/fluo and the bridge's generated ones, the include
+    // paths): editing one plugin recompiles that one, a header all of them.
+    let mut common = Vec::new();
+    for dir in [manifest.join("include/fluo"), out_dir.join("cxxbridge")] {
+        hash_tree(&dir, &mut common);
+    }
+    common.extend(format!("{include:?}{CXX_FLAGS:?}").bytes());
+    let cache = out_dir.join("plugin-objects");
+    std::fs::create_dir_all(&cache).expect("plugin object cache");
+    let objects: Vec<PathBuf> = sources
+        .iter()
+        .map(|s| {
+            let mut h = std::collections::hash_map::DefaultHasher::new();
+            std::hash::Hash::hash(&common, &mut h);
+            std::hash::Hash::hash(&std::fs::read(s).expect("plugin source"), &mut h);
+            let stem = s.file_stem().unwrap().to_string_lossy();
+            cache.join(format!("{stem}-{:016x}.o", std::hash::Hasher::finish(&h)))
+        })
+        .collect();
+    if let Ok(rd) = std::fs::read_dir(&cache) {
+        for old in rd.filter_map(|e| e.ok().map(|e| e.path())) {
+            if !objects.contains(&old) {
+                let _ = std::fs::remove_file(old); // an earlier version's object
+            }
+        }
+    }
+    // The stale ones, largest first, shared out to NUM_JOBS threads as they free up.
+    let mut stale: Vec<(&PathBuf, &PathBuf)> = sources.iter().zip(&objects).filter(|(_, o)| !o.exists()).collect();
+    stale.sort_by_key(|(s, _)| std::cmp::Reverse(std::fs::metadata(s).map(|m| m.len()).unwrap_or(0)));
+    let jobs: usize = env::var("NUM_JOBS").ok().and_then(|j| j.parse().ok()).unwrap_or(2).max(1);
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        for _ in 0..jobs.min(stale.len()) {
+            scope.spawn(|| loop {
+                let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                let Some((src, obj)) = stale.get(i) else { break };
+                let built = build().file(src).compile_intermediates();
+                std::fs::copy(&built[0], obj).expect("cache a plugin object");
+            });
+        }
+    });
+    build().objects(&objects).compile("fluo_plugins");
 
     // Only the cdylib gets the shims and Mitsuba; the rlib, the tests and the fluo-rs
     // tool stay pure Rust. The bridge and cxx runtime libraries are listed again after

@@ -3,7 +3,7 @@
 # `auditwheel repair` for the manylinux tag), install
 # it (one py3-none wheel) into a fresh virtual environment under every CPython 3.10-3.13 this
 # machine has (pyenv's), outside the checkout, and from /tmp, with neither
-# cargo nor rustc on PATH, render fluo_path with fluo_jung in both variants, use the
+# cargo nor rustc on PATH, render fluo_path with fluo_jung in both variants (and the polarized one), use the
 # shipped cubes and scenes, and run fluo-rs. Called by scripts/test.sh (so by CI).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
@@ -29,7 +29,7 @@ say "repaired: $wheel"
 .venv/bin/python - "$wheel" <<'PY'
 import sys, zipfile
 libs = [n for n in zipfile.ZipFile(sys.argv[1]).namelist() if n.startswith("fluo/lib") and n.endswith(".so")]
-assert len(libs) == 1 and libs[0].startswith("fluo/libfluo_mitsuba"), f"the wheel's plugin libraries: {libs}"
+assert libs == ["fluo/libfluo_mitsuba.so"], f"the wheel's plugin libraries: {libs}"
 PY
 
 work=$(mktemp -d /tmp/fluo-wheel-XXXXXX)
@@ -66,6 +66,11 @@ for variant in ("scalar_spectral", "scalar_rgb"):
     c = lambda img: img[6:10, 6:10].reshape(-1, 3).mean(0)
     assert c(dyed)[1] / c(dyed)[2] > 1.2 * c(plain)[1] / c(plain)[2], (variant, c(dyed), c(plain))
     print(f"[wheel] {variant}: fluo_path + fluo_jung renders, centre rgb {c(dyed).round(3)} vs undyed {c(plain).round(3)}")
+
+# The polarized variant: the same scene, intensity equal to the unpolarized render.
+pol = render("scalar_spectral_polarized", 0.9)
+assert np.allclose(pol, render("scalar_spectral", 0.9), rtol=1e-3, atol=1e-5), "polarized != unpolarized"
+print("[wheel] scalar_spectral_polarized: fluo_path + fluo_jung renders as scalar_spectral")
 
 # The shipped cube (package data) through fluo_jung's colour upsampling.
 img = render("scalar_rgb", 0.0, {"type": "fluo_jung", "color": {"type": "rgb", "value": [0.9, 0.8, 0.1]}})

@@ -266,6 +266,10 @@ public:
         for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
             if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load
                 cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
+            else if (is_rgb_v<Spectrum> && (i == fluo_detail::JungPeak || i == fluo_detail::JungShift))
+                // RGB: the dye's shape is baked into the reduced matrices (updates re-bake
+                // them; no gradient flows through the bake)
+                cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::NonDifferentiable);
             else
                 cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
         }
@@ -309,7 +313,17 @@ public:
             return is_spectral_v<Spectrum> && fluo::jung_texture_is_fluorescent(**m_texture);
         if (m_shapes)
             return m_shapes->fluoresce;
-        return fluo::jung_is_fluorescent(**m_model);
+        // c·Q = 0 re-emits nothing, but with gradients on c or Q its derivative does
+        return fluo::jung_is_fluorescent(**m_model) || gradient_only();
+    }
+    /// c·Q = 0 with gradients on c or Q: the dye's bands from its closed forms (Rust's
+    /// ranges are empty for a dye that re-emits nothing).
+    bool gradient_only() const {
+        return !m_shapes && !m_texels && !fluo::jung_is_fluorescent(**m_model) &&
+               (dr::grad_enabled(m_conc) || dr::grad_enabled(m_yield));
+    }
+    fluo_detail::JungDye<double> host_dye() const {
+        return fluo_detail::JungDye<double>(m_config.emission_peak, m_config.stokes_shift);
     }
     fluo::Range jit_emission_range() const override {
         if (m_shapes) { // the union of the dye shapes' emission
@@ -320,12 +334,16 @@ public:
             }
             return r;
         }
+        if (gradient_only())
+            return { host_dye().peak - host_dye().alpha, host_dye().peak + host_dye().alpha };
         return fluo::fluo_emission_range(fluo::jung_fluorescence(
             m_texels ? fluo::jung_texture_representative(**m_texture) : **m_model));
     }
     fluo::Range jit_excitation_range() const override {
         if (m_shapes || m_texels)
             return { 0.0, 1e30 };
+        if (gradient_only())
+            return { host_dye().lo, host_dye().edge };
         return fluo::fluo_excitation_range(fluo::jung_fluorescence(**m_model));
     }
     /// M = M_r − c·M_ra + c·Q·M_fl (fluo::jung_reduced_parts): exact for every c and Q.
@@ -390,6 +408,8 @@ public:
             Texel t = m_texels   ? texel(pick_texel(si, u2p[0]), active)
                       : m_shapes ? hit(si, active).t
                                  : Texel{ m_peak, m_shift, m_conc, m_yield };
+            if (m_texels)
+                fluo_detail::rotate_hero(u2p); // uniform again given the texel
             Dye dye(dr::detach(t.peak), dr::detach(t.shift));
             fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
@@ -405,8 +425,12 @@ public:
             // any positive value where the shift integrand is positive keeps the estimate
             // unbiased; a close one keeps the variance low.
             Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
-            UnpolarizedSpectrum wf =
-                dr::select(mass > 0.f, dr::detach(t.conc * t.yield) * dye.emission(lambda_o) * (mass * jacobian), 0.f);
+            // With gradients on c or Q, c·Q has a floor in this weight: at c = 0 (or Q = 0) the
+            // shift would never be drawn and d/dc of the reradiation c·Q·a·e would be lost.
+            Float cq = dr::detach(t.conc * t.yield);
+            if (dr::grad_enabled(t.conc) || dr::grad_enabled(t.yield))
+                cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
+            UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
             WMask &shifted = choice.shifted;
             // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),

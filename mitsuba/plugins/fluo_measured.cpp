@@ -251,9 +251,11 @@ public:
         if (m_index)
             cb->put("index", m_index, ParamFlags::NonDifferentiable);
         if (m_gmm && !m_index) { // one file: its mixture's weights and means
-            cb->put("weights", m_weights, ParamFlags::Differentiable);
-            cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
-            cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
+            // (RGB: baked into the reduced matrices, updated by re-baking, no gradient)
+            auto flags = is_rgb_v<Spectrum> ? ParamFlags::NonDifferentiable : ParamFlags::Differentiable;
+            cb->put("weights", m_weights, flags);
+            cb->put("means_excitation", m_means_i, flags);
+            cb->put("means_emission", m_means_o, flags);
         }
     }
 
@@ -366,21 +368,26 @@ public:
             Mixture mix;
             if (m_gmm)
                 mix = mixture(mat, active);
+            // Per hero wavelength the excitation interval [a, b] (λi ≤ λo) and its mass; the
+            // shift's value and pdf once sampled with u2 (fluo_gmm: the four wavelengths at
+            // once, its exp/erfc in packets; fluo_matrix: a table search per wavelength).
+            Wavelength a, b, mass, x, value;
+            WMask ok;
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                // The excitation interval [a, b] (λi ≤ λo) and its mass; the shift's value
-                // and pdf once sampled with u2.
-                Float lo = lambda_o[w];
-                Float a = dr::maximum((float) range_lo, file.rect[0]),
-                      b = dr::minimum(dr::minimum((float) range_hi, lo), file.rect[1]);
-                Mask ok = active && b > a && lo >= file.rect[2] && lo <= file.rect[3];
-                auto [mass, x, value] = m_gmm ? gmm_shift(mix, file, lo, a, b, u2[w], ok)
-                                              : matrix_shift(file, lo, a, b, u2[w], ok);
-                fluo_detail::ShiftChoice<Float> choice(we[w], mass, u1[w], active);
-                scale[w] = choice.weight(dr::detach(value) / mass, u1[w]);
-                shifted[w] = choice.shifted;
-                lambda_i[w] = dr::select(choice.shifted, x, lo);
-                rerad[w] = dr::select(choice.shifted, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
+                a[w] = dr::maximum((float) range_lo, file.rect[0]);
+                b[w] = dr::minimum(dr::minimum((float) range_hi, lambda_o[w]), file.rect[1]);
+                ok[w] = active && b[w] > a[w] && lambda_o[w] >= file.rect[2] && lambda_o[w] <= file.rect[3];
             }
+            if (m_gmm)
+                std::tie(mass, x, value) = gmm_shift(mix, file, lambda_o, a, b, u2, ok);
+            else
+                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
+                    std::tie(mass[w], x[w], value[w]) = matrix_shift(file, lambda_o[w], a[w], b[w], u2[w], ok[w]);
+            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, mass, u1, active);
+            scale = choice.weight(dr::detach(value) / mass, u1);
+            shifted = choice.shifted;
+            lambda_i = dr::select(shifted, x, lambda_o);
+            rerad = dr::select(shifted, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
             return { lambda_i, scale, shifted, rerad, UInt32(0) };
         }
     }
@@ -650,49 +657,49 @@ protected:
 
     /// erfc(x) to ~1.2e-7 relative for every x (Numerical Recipes' Chebyshev fit; Dr.Jit's
     /// erf alone loses the tails to cancellation in float).
-    static Float erfc(const Float &x) {
-        Float z = dr::abs(x), t = dr::rcp(dr::fmadd(.5f, z, 1.f));
-        Float p = 0.17087277f;
+    template <typename Value> static Value erfc(const Value &x) {
+        Value z = dr::abs(x), t = dr::rcp(dr::fmadd(.5f, z, 1.f));
+        Value p = 0.17087277f;
         for (float c : { -0.82215223f, 1.48851587f, -1.13520398f, 0.27886807f, -0.18628806f, 0.09678418f,
                          0.37409196f, 1.00002368f, -1.26551223f })
             p = dr::fmadd(p, t, c);
-        Float r = t * dr::exp(dr::fmadd(-z, z, p));
+        Value r = t * dr::exp(dr::fmadd(-z, z, p));
         return dr::select(x >= 0.f, r, 2.f - r);
     }
 
     /// Φ(z), the standard normal CDF, accurate in relative terms for z < 0.
-    static Float phi_cdf(const Float &z) { return .5f * erfc(-z * dr::InvSqrtTwo<float>); }
+    template <typename Value> static Value phi_cdf(const Value &z) { return .5f * erfc(-z * dr::InvSqrtTwo<float>); }
 
     /// Φ⁻¹(p) for p ∈ (0, 1): Acklam's rational approximation, then one Newton step.
-    static Float phi_inv(const Float &p_) {
-        Float p = dr::clip(p_, 1e-37f, 1.f - 6e-8f);
-        auto poly = [](const Float &x, std::initializer_list<float> c) {
-            Float r = 0.f;
+    template <typename Value> static Value phi_inv(const Value &p_) {
+        Value p = dr::clip(p_, 1e-37f, 1.f - 6e-8f);
+        auto poly = [](const Value &x, std::initializer_list<float> c) {
+            Value r = 0.f;
             for (float v : c)
                 r = dr::fmadd(r, x, v);
             return r;
         };
         // Lower tail (p < 0.02425; the upper tail by symmetry), central region.
-        Mask upper = p > 1.f - 0.02425f;
-        Float pt = dr::select(upper, 1.f - p, p);
-        Float q = dr::sqrt(-2.f * dr::log(pt));
-        Float tail = poly(q, { -7.784894002430293e-03f, -3.223964580411365e-01f, -2.400758277161838e+00f,
+        dr::mask_t<Value> upper = p > 1.f - 0.02425f;
+        Value pt = dr::select(upper, 1.f - p, p);
+        Value q = dr::sqrt(-2.f * dr::log(pt));
+        Value tail = poly(q, { -7.784894002430293e-03f, -3.223964580411365e-01f, -2.400758277161838e+00f,
                                -2.549732539343734e+00f, 4.374664141464968e+00f, 2.938163982698783e+00f }) /
                      poly(q, { 7.784695709041462e-03f, 3.224671290700398e-01f, 2.445134137142996e+00f,
                                3.754408661907416e+00f, 1.f });
         tail = dr::select(upper, -tail, tail);
-        Float c = p - .5f, r = c * c;
-        Float central = c *
+        Value c = p - .5f, r = c * c;
+        Value central = c *
                         poly(r, { -3.969683028665376e+01f, 2.209460984245205e+02f, -2.759285104469687e+02f,
                                   1.383577518672690e+02f, -3.066479806614716e+01f, 2.506628277459239e+00f }) /
                         poly(r, { -5.447609879822406e+01f, 1.615858368580409e+02f, -1.556989798598866e+02f,
                                   6.680131188771972e+01f, -1.328068155288572e+01f, 1.f });
-        Mask in_tail = p < 0.02425f || upper;
-        Float z = dr::select(in_tail, tail, central);
+        dr::mask_t<Value> in_tail = p < 0.02425f || upper;
+        Value z = dr::select(in_tail, tail, central);
         // Newton on Φ(z) = p (relative to the smaller tail).
-        Float density = dr::exp(-.5f * z * z) * dr::InvSqrtTwoPi<float>;
-        Float err = dr::select(z > 0.f, (1.f - p) - phi_cdf(-z), phi_cdf(z) - p); // Φ(z) − p
-        Float step = err / density;
+        Value density = dr::exp(-.5f * z * z) * dr::InvSqrtTwoPi<float>;
+        Value err = dr::select(z > 0.f, (1.f - p) - phi_cdf(-z), phi_cdf(z) - p); // Φ(z) − p
+        Value step = err / density;
         return dr::select(density > 0.f && dr::isfinite(step), z - step, z);
     }
 
@@ -705,7 +712,7 @@ protected:
     /// With several files, a lane's file's components ([file][component], padded with weight
     /// 0): their fixed numbers too are read per lane (one file: constants of the kernel).
     struct Mixture {
-        std::vector<Float> weight, mu_i, mu_o, half_inv_var_o, slope, cond_sd;
+        fluo_detail::Scratch<Float> weight, mu_i, mu_o, half_inv_var_o, slope, cond_sd;
     };
     Mixture mixture(const UInt32 &mat, const Mask &active) const {
         size_t n = m_n_comps;
@@ -714,7 +721,7 @@ protected:
             v->resize(n);
         Float wsum = 0.f;
         UInt32 base = mat * (uint32_t) n;
-        std::vector<Float> norm(n);
+        fluo_detail::Scratch<Float> norm(n);
         for (size_t k = 0; k < n; ++k) {
             UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
             m.weight[k] = dr::gather<Float>(m_weights, index, active);
@@ -724,6 +731,15 @@ protected:
             Float *fixed[4] = { &m.half_inv_var_o[k], &norm[k], &m.slope[k], &m.cond_sd[k] };
             for (size_t i = 0; i < 4; ++i)
                 *fixed[i] = m_index ? dr::gather<Float>(m_d_comp[i], index, active) : Float((&c.half_inv_var_o)[i]);
+        }
+        // The weights relative to the largest (a constant: detached) before they are summed,
+        // so that tiny ones (1e-30) normalise without overflowing 1/wsum² in the gradient.
+        Float wmax = 0.f;
+        for (size_t k = 0; k < n; ++k)
+            wmax = dr::maximum(wmax, dr::detach(m.weight[k]));
+        Float rel = dr::select(wmax > 0.f, dr::rcp(wmax), 0.f);
+        for (size_t k = 0; k < n; ++k) {
+            m.weight[k] *= rel;
             wsum += m.weight[k];
         }
         Float inv_wsum = dr::rcp(wsum);
@@ -740,8 +756,10 @@ protected:
     /// gradient scattered 2x more per seed). Both are unbiased (test_llvm.py test09, test12);
     /// the whole mixture costs ~3x the split one per vertex in the scalar variants (measured:
     /// 4.8x diffuse's vertex against ~1.6x).
-    std::tuple<Float, Float, Float> gmm_shift(const Mixture &mix, const File &file, const Float &lambda_o,
-                                              const Float &a, const Float &b, const Float &u, const Mask &ok) const {
+    template <typename Value>
+    std::tuple<Value, Value, Value> gmm_shift(const Mixture &mix, const File &file, const Value &lambda_o,
+                                              const Value &a, const Value &b, const Value &u,
+                                              const dr::mask_t<Value> &ok) const {
         if (dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o))
             return gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok);
         return gmm_shift_split(mix, file, lambda_o, a, b, u, ok);
@@ -758,43 +776,44 @@ protected:
     /// one per component. Returns (S·W·M_k, λi, S·W·M_k): value/weight = 1 as the density
     /// gives the estimate f_k/(p_k q_k) = S·W·M_k without evaluating f_k. Renders without
     /// gradients take this path (gmm_shift).
-    std::tuple<Float, Float, Float> gmm_shift_split(const Mixture &mix, const File &file, const Float &lambda_o,
-                                                    const Float &a, const Float &b, const Float &u,
-                                                    const Mask &ok) const {
+    template <typename Value>
+    std::tuple<Value, Value, Value> gmm_shift_split(const Mixture &mix, const File &file, const Value &lambda_o,
+                                              const Value &a, const Value &b, const Value &u,
+                                              const dr::mask_t<Value> &ok) const {
         size_t n = m_n_comps;
-        std::vector<Float> marginal(n);
-        Float total = 0.f;
+        fluo_detail::Scratch<Value> marginal(n);
+        Value total = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            Float d = lambda_o - mix.mu_o[k];
+            Value d = lambda_o - mix.mu_o[k];
             marginal[k] = mix.weight[k] * dr::exp(mix.half_inv_var_o[k] * d * d);
             total += dr::detach(marginal[k]);
         }
         // The component: the first k with u·W < Σ_{≤k} marginal (the last one with a
         // positive marginal if rounding leaves none); u rescaled within it.
-        Float target = u * total, run = 0.f, cu = 0.f, cslope = 0.f, cmu_i = 0.f, cmu_o = 0.f, csd = 1.f;
-        Mask done = !ok || !(total > 0.f);
+        Value target = u * total, run = 0.f, cu = 0.f, cslope = 0.f, cmu_i = 0.f, cmu_o = 0.f, csd = 1.f;
+        dr::mask_t<Value> done = !ok || !(total > 0.f);
         for (size_t k = 0; k < n; ++k) {
-            Float w = dr::detach(marginal[k]);
-            Mask take = !done && w > 0.f;
+            Value w = dr::detach(marginal[k]);
+            dr::mask_t<Value> take = !done && w > 0.f;
             cu = dr::select(take, dr::clip((target - run) / w, 0.f, 1.f), cu);
-            cmu_i = dr::select(take, mix.mu_i[k], cmu_i);
-            cmu_o = dr::select(take, mix.mu_o[k], cmu_o);
-            cslope = dr::select(take, mix.slope[k], cslope);
-            csd = dr::select(take, mix.cond_sd[k], csd);
+            cmu_i = dr::select(take, Value(mix.mu_i[k]), cmu_i);
+            cmu_o = dr::select(take, Value(mix.mu_o[k]), cmu_o);
+            cslope = dr::select(take, Value(mix.slope[k]), cslope);
+            csd = dr::select(take, Value(mix.cond_sd[k]), csd);
             done |= take && target < run + w;
             run += w;
         }
-        Float mean = dr::fmadd(cslope, lambda_o - cmu_o, cmu_i), mean_d = dr::detach(mean), inv_sd = dr::rcp(csd);
-        Float lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
+        Value mean = dr::fmadd(cslope, lambda_o - cmu_o, cmu_i), mean_d = dr::detach(mean), inv_sd = dr::rcp(csd);
+        Value lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
         // On the side where Φ is small: an interval above the mean is mirrored.
-        Mask mirror = lo > 0.f;
-        Float za = dr::select(mirror, -hi, lo), zb = dr::select(mirror, -lo, hi);
-        Float pa = phi_cdf(za), pb = phi_cdf(zb), mass_k = dr::maximum(pb - pa, 0.f);
-        Float z = phi_inv(dr::fmadd(cu, pb - pa, pa));
+        dr::mask_t<Value> mirror = lo > 0.f;
+        Value za = dr::select(mirror, -hi, lo), zb = dr::select(mirror, -lo, hi);
+        Value pa = phi_cdf(za), pb = phi_cdf(zb), mass_k = dr::maximum(pb - pa, 0.f);
+        Value z = phi_inv(dr::fmadd(cu, pb - pa, pa));
         // (clamped to the interval in the mirrored coordinate)
-        Float x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
-        Float estimate = file.scale * total * mass_k;
-        Mask good = ok && total > 0.f && mass_k > 0.f;
+        Value x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
+        Value estimate = file.scale * total * mass_k;
+        dr::mask_t<Value> good = ok && total > 0.f && mass_k > 0.f;
         estimate = dr::select(good, estimate, 0.f);
         return { estimate, x, estimate };
     }
@@ -802,19 +821,20 @@ protected:
     /// fluo_gmm, given λo on [a, b], the whole truncated mixture: the component by its share
     /// π_k N(λo) M_k, then its truncated normal; returns (S Σ_k π_k N(λo) M_k, λi, P(λi, λo)),
     /// P differentiable in the weights and means (gmm_shift says when it is used).
-    std::tuple<Float, Float, Float> gmm_shift_mixture(const Mixture &mix, const File &file, const Float &lambda_o,
-                                                      const Float &a, const Float &b, const Float &u,
-                                                      const Mask &ok) const {
+    template <typename Value>
+    std::tuple<Value, Value, Value> gmm_shift_mixture(const Mixture &mix, const File &file, const Value &lambda_o,
+                                              const Value &a, const Value &b, const Value &u,
+                                              const dr::mask_t<Value> &ok) const {
         size_t n = m_n_comps;
-        std::vector<Float> w(n), za(n), zb(n), pa(n), pb(n), mean(n), marginal(n);
-        std::vector<Mask> mirror(n);
-        Float total = 0.f;
+        fluo_detail::Scratch<Value> w(n), za(n), zb(n), pa(n), pb(n), mean(n), marginal(n);
+        fluo_detail::Scratch<dr::mask_t<Value>> mirror(n);
+        Value total = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            Float d = lambda_o - mix.mu_o[k];
+            Value d = lambda_o - mix.mu_o[k];
             marginal[k] = mix.weight[k] * dr::exp(mix.half_inv_var_o[k] * d * d);
             mean[k] = dr::fmadd(mix.slope[k], d, mix.mu_i[k]);
-            Float mean_d = dr::detach(mean[k]), inv_sd = dr::rcp(mix.cond_sd[k]);
-            Float lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
+            Value mean_d = dr::detach(mean[k]), inv_sd = dr::rcp(mix.cond_sd[k]);
+            Value lo = (a - mean_d) * inv_sd, hi = (b - mean_d) * inv_sd;
             // On the side where Φ is small: an interval above the mean is mirrored.
             mirror[k] = lo > 0.f;
             za[k] = dr::select(mirror[k], -hi, lo);
@@ -826,30 +846,30 @@ protected:
         }
         // The component: the first k with u·total < Σ_{≤k} w (the last one with w > 0 if
         // rounding leaves none); u rescaled within it.
-        Float target = u * total, run = 0.f, ca = 0.f, cb = 0.f, cmean = 0.f, csd = 1.f, cu = 0.f;
-        Mask done = !ok || !(total > 0.f), cmirror = false;
+        Value target = u * total, run = 0.f, ca = 0.f, cb = 0.f, cmean = 0.f, csd = 1.f, cu = 0.f;
+        dr::mask_t<Value> done = !ok || !(total > 0.f), cmirror = false;
         for (size_t k = 0; k < n; ++k) {
-            Mask take = !done && w[k] > 0.f;
+            dr::mask_t<Value> take = !done && w[k] > 0.f;
             ca = dr::select(take, pa[k], ca);
             cb = dr::select(take, pb[k], cb);
             cmean = dr::select(take, dr::detach(mean[k]), cmean);
-            csd = dr::select(take, mix.cond_sd[k], csd);
+            csd = dr::select(take, Value(mix.cond_sd[k]), csd);
             cmirror = dr::select(take, mirror[k], cmirror);
             cu = dr::select(take, dr::clip((target - run) / w[k], 0.f, 1.f), cu);
             done |= take && target < run + w[k];
             run += w[k];
         }
-        Float z = phi_inv(dr::fmadd(cu, cb - ca, ca));
+        Value z = phi_inv(dr::fmadd(cu, cb - ca, ca));
         // (clamped to the interval in the mirrored coordinate)
-        Float x = dr::clip(cmean + csd * dr::select(cmirror, -z, z), a, b);
+        Value x = dr::clip(cmean + csd * dr::select(cmirror, -z, z), a, b);
         // P(x, λo) = S Σ_k π_k N(λo | μo, σoo) N(x | mean_k, sd_k²), differentiable; x is
         // drawn with density exactly P/mass (detached).
-        Float value = 0.f;
+        Value value = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            Float inv_sd = dr::rcp(mix.cond_sd[k]), e = (x - mean[k]) * inv_sd;
+            Value inv_sd = dr::rcp(mix.cond_sd[k]), e = (x - mean[k]) * inv_sd;
             value += marginal[k] * (dr::exp(-.5f * e * e) * (dr::InvSqrtTwoPi<float> * inv_sd));
         }
-        Mask good = ok && total > 0.f;
+        dr::mask_t<Value> good = ok && total > 0.f;
         return { dr::select(good, file.scale * total, 0.f), x, dr::select(good, file.scale * value, 0.f) };
     }
 

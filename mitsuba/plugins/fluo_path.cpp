@@ -90,6 +90,14 @@ Rust per vertex. **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials'
 probabilities are detached, their values differentiable, so ``mi.render`` with
 ``params`` gives gradients of dye parameters.
 
+**Polarized variants** (``scalar_spectral_polarized``, ``llvm_ad_spectral_polarized``,
+``cuda_ad_spectral_polarized``): the throughput is a Mueller matrix as in ``path``; the
+elastic lobes are the materials' own (a Lambertian lobe is a depolarizer, ``fluo_qd``'s
+substrate reflects with ``roughconductor``'s Mueller matrix), and light re-emitted at a
+shifted wavelength leaves unpolarized: those wavelengths' entries are a depolarizer
+(Stokes s1..s3 of reradiation are 0). Nested in Mitsuba's ``stokes`` (or ``aov``) integrator,
+the first sample of a scene prepares it (the scan below).
+
 **Simulate only what the scene calls for.** At the start of each render the scene is
 scanned once: the fluorescent BSDFs (those implementing fluo's bispectral interface
 and re-emitting at all) and the spectral range of every emitter's radiance texture.
@@ -201,11 +209,13 @@ public:
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
                     bool evaluate) override {
         prepare(scene);
+        m_prepared.mark(scene);
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
     }
 
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
+        m_prepared.ensure(scene, [&] { const_cast<FluoPath *>(this)->prepare(const_cast<Scene *>(scene)); });
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
         if constexpr (is_rgb_v<Spectrum>) {
@@ -227,7 +237,7 @@ public:
             << "  rr_depth = " << m_rr_depth << "," << std::endl
             << "  lambda_min = " << m_lambda_min << "," << std::endl
             << "  basis = " << m_reduced.name() << " (K = " << m_reduced.bands() << ")," << std::endl
-            << "  fluorescent_bsdfs = " << m_bsdfs << "," << std::endl
+            << "  fluorescent_bsdfs = " << m_bsdfs.size() << "," << std::endl
             << "  excitation_range = [" << m_range_lo << ", " << m_range_hi << "]" << std::endl
             << "]";
         return oss.str();
@@ -261,10 +271,10 @@ private:
         if (scene->emitters().empty())
             bsdfs.clear();
         m_reduced.prepare(scene, bsdfs, false);
-        m_bsdfs = bsdfs.size();
+        m_bsdfs.assign(bsdfs);
         m_range_lo = lo;
         m_range_hi = hi;
-        m_directional = directional && m_bsdfs > 0;
+        m_directional = directional && !m_bsdfs.empty();
         m_varying = m_directional && m_reduced.varying();
     }
 
@@ -359,7 +369,7 @@ private:
                          Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                          dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
         ls.pi = camera_intersection(scene, ls.ray, ls.active);
-        const bool fluorescent = is_spectral_v<Spectrum> && m_bsdfs > 0, directional = m_directional;
+        const bool fluorescent = is_spectral_v<Spectrum> && !m_bsdfs.empty(), directional = m_directional;
         const double range_lo = m_range_lo, range_hi = m_range_hi;
 
         dr::tie(ls) = dr::while_loop(
@@ -389,7 +399,7 @@ private:
                 // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
                 fluo_detail::SurfaceShift<Float, Spectrum> shift;
                 if (fluorescent)
-                    shift.choose(bsdf, si, ls.sampler, active_next, range_lo, range_hi);
+                    shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, range_lo, range_hi);
 
                 // ---------------------- Emitter sampling ----------------------
                 auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
@@ -402,7 +412,7 @@ private:
                     bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
 
                 if (fluorescent)
-                    shift.apply(bsdf, si, directional, wo, bsdf_sample, active_next, bsdf_val, bsdf_weight);
+                    shift.apply(m_bsdfs, bsdf, si, directional, wo, bsdf_sample, active_next, bsdf_val, bsdf_weight);
 
                 if (dr::any_or<true>(active_em)) {
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
@@ -531,10 +541,11 @@ private:
 
     double m_lambda_min = 300.0;
     Reduced m_reduced;   ///< RGB variants: the reduced transport
-    size_t m_bsdfs = 0; ///< fluorescent BSDFs this render
+    fluo_detail::FluorescentSet<Float, Spectrum> m_bsdfs; ///< fluorescent BSDFs this render
     double m_range_lo = 0.0, m_range_hi = 0.0;
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media
     Wrappers m_wrappers;                   ///< around fluorescent BSDFs, this render
+    mutable fluo_detail::PreparedScene m_prepared; ///< the scene prepared last (nested use)
     bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
     bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
 };

@@ -18,6 +18,7 @@
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/bsdf.h>
 #include <mitsuba/render/fresnel.h>
+#include <mitsuba/render/mueller.h>
 #include <mitsuba/render/microfacet.h>
 #include <mitsuba/render/texture.h>
 
@@ -125,6 +126,11 @@ one class, ``fluo_qd.cpp``):
   (coating coefficients from Rust's tables, the substrate's R per lane). The
   reradiation is served through fluo's bispectral interface to ``fluo_path``; under
   Mitsuba's ``path`` the absorbed light is simply lost.
+- Polarized spectral variants: the elastic lobe is the substrate's Mueller matrix for
+  specular reflection off the microfacet (as ``roughconductor``), scaled to intensity
+  R_tot: the coating's tables are averaged over polarization, so the coating scales the
+  substrate's matrix (exact without a coating, approximate in its polarization with one);
+  reradiated light leaves unpolarized.
 - RGB variants: the elastic part per hit and per RGB channel, from the substrate's
   own (coloured) eta/k and the coating coefficients at 611, 549 and 464 nm for the
   red, green and blue channels: a gold substrate stays gold, and with a negligible
@@ -489,6 +495,7 @@ public:
             for (size_t w = 0; w < cells.size(); ++w)
                 cells[w] = cell(mo, lambda_o[w], active);
             u1[0] = p.u;
+            fluo_detail::rotate_hero(u1); // uniform again given the pick
             Emission em = emission_of(mo, active); // with radius's and density's gradients
             // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
             // weight positive where the elastic lobe is keeps the estimator unbiased; this one
@@ -509,6 +516,11 @@ public:
             // The A_tot row nearest cos θi (as the Rust model's sampling).
             UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
             UInt32 last = mo.n - 1;
+            // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
+            // drawn and dQ of the reradiation Q·e would be lost).
+            Float q_choice = dr::detach(h.q);
+            if (dr::grad_enabled(h.q))
+                q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
                 Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
@@ -520,7 +532,7 @@ public:
                 Float c_a = running(row, ca, ok), c_b = running(row, cb, ok);
                 Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
                 ok &= mass > 0.f;
-                fluo_detail::ShiftChoice<Float> choice(we[w], dr::detach(h.q) * e * mass, u1[w], active);
+                fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
                 // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
                 // then the cell's quadratic root (cancellation-free form); the search runs
                 // over the longest grid, each lane's row clamped to its own.
@@ -768,7 +780,35 @@ private:
         active &= (pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
         bs.pdf = dr::select(active, pdf / (4.f * dr::dot(bs.wo, m)), 0.f);
         UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m) * fresnel_value(si, dr::dot(si.wi, m), active, h);
-        return { bs, depolarizer<Spectrum>(dr::select(active, weight, 0.f)) };
+        return { bs, lobe_spectrum(ctx, si, bs.wo, m, weight, active) };
+    }
+
+    /// The elastic lobe's `value` as Mitsuba's Spectrum: in the polarized variants the
+    /// substrate's Mueller matrix for specular reflection off the microfacet `m` (the
+    /// conductor's complex index, the matrix rotated into the Stokes bases of the light's
+    /// incoming and outgoing directions, as `roughconductor` does), scaled so that its
+    /// intensity is `value`: the coating's tables are averaged over polarization, so the
+    /// coating scales the substrate's matrix (exact without a coating); elsewhere the value.
+    Spectrum lobe_spectrum(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                           const Vector3f &m, const UnpolarizedSpectrum &value, const Mask &active) const {
+        if constexpr (is_polarized_v<Spectrum>) {
+            dr::Complex<UnpolarizedSpectrum> eta_c(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
+            // Light arrives along −w_in and leaves along w_out.
+            bool radiance = ctx.mode == TransportMode::Radiance;
+            Vector3f w_in = radiance ? wo : si.wi, w_out = radiance ? si.wi : wo;
+            Spectrum F = mueller::specular_reflection(UnpolarizedSpectrum(dr::dot(w_in, m)), eta_c);
+            Vector3f s_in = dr::cross(m, -w_in), s_out = dr::cross(m, w_out);
+            Mask collinear = dr::all(s_in == Vector3f(0.f));
+            s_in = dr::select(collinear, Vector3f(1.f, 0.f, 0.f), dr::normalize(s_in));
+            s_out = dr::select(collinear, Vector3f(1.f, 0.f, 0.f), dr::normalize(s_out));
+            F = mueller::rotate_mueller_basis(F, -w_in, s_in, mueller::stokes_basis(-w_in), w_out, s_out,
+                                              mueller::stokes_basis(w_out));
+            UnpolarizedSpectrum f0 = F(0, 0);
+            return (F * dr::select(f0 > 0.f, value / f0, 0.f)) & active;
+        } else {
+            (void) ctx, (void) wo, (void) m;
+            return depolarizer<Spectrum>(dr::select(active, value, 0.f));
+        }
     }
 
     std::pair<Spectrum, Float> eval_pdf_with(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
@@ -783,7 +823,7 @@ private:
         Float G = smith_g1_wi * distr.smith_g1(wo, H);
         UnpolarizedSpectrum value = fresnel_value(si, dr::dot(si.wi, H), active, h) * (D * G / (4.f * cos_theta_i));
         Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
-        return { depolarizer<Spectrum>(dr::select(active, value, 0.f)), dr::select(active, pdf, 0.f) };
+        return { lobe_spectrum(ctx, si, wo, H, value, active), dr::select(active, pdf, 0.f) };
     }
     /// A table's row (offset `row`) at the cell, linear in λ.
     Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {

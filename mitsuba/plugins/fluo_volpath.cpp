@@ -199,6 +199,7 @@ public:
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
                     bool evaluate) override {
         prepare(scene);
+        m_prepared.mark(scene);
         if (!m_fluorescent)
             return m_volpath->render(scene, sensor, seed, spp, develop, evaluate);
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
@@ -206,6 +207,7 @@ public:
 
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium *medium, Float *aovs, Bool active) const override {
+        m_prepared.ensure(scene, [&] { const_cast<FluoVolpath *>(this)->prepare(const_cast<Scene *>(scene)); });
         if constexpr (!is_spectral_v<Spectrum>) {
             if (!m_fluorescent)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
@@ -244,6 +246,7 @@ private:
     /// the media's operators) and the emitters' basis coefficients.
     void prepare(Scene *scene) {
         m_media.clear();
+        m_media_set.clear();
         m_bsdfs.clear();
         m_rmedia.clear();
         std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
@@ -275,7 +278,8 @@ private:
             for (const BMedium *b : media)
                 if (b->jit_fluorescent(lo, hi))
                     m_media.push_back(b);
-        m_bsdfs.assign(bsdfs.begin(), bsdfs.end());
+        m_bsdfs.assign(bsdfs);
+        m_media_set.assign(m_media);
         m_directional = directional && !m_bsdfs.empty();
         m_fluorescent = !m_media.empty() || !m_bsdfs.empty();
         if constexpr (is_rgb_v<Spectrum>) {
@@ -317,8 +321,8 @@ private:
         const double lo = m_range_lo, hi = m_range_hi;
         return fluo_detail::dispatch_any(
             medium,
-            [lo, hi](const Medium *m, const Wavelength &lambda_, const Mask &on) {
-                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi))
+            [lo, hi, this](const Medium *m, const Wavelength &lambda_, const Mask &on) {
+                if (const BMedium *f = m_media_set.find(m))
                     return f->jit_rates(lambda_, lo, hi, on);
                 return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
             },
@@ -334,12 +338,11 @@ private:
     sample_medium(const MediumPtr &medium, const Ray3f &ray, const Float &u, const UInt32 &channel,
                   const Float &rate, const UnpolarizedSpectrum &mu_a, const UnpolarizedSpectrum &mu_f,
                   const Mask &active) const {
-        const double lo = m_range_lo, hi = m_range_hi;
         return fluo_detail::dispatch_any(
             medium,
-            [lo, hi](const Medium *m, const Ray3f &ray_, const Float &u_, const UInt32 &channel_, const Float &rate_,
-                     const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
-                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(lo, hi)) {
+            [this](const Medium *m, const Ray3f &ray_, const Float &u_, const UInt32 &channel_, const Float &rate_,
+                   const UnpolarizedSpectrum &mu_a_, const UnpolarizedSpectrum &mu_f_, const Mask &on) {
+                if (const BMedium *f = m_media_set.find(m)) {
                     auto [mei, mf, d] = f->jit_sample_interaction(ray_, u_, rate_, mu_a_, mu_f_, on);
                     return std::make_tuple(mei, mf, Mask(true), d);
                 }
@@ -658,17 +661,17 @@ private:
                     WMask shifted = false;
                     Mask fl_scatter = act_scatter && is_fluo;
                     if (media && dr::any_or<true>(fl_scatter)) {
-                        Wavelength ux, uy;
-                        for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
-                            Point2f u = sampler->next_2d(fl_scatter);
-                            ux[j] = u.x();
-                            uy[j] = u.y();
-                        }
+                        Wavelength ux, uy; // one 2D number, rotated per hero wavelength
+                        Point2f u = sampler->next_2d(fl_scatter);
+                        ux[0] = u.x();
+                        uy[0] = u.y();
+                        fluo_detail::rotate_hero(ux);
+                        fluo_detail::rotate_hero(uy);
                         auto [li, ok] = fluo_detail::dispatch_any(
                             ls.medium,
-                            [range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_, const Wavelength &u_,
-                                                 const Mask &on) {
-                                if (auto *f = dynamic_cast<const BMedium *>(m); f && f->jit_fluorescent(range_lo, range_hi))
+                            [this, range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_,
+                                                       const Wavelength &u_, const Mask &on) {
+                                if (const BMedium *f = m_media_set.find(m))
                                     return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
                                 return std::make_pair(mei_.wavelengths, WMask(false));
                             },
@@ -701,7 +704,7 @@ private:
                         auto [emitted, ds] = sample_emitter(ls.mei, scene, sampler, ls.medium, active_e);
                         auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
                         // shifted wavelengths re-emit isotropically
-                        phase_val = dr::select(shifted, InvFourPi, phase_val);
+                        phase_val = fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi), phase_val);
                         Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
                         dr::masked(ls.result, active_e) += throughput * phase_val * emitted * mis;
                     }
@@ -713,7 +716,7 @@ private:
                         auto [wo, phase_weight, phase_pdf] =
                             phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
                         act_scatter &= phase_pdf > 0.f;
-                        phase_weight = dr::select(shifted, InvFourPi / phase_pdf, phase_weight);
+                        phase_weight = fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi / phase_pdf), phase_weight);
                         dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo); // carries λi where shifted
                         ls.needs_intersection |= act_scatter;
                         dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
@@ -740,7 +743,7 @@ private:
                         bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
                     fluo_detail::SurfaceShift<Float, Spectrum> shift;
                     if (surfaces)
-                        shift.choose(bsdf, si, sampler, active_surface, range_lo, range_hi);
+                        shift.choose(m_bsdfs, bsdf, si, sampler, active_surface, range_lo, range_hi);
 
                     // ------------------------ Emitter sampling -----------------
                     Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
@@ -758,7 +761,7 @@ private:
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
                     if (surfaces)
-                        shift.apply(bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
+                        shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
                     if (dr::any_or<true>(active_e)) {
                         Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
                         dr::masked(ls.result, active_e) += throughput * bsdf_val * mis * emitted;
@@ -962,18 +965,19 @@ private:
     }
 
     /// Per lane, whether `medium` is each of the scene's fluorescent media (compared by
-    /// pointer; a handful per scene).
-    std::vector<Mask> which_media(const MediumPtr &medium) const {
-        std::vector<Mask> which;
-        for (const ReducedMedium &r : m_rmedia)
-            which.push_back(medium == MediumPtr(r.medium));
+    /// pointer; a handful per scene: no allocation per event).
+    using MediaMasks = fluo_detail::Scratch<Mask, 4>;
+    MediaMasks which_media(const MediumPtr &medium) const {
+        MediaMasks which(m_rmedia.size());
+        for (size_t i = 0; i < m_rmedia.size(); ++i)
+            which[i] = medium == MediumPtr(m_rmedia[i].medium);
         return which;
     }
 
     /// Entry i of a fluorescent medium's constant table (`field`) per lane: a select over the
     /// media (a constant in the kernel for one medium; 0 without any: the llvm/cuda loop
     /// traces every branch, also where no lane takes it).
-    Float per_medium(const std::vector<Mask> &which, std::vector<double> ReducedMedium::*field, size_t i) const {
+    Float per_medium(const MediaMasks &which, std::vector<double> ReducedMedium::*field, size_t i) const {
         if (m_rmedia.empty())
             return Float(0.f);
         Float v = (float) (m_rmedia[0].*field)[i];
@@ -987,7 +991,7 @@ private:
     /// times the event's weight. 3K² products; entries that are 0 for every medium are skipped.
     template <size_t K>
     Rows<K> medium_product(const Rows<K> &R, const Coeffs<K> &g, const Float &s,
-                           std::vector<double> ReducedMedium::*field, const std::vector<Mask> &which) const {
+                           std::vector<double> ReducedMedium::*field, const MediaMasks &which) const {
         Rows<K> out = Reduced::template scale_columns<K>(R, g);
         for (size_t j = 0; j < K; ++j) {
             std::array<Float, 3> acc = { 0.f, 0.f, 0.f };
@@ -1015,7 +1019,7 @@ private:
     template <size_t K>
     std::pair<Float, Float> band_tracking(const Rows<K> &R, const Coeffs<K> &sigma_s, const Float &d,
                                           const Float &majorant, const Float &inv_len,
-                                          const std::vector<Mask> &which) const {
+                                          const MediaMasks &which) const {
         Coeffs<K> w = Reduced::template column_max<K>(R);
         Float q_null = 0.f, q_real = 0.f, kappa = 0.f;
         for (size_t k = 0; k < K; ++k) {
@@ -1115,7 +1119,7 @@ private:
                     Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
                     Float p_null = 0.f, p_real = 1.f, d = 0.f;
                     Coeffs<K> sigma_s = dr::zeros<Coeffs<K>>(); // a fluorescent collision's σs per band
-                    std::vector<Mask> which;
+                    MediaMasks which;
                     if (dr::any_or<true>(active_medium)) {
                         is_spectral &= ls.medium->has_spectral_extinction();
                         not_spectral = !is_spectral && active_medium;
@@ -1291,7 +1295,7 @@ private:
     /// over the pdf if sampled), s = 1/(μ̄ p_real).
     template <size_t K>
     Rows<K> source_product(const Rows<K> &R, const Coeffs<K> &sigma_s, const Color3f &p, const Float &d,
-                           const Float &iso, const Float &s, const std::vector<Mask> &which) const {
+                           const Float &iso, const Float &s, const MediaMasks &which) const {
         Coeffs<K> pk = m_reduced.template band_albedo<K>(p);
         Coeffs<K> g;
         for (size_t k = 0; k < K; ++k)
@@ -1302,7 +1306,9 @@ private:
     double m_lambda_min = 300.0;
     ref<Base> m_volpath; ///< the render without fluorescence
     std::vector<const BMedium *> m_media;
-    std::vector<const Bispectral *> m_bsdfs;
+    mutable fluo_detail::PreparedScene m_prepared; ///< the scene prepared last (nested use)
+    fluo_detail::InterfaceSet<Medium, BMedium> m_media_set; ///< m_media, found per event by address
+    fluo_detail::FluorescentSet<Float, Spectrum> m_bsdfs;
     Reduced m_reduced;                     ///< RGB variants: the reduced transport
     std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
     double m_range_lo = 0.0, m_range_hi = 0.0;

@@ -44,7 +44,9 @@ from .scenes import VARIANTS
 PYTHON_COMMANDS = ("render", "demo", "bench")
 #: Every variant the plugin library serves (``fluo render --variant``); the cuda ones need
 #: an NVIDIA GPU.
-RENDER_VARIANTS = VARIANTS + ("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb")
+RENDER_VARIANTS = VARIANTS + ("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb",
+                                "scalar_spectral_polarized", "llvm_ad_spectral_polarized",
+                                "cuda_ad_spectral_polarized")
 #: Largest film ``fluo render`` accepts, in pixels: Dr.Jit arrays hold at most 2^32 entries,
 #: and a film stores at least four channels per pixel.
 MAX_FILM_PIXELS = 2**30

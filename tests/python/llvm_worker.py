@@ -40,7 +40,8 @@ def run(job: dict) -> dict:
         differentiable = [k for k in params.keys() if not params.flags(k) & mi.ParamFlags.NonDifferentiable]
         return {"keys": list(params.keys()), "differentiable": differentiable}
     if "gradients" in job:
-        return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0))}
+        return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0),
+                                       job.get("forward", False))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -70,9 +71,10 @@ def eval_bsdf(bsdf, points) -> list:
     return out
 
 
-def gradients(scene, steps: dict, spp: int, seed: int) -> dict:
+def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False) -> dict:
     """{key: [AD derivative, central difference]} of the mean image for each parameter, along
-    the parameter's all-ones direction (every channel of a colour moves together)."""
+    the parameter's all-ones direction (every channel of a colour moves together); with
+    `forward`, the forward difference (a parameter at the lower end of its range)."""
     import drjit as dr
 
     params = mi.traverse(scene)
@@ -92,13 +94,13 @@ def gradients(scene, steps: dict, spp: int, seed: int) -> dict:
                 raise
             ad = 0.0
         values = []
-        for d in (-h, h):
+        for d in ((0.0, h) if forward else (-h, h)):
             params[key] = x0 + d
             params.update()
             values.append(float(dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None).array[0]))
         params[key] = x0
         params.update()
-        out[key] = [ad, (values[1] - values[0]) / (2 * h)]
+        out[key] = [ad, (values[1] - values[0]) / (h if forward else 2 * h)]
     return out
 
 

@@ -97,3 +97,34 @@ def test04_measured_fit_converges_to_patch_of_its_fit(tmp_path):
     fluo.run_tool(["fit-gmm", str(SHARED / "bispectral" / "TEXTYELL.BFC"), "--components", "8",
                    "-o", str(out)])
     check_converges(out, "D65")
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test05_tiny_weights_normalise_and_differentiate(variant):
+    """Issue 32 finding 9: the mixture's weights are normalised, so scaling them all by
+    1e-30 changes nothing, and in the AD spectral variants their gradients stay finite
+    (1/Σw² of such weights overflowed float: every gradient was NaN); in the RGB variants
+    the weights are baked into the reduced matrices and flagged non-differentiable."""
+    import drjit as dr
+
+    mi.set_variant(variant)
+    scene = mi.load_string(scene_text(
+        f'<bsdf type="fluo_gmm"><string name="filename" value="{OWN_FIT}"/></bsdf>', integrator="fluo_path",
+        max_depth=2, spp=16, width=8, height=8, emitter="directional",
+        light='<spectrum type="fluo_illuminant" name="irradiance"><string name="illuminant" value="D65"/></spectrum>',
+        shape="rectangle", size=10))
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("weights"))
+    ref = np.array(mi.render(scene, seed=2))
+    params[key] = params[key] * 1e-30
+    params.update()
+    tiny = np.array(mi.render(scene, seed=2))
+    np.testing.assert_allclose(tiny, ref, rtol=1e-4, atol=1e-6)
+    # RGB variants bake the mixture into the reduced matrices: no gradient, and flagged so
+    assert bool(params.flags(key) & mi.ParamFlags.NonDifferentiable) == variant.endswith("_rgb")
+    if dr.is_diff_v(mi.Float) and not variant.endswith("_rgb"):
+        dr.enable_grad(params[key])
+        params.update()
+        dr.backward(dr.mean(mi.render(scene, params, seed=2)))
+        g = np.array(dr.grad(params[key]))
+        assert np.isfinite(g).all() and np.abs(g).max() > 0, g

@@ -561,3 +561,19 @@ def test21_bilinear_texels_interpolate_reradiation(variant, tmp_path, capsys):
     assert errors["nearest"] > 4 * errors["bilinear"], errors
     with pytest.raises(Exception, match='"texel_interpolation" = "cubic"'):
         mi.load_string(_textured(tex, '<string name="texel_interpolation" value="cubic"/>'))
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test22_differentiable_flags_say_where_gradients_flow(variant):
+    """Issue 32 finding 14: in the RGB variants the dye's shape (emission_peak,
+    stokes_shift) is baked into the reduced matrices, so those parameters are flagged
+    non-differentiable there (dr.backward found no dependence on them); concentration and
+    quantum_yield weigh the matrices per lane and stay differentiable, as all four do in
+    the spectral variants."""
+    mi.set_variant(variant)
+    params = mi.traverse(mi.load_dict({"type": "fluo_jung"}))
+    baked = variant.endswith("_rgb")
+    for key in ("emission_peak", "stokes_shift", "concentration", "quantum_yield"):
+        flags = params.flags(key)
+        non_diff = bool(flags & mi.ParamFlags.NonDifferentiable)
+        assert non_diff == (baked and key in ("emission_peak", "stokes_shift")), (variant, key, flags)

@@ -272,25 +272,45 @@ def test06_gradients_match_finite_differences():
     yield and the reflectance (measured: under 2 %), within 25 % for emission peak and Stokes
     shift (measured: 1 % and 13 %; changing the dye's shape re-bakes its sampling table, so
     the two finite-difference renders share fewer random numbers) in llvm_ad_spectral; concentration, yield and reflectance in llvm_ad_rgb,
-    where the dye's shape is baked into the reduced matrices (emission peak and Stokes shift
-    then have an AD derivative of exactly 0, as the docs say, while the image does change)."""
+    where the dye's shape is baked into the reduced matrices: emission peak and Stokes shift
+    are flagged non-differentiable there (test_fluo_jung.py test22)."""
     steps = {"dye.concentration": 0.05, "dye.quantum_yield": 0.05, "dye.emission_peak": 4.0,
              "dye.stokes_shift": 2.0, "dye.reflectance.value": 0.05}
     jobs = [{"variant": "llvm_ad_spectral", "xml": GRAD_SCENE.format(basis=""), "spp": 512, "seed": 3,
              "gradients": steps},
             {"variant": "llvm_ad_rgb", "xml": GRAD_SCENE.format(basis='<string name="basis" value="x7"/>'),
-             "spp": 512, "seed": 3, "gradients": steps}]
+             "spp": 512, "seed": 3,
+             "gradients": {k: h for k, h in steps.items() if k not in ("dye.emission_peak", "dye.stokes_shift")}}]
     results = run_llvm(jobs)
     for job, res in zip(jobs, results):
         assert "error" not in res, res
         for key, (ad, fd) in res["gradients"].items():
             print(job["variant"], key, "ad", ad, "fd", fd)
-            if job["variant"] == "llvm_ad_rgb" and key in ("dye.emission_peak", "dye.stokes_shift"):
-                assert ad == 0.0 and abs(fd) > 0.0, (key, ad, fd)
-                continue
             assert abs(fd) > 1e-5, f"{key}: the image does not depend on it, the check would be empty"
             tol = 0.25 if key in ("dye.emission_peak", "dye.stokes_shift") else 0.1
             assert abs(ad - fd) <= tol * abs(fd), f"{job['variant']} {key}: AD {ad} vs finite differences {fd}"
+
+
+def test06b_gradients_at_zero_concentration_and_yield():
+    """Issue 32 finding 6: at concentration 0 (or quantum yield 0) the elastic/shift choice
+    never drew the shift, so AD lost the reradiation's derivative (AD -0.0436 against
+    -0.0230 by differences). The sphere under a constant sky has no inter-reflection, so the
+    image is linear in c and Q and the forward difference from 0 is exact up to noise (a
+    long step: the render at 0 draws fewer random numbers, so the two share no noise).
+    (llvm_ad_rgb at c = 0 is still off: AD 0.0118 against 0.0086, left open in issue 32.)"""
+    base = GRAD_SCENE.format(basis="")
+    jobs = [{"variant": "llvm_ad_spectral", "spp": 4096, "seed": 4, "forward": True,
+             "xml": base.replace('<float name="concentration" value="0.6"/>', '<float name="concentration" value="0"/>'),
+             "gradients": {"dye.concentration": 0.4}},
+            {"variant": "llvm_ad_spectral", "spp": 4096, "seed": 4, "forward": True,
+             "xml": base.replace('<float name="quantum_yield" value="0.9"/>', '<float name="quantum_yield" value="0"/>'),
+             "gradients": {"dye.quantum_yield": 0.4}}]
+    for job, res in zip(jobs, run_llvm(jobs)):
+        assert "error" not in res, res
+        for key, (ad, fd) in res["gradients"].items():
+            print(job["variant"], key, "at 0: ad", ad, "forward difference", fd)
+            assert abs(fd) > 1e-4, f"{key}: the image does not depend on it, the check would be empty"
+            assert abs(ad - fd) <= 0.1 * abs(fd), f"{key} at 0: AD {ad} vs forward difference {fd}"
 
 
 def test07_invalid_update_is_refused_and_the_material_keeps_working():

@@ -65,6 +65,24 @@ template <template <typename, typename> class T> void register_plugin(const char
         name, "cuda_ad_spectral", type,
         [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Spectrum<CFloat, 4>>(p); },
         nullptr, nullptr);
+    pm->register_plugin(
+        name, "scalar_spectral_polarized", type,
+        [](void *, const Properties &p) -> ref<Object> {
+            return new T<float, MuellerMatrix<Spectrum<float, 4>>>(p);
+        },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "llvm_ad_spectral_polarized", type,
+        [](void *, const Properties &p) -> ref<Object> {
+            return new T<LFloat, MuellerMatrix<Spectrum<LFloat, 4>>>(p);
+        },
+        nullptr, nullptr);
+    pm->register_plugin(
+        name, "cuda_ad_spectral_polarized", type,
+        [](void *, const Properties &p) -> ref<Object> {
+            return new T<CFloat, MuellerMatrix<Spectrum<CFloat, 4>>>(p);
+        },
+        nullptr, nullptr);
 }
 
 /// dr::dispatch exists for JIT pointer arrays only; a scalar pointer is called directly.
@@ -98,6 +116,12 @@ template <typename Float> double host_value(const Float &v) {
     else
         return (double) v;
 }
+
+/// Where gradients flow into a material's re-emission strength (c·Q, Q), its shift weight
+/// in the elastic/shift choice is at least this (relative to the strength 1): a strength
+/// of 0 would never draw the shift, and its derivative would be lost (any positive weight
+/// keeps the estimate unbiased; primal renders without gradients are unchanged).
+constexpr float GradientShiftFloor = 0.05f;
 
 /// The elastic/shift choice at a fluorescent vertex, per hero wavelength (the estimator of
 /// every material's jit_choose): with elastic weight `we` and shift weight `wf` ≥ 0 (any
@@ -148,7 +172,9 @@ public:
     void set_managed(bool managed) const { m_managed.store(managed, std::memory_order_relaxed); }
 
     void warn_if_unmanaged(const char *plugin) const {
-        if (m_managed.load(std::memory_order_relaxed) || !jit_fluorescent())
+        // (the armed flag first: jit_fluorescent may ask Rust, not per vertex once warned)
+        if (m_managed.load(std::memory_order_relaxed) || !unmanaged_warning_armed().load(std::memory_order_relaxed) ||
+            !jit_fluorescent())
             return;
         if (unmanaged_warning_armed().exchange(false, std::memory_order_relaxed)) {
             constexpr const char *ClassName = "fluo";
@@ -272,6 +298,62 @@ private:
     mutable std::atomic<bool> m_managed{ false };
 };
 
+/// Per wavelength, `light` leaving unpolarized where `mask` holds, else `value`: in the
+/// polarized variants a depolarizer (Mueller matrix with only its (0, 0) entry) replaces
+/// those wavelengths' entries, as reradiated light carries no polarization; elsewhere a
+/// plain select.
+template <typename Spectrum, typename WMask, typename Unpolarized>
+Spectrum select_unpolarized(const WMask &mask, const Unpolarized &light, const Spectrum &value) {
+    if constexpr (is_polarized_v<Spectrum>) {
+        Spectrum d = depolarizer<Spectrum>(Spectrum(light)), out = value;
+        for (size_t i = 0; i < 4; ++i)
+            for (size_t j = 0; j < 4; ++j)
+                out(i, j) = dr::select(mask, d(i, j), value(i, j));
+        return out;
+    } else {
+        return dr::select(mask, light, value);
+    }
+}
+
+/// The hero wavelengths' uniform numbers from the first: u[j] = frac(u[0] + j/N), each
+/// uniform on its own (SurfaceShift::choose draws them so). A material that spends u[0] on
+/// a pick and rescales it calls this again, so every wavelength's number stays uniform given
+/// the pick.
+template <typename Wavelength> void rotate_hero(Wavelength &u) {
+    constexpr size_t N = dr::size_v<Wavelength>;
+    for (size_t j = 1; j < N; ++j) {
+        auto v = u[0] + (float) j / (float) N;
+        u[j] = dr::select(v >= 1.f, v - 1.f, v);
+    }
+}
+
+/// The fluorescent BSDFs (or media) a render transports, looked up per vertex by address
+/// (sorted; a dynamic_cast there compares type names across libraries: ~3 % of a scalar
+/// vertex): Base is Mitsuba's interface (BSDF, Medium), Iface fluo's.
+template <typename Base, typename Iface> class InterfaceSet {
+public:
+    template <typename B> void assign(const std::vector<B *> &objects) {
+        m_entries.clear();
+        for (B *b : objects)
+            m_entries.emplace_back(dynamic_cast<const Base *>(b), b);
+        std::sort(m_entries.begin(), m_entries.end());
+    }
+    /// fluo's interface of `b` when the render transports it, else nullptr.
+    const Iface *find(const Base *b) const {
+        auto it = std::lower_bound(m_entries.begin(), m_entries.end(), std::make_pair(b, (const Iface *) nullptr));
+        return it != m_entries.end() && it->first == b ? it->second : nullptr;
+    }
+    void clear() { m_entries.clear(); }
+    size_t size() const { return m_entries.size(); }
+    bool empty() const { return m_entries.empty(); }
+
+private:
+    std::vector<std::pair<const Base *, const Iface *>> m_entries;
+};
+
+template <typename Float, typename Spectrum>
+using FluorescentSet = InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF<Float, Spectrum>>;
+
 /// A fluorescent surface vertex of the spectral integrators (fluo_path,
 /// fluo_volpath): per lane and hero wavelength the elastic event or a shift (the material's
 /// jit_choose), then the shifted wavelengths' reradiation lobe in place of the BSDF's value
@@ -285,21 +367,24 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
     WMask shifted = false;
     UInt32 local = 0; ///< the model a varying material picked (jit_choose)
 
-    /// Choose per hero wavelength (four 2D numbers from `sampler`); si.wavelengths become
-    /// the wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range.
-    void choose(const BSDFPtr &bsdf, SurfaceInteraction3f &si, Sampler *sampler, const Mask &active, double lo,
-                double hi) {
+    /// Choose per hero wavelength for the materials in `set`; si.wavelengths become the
+    /// wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range. One 2D
+    /// number from `sampler` serves the four hero wavelengths, rotated by j/4 for the j-th
+    /// (each uniform on its own, as Mitsuba's hero wavelengths are: every wavelength's
+    /// estimate stays unbiased).
+    void choose(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf, SurfaceInteraction3f &si,
+                Sampler *sampler, const Mask &active, double lo, double hi) {
         Wavelength u1, u2;
-        for (size_t j = 0; j < dr::size_v<Wavelength>; ++j) {
-            Point2f u = sampler->next_2d(active);
-            u1[j] = u.x();
-            u2[j] = u.y();
-        }
+        Point2f u = sampler->next_2d(active);
+        u1[0] = u.x();
+        u2[0] = u.y();
+        rotate_hero(u1);
+        rotate_hero(u2);
         auto [li, sc, sh, rr, lc] = dispatch_any(
             bsdf,
-            [lo, hi](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_, const Wavelength &u2_,
-                     const Mask &on) {
-                if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+            [lo, hi, &set](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
+                           const Wavelength &u2_, const Mask &on) {
+                if (const Bispectral *f = set.find(b))
                     return f->jit_choose(si_, u1_, u2_, lo, hi, on);
                 return Bispectral::elastic_only(si_.wavelengths);
             },
@@ -316,16 +401,16 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
     /// and its weight for the sampled direction `bs` (`weight`, the BSDF's on entry): the
     /// shifted wavelengths' reradiation lobe, Lambertian unless the scene holds a
     /// direction-dependent one (`directional`: asked per direction), times the choice's weight.
-    void apply(const BSDFPtr &bsdf, const SurfaceInteraction3f &si, bool directional, const Vector3f &wo,
-               const BSDFSample3f &bs, const Mask &active, UnpolarizedSpectrum &val,
-               UnpolarizedSpectrum &weight) const {
+    void apply(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf, const SurfaceInteraction3f &si,
+               bool directional, const Vector3f &wo, const BSDFSample3f &bs, const Mask &active, Spectrum &val,
+               Spectrum &weight) const {
         UnpolarizedSpectrum v_em, v_bs;
         if (directional) {
             std::tie(v_em, v_bs) = dispatch_any(
                 bsdf,
-                [](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_, const UInt32 &lc_,
-                   const Vector3f &wa, const Vector3f &wb, const Mask &on) {
-                    if (auto *f = dynamic_cast<const Bispectral *>(b); f && f->jit_fluorescent())
+                [&set](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_,
+                       const UInt32 &lc_, const Vector3f &wa, const Vector3f &wb, const Mask &on) {
+                    if (const Bispectral *f = set.find(b))
                         return f->jit_reradiation(si_, rr_, lc_, wa, wb, on);
                     return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
                 },
@@ -334,9 +419,9 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
             v_em = rerad * Bispectral::lambert(si, wo);
             v_bs = rerad * Bispectral::lambert(si, bs.wo);
         }
-        val = dr::select(shifted, v_em, val) * scale;
+        val = select_unpolarized(shifted, v_em, val) * scale;
         UnpolarizedSpectrum w_bs = dr::select(bs.pdf > 0.f, v_bs / bs.pdf, 0.f);
-        weight = dr::select(shifted, w_bs, weight) * scale;
+        weight = select_unpolarized(shifted, w_bs, weight) * scale;
     }
 };
 

@@ -146,7 +146,9 @@ std::array<double, N> parse_list(const char *plugin, const char *name, const std
 /// template for all of them); every other variant of the wheel gets a stub.
 inline bool served_variant(std::string_view variant) {
     return variant == "scalar_rgb" || variant == "scalar_spectral" || variant == "llvm_ad_rgb" ||
-           variant == "llvm_ad_spectral" || variant == "cuda_ad_rgb" || variant == "cuda_ad_spectral";
+           variant == "llvm_ad_spectral" || variant == "cuda_ad_rgb" || variant == "cuda_ad_spectral" ||
+           variant == "scalar_spectral_polarized" || variant == "llvm_ad_spectral_polarized" ||
+           variant == "cuda_ad_spectral_polarized";
 }
 
 /// Register, for every variant of the wheel (MI_VARIANTS) that the plugins do not
@@ -169,9 +171,10 @@ inline void register_unavailable(const char *name, ObjectType type) {
             name, variant, type,
             [](void *payload, const Properties &) -> ref<Object> {
                 auto *u = static_cast<const Unavailable *>(payload);
-                Throw("%s: not available in variant \"%s\" yet; fluo's plugins run in scalar_rgb, "
-                      "scalar_spectral, llvm_ad_rgb, llvm_ad_spectral, cuda_ad_rgb and cuda_ad_spectral "
-                      "(e.g. mi.set_variant(\"scalar_spectral\"))",
+                Throw("%s: not available in variant \"%s\"; fluo's plugins run in scalar_rgb, "
+                      "scalar_spectral, scalar_spectral_polarized, llvm_ad_rgb, llvm_ad_spectral, "
+                      "llvm_ad_spectral_polarized and the cuda_ad ones of those (e.g. "
+                      "mi.set_variant(\"scalar_spectral\"))",
                       u->name, u->variant);
             },
             nullptr, &entries.back());

@@ -8,6 +8,8 @@
 #include <mitsuba/core/vector.h>
 
 #include <algorithm>
+#include <array>
+#include <memory>
 #include <cmath>
 #include <tuple>
 #include <utility>
@@ -68,6 +70,38 @@ template <typename Value> struct JungDye {
         dr::mask_t<Value> inside = lambda > lo && lambda < edge;
         return dr::select(inside, bspline(dr::select(inside, v_of(lambda), 0.f) - 3.f), 0.f);
     }
+};
+
+/// Per-vertex scratch of n values (one per mixture component, ...): inline up to N, on the
+/// heap only beyond (the scalar variants run it per vertex, where a std::vector's
+/// allocation cost ~7 % of a fluo_gmm vertex).
+template <typename T, size_t N = 16> class Scratch {
+public:
+    explicit Scratch(size_t n = 0) { resize(n); }
+    Scratch(const Scratch &o) { *this = o; }
+    Scratch &operator=(const Scratch &o) {
+        if (this != &o) {
+            resize(o.m_n);
+            for (size_t i = 0; i < m_n; ++i)
+                (*this)[i] = o[i];
+        }
+        return *this;
+    }
+    void resize(size_t n) {
+        if (n > N && n > m_cap) {
+            m_heap.reset(new T[n]());
+            m_cap = n;
+        }
+        m_n = n;
+    }
+    T &operator[](size_t i) { return m_n > N ? m_heap[i] : m_local[i]; }
+    const T &operator[](size_t i) const { return m_n > N ? m_heap[i] : m_local[i]; }
+    size_t size() const { return m_n; }
+
+private:
+    std::array<T, N> m_local{};
+    std::unique_ptr<T[]> m_heap; // (not a std::vector: vector<bool> has no bool&)
+    size_t m_n = 0, m_cap = 0;
 };
 
 /// Inverse CDF within a cell of width h where a density is linear from f0 to f1: the offset

@@ -17,6 +17,8 @@
 #include <unordered_map>
 #include <unordered_set>
 #include <utility>
+#include <atomic>
+#include <mutex>
 #include <vector>
 
 #include "fluo_bispectral.h"
@@ -75,6 +77,29 @@ template <typename Scene> Collector shape_objects(const Scene *scene) {
         c.visit(const_cast<Object *>(static_cast<const Object *>(shape.get())));
     return c;
 }
+
+/// fluo_path and fluo_volpath prepare a render in render(); nested in another integrator
+/// (`stokes`, `aov`, `moment`, whose render() calls only their sample()) the first sample
+/// of a scene prepares it instead: once, under a lock (the scalar variants sample from
+/// many threads). A scene updated between such nested renders keeps its first
+/// preparation; render with fluo_path itself (or call it again on a new scene) for that.
+class PreparedScene {
+public:
+    template <typename Prepare> void ensure(const void *scene, Prepare &&prepare) {
+        if (m_scene.load(std::memory_order_acquire) == scene)
+            return;
+        std::lock_guard<std::mutex> guard(m_mutex);
+        if (m_scene.load(std::memory_order_relaxed) != scene) {
+            prepare();
+            m_scene.store(scene, std::memory_order_release);
+        }
+    }
+    void mark(const void *scene) { m_scene.store(scene, std::memory_order_release); }
+
+private:
+    std::atomic<const void *> m_scene{ nullptr };
+    std::mutex m_mutex;
+};
 
 /// The fluorescent BSDFs among `c`'s objects (interface B, whose jit_fluorescent() holds),
 /// wrapped ones included (FluoWrappers::scan refuses the wrappers it cannot see through);
