@@ -251,7 +251,6 @@ private:
     /// coefficients.
     void prepare(Scene *scene) {
         fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
-        bool directional = false;
         fluo::Range lights = fluo_detail::emitters_range(scene);
         double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
         fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
@@ -259,15 +258,7 @@ private:
         std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
         for (Bispectral *b : bsdfs)
             hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
-        if constexpr (is_spectral_v<Spectrum>) // a band the scene's light never reaches: a plain BSDF
-            bsdfs.erase(std::remove_if(bsdfs.begin(), bsdfs.end(),
-                                       [&](Bispectral *b) {
-                                           fluo::Range ex = b->jit_excitation_range();
-                                           return !(std::max(ex.lo, lo) < std::min(ex.hi, hi));
-                                       }),
-                        bsdfs.end());
-        for (Bispectral *b : bsdfs)
-            directional |= !b->jit_lambertian();
+        bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
         if (scene->emitters().empty())
             bsdfs.clear();
         m_reduced.prepare(scene, bsdfs, false);

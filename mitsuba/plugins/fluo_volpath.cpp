@@ -252,7 +252,6 @@ private:
         std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
         fluo::Range lights = fluo_detail::emitters_range(scene);
         double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
-        bool directional = false;
         fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
         m_wrappers.scan(objects, Plugin);
         std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
@@ -261,15 +260,7 @@ private:
         for (const BMedium *b : media)
             if (b->jit_fluorescent(0.0, 1e30))
                 hi = std::max(hi, b->jit_range().hi);
-        if constexpr (is_spectral_v<Spectrum>) // a band the scene's light never reaches: a plain BSDF
-            bsdfs.erase(std::remove_if(bsdfs.begin(), bsdfs.end(),
-                                       [&](Bispectral *b) {
-                                           fluo::Range ex = b->jit_excitation_range();
-                                           return !(std::max(ex.lo, lo) < std::min(ex.hi, hi));
-                                       }),
-                        bsdfs.end());
-        for (Bispectral *b : bsdfs)
-            directional |= !b->jit_lambertian();
+        bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
         m_range_lo = lo;
         m_range_hi = hi;
         if (scene->emitters().empty())

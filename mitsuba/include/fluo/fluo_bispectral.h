@@ -27,9 +27,17 @@
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
-/// Register plugin class template T, once, for every variant it serves: scalar_rgb,
-/// scalar_spectral, llvm_ad_rgb, llvm_ad_spectral, cuda_ad_rgb and cuda_ad_spectral (the
-/// CUDA ones compile without a GPU and run where one is present); every other variant of
+/// Register T<Float, Spectrum> as plugin `name` in `variant`.
+template <template <typename, typename> class T, typename Float, typename Spec>
+void register_variant(const char *name, const char *variant, ObjectType type) {
+    PluginManager::instance()->register_plugin(
+        name, variant, type, [](void *, const Properties &p) -> ref<Object> { return new T<Float, Spec>(p); },
+        nullptr, nullptr);
+}
+
+/// Register plugin class template T, once, for every variant it serves: the rgb, spectral
+/// and spectral_polarized variants of scalar, llvm_ad and cuda_ad (the CUDA ones compile
+/// without a GPU and run where one is present); every other variant of
 /// the wheel gets a factory that names the plugin and the variant (register_unavailable).
 template <template <typename, typename> class T> void register_plugin(const char *name, ObjectType type) {
     fluo::note_plugin(name, type == ObjectType::BSDF ? "bsdf"
@@ -40,49 +48,15 @@ template <template <typename, typename> class T> void register_plugin(const char
     register_unavailable(name, type);
     using LFloat = dr::DiffArray<JitBackend::LLVM, float>;
     using CFloat = dr::DiffArray<JitBackend::CUDA, float>;
-    PluginManager *pm = PluginManager::instance();
-    pm->register_plugin(
-        name, "scalar_rgb", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<float, Color<float, 3>>(p); }, nullptr,
-        nullptr);
-    pm->register_plugin(
-        name, "scalar_spectral", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<float, Spectrum<float, 4>>(p); }, nullptr,
-        nullptr);
-    pm->register_plugin(
-        name, "llvm_ad_rgb", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Color<LFloat, 3>>(p); }, nullptr,
-        nullptr);
-    pm->register_plugin(
-        name, "llvm_ad_spectral", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<LFloat, Spectrum<LFloat, 4>>(p); },
-        nullptr, nullptr);
-    pm->register_plugin(
-        name, "cuda_ad_rgb", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Color<CFloat, 3>>(p); }, nullptr,
-        nullptr);
-    pm->register_plugin(
-        name, "cuda_ad_spectral", type,
-        [](void *, const Properties &p) -> ref<Object> { return new T<CFloat, Spectrum<CFloat, 4>>(p); },
-        nullptr, nullptr);
-    pm->register_plugin(
-        name, "scalar_spectral_polarized", type,
-        [](void *, const Properties &p) -> ref<Object> {
-            return new T<float, MuellerMatrix<Spectrum<float, 4>>>(p);
-        },
-        nullptr, nullptr);
-    pm->register_plugin(
-        name, "llvm_ad_spectral_polarized", type,
-        [](void *, const Properties &p) -> ref<Object> {
-            return new T<LFloat, MuellerMatrix<Spectrum<LFloat, 4>>>(p);
-        },
-        nullptr, nullptr);
-    pm->register_plugin(
-        name, "cuda_ad_spectral_polarized", type,
-        [](void *, const Properties &p) -> ref<Object> {
-            return new T<CFloat, MuellerMatrix<Spectrum<CFloat, 4>>>(p);
-        },
-        nullptr, nullptr);
+    register_variant<T, float, Color<float, 3>>(name, "scalar_rgb", type);
+    register_variant<T, float, Spectrum<float, 4>>(name, "scalar_spectral", type);
+    register_variant<T, float, MuellerMatrix<Spectrum<float, 4>>>(name, "scalar_spectral_polarized", type);
+    register_variant<T, LFloat, Color<LFloat, 3>>(name, "llvm_ad_rgb", type);
+    register_variant<T, LFloat, Spectrum<LFloat, 4>>(name, "llvm_ad_spectral", type);
+    register_variant<T, LFloat, MuellerMatrix<Spectrum<LFloat, 4>>>(name, "llvm_ad_spectral_polarized", type);
+    register_variant<T, CFloat, Color<CFloat, 3>>(name, "cuda_ad_rgb", type);
+    register_variant<T, CFloat, Spectrum<CFloat, 4>>(name, "cuda_ad_spectral", type);
+    register_variant<T, CFloat, MuellerMatrix<Spectrum<CFloat, 4>>>(name, "cuda_ad_spectral_polarized", type);
 }
 
 /// dr::dispatch exists for JIT pointer arrays only; a scalar pointer is called directly.

@@ -117,6 +117,23 @@ template <typename B> std::vector<B *> fluorescent_bsdfs(const Collector &c) {
     return out;
 }
 
+/// Spectral variants: drop from `bsdfs` the materials whose excitation band misses the
+/// render's range [lo, hi] (the scene's light never reaches it: a plain BSDF there).
+/// Returns whether a remaining one has a direction-dependent reradiation lobe.
+template <typename Spectrum, typename B> bool keep_excited(std::vector<B *> &bsdfs, double lo, double hi) {
+    if constexpr (is_spectral_v<Spectrum>)
+        bsdfs.erase(std::remove_if(bsdfs.begin(), bsdfs.end(),
+                                   [&](B *b) {
+                                       fluo::Range ex = b->jit_excitation_range();
+                                       return !(std::max(ex.lo, lo) < std::min(ex.hi, hi));
+                                   }),
+                    bsdfs.end());
+    bool directional = false;
+    for (B *b : bsdfs)
+        directional |= !b->jit_lambertian();
+    return directional;
+}
+
 /// Like Mitsuba's path, fluo_path does not trace participating media: say so once per
 /// scene (`warned` remembers the last one) when a shape or sensor has one (a fluorescent
 /// medium would otherwise render as empty space without a word).
