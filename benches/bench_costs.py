@@ -35,6 +35,7 @@ llvm: medium without fluorescence (spectral)      ``fluo_volpath`` / ``volpath``
 llvm: quantum-dot cuvette, ``llvm_ad_spectral``   ``fluo_volpath`` Q 0.8 / ``volpath`` Q 0     report
 llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``fluo_path``    report
 per vertex, closed box (4 models × 4 variants)    fluorescent walls / native walls             1.25
+llvm: 200 distinct materials (jung, qd; both)     first render, peak memory / native ones      2.0
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -61,6 +62,13 @@ by a small spherical D65 light inside and seen from inside, with ``fluo_path`` (
 RGB) against Mitsuba's ``path``, ``max_depth`` 8 and ``rr_depth`` 108: no path escapes and
 none is rouletted, so both sides trace the same vertices and the ratio is the cost of a
 fluorescent vertex over a native one, in all four variants (llvm ones in a worker).
+
+The many-materials rows put 200 spheres in the box, each its own material (``fluo_jung``: a
+distinct concentration and emission peak; ``fluo_qd``: a distinct radius) against 200 distinct
+``diffuse`` or ``roughconductor`` ones under ``path``, and time the load and first render (tracing
+and compiling every kernel, each side in a fresh process with an empty kernel cache) and its
+peak memory: a JIT variant compiles one callable per distinct instance unless the instances'
+values are kernel inputs rather than literals (issue 32, finding 15: 60 s for 200 dyes).
 
 The medium rows render ``MEDIA_SPP_FACTOR`` (4) times the samples of the others (a 16-spp
 cuvette render is too short to time on a shared machine). The llvm rows render
@@ -398,6 +406,72 @@ def speedup_row(a, family: str) -> dict:
             "a_s": statistics.median(ts), "b_s": statistics.median(tl), "compile_s": compile_s}
 
 
+#: The many-materials rows: this many distinct materials (one sphere each) in one scene.
+MANY = 200
+
+
+def many_materials(res: int, model: str, fluorescent: bool) -> dict:
+    """MANY spheres in front of the camera, each its own material (values spread so that
+    Mitsuba merges none): distinct dyes (fluo_jung: concentration and emission peak) or
+    quantum dots (fluo_qd: radius), against as many distinct diffuse or roughconductor
+    ones under Mitsuba's path."""
+    d = box(res, "fluo_path" if fluorescent else "path", bsdf=diffuse)
+    for i in range(MANY):
+        t = i / (MANY - 1)
+        if model == "jung":
+            bsdf = {"type": "fluo_jung", "concentration": 0.1 + 0.8 * t, "emission_peak": 500.0 + 80.0 * t} \
+                if fluorescent else {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.1 + 0.8 * t, .5, .3]}}
+        else:
+            bsdf = {"type": "fluo_qd", "radius": 2.0 + 2.0 * t, **ROUGH} if fluorescent else \
+                {"type": "roughconductor", **{**ROUGH, "alpha": 0.05 + 0.3 * t}}
+        d[f"ball_{i}"] = {"type": "sphere", "center": [-0.9 + 0.12 * (i % 16), -0.9 + 0.14 * (i // 16), 0.5],
+                          "radius": 0.05, "bsdf": bsdf}
+    return d
+
+
+def first_render(variant: str, d: dict, spp: int) -> dict:
+    """Load and first render (tracing and compiling every kernel: the worker runs with an
+    empty kernel cache) of one scene in this fresh process, and its peak resident memory."""
+    import resource
+
+    import drjit as dr
+
+    mi.set_variant(jit_variant(variant))
+    import fluo  # noqa: F401
+
+    t0 = time.perf_counter()
+    img = mi.render(mi.load_dict(d), spp=spp, seed=1)
+    dr.eval(img)
+    dr.sync_thread()
+    return {"first_s": time.perf_counter() - t0, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def many_row(a, variant: str, model: str) -> dict:
+    """First render (kernel compile included) and peak memory of MANY distinct fluorescent
+    materials over as many native ones, each side in a fresh process with an empty kernel
+    cache (HOME pointed at a new folder), sides alternating over 3 rounds."""
+    import tempfile
+
+    times, mems = {True: [], False: []}, {True: [], False: []}
+    for r in range(3):
+        for side in ((True, False) if r % 2 == 0 else (False, True)):
+            with tempfile.TemporaryDirectory() as home:
+                cmd = [sys.executable, __file__, "--worker", f"many_{variant}_{model}_{int(side)}", "--spp", str(a.spp),
+                       "--res", str(a.res), "--rounds", str(a.rounds), "--backend", JIT_BACKEND]
+                proc = subprocess.run(cmd, capture_output=True, text=True, env={**os.environ, "HOME": home})
+                lines = [ln[ln.index("RESULT ") + 7:] for ln in proc.stdout.splitlines() if "RESULT " in ln]
+                if proc.returncode != 0 or not lines:
+                    raise SystemExit(f"bench worker failed:\n{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}")
+                got = json.loads(lines[-1])
+            times[side].append(got["first_s"])
+            mems[side].append(got["peak_mb"])
+    ratios = [f / n for f, n in zip(times[True], times[False])]
+    return {"ratio": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "a_s": statistics.median(times[True]), "b_s": statistics.median(times[False]),
+            "memory_ratio": statistics.median(mems[True]) / statistics.median(mems[False]),
+            "a_mb": statistics.median(mems[True]), "b_mb": statistics.median(mems[False])}
+
+
 #: Rows measured in a fresh process (llvm), by name: what the worker runs.
 WORKER_ROWS = {
     "llvm_plain": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=diffuse, light=None),
@@ -449,6 +523,8 @@ WORKER_ROWS = {
     "vertex_matrix_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "matrix", a.res, a.spp, a.rounds),
     "vertex_gmm_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "gmm", a.res, a.spp, a.rounds),
     "vertex_qd_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "qd", a.res, a.spp, a.rounds),
+    **{f"many_{v}_{m}_{int(f)}": (lambda a, v=v, m=m, f=f: first_render(v, many_materials(a.res, m, f), a.spp))
+       for v in ("llvm_ad_spectral", "llvm_ad_rgb") for m in ("jung", "qd") for f in (True, False)},
     "speedup_scalar_spectral": lambda a: render_times("scalar_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_llvm_spectral": lambda a: render_times("llvm_ad_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
     "speedup_scalar_rgb": lambda a: render_times("scalar_rgb", box(a.res, bsdf=jung, basis="x7"), a.spp, a.rounds),
@@ -578,6 +654,11 @@ ROWS = {
                         lambda a: in_worker("llvm_volpath_qd", a)),
     "llvm_volpath_qd_rgb": ("llvm: QD cuvette: fluo_volpath x7 (Q 0.8) / volpath (Q 0), llvm_ad_rgb", None,
                             lambda a: in_worker("llvm_volpath_qd_rgb", a)),
+    **{f"llvm_many_{m}{'_rgb' if v.endswith('rgb') else ''}":
+       (f"llvm: {MANY} distinct {'fluo_jung dyes' if m == 'jung' else 'fluo_qd coatings'} / {MANY} "
+        f"{'diffuse' if m == 'jung' else 'roughconductor'}: load + first render (compile), {v}", 2.0,
+        lambda a, v=v, m=m: many_row(a, v, m))
+       for m in ("jung", "qd") for v in ("llvm_ad_spectral", "llvm_ad_rgb")},
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,
@@ -603,6 +684,9 @@ def readme_region(run: dict, source: str) -> str:
             target = f"≤ {r['target']:.2f}" if r["target"] is not None else "reported"
             if "compile_s" in r:
                 got += f" (kernel compile {max(0.0, r['compile_s']):.1f} s)"
+            if "memory_ratio" in r:
+                got += (f" ({r['a_s']:.1f} s vs {r['b_s']:.1f} s; peak memory {r['a_mb']:.0f} / {r['b_mb']:.0f} MB "
+                        f"= {r['memory_ratio']:.2f}, target ≤ 2)")
         lines.append(f"| {r['label']} | {got} | {target} |")
     return "\n".join(lines + [END]) + "\n"
 
@@ -669,6 +753,8 @@ def main() -> None:
             else:
                 goal = f"target <= {target:.2f}" if target is not None else "reported"
                 extra = f", kernel compile {max(0.0, r['compile_s']):.1f} s" if "compile_s" in r else ""
+                if "memory_ratio" in r:
+                    extra += f", {r['a_s']:.1f} s vs {r['b_s']:.1f} s, peak memory x{r['memory_ratio']:.2f}"
                 print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] ({goal}{extra})", flush=True)
     if a.merge:
         fresh = {r["row"]: r for r in results}

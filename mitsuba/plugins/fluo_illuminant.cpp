@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/texture.h>
@@ -86,7 +87,7 @@ public:
         // An invisible (e.g. UV-only) spectrum still needs a non-zero RGB, so that
         // reduced transport can recover the emitter's geometric weight from it.
         if (!(dr::mean(m_rgb_host) > InvisibleRgb))
-            m_rgb_host = ScalarColor3f(InvisibleRgb);
+            m_rgb_host = ScalarColor3f(dark(*m_spectrum) ? 0.f : InvisibleRgb);
         m_rgb = Color3f(m_rgb_host);
     }
 
@@ -139,6 +140,13 @@ private:
         return fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale, normalize); });
     }
 
+    /// Zero everywhere (`scale` 0).
+    static bool dark(const fluo::Illuminant &s) {
+        rust::Vec<double> wavelengths, values;
+        fluo::illuminant_nodes(s, wavelengths, values);
+        return std::all_of(values.begin(), values.end(), [](double v) { return v == 0.0; });
+    }
+
     /// The spectrum's nodes and values (from Rust, scale applied) as Mitsuba's own
     /// `regular` spectrum (a uniform grid, as the CIE tables) or `irregular` one: both
     /// interpolate linearly and are zero outside, as the Rust spectrum, so per-sample
@@ -151,6 +159,13 @@ private:
         size_t n = wavelengths.size();
         if (n < 2 || values.size() != n)
             return nullptr;
+        if (dark(s)) {
+            // scale 0 (documented [0, inf)): a dark lamp, which Mitsuba's tables refuse
+            // (nothing to sample): a uniform zero spectrum
+            Properties p("uniform");
+            p.set("value", 0.0);
+            return PluginManager::instance()->create_object<Texture>(p);
+        }
         auto join = [](const rust::Vec<double> &v) {
             std::ostringstream oss;
             oss.precision(9); // a float, exactly

@@ -247,6 +247,7 @@ public:
     }
 
     void traverse(TraversalCallback *cb) override {
+        m_record.arm(this);
         Base::traverse(cb);
         if (m_index)
             cb->put("index", m_index, ParamFlags::NonDifferentiable);
@@ -260,12 +261,15 @@ public:
     }
 
     /// fluo_gmm: Rust validates the updated mixture (weights renormalised to sum 1, means
-    /// within range) and bakes the RGB parts and reduced matrices again; a rejected update
-    /// restores the previous values, so the material keeps working.
+    /// within range) and bakes the RGB parts and reduced matrices again; a refused update
+    /// puts every traversed value back (fluo_detail::UpdateRecord), so the material keeps
+    /// working.
     void parameters_changed(const std::vector<std::string> &keys) override {
-        if (m_index) // a changed index map is validated again
-            fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
-        if (m_gmm && !m_index) {
+        m_record.update(this, [&] {
+            if (m_index) // a changed index map is validated again
+                fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
+            if (!m_gmm || m_index)
+                return;
             auto host = [](const FloatStorage &v) {
                 FloatStorage d = dr::detach(v);
                 dr::eval(d);
@@ -274,22 +278,17 @@ public:
                 return std::vector<double>(f.begin(), f.end());
             };
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
-            try {
-                if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
-                    Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
-                          m_plugin, m_n_comps);
-                auto updated = fluo_detail::rust_call(m_plugin, [&] {
-                    return fluo::gmm_updated(*m_models[0], rust::Slice<const double>(w.data(), w.size()),
-                                             rust::Slice<const double>(mi.data(), mi.size()),
-                                             rust::Slice<const double>(mo.data(), mo.size()));
-                });
-                m_models[0] = std::move(updated);
-                update_rgb();
-            } catch (...) {
-                load_mixture(); // the previous mixture
-                throw;
-            }
-        }
+            if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
+                Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
+                      m_plugin, m_n_comps);
+            auto updated = fluo_detail::rust_call(m_plugin, [&] {
+                return fluo::gmm_updated(*m_models[0], rust::Slice<const double>(w.data(), w.size()),
+                                         rust::Slice<const double>(mi.data(), mi.size()),
+                                         rust::Slice<const double>(mo.data(), mo.size()));
+            });
+            m_models[0] = std::move(updated);
+            update_rgb();
+        });
         Base::parameters_changed(keys);
     }
 
@@ -877,6 +876,7 @@ protected:
     std::vector<std::string> m_keys, m_filenames; ///< "filename" or "filename0".., resolved paths
     std::vector<rust::Box<fluo::MeasuredModel>> m_models;
     ref<Texture> m_index; ///< material-index texture (null: one file)
+    fluo_detail::UpdateRecord<Float> m_record; ///< the traversed values, as last accepted
     bool m_gmm = false;
     Grids m_gd;          ///< the diagonals' wavelengths
     FloatStorage m_diag; ///< ρ at them

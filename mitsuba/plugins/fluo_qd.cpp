@@ -275,6 +275,7 @@ public:
 
     /// A textured parameter is listed as its texture (not differentiable).
     void traverse(TraversalCallback *cb) override {
+        m_record.arm(this);
         Base::traverse(cb);
         if (m_tex.tex[Tex::Yield])
             cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
@@ -303,26 +304,21 @@ public:
     /// textures are read again); a rejected update restores the previous ones, so the
     /// material keeps working. Q keeps its AD graph (the reradiation is linear in it).
     void parameters_changed(const std::vector<std::string> &keys) override {
-        fluo::QdConfig previous = m_config;
-        try {
+        m_record.update(this, m_config, [&] {
             if (!m_tex.tex[Tex::Yield])
-                m_config.quantum_yield = fluo_detail::host_param(Plugin, "quantum_yield", m_q);
+                m_config.quantum_yield =
+                    fluo_detail::updated_param(Plugin, "quantum_yield", m_q, m_config.quantum_yield);
             if (!m_tex.tex[Tex::Radius])
-                m_config.radius = fluo_detail::host_param(Plugin, "radius", m_radius);
+                m_config.radius = fluo_detail::updated_param(Plugin, "radius", m_radius, m_config.radius);
             if (!m_tex.tex[Tex::Density])
-                m_config.density = fluo_detail::host_param(Plugin, "density", m_density);
+                m_config.density = fluo_detail::updated_param(Plugin, "density", m_density, m_config.density);
             if (!m_tex.tex[Tex::Alpha])
-                m_config.alpha = m_alpha;
-            m_config.width = m_width;
+                m_config.alpha = fluo_detail::updated_param(Plugin, "alpha", m_alpha, m_config.alpha);
+            m_config.width = fluo_detail::updated_param(Plugin, "width", m_width, m_config.width);
             rebuild();
             // gradients asked for (an optimiser's update): the tangents now, outside any trace
             tangents();
-        } catch (...) {
-            m_config = previous;
-            rebuild();
-            sync_members();
-            throw;
-        }
+        });
         Base::parameters_changed(keys);
     }
 
@@ -370,12 +366,19 @@ public:
 
     // ------------------------------------------------ fluo_path's interface (fluo_bispectral.h)
     bool jit_fluorescent() const override {
-        return textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(**m_model);
+        if (textured())
+            return m_tex.fluoresces;
+        // Q = 0 re-emits nothing, but with gradients on Q its derivative does (m_unit)
+        return fluo::qd_is_fluorescent(**m_model) || (m_unit && dr::grad_enabled(m_q));
     }
+    /// The coating whose tables and ranges a uniform material bakes: its own, or at Q = 0
+    /// the same coating at Q = 1 (nothing in the tables depends on Q; Q weights the
+    /// reradiation per lane), so that dQ at Q = 0 has a shift to flow through.
+    const fluo::QdModel &baked() const { return m_unit ? **m_unit : **m_model; }
     /// The emission range (textured: the hull of the fluorescent models').
     fluo::Range jit_emission_range() const override {
         if (!textured())
-            return fluo::fluo_emission_range(fluo::qd_fluorescence(**m_model));
+            return fluo::fluo_emission_range(fluo::qd_fluorescence(baked()));
         std::vector<const fluo::Fluorescence *> f;
         for (const auto &m : m_tex.models)
             f.push_back(fluo::qd_is_fluorescent(*m) ? &fluo::qd_fluorescence(*m) : nullptr);
@@ -384,7 +387,7 @@ public:
     fluo::Range jit_excitation_range() const override {
         if (textured())
             return { 0.0, 1e30 };
-        return fluo::fluo_excitation_range(fluo::qd_fluorescence(**m_model));
+        return fluo::fluo_excitation_range(fluo::qd_fluorescence(baked()));
     }
     bool jit_lambertian() const override { return false; }
 
@@ -404,7 +407,8 @@ public:
             size_t kk = m[0].size();
             std::vector<double> basis;
             double error = 0.0;
-            m_reduced_n = reduce_nodes(**m_model, m_config.quantum_yield, transport, kk, basis, m_reduced_nodes, error);
+            m_reduced_n = reduce_nodes(baked(), m_unit ? 1.0 : m_config.quantum_yield, transport, kk, basis,
+                                       m_reduced_nodes, error);
             warn_low_rank(error, "this coating");
             for (size_t t = 0; t < MaxTerms; ++t)
                 m_reduced_m[t].assign(basis.begin() + (std::ptrdiff_t) (t * kk),
@@ -462,7 +466,7 @@ public:
     /// The microfacet lobe D G/(4 cos θi) and cos θ = ωi·h (as the Rust model's lobe, at the
     /// roughness the hit's models were baked with).
     std::pair<Float, Float> jit_lobe(const SurfaceInteraction3f &si, const Vector3f &wo, Mask active) const override {
-        Float alpha = m_alpha_f;
+        Float alpha = m_alpha_v;
         if (textured())
             alpha = level_alpha(fluo_detail::lane_nearest(m_tex.alphas, param(si, Tex::Alpha, active)));
         return lobe(si, wo, alpha, active);
@@ -505,11 +509,8 @@ public:
                 we[w] = dr::maximum(bilinear(m_r_tot, dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
             // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
             // within the model's excitation range.
-            double a_host = std::max(range_lo, (double) m_ex_lo), hi_host = std::min(range_hi, (double) m_ex_hi);
-            Float a_r = textured() ? dr::maximum((float) range_lo, em.ex_lo) : Float((float) a_host),
-                  hi_r = textured() ? dr::minimum((float) range_hi, em.ex_hi) : Float((float) hi_host);
-            Cell ca = textured() ? cell(mo, a_r, active) : host_cell(a_host),
-                 c_hi = textured() ? cell(mo, hi_r, active) : host_cell(hi_host);
+            Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
+            Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
             Wavelength lambda_i = lambda_o;
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
@@ -566,11 +567,12 @@ public:
         UnpolarizedSpectrum out_a(0.f), out_b(0.f);
         if constexpr (is_spectral_v<Spectrum>) {
             ModelAt mo = model_at(local, active);
-            Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : Float(m_alpha_f);
+            Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : m_alpha_v;
             auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
             auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                Mask on = active && rerad[w] != 0.f;
+                // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
+                Mask on = active && (dr::grad_enabled(rerad[w]) ? Mask(true) : Mask(rerad[w] != 0.f));
                 Cell c = cell(mo, si.wavelengths[w], on);
                 out_a[w] = rerad[w] * lobe_a * bilinear_ad(m_a_tot, &Tangents::a_tot, c_a, c, mo, on);
                 out_b[w] = rerad[w] * lobe_b * bilinear_ad(m_a_tot, &Tangents::a_tot, c_b, c, mo, on);
@@ -614,7 +616,7 @@ private:
     };
     ModelAt model_at(const UInt32 &m, const Mask &active) const {
         if (!textured())
-            return { UInt32(0), UInt32(0), UInt32(m_grid.n), GridAt{} };
+            return { UInt32(0), UInt32(0), m_grid.v_n, GridAt{} };
         GridAt g = m_grids.at(m, active);
         return { m, dr::gather<UInt32>(m_t_off, m, active), g.n, g };
     }
@@ -643,11 +645,6 @@ private:
         if (!textured())
             return dr::gather<Float>(m_grid.nodes, k, active);
         return dr::gather<Float>(m_grids.nodes, mo.grid.off + k, active);
-    }
-    /// The cell of a wavelength known on the host (the same for every lane; uniform).
-    Cell host_cell(double lambda) const {
-        auto [k, f] = m_grid.host_cell(lambda);
-        return { UInt32((uint32_t) k), Float((float) f), Float((float) m_grid.host[k]), Float((float) m_grid.host[k + 1]) };
     }
 
     /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
@@ -707,7 +704,7 @@ private:
     /// The elastic lobe's roughness given the hit's alpha (param()): its own with a textured
     /// alpha (clamped as roughconductor clamps it), else the uniform one.
     Float elastic_alpha(const Float &alpha) const {
-        return m_tex.tex[Tex::Alpha] ? dr::maximum(alpha, 1e-4f) : Float(m_alpha_f);
+        return m_tex.tex[Tex::Alpha] ? dr::maximum(alpha, 1e-4f) : m_alpha_v;
     }
 
     Hit hit(const SurfaceInteraction3f &si, const Mask &active, bool with_cells) const {
@@ -716,7 +713,7 @@ private:
             h.model[0] = model_at(UInt32(0), active);
             h.weight[0] = Float(1.f);
             h.q = m_q;
-            h.alpha = m_alpha_f;
+            h.alpha = m_alpha_v;
         } else {
             auto [ri, rt] = fluo_detail::lane_bracket(m_tex.radii, param(si, Tex::Radius, active));
             auto [di, dt] = fluo_detail::lane_bracket(m_tex.densities, param(si, Tex::Density, active));
@@ -964,8 +961,7 @@ private:
     };
     Emission emission_of(const ModelAt &mo, const Mask &active) const {
         if (!textured()) {
-            Emission e{ Float(m_peak), Float(m_scale), Float(m_inv_norm), Float(m_lmin), Float(m_lmax), Float(m_ex_lo),
-                        Float(m_ex_hi) };
+            Emission e{ m_em[0], m_em[1], m_em[2], m_em[3], m_em[4], m_em[5], m_em[6] };
             if (const Tangents *t = tangents())
                 for (size_t p = 0; p < 2; ++p) {
                     if (!wants(p))
@@ -1068,6 +1064,14 @@ private:
                   "substrate (the elastic part alone is evaluated per hit); give constant "
                   "\"eta\"/\"k\", or \"density\" = 0 or \"quantum_yield\" = 0",
                   Plugin);
+        m_unit.reset();
+        if (!textured() && m_config.quantum_yield == 0.0 && m_config.density > 0.0 && m_setup.uniform_substrate()) {
+            fluo::QdConfig unit = m_config;
+            unit.quantum_yield = 1.0;
+            m_unit = fluo_detail::rust_call(Plugin, [&] {
+                return fluo::qd_new(unit, eta.view(), k.view(), qd_eta.view(), qd_k.view());
+            });
+        }
         const float *rgb = Setup::RgbWavelengths;
         std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
         std::vector<const fluo::QdModel *> models;
@@ -1075,7 +1079,7 @@ private:
             for (const auto &m : m_tex.models)
                 models.push_back(&*m);
         else
-            models.push_back(&*model);
+            models.push_back(m_unit ? &**m_unit : &*model);
         std::vector<float> a_tot, cdf, r_spe, pass, r_tot, rgb_r_spe, rgb_pass, emission;
         std::vector<uint32_t> t_off;
         m_grids = fluo_detail::LaneGridSet<Float>();
@@ -1118,44 +1122,48 @@ private:
         }
         m_model = std::move(model);
         auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
-        m_a_tot = load(a_tot);
-        m_cdf = load(cdf);
-        m_r_spe = load(r_spe);
-        m_pass = load(pass);
-        m_r_tot = load(r_tot);
-        m_rgb_r_spe = load(rgb_r_spe);
-        m_rgb_pass = load(rgb_pass);
+        // only the tables this variant reads (the RGB ones evaluate R_spe and pass at the
+        // channels' wavelengths; 1.4 MB of spectral tables per material spared there)
+        if constexpr (is_spectral_v<Spectrum>) {
+            m_a_tot = load(a_tot);
+            m_cdf = load(cdf);
+            m_r_spe = load(r_spe);
+            m_pass = load(pass);
+            m_r_tot = load(r_tot);
+        } else {
+            m_rgb_r_spe = load(rgb_r_spe);
+            m_rgb_pass = load(rgb_pass);
+        }
         m_emission = load(emission);
-        // uniform: the model's emission as constants of the kernel
-        m_peak = emission[0];
-        m_scale = emission[1];
-        m_inv_norm = emission[2];
-        m_lmin = emission[3];
-        m_lmax = emission[4];
-        m_ex_lo = emission[5];
-        m_ex_hi = emission[6];
-        // Mitsuba's own clamp of a zero roughness.
-        m_alpha_f = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
+        // uniform: the model's emission and roughness (Mitsuba's own clamp of a zero one) as
+        // values of the kernel, not literals: instances differing in them share one callable
+        for (size_t i = 0; i < 7; ++i)
+            m_em[i] = emission[i];
+        m_alpha_v = dr::maximum((ScalarFloat) m_config.alpha, (ScalarFloat) 1e-4f);
+        dr::make_opaque(m_em[0], m_em[1], m_em[2], m_em[3], m_em[4], m_em[5], m_em[6], m_alpha_v, m_q, m_radius,
+                        m_density);
         m_coated = m_config.density > 0.0; // textured: the largest density level
         ++m_build;
     }
 
-    /// The traversed members from the configuration (at load, and after a rejected update;
-    /// an accepted one keeps Q's AD graph).
+    /// The traversed members from the configuration (at load).
     void sync_members() {
         m_q = (ScalarFloat) m_config.quantum_yield;
         m_radius = (ScalarFloat) m_config.radius;
         m_density = (ScalarFloat) m_config.density;
         m_alpha = (ScalarFloat) m_config.alpha;
         m_width = (ScalarFloat) m_config.width;
+        dr::make_opaque(m_q, m_radius, m_density); // (see rebuild())
     }
 
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
+    fluo_detail::UpdateRecord<Float> m_record; ///< the traversed values, as last accepted
     std::optional<rust::Box<fluo::QdModel>> m_model; ///< textured: at the largest levels (a representative)
+    std::optional<rust::Box<fluo::QdModel>> m_unit;  ///< see baked()
     Setup m_setup;
     Tex m_tex; ///< textured radius, density, quantum_yield, alpha: textures, levels, baked models
     MicrofacetType m_type = MicrofacetType::Beckmann;
-    ScalarFloat m_alpha_f = 0.1f;
+    Float m_alpha_v = 0.1f; ///< the roughness (uniform material)
     bool m_coated = false;
     /// the tables ([rows][λ] row major per model, the models' blocks concatenated at m_t_off;
     /// RGB ones [model][rows][3]) and their grids (uniform: m_grid; textured: m_grids)
@@ -1174,8 +1182,8 @@ private:
     mutable size_t m_reduced_n = 0, m_table_n = 0;
     fluo_detail::LaneGrid<Float> m_grid; ///< a uniform material's λ grid and its bucket index
     fluo_detail::LaneGridSet<Float> m_grids; ///< the textured models' λ grids
-    float m_peak = 0.f, m_scale = 1.f, m_inv_norm = 0.f, m_lmin = 0.f, m_lmax = 0.f;
-    float m_ex_lo = 0.f, m_ex_hi = 0.f;
+    /// a uniform material's emission: peak, scale, 1/normalisation, lmin, lmax, ex_lo, ex_hi
+    Float m_em[7];
     Float m_q = 0.f; ///< Q (differentiable)
     Float m_radius = 0.f, m_density = 0.f; ///< differentiable in the spectral variants (uniform material)
     ScalarFloat m_alpha = 0.f, m_width = 0.f;

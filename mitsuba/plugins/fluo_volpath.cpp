@@ -926,6 +926,16 @@ private:
                 ss.needs_intersection |= active_surface;
                 ss.active &= (active_medium || active_surface) &&
                              dr::any(unpolarized_spectrum(ss.transmittance) != 0.f);
+                if constexpr (K > 0) {
+                    // a fluorescent medium's operator B carries the weight where it was met
+                    // (transmittance stays 1 there): once B is zero (absorbed: in an optically
+                    // thick medium a few null collisions), the ray stops as the spectral one
+                    // does at a zero transmittance, instead of crossing every null collision
+                    Mask alive = false;
+                    for (size_t i = 0; i < 3 * K; ++i)
+                        alive |= ss.B[i] != 0.f;
+                    ss.active &= !ss.met || alive;
+                }
                 Mask transition = active_surface && ss.si.is_medium_transition();
                 dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);
             });

@@ -1,6 +1,6 @@
 """Every plugin's test file in the llvm variants.
 
-Each ``test_fluo_<plugin>.py`` (and ``test_wrappers.py``, ``test_polarized.py``) parametrizes its tests by
+Each ``test_fluo_<plugin>.py`` (and ``test_wrappers.py``, ``test_polarized.py``, ``test_updates.py``) parametrizes its tests by
 ``variant`` over ``conftest.VARIANTS``: the scalar pair in this process. Here each file runs
 again in a fresh process with ``FLUO_TEST_VARIANTS=llvm_ad_spectral,llvm_ad_rgb`` (Mitsuba
 3.8 cannot start an llvm variant after a scalar render), selecting the tests whose id names
@@ -20,7 +20,8 @@ import pytest
 
 HERE = Path(__file__).resolve().parent
 #: Every plugin's test file (a new plugin's test_fluo_<name>.py joins by its name).
-FILES = sorted(p.name for p in HERE.glob("test_fluo_*.py")) + ["test_wrappers.py", "test_polarized.py"]
+FILES = sorted(p.name for p in HERE.glob("test_fluo_*.py")) + ["test_wrappers.py", "test_polarized.py",
+                                                                     "test_updates.py"]
 
 
 #: The tests run: those parametrized by an llvm variant, except fluo_qd's hard cases (a

@@ -83,6 +83,14 @@ template <typename Float> double host_param(const char *plugin, const char *name
     }
 }
 
+/// host_param for an update: `current` (the configuration's value, in double precision) is
+/// kept where the member still holds it in single precision, so a parameter the update did
+/// not touch (or a refused update, undone) leaves the material exactly as loaded.
+template <typename Float> double updated_param(const char *plugin, const char *name, const Float &v, double current) {
+    double x = host_param(plugin, name, v);
+    return x == (double) (float) current ? current : x;
+}
+
 /// A single-lane JIT (or scalar) value read on the host.
 template <typename Float> double host_value(const Float &v) {
     if constexpr (dr::is_jit_v<Float>)

@@ -10,12 +10,20 @@
 #include <mitsuba/core/plugin.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/core/spectrum.h>
+#include <mitsuba/core/transform.h>
+#include <mitsuba/render/texture.h>
+#include <mitsuba/render/interaction.h>
+#include <drjit/tensor.h>
 
 #include <array>
+#include <cmath>
 #include <atomic>
 #include <deque>
+#include <functional>
 #include <string>
 #include <string_view>
+#include <unordered_set>
+#include <vector>
 
 #include "fluo-mitsuba/src/bridge.rs.h"
 #include "rust/cxx.h"
@@ -50,30 +58,190 @@ inline std::string get_string(const Properties &props, const char *name, const c
     return props.has_property(name) ? std::string(props.get<std::string_view>(name)) : def;
 }
 
-/// A parameter update as a transaction: `apply()` copies the traversed values into
-/// `config` and `rebuild()` validates it in Rust and re-derives everything from it. If
-/// either throws, `config` is restored and rebuilt (which also resets the traversed
-/// values, so `mi.traverse` shows the old state) and the error propagates: a rejected
-/// update leaves the object exactly as it was, and later valid updates work.
-template <typename Config, typename Apply, typename Rebuild>
-void transactional_update(Config &config, Apply &&apply, Rebuild &&rebuild) {
-    const Config previous = config;
-    try {
-        apply();
-        rebuild();
-    } catch (...) {
-        config = previous;
-        rebuild();
-        throw;
+/// Every value mi.traverse shows of an object, its children's included (recursively), as
+/// last accepted: a plugin's update is a transaction over them. `arm()` (from the plugin's
+/// traverse(), before anyone can change a value) records them once; `update(self, commit)`
+/// runs the plugin's validation and rebuild. If it throws, every recorded value is put back
+/// (children first told through their own parameters_changed: a texture's or grid's derived
+/// data follows), `commit` runs again on the restored values and the error propagates: a
+/// refused update leaves the object and `mi.traverse` exactly as they were, and never blocks
+/// a later unrelated one (a refused child value, such as fluo_qd's `eta`, is undone too).
+/// After an accepted update the record is taken again.
+template <typename Float> class UpdateRecord {
+    using T = CoreAliases<Float>;
+    using S = CoreAliases<dr::scalar_t<Float>>;
+    struct Value {
+        std::function<void()> restore;
+    };
+    std::vector<Value> m_values;
+    std::vector<Object *> m_children; ///< deepest last
+    bool m_armed = false;
+
+    struct Recorder : TraversalCallback {
+        UpdateRecord *rec;
+        std::unordered_set<Object *> seen;
+        template <typename T> bool take(void *ptr, const std::type_info &type) {
+            if (type != typeid(T))
+                return false;
+            T *p = static_cast<T *>(ptr);
+            rec->m_values.push_back({ [p, v = T(*p)] { *p = v; } });
+            return true;
+        }
+        void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
+            (void) (take<float>(ptr, type) || take<double>(ptr, type) || take<int>(ptr, type) ||
+                    take<uint32_t>(ptr, type) || take<bool>(ptr, type) || take<Float>(ptr, type) ||
+                    take<typename T::Color3f>(ptr, type) || take<typename S::Color3f>(ptr, type) ||
+                    take<typename T::Vector3f>(ptr, type) || take<typename S::Vector3f>(ptr, type) ||
+                    take<typename T::AffineTransform4f>(ptr, type) ||
+                    take<typename S::AffineTransform4f>(ptr, type) ||
+                    take<typename T::ProjectiveTransform4f>(ptr, type) ||
+                    take<DynamicBuffer<Float>>(ptr, type) || take<typename T::TensorXf>(ptr, type) ||
+                    take<typename T::TensorXf16>(ptr, type) || take<typename T::TensorXf64>(ptr, type));
+        }
+        void put_object(std::string_view, Object *o, uint32_t) override {
+            if (!o || !seen.insert(o).second)
+                return;
+            rec->m_children.push_back(o);
+            o->traverse(this);
+        }
+    };
+
+    void record(Object *self) {
+        m_values.clear();
+        m_children.clear();
+        Recorder r;
+        r.rec = this;
+        r.seen.insert(self);
+        self->traverse(&r);
+    }
+
+public:
+    void arm(Object *self) {
+        if (m_armed)
+            return;
+        m_armed = true; // first: the traverse() below must not arm again
+        record(self);
+    }
+
+    template <typename Commit> void update(Object *self, Commit &&commit) {
+        int none = 0;
+        update(self, none, commit);
+    }
+
+    /// The same, the plugin's own `state` (its configuration, in double precision) restored
+    /// with the traversed values.
+    template <typename State, typename Commit> void update(Object *self, State &state, Commit &&commit) {
+        const State previous = state;
+        try {
+            commit();
+        } catch (...) {
+            state = previous;
+            if (!m_armed)
+                throw;
+            for (auto &v : m_values)
+                v.restore();
+            for (auto it = m_children.rbegin(); it != m_children.rend(); ++it)
+                (*it)->parameters_changed({});
+            commit();
+            throw;
+        }
+        if (m_armed)
+            record(self);
+    }
+};
+
+/// Every entry of the data tensors that `obj`'s traverse() shows, its children's included
+/// (bitmap texels, grid voxels, in any precision): `f(values, channels)` per tensor, the
+/// values on the host as floats.
+template <typename Float, typename F> struct TensorReader : TraversalCallback {
+    using T = CoreAliases<Float>;
+    F *f;
+    std::unordered_set<Object *> seen;
+    template <typename Tensor> bool take(void *ptr, const std::type_info &type) {
+        if (type != typeid(Tensor))
+            return false;
+        const Tensor &t = *static_cast<const Tensor *>(ptr);
+        using F32 = dr::float32_array_t<typename Tensor::Array>;
+        F32 v = F32(t.array());
+        std::vector<float> host(dr::width(v));
+        if constexpr (dr::is_jit_v<F32>) {
+            dr::eval(v);
+            dr::store(host.data(), v);
+        } else {
+            for (size_t i = 0; i < host.size(); ++i)
+                host[i] = (float) v[i];
+        }
+        (*f)(host, t.ndim() > 0 ? t.shape(t.ndim() - 1) : (size_t) 1);
+        return true;
+    }
+    void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
+        (void) (take<typename T::TensorXf>(ptr, type) || take<typename T::TensorXf16>(ptr, type) ||
+                take<typename T::TensorXf64>(ptr, type));
+    }
+    void put_object(std::string_view, Object *o, uint32_t) override {
+        if (o && seen.insert(o).second)
+            o->traverse(this);
+    }
+};
+
+template <typename Float, typename F> void for_each_stored_tensor(Object *obj, F &&f) {
+    TensorReader<Float, std::remove_reference_t<F>> reader;
+    reader.f = &f;
+    reader.seen.insert(obj);
+    obj->traverse(&reader);
+}
+
+/// The stored values of a texture or volume (for_each_stored_tensor), checked one by one:
+/// each must be finite and, where the tensor holds the values themselves (`ranged`: not a
+/// spectral variant's sigmoid coefficients), within [lo, hi]. The first bad one is named
+/// with its index; the grid's or bitmap's maximum alone let a NaN or negative voxel through.
+template <typename Float>
+void check_stored_values(const char *plugin, const char *name, Object *obj, double lo, double hi,
+                         bool ranged_multichannel) {
+    for_each_stored_tensor<Float>(obj, [&](const std::vector<float> &v, size_t channels) {
+        bool ranged = channels == 1 || ranged_multichannel;
+        for (size_t i = 0; i < v.size(); ++i) {
+            double x = v[i];
+            if (!std::isfinite(x) || (ranged && !(x >= lo && x <= hi)))
+                Throw("%s: invalid parameter \"%s\": value %zu (channel %zu) = %g: valid range is %s", plugin,
+                      name, i, i % channels, x,
+                      ranged ? tfm::format("[%g, %g]", lo, hi) : std::string("any finite number"));
+        }
+    });
+}
+
+/// The values a constant `value_at(wavelengths)` takes: at 48 wavelengths spread over Mitsuba's
+/// 360–830 nm in spectral variants (12 calls of four), once in RGB; each finite and within [lo, hi].
+template <typename Float, typename Spectrum, typename Eval>
+void check_probed_values(const char *plugin, const char *name, double lo, double hi, Eval &&value_at) {
+    using Wavelength = wavelength_t<Spectrum>;
+    constexpr size_t calls = is_spectral_v<Spectrum> ? 12 : 1;
+    for (size_t c = 0; c < calls; ++c) {
+        Wavelength w = dr::zeros<Wavelength>();
+        if constexpr (is_spectral_v<Spectrum>)
+            for (size_t j = 0; j < dr::size_v<Wavelength>; ++j)
+                w[j] = (float) (360.0 + 470.0 * (double) (c + calls * j) /
+                                            (double) (calls * dr::size_v<Wavelength> - 1));
+        auto value = value_at(w);
+        for (size_t j = 0; j < dr::size_v<decltype(value)>; ++j) {
+            double x = (double) dr::slice(value[j], 0);
+            if (!(x >= lo && x <= hi))
+                Throw("%s: invalid parameter \"%s\" = %g %s: valid range is [%g, %g]", plugin, name, x,
+                      is_spectral_v<Spectrum> ? tfm::format("at %g nm", (double) dr::slice(w[j], 0))
+                                              : tfm::format("(channel %zu)", j),
+                      lo, hi);
+        }
     }
 }
 
-/// Check that a reflectance-like texture stays within [lo, hi]: its mean and, where the
-/// texture reports one, its maximum (a constant, an <rgb>, a bitmap's largest texel).
-/// NaN, ±inf and out-of-range values are rejected naming the parameter, since Mitsuba
-/// itself accepts any float and a NaN reflectance renders an all-NaN image.
-template <typename Texture>
-void check_texture_range(const char *plugin, const char *name, const Texture *tex, double lo, double hi) {
+/// Check that a reflectance-like texture stays within [lo, hi]: every texel a bitmap
+/// stores (finite; in range where it stores the values), a constant's value at the
+/// wavelengths (check_probed_values), and its mean and maximum (what a procedural
+/// texture reports). NaN, ±inf and out-of-range values are rejected naming the parameter,
+/// since Mitsuba itself accepts any float and a NaN reflectance renders an all-NaN image.
+template <typename Float, typename Spectrum>
+void check_texture_range(const char *plugin, const char *name, const Texture<Float, Spectrum> *tex, double lo,
+                         double hi) {
     if (!tex)
         return;
     auto check = [&](double v, const char *what) {
@@ -89,6 +257,14 @@ void check_texture_range(const char *plugin, const char *name, const Texture *te
         check(mean, "its mean");
     if (has_max)
         check(max, "its maximum");
+    auto *t = const_cast<Texture<Float, Spectrum> *>(tex);
+    check_stored_values<Float>(plugin, name, t, lo, hi, !is_spectral_v<Spectrum>);
+    if (!tex->is_spatially_varying())
+        check_probed_values<Float, Spectrum>(plugin, name, lo, hi, [&](const wavelength_t<Spectrum> &w) {
+            SurfaceInteraction<Float, Spectrum> si = dr::zeros<SurfaceInteraction<Float, Spectrum>>();
+            si.wavelengths = w;
+            return tex->eval(si, true);
+        });
 }
 
 /// Allowed range of the integrators' `lambda_min`, nm.

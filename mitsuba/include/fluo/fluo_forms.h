@@ -134,6 +134,10 @@ template <typename Float> struct LaneGrid {
     float step = 1.f, l0 = 0.f, l1 = 1.f;
     uint32_t n = 2, n_buckets = 0;
     bool bucketed = false;
+    /// The same as values of the kernel, not literals (JIT variants: instances whose grids
+    /// differ share one callable; dr::make_opaque).
+    Float v_l0 = 0.f, v_l1 = 1.f, v_inv_step = 1.f, v_last_bucket = 0.f;
+    UInt32 v_n = 2;
 
     void set(const std::vector<double> &x) {
         host = x;
@@ -148,8 +152,10 @@ template <typename Float> struct LaneGrid {
         double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
         size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
         bucketed = count >= 1 && count <= MaxBuckets;
-        if (!bucketed)
+        if (!bucketed) {
+            opaque();
             return;
+        }
         std::vector<uint32_t> b(count);
         for (size_t i = 0, k = 0; i < count; ++i) {
             double at = x.front() + (double) i * s;
@@ -160,15 +166,25 @@ template <typename Float> struct LaneGrid {
         buckets = dr::load<DynamicBuffer<UInt32>>(b.data(), b.size());
         step = (float) s;
         n_buckets = (uint32_t) count;
+        opaque();
+    }
+
+    void opaque() {
+        v_l0 = l0;
+        v_l1 = l1;
+        v_inv_step = 1.f / step;
+        v_last_bucket = (float) (n_buckets > 0 ? n_buckets - 1 : 0);
+        v_n = n;
+        dr::make_opaque(v_l0, v_l1, v_inv_step, v_last_bucket, v_n);
     }
 
     Cell cell(const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, l0, l1);
+        Float x = dr::clip(lambda, v_l0, v_l1);
         UInt32 k;
         if (bucketed) {
-            UInt32 b = UInt32(dr::minimum(dr::floor((x - l0) * (1.f / step)), (float) (n_buckets - 1)));
+            UInt32 b = UInt32(dr::minimum(dr::floor((x - v_l0) * v_inv_step), v_last_bucket));
             k = dr::gather<UInt32>(buckets, b, active);
-            k = dr::select(k + 2 < n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
+            k = dr::select(k + 2 < v_n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
         } else {
             k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
                     return dr::gather<Float>(nodes, i, active) <= x;

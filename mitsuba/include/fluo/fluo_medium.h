@@ -92,6 +92,24 @@ template <typename Float, typename Spectrum> struct MediumCommon {
             Throw("%s: invalid parameter \"density\": its maximum %g must be finite and >= 0", plugin, d);
         if (!(s >= 0.0) || !std::isfinite(s))
             Throw("%s: invalid parameter \"sigma_s\": its maximum %g must be finite and >= 0", plugin, s);
+        // every voxel (the maxima let a NaN or negative one through) and a constant's value
+        // at the wavelengths (an RGB σs with a NaN channel): finite and >= 0
+        constexpr double inf = std::numeric_limits<double>::infinity();
+        check_stored_values<Float>(plugin, "density", density.get(), 0.0, inf, true);
+        check_stored_values<Float>(plugin, "sigma_s", sigma_s.get(), 0.0, inf, true);
+        auto constant_of = [](const Volume *v) { return dr::all(v->resolution() == ScalarVector3i(1, 1, 1)); };
+        auto at = [](const Wavelength &w) {
+            Interaction3f it = dr::zeros<Interaction3f>();
+            it.wavelengths = w;
+            return it;
+        };
+        if (constant_of(density.get()))
+            check_probed_values<Float, Spectrum>(plugin, "density", 0.0, inf, [&](const Wavelength &w) {
+                return dr::Array<Float, 1>(density->eval_1(at(w), true));
+            });
+        if (constant_of(sigma_s.get()))
+            check_probed_values<Float, Spectrum>(plugin, "sigma_s", 0.0, inf,
+                                                 [&](const Wavelength &w) { return sigma_s->eval(at(w), true); });
         max_density = d;
         max_sigma_s = s;
         constant = !bounded && dr::all(sigma_s->resolution() == ScalarVector3i(1, 1, 1));
@@ -198,6 +216,7 @@ public:
     static constexpr size_t NW = dr::size_v<UnpolarizedSpectrum>;
 
     void traverse(TraversalCallback *cb) override {
+        m_record.arm(this);
         cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
         cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
         Base::traverse(cb);
@@ -349,11 +368,14 @@ protected:
     }
 
     /// An update of the density or σs (mi.traverse): the majorant's maxima, the absorption
-    /// check and the majorant's floor follow it (a stale majorant biases tracking).
+    /// check and the majorant's floor follow it (a stale majorant biases tracking). A refused
+    /// update puts the grids' values back (fluo_detail::UpdateRecord).
     void parameters_changed(const std::vector<std::string> &keys) override {
-        m_common.refresh(m_plugin);
-        m_common.check_absorption(m_plugin, m_mu_max, m_what);
-        m_majorant_floor = m_common.majorant_floor(m_mu_max);
+        m_record.update(this, [&] {
+            m_common.refresh(m_plugin);
+            m_common.check_absorption(m_plugin, m_mu_max, m_what);
+            m_majorant_floor = m_common.majorant_floor(m_mu_max);
+        });
         Base::parameters_changed(keys);
     }
 
@@ -432,7 +454,7 @@ private:
     Float source(const Float &lambda_o, const Cell &c, double a, double b, const Mask &active) const {
         if (!m_fluorescent || !(a < b))
             return Float(0.f);
-        Mask inside = active && lambda_o >= m_egrid.l0 && lambda_o <= m_egrid.l1;
+        Mask inside = active && lambda_o >= m_egrid.v_l0 && lambda_o <= m_egrid.v_l1;
         Cell ce = m_egrid.cell(lambda_o, inside);
         Float e = dr::lerp(dr::gather<Float>(m_emission, ce.k, inside),
                            dr::gather<Float>(m_emission, ce.k + 1, inside), ce.f);
@@ -450,6 +472,7 @@ private:
     std::array<double, 3> m_mu_a_rgb{};
     double m_rgb_mu_max = 0.0, m_majorant_floor = fluo_detail::MediumMinMajorant;
     double m_mu_max = 0.0; ///< μa's peak, 1/m at density 1
+    fluo_detail::UpdateRecord<Float> m_record; ///< the traversed values, as last accepted
     std::string m_what;   ///< what sets μa (the absorption check's message)
     Grid m_grid, m_egrid; ///< μa's nodes, the emission's
     FloatStorage m_mu_a, m_cum, m_emission;

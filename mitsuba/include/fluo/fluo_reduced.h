@@ -98,6 +98,7 @@ public:
                     e.table = load(table);
                 m_entries.push_back(std::move(e));
             }
+            opaque_operators();
             if ((!m_entries.empty() || media) && m_uv_warned != scene) {
                 for (const auto &[emitter, src] : m_sources)
                     if (fluo::illuminant_is_mostly_uv(*src.illuminant)) {
@@ -282,12 +283,19 @@ public:
     }
 
 private:
+    /// Scenes with more fluorescent materials than this read their operators' entries as
+    /// values of the kernel (dr::make_opaque) instead of literals: with literals, every
+    /// material with its own operator compiled its own callable (200 distinct dyes: minutes);
+    /// with few, literals keep the per-vertex cost (a constant multiply, zero entries skipped).
+    static constexpr size_t LiteralEntries = 8;
+
     /// A fluorescent BSDF and its reduced operator Σ w_i·M_i (f = M/π).
     struct Entry {
         const BSDF *bsdf;
         const Bispectral *bispectral;
         bool full = false; ///< the operator includes the elastic part
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
+        std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
         /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
         /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
         DynamicBuffer<Float> nodes;
@@ -313,6 +321,16 @@ private:
         double luminance;
         const fluo::Illuminant *illuminant;
     };
+
+    /// Entry i of term t of `e`'s operator: a literal, or (many materials) an opaque value.
+    Float entry(const Entry &e, size_t t, size_t i) const {
+        return m_opaque ? e.mv[t][i] : Float((float) e.m[t][i]);
+    }
+    /// Whether that entry is used: non-zero in `e` (literals) or in some material (opaque:
+    /// every material then traces the same code).
+    bool nonzero(const Entry &e, size_t t, size_t i) const {
+        return m_opaque ? (bool) m_any[t][i] : e.m[t][i] != 0.0;
+    }
 
     const Entry *find(const BSDF *b) const {
         for (const Entry &e : m_entries)
@@ -346,8 +364,8 @@ private:
                 if (e.n_table > 0)
                     col[k] = wn * dr::gather<Float>(e.table, base + (uint32_t) (k * K + j), on);
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
-                    if (e.m[t][k * K + j] != 0.0)
-                        col[k] = dr::fmadd(w[t], (float) e.m[t][k * K + j], col[k]);
+                    if (nonzero(e, t, k * K + j))
+                        col[k] = dr::fmadd(w[t], entry(e, t, k * K + j), col[k]);
                 if (elastic && k == j)
                     col[k] += d[k];
             }
@@ -393,8 +411,9 @@ private:
                     Float acc = 0.f; // (R·M_t)[r, j]
                     bool any = false;
                     for (size_t k = 0; k < K; ++k)
-                        if (double m = e.m[t][k * K + j]; m != 0.0) {
-                            acc = any ? dr::fmadd(R[r * K + k], (float) m, acc) : R[r * K + k] * (float) m;
+                        if (nonzero(e, t, k * K + j)) {
+                            Float m = entry(e, t, k * K + j);
+                            acc = any ? dr::fmadd(R[r * K + k], m, acc) : R[r * K + k] * m;
                             any = true;
                         }
                     if (!any)
@@ -466,6 +485,28 @@ private:
     size_t m_k = 3;
     std::vector<double> m_output, m_from_rgb, m_white;
     std::vector<Entry> m_entries;
+    bool m_opaque = false; ///< see LiteralEntries
+    std::array<std::vector<bool>, Bispectral::MaxTerms> m_any; ///< per term: entries non-zero in some material
+
+    void opaque_operators() {
+        m_opaque = m_entries.size() > LiteralEntries;
+        if (!m_opaque)
+            return;
+        for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
+            m_any[t].assign(m_k * m_k, false);
+            for (const Entry &e : m_entries)
+                for (size_t i = 0; i < e.m[t].size() && i < m_any[t].size(); ++i)
+                    m_any[t][i] = m_any[t][i] || e.m[t][i] != 0.0;
+        }
+        for (Entry &e : m_entries)
+            for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
+                e.mv[t].resize(e.m[t].size());
+                for (size_t i = 0; i < e.m[t].size(); ++i) {
+                    e.mv[t][i] = Float((float) e.m[t][i]);
+                    dr::make_opaque(e.mv[t][i]);
+                }
+            }
+    }
     std::unordered_map<const Emitter *, Source> m_sources;
     const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
 };
