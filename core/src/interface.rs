@@ -48,6 +48,14 @@ pub trait Bispectral {
     /// Reradiation density P(λi, λo), nm⁻¹, for light arriving at incidence cosine
     /// `cos_i` (diffuse normalisation; zero for λo ≤ λi when there is no anti-Stokes part).
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64;
+    /// P(λi, λo) at one λi for every λo of `lambdas_o`, into `out`: what a reduction reads,
+    /// column by column. The default asks [`Bispectral::density`] per entry; a model whose
+    /// density factors (quantum dots: A_tot(θ, λi)·e(λo | λi)) computes its λi part once.
+    fn density_column(&self, cos_i: f64, lambda_i: f64, lambdas_o: &[f64], out: &mut [f64]) {
+        for (o, &lambda_o) in out.iter_mut().zip(lambdas_o) {
+            *o = self.density(cos_i, lambda_i, lambda_o);
+        }
+    }
     /// Reradiated radiance factor at λo for light along the normal:
     /// ∫ P(λi, λo) I(λi) dλi over `domain` (only excitation below λo reaches it),
     /// trapezoid on a ≤ [`RERADIATED_STEP_NM`] grid.

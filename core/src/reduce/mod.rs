@@ -321,12 +321,16 @@ impl Basis {
 pub struct Operator<'a> {
     elastic: Box<dyn Fn(f64) -> f64 + 'a>,
     density: Box<dyn Fn(f64, f64) -> f64 + 'a>,
+    /// The density a column (one λi) at a time, where the material computes that faster.
+    column: Option<DensityColumn<'a>>,
 }
+
+type DensityColumn<'a> = Box<dyn Fn(f64, &[f64], &mut [f64]) + 'a>;
 
 impl<'a> Operator<'a> {
     /// An operator from its two parts.
     pub fn new(elastic: impl Fn(f64) -> f64 + 'a, density: impl Fn(f64, f64) -> f64 + 'a) -> Self {
-        Operator { elastic: Box::new(elastic), density: Box::new(density) }
+        Operator { elastic: Box::new(elastic), density: Box::new(density), column: None }
     }
     /// A material's operator for light along the normal.
     pub fn of<M: Bispectral + ?Sized>(material: &'a M) -> Self {
@@ -334,11 +338,14 @@ impl<'a> Operator<'a> {
     }
     /// A material's operator for light arriving at incidence cosine `cos_i`.
     pub fn at<M: Bispectral + ?Sized>(material: &'a M, cos_i: f64) -> Self {
-        Self::new(move |l| material.elastic_albedo(cos_i, l), move |li, lo| material.density(cos_i, li, lo))
+        Operator {
+            column: Some(Box::new(move |li, los, out| material.density_column(cos_i, li, los, out))),
+            ..Self::new(move |l| material.elastic_albedo(cos_i, l), move |li, lo| material.density(cos_i, li, lo))
+        }
     }
     /// The reradiation alone (no diagonal).
     pub fn reradiation_only(self) -> Self {
-        Operator { elastic: Box::new(|_| 0.0), density: self.density }
+        Operator { elastic: Box::new(|_| 0.0), ..self }
     }
     /// Diagonal (elastic) albedo ρ(λ).
     pub fn elastic(&self, lambda: f64) -> f64 {
@@ -347,6 +354,17 @@ impl<'a> Operator<'a> {
     /// Reradiation density P(λi, λo), nm⁻¹.
     pub fn density(&self, lambda_i: f64, lambda_o: f64) -> f64 {
         (self.density)(lambda_i, lambda_o)
+    }
+    /// P(λi, λo) for every λo of `lambdas_o`, into `out`.
+    pub fn density_column(&self, lambda_i: f64, lambdas_o: &[f64], out: &mut [f64]) {
+        match &self.column {
+            Some(column) => column(lambda_i, lambdas_o, out),
+            None => {
+                for (o, &lambda_o) in out.iter_mut().zip(lambdas_o) {
+                    *o = self.density(lambda_i, lambda_o);
+                }
+            }
+        }
     }
 }
 
@@ -374,14 +392,16 @@ impl Reduced {
 fn operator(material: &Operator, basis: &Basis) -> DMatrix<f64> {
     let lambdas = grid();
     let n = lambdas.len();
-    DMatrix::from_fn(n, n, |o, i| {
-        let p = material.density(lambdas[i], lambdas[o]) * basis.w[i];
-        if o == i {
-            p + material.elastic(lambdas[o])
-        } else {
-            p
+    let mut m = DMatrix::zeros(n, n);
+    let mut column = vec![0.0; n];
+    for i in 0..n {
+        material.density_column(lambdas[i], &lambdas, &mut column);
+        for (o, &p) in column.iter().enumerate() {
+            let p = p * basis.w[i];
+            m[(o, i)] = if o == i { p + material.elastic(lambdas[o]) } else { p };
         }
-    })
+    }
+    m
 }
 
 /// Reduce a material's reradiation to a K×K matrix in the given basis.
