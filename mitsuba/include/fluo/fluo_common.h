@@ -80,11 +80,11 @@ template <typename Float> class UpdateRecord {
     struct Recorder : TraversalCallback {
         UpdateRecord *rec;
         std::unordered_set<Object *> seen;
-        template <typename T> bool take(void *ptr, const std::type_info &type) {
-            if (type != typeid(T))
+        template <typename V> bool take(void *ptr, const std::type_info &type) {
+            if (type != typeid(V))
                 return false;
-            T *p = static_cast<T *>(ptr);
-            rec->m_values.push_back({ [p, v = T(*p)] { *p = v; } });
+            V *p = static_cast<V *>(ptr);
+            rec->m_values.push_back({ [p, v = V(*p)] { *p = v; } });
             return true;
         }
         void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
@@ -153,6 +153,21 @@ public:
 /// Every entry of the data tensors that `obj`'s traverse() shows, its children's included
 /// (bitmap texels, grid voxels, in any precision): `f(values, channels)` per tensor, the
 /// values on the host as floats.
+/// A tensor's values on the host as floats (any precision; one read-back in the JIT variants).
+template <typename Tensor> std::vector<float> host_floats(const Tensor &t) {
+    using F32 = dr::float32_array_t<typename Tensor::Array>;
+    F32 v = F32(t.array());
+    std::vector<float> host(dr::width(v));
+    if constexpr (dr::is_jit_v<F32>) {
+        dr::eval(v);
+        dr::store(host.data(), v);
+    } else {
+        for (size_t i = 0; i < host.size(); ++i)
+            host[i] = (float) v[i];
+    }
+    return host;
+}
+
 template <typename Float, typename F> struct TensorReader : TraversalCallback {
     using T = CoreAliases<Float>;
     F *f;
@@ -161,17 +176,7 @@ template <typename Float, typename F> struct TensorReader : TraversalCallback {
         if (type != typeid(Tensor))
             return false;
         const Tensor &t = *static_cast<const Tensor *>(ptr);
-        using F32 = dr::float32_array_t<typename Tensor::Array>;
-        F32 v = F32(t.array());
-        std::vector<float> host(dr::width(v));
-        if constexpr (dr::is_jit_v<F32>) {
-            dr::eval(v);
-            dr::store(host.data(), v);
-        } else {
-            for (size_t i = 0; i < host.size(); ++i)
-                host[i] = (float) v[i];
-        }
-        (*f)(host, t.ndim() > 0 ? t.shape(t.ndim() - 1) : (size_t) 1);
+        (*f)(host_floats(t), t.ndim() > 0 ? t.shape(t.ndim() - 1) : (size_t) 1);
         return true;
     }
     void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {

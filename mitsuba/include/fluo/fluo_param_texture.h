@@ -86,12 +86,10 @@ private:
                 Throw("%s: parameter \"%s\" is a texture with %zu channels; a textured numeric parameter "
                       "needs one channel (a grayscale image, or a single-channel EXR)",
                       plugin, name, t.ndim() == 3 ? t.shape(2) : (size_t) 0);
-            size_t n = t.shape(0) * t.shape(1);
             if (top)
                 width = t.shape(1);
-            values.reserve(values.size() + n);
-            for (size_t i = 0; i < n; ++i)
-                values.push_back((float) dr::slice(t.array(), i));
+            std::vector<float> host = host_floats(t); // (one read-back, not one per texel)
+            values.insert(values.end(), host.begin(), host.end());
         };
         if (r.data || r.data16 || r.data64) {
             if (r.data)
