@@ -46,7 +46,7 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
  * - basis
    - |string|
    - RGB variants only: transport basis for fluorescence, ``rgb`` (3 channels),
-     ``xyzu`` (CIE 1931 XYZ plus a UV band) or ``x7`` (7 bands: X split in three, Y in two,
+     ``xyzu`` (CIE 1931 XYZ plus a UV band), ``x7`` (7 bands: X split in three, Y in two,
      Z, U). (Default: ``x7``: over the ``fluo bench`` scenes its mean ΔE00 against the
      spectral reference is the lowest on average and within noise of the best on each
      scene; README's generated bench table has the numbers. Its 7×7 matrices cost 392
@@ -221,13 +221,13 @@ public:
         if constexpr (is_rgb_v<Spectrum>) {
             if (m_reduced.size() > 0) {
                 if (m_reduced.bands() == 3)
-                    return sample_reduced<3>(scene, sampler, ray, active);
+                    return trace<3>(scene, sampler, ray, active);
                 if (m_reduced.bands() == 4)
-                    return sample_reduced<4>(scene, sampler, ray, active);
-                return sample_reduced<Reduced::KMax>(scene, sampler, ray, active);
+                    return trace<4>(scene, sampler, ray, active);
+                return trace<Reduced::KMax>(scene, sampler, ray, active);
             }
         }
-        return sample_spectral(scene, sampler, ray, active);
+        return trace<0>(scene, sampler, ray, active);
     }
 
     std::string to_string() const override {
@@ -338,140 +338,81 @@ private:
 
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
 
-    // ------------------------------------------------------------ spectral (and no fluorescence)
-    struct LoopState {
-        Ray3f ray;
-        PreliminaryIntersection3f pi;
-        Spectrum throughput, result;
-        Float eta;
-        UInt32 depth;
-        Mask valid_ray;
-        Interaction3f prev_si;
-        Float prev_bsdf_pdf;
-        Bool prev_bsdf_delta, active;
-        Sampler *sampler;
-        DRJIT_STRUCT(LoopState, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
-                     prev_bsdf_delta, active, sampler)
-    };
-
-    std::pair<Spectrum, Bool> sample_spectral(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                              Bool active) const {
-        LoopState ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Spectrum(1.f), Spectrum(0.f),
-                         Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
-                         dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
-        ls.pi = camera_intersection(scene, ls.ray, ls.active);
-        const bool fluorescent = is_spectral_v<Spectrum> && !m_bsdfs.empty(), directional = m_directional;
-        const double range_lo = m_range_lo, range_hi = m_range_hi;
-
-        dr::tie(ls) = dr::while_loop(
-            dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
-            [this, scene, fluorescent, directional, range_lo, range_hi](LoopState &ls) {
-                BSDFContext bsdf_ctx;
-                SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
-
-                // ---------------------- Direct emission ----------------------
-                if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
-                    auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
-                    ls.result = dr::fmadd(ls.throughput, le * mis_bsdf, ls.result);
-                }
-
-                Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
-                // a directly seen emitter is a valid sample even where the path ends here
-                ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
-                if (dr::none_or<false>(active_next)) {
-                    ls.active = active_next;
-                    return;
-                }
-                BSDFPtr bsdf = si.bsdf(ls.ray);
-                typename Wrappers::Perturbations perturbed;
-                if (!m_wrappers.empty())
-                    bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
-
-                // ------- Fluorescence: per lane and hero wavelength, elastic or shift -------
-                fluo_detail::SurfaceShift<Float, Spectrum> shift;
-                if (fluorescent)
-                    shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, range_lo, range_hi);
-
-                // ---------------------- Emitter sampling ----------------------
-                auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
-                active_em &= perturbed.keeps_side(ds.d);
-
-                // ------ Evaluate BSDF * cos(theta) and sample direction -------
-                Float sample_1 = ls.sampler->next_1d();
-                Point2f sample_2 = ls.sampler->next_2d();
-                auto [bsdf_val, bsdf_pdf, bsdf_sample, bsdf_weight] =
-                    bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
-
-                if (fluorescent)
-                    shift.apply(m_bsdfs, bsdf, si, directional, wo, bsdf_sample, active_next, bsdf_val, bsdf_weight);
-
-                if (dr::any_or<true>(active_em)) {
-                    Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
-                    ls.result[active_em] = dr::fmadd(ls.throughput, bsdf_val * em_weight * mis_em, ls.result);
-                }
-
-                // ---------------------- BSDF sampling ----------------------
-                ls.throughput *= bsdf_weight;
-                advance(ls, si, bsdf_sample);
-                active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
-
-                // -------------------- Stopping criterion ---------------------
-                auto [rr_active, rr_scale] = roulette(ls, dr::max(unpolarized_spectrum(ls.throughput)), active_next);
-                ls.throughput[rr_active] *= rr_scale;
-                ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
-            });
-
-        return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
-    }
-
-    // ------------------------------------------------------------ RGB: reduced transport
-    template <size_t K> struct LoopStateR {
-        Ray3f ray;
-        PreliminaryIntersection3f pi;
-        Color3f t;                 ///< RGB throughput until the first fluorescent vertex
-        dr::Array<Float, 3 * K> R; ///< then the 3×K matrix throughput
-        Mask reduced;
-        Color3f result;
-        Float eta;
-        UInt32 depth;
-        Mask valid_ray;
-        Interaction3f prev_si;
-        Float prev_bsdf_pdf;
-        Bool prev_bsdf_delta, active;
-        Sampler *sampler;
-        DRJIT_STRUCT(LoopStateR, ray, pi, t, R, reduced, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf,
-                     prev_bsdf_delta, active, sampler)
-    };
-
+    // ------------------------------------------------------------ the loop
     template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
     template <size_t K> using Rows = typename Reduced::template Rows<K>;
 
+    /// What a path carries. K = 0: Mitsuba's throughput (the spectral variants shift its
+    /// wavelengths at fluorescent vertices; a scene without fluorescence is `path`).
+    struct Throughput {
+        Spectrum throughput;
+        DRJIT_STRUCT(Throughput, throughput)
+    };
+    /// K > 0 (RGB with fluorescence, the reduced transport): Mitsuba's RGB throughput t
+    /// until the first fluorescent vertex, then the 3×K matrix throughput R.
+    template <size_t K> struct MatrixThroughput {
+        Color3f t;
+        dr::Array<Float, 3 * K> R;
+        Mask reduced; ///< where R is the throughput
+        DRJIT_STRUCT(MatrixThroughput, t, R, reduced)
+    };
+    template <size_t K> using Carried = std::conditional_t<K == 0, Throughput, MatrixThroughput<K>>;
+
+    template <size_t K> struct LoopState {
+        Ray3f ray;
+        PreliminaryIntersection3f pi;
+        Carried<K> c;
+        Spectrum result;
+        Float eta;
+        UInt32 depth;
+        Mask valid_ray;
+        Interaction3f prev_si;
+        Float prev_bsdf_pdf;
+        Bool prev_bsdf_delta, active;
+        Sampler *sampler;
+        DRJIT_STRUCT(LoopState, ray, pi, c, result, eta, depth, valid_ray, prev_si, prev_bsdf_pdf, prev_bsdf_delta,
+                     active, sampler)
+    };
+
+    /// path.cpp's loop; what differs between the carried throughputs is marked K == 0 / K > 0.
     template <size_t K>
-    std::pair<Spectrum, Bool> sample_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                             Bool active) const {
-        if constexpr (!is_rgb_v<Spectrum>) {
+    std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
+                                    Bool active) const {
+        if constexpr (K > 0 && !is_rgb_v<Spectrum>) {
             return { 0.f, false };
         } else {
-            LoopStateR<K> ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), Color3f(1.f),
-                                 dr::zeros<Rows<K>>(), Mask(false), Color3f(0.f), Float(1.f), UInt32(0),
-                                 Mask(!m_hide_emitters && scene->environment() != nullptr), dr::zeros<Interaction3f>(),
-                                 Float(1.f), Bool(true), active, sampler };
+            Carried<K> start;
+            if constexpr (K == 0)
+                start = { Spectrum(1.f) };
+            else
+                start = { Color3f(1.f), dr::zeros<Rows<K>>(), Mask(false) };
+            LoopState<K> ls = { Ray3f(ray_), dr::zeros<PreliminaryIntersection3f>(), start, Spectrum(0.f),
+                                Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
+                                dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
             ls.pi = camera_intersection(scene, ls.ray, ls.active);
+            const bool shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty(), directional = m_directional;
+            const double range_lo = m_range_lo, range_hi = m_range_hi;
 
             dr::tie(ls) = dr::while_loop(
-                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
-                [this, scene](LoopStateR<K> &ls) {
+                dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
+                [this, scene, shifting, directional, range_lo, range_hi](LoopState<K> &ls) {
                     BSDFContext bsdf_ctx;
+                    Carried<K> &c = ls.c;
                     SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
 
+                    // ---------------------- Direct emission ----------------------
                     if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
                         auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
-                        Color3f c =
-                            m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, le, emitter != nullptr);
-                        ls.result = dr::fmadd(c, mis_bsdf, ls.result);
+                        if constexpr (K == 0)
+                            ls.result = dr::fmadd(c.throughput, le * mis_bsdf, ls.result);
+                        else
+                            ls.result = dr::fmadd(
+                                m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, le, emitter != nullptr),
+                                mis_bsdf, ls.result);
                     }
 
                     Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+                    // a directly seen emitter is a valid sample even where the path ends here
                     ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
                     if (dr::none_or<false>(active_next)) {
                         ls.active = active_next;
@@ -482,51 +423,78 @@ private:
                     if (!m_wrappers.empty())
                         bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
 
+                    // K == 0 with fluorescence: per lane and hero wavelength, elastic or shift
+                    fluo_detail::SurfaceShift<Float, Spectrum> shift;
+                    if (shifting)
+                        shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, range_lo, range_hi);
+
+                    // ---------------------- Emitter sampling ----------------------
                     auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
                     active_em &= perturbed.keeps_side(ds.d);
+
+                    // ------ Evaluate BSDF * cos(theta) and sample direction -------
                     Float sample_1 = ls.sampler->next_1d();
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+                    Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
 
-                    // the matrix throughput, diag(t)·O on first entering it
-                    Rows<K> R = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
+                    if constexpr (K == 0) {
+                        if (shifting)
+                            shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_next, bsdf_val, bsdf_weight);
+                        if (dr::any_or<true>(active_em))
+                            ls.result[active_em] = dr::fmadd(c.throughput, bsdf_val * em_weight * mis_em, ls.result);
+                        c.throughput *= bsdf_weight;
+                    } else {
+                        // the matrix throughput, diag(t)·O on first entering it
+                        Rows<K> R = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
 
-                    // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
-                    // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian), or a
-                    // direction-dependent lobe's R·A(ωo)·cos θo per direction (only in scenes that
-                    // hold one), its elastic part being the BSDF's own value. Towards the emitter
-                    // sample only R·A(ωo)·c (3 values) leaves the call.
-                    const bool any_em = dr::any_or<true>(active_em);
-                    Coeffs<K> c = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
-                    if (any_em)
-                        c = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
-                    Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
-                    auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
-                        bsdf, si, R, c, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
-                    if (any_em) {
-                        Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
-                        Color3f v_red = Reduced::template apply<K>(
-                            Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)), c);
-                        v_fl += dr::select(native_elastic, v_red, 0.f);
-                        Color3f v = dr::select(is_fl, v_fl, dr::select(ls.reduced, v_red, ls.t * bsdf_val * em_weight));
-                        ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
+                        // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
+                        // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian), or a
+                        // direction-dependent lobe's R·A(ωo)·cos θo per direction (only in scenes that
+                        // hold one), its elastic part being the BSDF's own value. Towards the emitter
+                        // sample only R·A(ωo)·c (3 values) leaves the call.
+                        const bool any_em = dr::any_or<true>(active_em);
+                        Coeffs<K> cl = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
+                        if (any_em)
+                            cl = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+                        Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
+                        auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
+                            bsdf, si, R, cl, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
+                        if (any_em) {
+                            Color3f v_red = Reduced::template apply<K>(
+                                Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)),
+                                cl);
+                            v_fl += dr::select(native_elastic, v_red, 0.f);
+                            Color3f v =
+                                dr::select(is_fl, v_fl, dr::select(c.reduced, v_red, c.t * bsdf_val * em_weight));
+                            ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
+                        }
+                        m_reduced.template scatter<K>(c.R, c.t, c.reduced, R, R_fl, is_fl, native_elastic,
+                                                      bsdf_weight, Mask(true));
                     }
 
-                    m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, R, R_fl, is_fl, native_elastic, bsdf_weight,
-                                                  Mask(true));
-
+                    // ---------------------- BSDF sampling ----------------------
                     advance(ls, si, bs);
-                    active_next &= perturbed.keeps_side(ls.ray.d);
+                    active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
 
-                    Float r_max = Reduced::template max_abs<K>(ls.R);
-                    auto [rr_active, rr_scale] = roulette(ls, dr::select(ls.reduced, r_max, dr::max(ls.t)), active_next);
-                    ls.R[rr_active] *= rr_scale;
-                    ls.t[rr_active] *= rr_scale;
+                    // -------------------- Stopping criterion ---------------------
+                    if constexpr (K == 0) {
+                        auto [rr_active, rr_scale] =
+                            roulette(ls, dr::max(unpolarized_spectrum(c.throughput)), active_next);
+                        c.throughput[rr_active] *= rr_scale;
+                    } else {
+                        Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
+                        auto [rr_active, rr_scale] = roulette(ls, t_max, active_next);
+                        c.R[rr_active] *= rr_scale;
+                        c.t[rr_active] *= rr_scale;
+                    }
                     ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
                 });
-            // Out-of-gamut colours are clipped per sample (the docs' reduced transport).
-            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+            // K > 0: out-of-gamut colours are clipped per sample (the docs' reduced transport)
+            if constexpr (K > 0)
+                ls.result = dr::maximum(ls.result, 0.f);
+            return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
         }
     }
 

@@ -63,7 +63,7 @@ Wavelength-shifting volumetric path tracer (:monosp:`fluo_volpath`)
 Mitsuba's ``volpath`` (delta tracking with null collisions, next-event estimation
 through media with ratio-tracked transmittance, MIS between emitter and phase/BSDF
 sampling, index-matched ``null`` boundaries, Russian roulette), extended with
-fluorescence, in every variant fluo serves (one class and one loop per transport,
+fluorescence, in every variant fluo serves (one class and one loop for both transports,
 ``dr::while_loop`` as Mitsuba's integrators):
 
 * **in media** that implement fluo's bispectral medium interface (``fluo_qd_medium``):
@@ -212,14 +212,14 @@ public:
             if (!m_fluorescent)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
             if (m_reduced.bands() == 3)
-                return trace_reduced<3>(scene, sampler, ray, medium, active);
+                return trace<3>(scene, sampler, ray, medium, active);
             if (m_reduced.bands() == 4)
-                return trace_reduced<4>(scene, sampler, ray, medium, active);
-            return trace_reduced<Reduced::KMax>(scene, sampler, ray, medium, active);
+                return trace<4>(scene, sampler, ray, medium, active);
+            return trace<Reduced::KMax>(scene, sampler, ray, medium, active);
         } else {
             if (!m_fluorescent)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
-            return trace(scene, sampler, ray, medium, active);
+            return trace<0>(scene, sampler, ray, medium, active);
         }
     }
 
@@ -557,11 +557,29 @@ private:
         dr::masked(ls.medium, transition) = si.target_medium(ls.ray.d);
     }
 
-    struct LoopState {
+    /// What a path carries. K = 0 (spectral variants): Mitsuba's throughput, shifted in
+    /// wavelength at fluorescent events, and μf of a fluorescent medium at the flight's
+    /// wavelengths (density 1). K > 0 (RGB, the reduced transport): the RGB throughput t
+    /// until the first fluorescent event, then the 3×K matrix throughput R.
+    struct Throughput {
+        Spectrum throughput;
+        UnpolarizedSpectrum mu_f;
+        DRJIT_STRUCT(Throughput, throughput, mu_f)
+    };
+    template <size_t K> struct MatrixThroughput {
+        Color3f t;
+        Rows<K> R;
+        Mask reduced; ///< where R is the throughput
+        DRJIT_STRUCT(MatrixThroughput, t, R, reduced)
+    };
+    template <size_t K> using Carried = std::conditional_t<K == 0, Throughput, MatrixThroughput<K>>;
+
+    template <size_t K> struct LoopState {
         Mask active;
         UInt32 depth;
         Ray3f ray;
-        Spectrum throughput, result;
+        Carried<K> c;
+        Spectrum result;
         SurfaceInteraction3f si;
         MediumInteraction3f mei;
         MediumPtr medium;
@@ -570,37 +588,62 @@ private:
         Float last_scatter_direction_pdf;
         Mask needs_intersection, specular_chain, valid_ray;
         Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
-        /// μa, μf of a fluorescent medium at the flight's wavelengths (density 1)
-        UnpolarizedSpectrum mu_a, mu_f;
+        /// μa of a fluorescent medium at the flight's wavelengths (density 1; K > 0: its bound)
+        UnpolarizedSpectrum mu_a;
         UInt32 channel; ///< volpath's distance-sampling channel (0: spectral variants)
         Sampler *sampler;
-        DRJIT_STRUCT(LoopState, active, depth, ray, throughput, result, si, mei, medium, eta, last_scatter_event,
-                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, mu_f,
-                     channel, sampler)
+        DRJIT_STRUCT(LoopState, active, depth, ray, c, result, si, mei, medium, eta, last_scatter_event,
+                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, channel,
+                     sampler)
     };
 
-    /// volpath's loop with fluorescence (spectral variants with fluorescence only).
+    /// A wavelength-preserving weight w where `m`: the throughput times w; K > 0: t·w before
+    /// the first fluorescent event, R·diag(band albedos of w) after it.
+    template <size_t K, typename Weight> void weigh(Carried<K> &c, const Weight &w, const Mask &m) const {
+        if constexpr (K == 0) {
+            dr::masked(c.throughput, m) *= w;
+        } else {
+            Rows<K> scaled = Reduced::template scale_columns<K>(c.R, m_reduced.template band_albedo<K>(Color3f(w)));
+            c.R = dr::select(m && c.reduced, scaled, c.R);
+            dr::masked(c.t, m && !c.reduced) *= Color3f(w);
+        }
+    }
+
+    /// volpath's loop with fluorescence; what differs between the carried throughputs is
+    /// marked K == 0 (wavelength shifting) / K > 0 (the reduced transport).
+    template <size_t K>
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
                                     const Medium *initial_medium, Bool active) const {
-        LoopState ls;
+        LoopState<K> ls;
         start(ls, scene, sampler, ray_, initial_medium, active);
-        ls.throughput = Spectrum(1.f);
+        if constexpr (K == 0)
+            ls.c = { Spectrum(1.f), UnpolarizedSpectrum(0.f) };
+        else
+            ls.c = { Color3f(1.f), dr::zeros<Rows<K>>(), Mask(false) };
         ls.result = Spectrum(0.f);
-        ls.mu_f = UnpolarizedSpectrum(0.f);
-        const bool directional = m_directional, surfaces = !m_bsdfs.empty(), media = !m_media.empty();
+        const bool directional = m_directional, surfaces = K == 0 ? !m_bsdfs.empty() : m_reduced.size() > 0,
+                   media = !m_media.empty();
         const double range_lo = m_range_lo, range_hi = m_range_hi;
+        constexpr size_t KC = K == 0 ? 1 : K; // (the band arrays' size where K = 0 has none)
 
         dr::tie(ls) = dr::while_loop(
-            dr::make_tuple(ls), [](const LoopState &ls) { return ls.active; },
-            [this, scene, directional, surfaces, media, range_lo, range_hi](LoopState &ls) {
+            dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
+            [this, scene, directional, surfaces, media, range_lo, range_hi](LoopState<K> &ls) {
                 Mask &active = ls.active;
-                Spectrum &throughput = ls.throughput;
+                Carried<K> &c = ls.c;
                 Sampler *sampler = ls.sampler;
 
                 // ----------------- Russian roulette, max_depth -----------------
-                auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(throughput)),
-                                                 dr::any(unpolarized_spectrum(throughput) != 0.f));
-                dr::masked(throughput, perform_rr) *= rr;
+                if constexpr (K == 0) {
+                    auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(c.throughput)),
+                                                     dr::any(unpolarized_spectrum(c.throughput) != 0.f));
+                    dr::masked(c.throughput, perform_rr) *= rr;
+                } else {
+                    Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
+                    auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
+                    dr::masked(c.t, perform_rr) *= rr;
+                    dr::masked(c.R, perform_rr) *= rr;
+                }
                 if (dr::none_or<false>(active))
                     return;
 
@@ -609,95 +652,129 @@ private:
                 Mask active_surface = active && !active_medium;
                 Mask act_null = false, act_scatter = false, escaped = false;
                 Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
-                Float p_null = 0.f, p_real = 1.f;
-                UnpolarizedSpectrum mu_f = 0.f;
+                Float p_null = 0.f, p_real = 1.f, d = 0.f;
+                UnpolarizedSpectrum mu_f = 0.f;                   // K = 0: μf at the collision
+                Coeffs<KC> sigma_s = dr::zeros<Coeffs<KC>>();     // K > 0: a fluorescent collision's σs per band
+                MediaMasks which;
                 if (dr::any_or<true>(active_medium)) {
                     is_spectral &= ls.medium->has_spectral_extinction();
                     not_spectral = !is_spectral && active_medium;
                     Mask fluo_flight = start_flight(scene, ls, active_medium);
-                    if (dr::any_or<true>(fluo_flight)) {
-                        auto [mu_a, mu_f_] = rates(ls.medium, ls.ray.wavelengths, fluo_flight);
-                        dr::masked(ls.mu_a, fluo_flight) = mu_a;
-                        dr::masked(ls.mu_f, fluo_flight) = mu_f_;
+                    // what the majorant covers of the source rate (up to 1/ℓ)
+                    UnpolarizedSpectrum source = 0.f;
+                    if constexpr (K == 0) {
+                        if (dr::any_or<true>(fluo_flight)) {
+                            auto [mu_a, mu_f_] = rates(ls.medium, ls.ray.wavelengths, fluo_flight);
+                            dr::masked(ls.mu_a, fluo_flight) = mu_a;
+                            dr::masked(c.mu_f, fluo_flight) = mu_f_;
+                        }
+                        source = c.mu_f;
+                    } else {
+                        if (dr::any_or<true>(fluo_flight))
+                            dr::masked(ls.mu_a, fluo_flight) =
+                                absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
+                        if (media)
+                            which = which_media(ls.medium);
+                        source = media ? per_medium(which, &ReducedMedium::f_max, 0) : Float(0.f);
                     }
                     Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                    auto [mei, mf, fl, d] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
-                                                          ls.channel, rate, ls.mu_a, ls.mu_f, active_medium);
-                    (void) d;
+                    auto [mei, mf, fl, dd] = sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium),
+                                                           ls.channel, rate, ls.mu_a, source, active_medium);
                     place_collision(scene, ls, mei, active_medium);
                     mu_f = mf;
+                    d = dd;
                     is_fluo = fl && active_medium;
+                    if constexpr (K > 0)
+                        is_spectral &= !is_fluo; // R carries a fluorescent medium's weights
                     Mask weighted = is_spectral; // (escaping flights too)
                     auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
-                    dr::masked(throughput, weighted) *= w;
+                    weigh<K>(c, w, weighted);
 
-                    // Null or real: volpath's rule, spectral tracking in fluorescent media.
+                    // Null or real: volpath's rule; in fluorescent media spectral tracking
+                    // (K = 0) or band tracking on R (K > 0).
                     p_null = pn;
                     p_real = pr;
+                    Float majorant = ls.mei.combined_extinction[0];
                     if (media && dr::any_or<true>(is_fluo)) {
-                        auto [pn, pr] = spectral_tracking(ls.mei, throughput, mu_f, ls.inv_len);
-                        p_null = dr::select(is_fluo, pn, p_null);
-                        p_real = dr::select(is_fluo, pr, p_real);
+                        std::pair<Float, Float> p;
+                        if constexpr (K == 0) {
+                            p = spectral_tracking(ls.mei, c.throughput, mu_f, ls.inv_len);
+                        } else {
+                            c.R = dr::select(is_fluo && !c.reduced, m_reduced.template output_rows<K>(c.t), c.R);
+                            c.reduced |= is_fluo;
+                            sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
+                            p = band_tracking<K>(c.R, sigma_s, d, majorant, ls.inv_len, which);
+                        }
+                        p_null = dr::select(is_fluo, p.first, p_null);
+                        p_real = dr::select(is_fluo, p.second, p_real);
                     }
                     Mask null_scatter = sampler->next_1d(active_medium) < p_null;
                     act_null = null_scatter && active_medium;
                     act_scatter = !null_scatter && active_medium;
-                    dr::masked(throughput, act_null && is_spectral) *= ls.mei.sigma_n / p_null;
+                    weigh<K>(c, ls.mei.sigma_n / p_null, act_null && is_spectral);
+                    if constexpr (K > 0) {
+                        Mask fl_null = act_null && is_fluo;
+                        if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
+                            Float s = dr::rcp(majorant * p_null);
+                            Coeffs<K> g;
+                            for (size_t k = 0; k < K; ++k)
+                                g[k] = (majorant - sigma_s[k]) * s;
+                            c.R = dr::select(fl_null, medium_product<K>(c.R, g, -d * s, &ReducedMedium::a, which),
+                                             c.R);
+                        }
+                    }
                 }
                 settle_collision(ls, act_null, act_scatter);
 
                 if (dr::any_or<true>(act_scatter)) {
-                    // Elastic scattering, or per wavelength a shift to λi (the docs' estimator).
-                    UnpolarizedSpectrum sigma_s = ls.mei.sigma_s;
-                    WMask shifted = false;
+                    // K = 0: elastic scattering, or per wavelength a shift to λi (the docs'
+                    // estimator). K > 0: a fluorescent medium's source operator
+                    // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
                     Mask fl_scatter = act_scatter && is_fluo;
-                    if (media && dr::any_or<true>(fl_scatter)) {
-                        Wavelength ux, uy; // one 2D number, rotated per hero wavelength
-                        Point2f u = sampler->next_2d(fl_scatter);
-                        ux[0] = u.x();
-                        uy[0] = u.y();
-                        fluo_detail::rotate_hero(ux);
-                        fluo_detail::rotate_hero(uy);
-                        auto [li, ok] = fluo_detail::dispatch_any(
-                            ls.medium,
-                            [this, range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_,
-                                                       const Wavelength &u_, const Mask &on) {
-                                if (const BMedium *f = m_media_set.find(m))
-                                    return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
-                                return std::make_pair(mei_.wavelengths, WMask(false));
-                            },
-                            ls.mei, uy, fl_scatter);
-                        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
-                            Float ss = dr::maximum(ls.mei.sigma_s[j], 0.f), sf = dr::maximum(mu_f[j], 0.f);
-                            Float total = ss + sf;
-                            Mask valid = total > 0.f && dr::isfinite(total);
-                            Mask elastic = ux[j] * total < ss;
-                            Mask shift = fl_scatter && valid && !elastic && ok[j];
-                            // both events weigh σs + μf (over their probability); 0 where none can go on
-                            sigma_s[j] = dr::select(fl_scatter, dr::select(valid && (elastic || shift), total, 0.f),
-                                                    sigma_s[j]);
-                            shifted[j] = shift;
-                        }
-                        ls.mei.wavelengths = dr::select(shifted, li, ls.mei.wavelengths);
+                    WMask shifted = false;
+                    Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
+                    UnpolarizedSpectrum sigma_w = ls.mei.sigma_s;
+                    if constexpr (K == 0) {
+                        if (media && dr::any_or<true>(fl_scatter))
+                            shifted = shift_collision(ls, mu_f, sampler, fl_scatter, range_lo, range_hi, sigma_w);
                     }
-                    dr::masked(throughput, act_scatter && is_spectral) *= sigma_s / p_real;
-                    dr::masked(throughput, act_scatter && not_spectral) *= ls.mei.sigma_s / ls.mei.sigma_t;
-                    // A collision that absorbed every wavelength for good ends the path.
-                    Mask dead = fl_scatter && dr::all(unpolarized_spectrum(throughput) == 0.f);
-                    active &= !dead;
-                    act_scatter &= !dead;
+                    weigh<K>(c, sigma_w / p_real, act_scatter && is_spectral);
+                    weigh<K>(c, ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
+                    if constexpr (K == 0) {
+                        // A collision that absorbed every wavelength for good ends the path.
+                        Mask dead = fl_scatter && dr::all(unpolarized_spectrum(c.throughput) == 0.f);
+                        active &= !dead;
+                        act_scatter &= !dead;
+                    }
 
                     PhaseFunctionContext phase_ctx(sampler);
                     auto [phase, active_e] = begin_scatter(ls, act_scatter);
 
                     // ------------------------ Emitter sampling -----------------
                     if (dr::any_or<true>(active_e)) {
-                        auto [emitted, ds] = sample_emitter(ls.mei, scene, sampler, ls.medium, active_e);
+                        auto [ds, emitter_val] =
+                            scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
+                        active_e &= ds.pdf != 0.f;
                         auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
-                        // shifted wavelengths re-emit isotropically
-                        phase_val = fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi), phase_val);
                         Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
-                        dr::masked(ls.result, active_e) += throughput * phase_val * emitted * mis;
+                        if constexpr (K == 0) {
+                            // shifted wavelengths re-emit isotropically
+                            phase_val =
+                                fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi), phase_val);
+                            Spectrum emitted = light<0>(ls.mei, ds, emitter_val, scene, sampler, ls.medium, ls.channel,
+                                                        Float(0.f), Color3f(0.f), false, active_e);
+                            dr::masked(ls.result, active_e) += c.throughput * phase_val * emitted * mis;
+                        } else {
+                            Color3f pv(phase_val);
+                            Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
+                            Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
+                            if (media && dr::any_or<true>(fl_scatter))
+                                B = dr::select(fl_scatter,
+                                               source_product<K>(c.R, sigma_s, pv, d, InvFourPi, real_scale, which), B);
+                            dr::masked(ls.result, active_e) += light<K>(ls.mei, ds, emitter_val, scene, sampler,
+                                                                        ls.medium, ls.channel, B, c.t * pv,
+                                                                        c.reduced, active_e) * mis;
+                        }
                     }
 
                     // ---------------------- Phase function sampling ------------
@@ -707,11 +784,22 @@ private:
                         auto [wo, phase_weight, phase_pdf] =
                             phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
                         act_scatter &= phase_pdf > 0.f;
-                        phase_weight = fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi / phase_pdf), phase_weight);
+                        if constexpr (K == 0) {
+                            phase_weight = fluo_detail::select_unpolarized(
+                                shifted, UnpolarizedSpectrum(InvFourPi / phase_pdf), phase_weight);
+                            dr::masked(c.throughput, act_scatter) *= phase_weight;
+                        } else {
+                            fl_scatter &= act_scatter;
+                            if (media && dr::any_or<true>(fl_scatter))
+                                c.R = dr::select(fl_scatter,
+                                                 source_product<K>(c.R, sigma_s, Color3f(phase_weight), d,
+                                                                   InvFourPi / phase_pdf, real_scale, which),
+                                                 c.R);
+                            weigh<K>(c, phase_weight, act_scatter && !is_fluo);
+                        }
                         dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo); // carries λi where shifted
                         ls.needs_intersection |= act_scatter;
                         dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
-                        dr::masked(throughput, act_scatter) *= phase_weight;
                     }
                 }
 
@@ -721,8 +809,11 @@ private:
 
                 if (dr::any_or<true>(active_surface)) {
                     auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
-                    (void) emitter;
-                    dr::masked(ls.result, active_e) += throughput * emitted * weight;
+                    if constexpr (K == 0)
+                        dr::masked(ls.result, active_e) += c.throughput * emitted * weight;
+                    else if (dr::any_or<true>(active_e))
+                        dr::masked(ls.result, active_e) +=
+                            m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, emitted, active_e) * weight;
                 }
                 active_surface &= ls.si.is_valid();
                 if (dr::any_or<true>(active_surface)) {
@@ -732,17 +823,23 @@ private:
                     typename Wrappers::Perturbations perturbed;
                     if (!m_wrappers.empty())
                         bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
-                    fluo_detail::SurfaceShift<Float, Spectrum> shift;
-                    if (surfaces)
+                    fluo_detail::SurfaceShift<Float, Spectrum> shift; // K = 0: elastic or shift per wavelength
+                    if (K == 0 && surfaces)
                         shift.choose(m_bsdfs, bsdf, si, sampler, active_surface, range_lo, range_hi);
 
                     // ------------------------ Emitter sampling -----------------
                     Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
                                     ls.depth + 1 < (uint32_t) m_max_depth;
-                    Spectrum emitted = 0.f;
                     DirectionSample3f ds = dr::zeros<DirectionSample3f>();
-                    if (dr::any_or<true>(active_e))
-                        std::tie(emitted, ds) = sample_emitter(si, scene, sampler, ls.medium, active_e);
+                    Spectrum emitter_val = 0.f;
+                    if (dr::any_or<true>(active_e)) {
+                        std::tie(ds, emitter_val) =
+                            scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
+                        active_e &= ds.pdf != 0.f;
+                        if constexpr (K == 0) // (the transmittance before the BSDF's numbers, as volpath)
+                            emitter_val = light<0>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel,
+                                                   Float(0.f), Color3f(0.f), false, active_e);
+                    }
                     active_e &= perturbed.keeps_side(ds.d);
                     Vector3f wo = si.to_local(ds.d);
 
@@ -751,20 +848,76 @@ private:
                     Point2f sample_2 = sampler->next_2d(active_surface);
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
-                    if (surfaces)
-                        shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
-                    if (dr::any_or<true>(active_e)) {
-                        Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
-                        dr::masked(ls.result, active_e) += throughput * bsdf_val * mis * emitted;
+                    Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+                    if constexpr (K == 0) {
+                        if (surfaces)
+                            shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
+                        dr::masked(ls.result, active_e) += c.throughput * bsdf_val * mis * emitter_val;
+                        dr::masked(c.throughput, active_surface) *= bsdf_weight;
+                    } else {
+                        Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
+                        Mask is_fl = false, native_elastic = false;
+                        Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
+                        if (surfaces)
+                            std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
+                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
+                                m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
+                        if (dr::any_or<true>(active_e)) {
+                            Rows<K> B_red =
+                                Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
+                            Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
+                            dr::masked(ls.result, active_e) += light<K>(si, ds, emitter_val, scene, sampler, ls.medium,
+                                                                        ls.channel, B, c.t * bsdf_val,
+                                                                        c.reduced || is_fl, active_e) * mis;
+                        }
+                        m_reduced.template scatter<K>(c.R, c.t, c.reduced, Rm, R_fl, is_fl, native_elastic, bsdf_weight,
+                                                      active_surface);
                     }
-
-                    dr::masked(throughput, active_surface) *= bsdf_weight;
                     leave_surface(ls, si, bs, active_surface); // the ray carries λi where shifted
                     active_surface &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
                 }
                 active &= active_surface || active_medium;
             });
-        return { ls.result, ls.valid_ray };
+        if constexpr (K == 0)
+            return { ls.result, ls.valid_ray };
+        else // out-of-gamut colours are clipped per sample (as fluo_path does)
+            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+    }
+
+    /// K = 0: a fluorescent medium's real collision at `mei` (where `active`) picks, per hero
+    /// wavelength, elastic scattering or a shift to λi (the docs' estimator): the ray's
+    /// wavelengths become λi where shifted; `sigma_s` becomes both events' weight σs + μf
+    /// (0 where none can go on). Returns where each wavelength shifted.
+    template <typename State>
+    WMask shift_collision(State &ls, const UnpolarizedSpectrum &mu_f, Sampler *sampler, const Mask &active,
+                          double range_lo, double range_hi, UnpolarizedSpectrum &sigma_s) const {
+        Wavelength ux, uy; // one 2D number, rotated per hero wavelength
+        Point2f u = sampler->next_2d(active);
+        ux[0] = u.x();
+        uy[0] = u.y();
+        fluo_detail::rotate_hero(ux);
+        fluo_detail::rotate_hero(uy);
+        auto [li, ok] = fluo_detail::dispatch_any(
+            ls.medium,
+            [this, range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_, const Wavelength &u_,
+                                       const Mask &on) {
+                if (const BMedium *f = m_media_set.find(m))
+                    return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
+                return std::make_pair(mei_.wavelengths, WMask(false));
+            },
+            ls.mei, uy, active);
+        WMask shifted = false;
+        for (size_t j = 0; j < dr::size_v<UnpolarizedSpectrum>; ++j) {
+            Float ss = dr::maximum(ls.mei.sigma_s[j], 0.f), sf = dr::maximum(mu_f[j], 0.f);
+            Float total = ss + sf;
+            Mask valid = total > 0.f && dr::isfinite(total);
+            Mask elastic = ux[j] * total < ss;
+            Mask shift = active && valid && !elastic && ok[j];
+            sigma_s[j] = dr::select(active, dr::select(valid && (elastic || shift), total, 0.f), sigma_s[j]);
+            shifted[j] = shift;
+        }
+        ls.mei.wavelengths = dr::select(shifted, li, ls.mei.wavelengths);
+        return shifted;
     }
 
     /// RGB variants: the 3×K block a shadow ray multiplies by the fluorescent media's
@@ -788,19 +941,32 @@ private:
                      met, sampler)
     };
 
-    /// An emitter sample seen from `ref` (at ref.wavelengths) and its transmittance
-    /// through media and null interfaces (spectral variants).
-    template <typename Interaction>
-    std::pair<Spectrum, DirectionSample3f> sample_emitter(const Interaction &ref, const Scene *scene, Sampler *sampler,
-                                                          MediumPtr medium, Mask active) const {
-        auto [ds, emitter_val] = scene->sample_emitter_direction(ref, sampler->next_2d(active), false, active);
-        dr::masked(emitter_val, ds.pdf == 0.f) = 0.f;
-        active &= ds.pdf != 0.f;
-        if (dr::none_or<false>(active))
-            return { emitter_val, ds };
-        auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, UInt32(0), Float(0.f), active);
-        (void) b, (void) met;
-        return { emitter_val * tr, ds };
+    /// The emitter sample ds's value `emitter_val` seen from `ref` through media (ratio
+    /// tracking; fluorescent media with their absorption majorant) and null interfaces, as
+    /// volpath's sample_emitter. K = 0: times the transmittance. K > 0: the contribution of
+    /// a vertex whose operator towards it is B (3×K, `matrix`: the path is in matrix form
+    /// there) or, in RGB form, `rgb` (the throughput times the vertex's value).
+    template <size_t K, typename Interaction>
+    Spectrum light(const Interaction &ref, const DirectionSample3f &ds, const Spectrum &emitter_val,
+                   const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
+                   const Block<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active) const {
+        if constexpr (K == 0) {
+            (void) rgb, (void) matrix;
+            if (dr::none_or<false>(active))
+                return emitter_val;
+            auto [tr, b, met] = transmit<0>(ref, ds, scene, sampler, medium, channel, B, active);
+            (void) b, (void) met;
+            return emitter_val * tr;
+        } else {
+            auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, channel, B, active);
+            // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
+            Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
+            Color3f le = dr::select(met, emitter_val, emitter_val * tr);
+            Color3f via_matrix =
+                Reduced::template apply<K>(dr::select(met, B_met, B_out),
+                                           m_reduced.template emitter_coefficients<K>(ds.emitter, le, active));
+            return dr::select(met || matrix, via_matrix, rgb * emitter_val * tr);
+        }
     }
 
     /// The transmittance from `ref` to the emitter sample ds through media (ratio tracking;
@@ -1033,262 +1199,6 @@ private:
             kappa = dr::select(live, dr::maximum(kappa, rate), kappa);
         }
         return collision_probabilities(q_null, q_real, kappa, majorant);
-    }
-
-    template <size_t K> struct LoopStateR {
-        Mask active;
-        UInt32 depth;
-        Ray3f ray;
-        Color3f t;   ///< RGB throughput until the first fluorescent event
-        Rows<K> R;   ///< then the 3×K matrix throughput
-        Mask reduced;
-        Color3f result;
-        SurfaceInteraction3f si;
-        MediumInteraction3f mei;
-        MediumPtr medium;
-        Float eta;
-        Interaction3f last_scatter_event;
-        Float last_scatter_direction_pdf;
-        Mask needs_intersection, specular_chain, valid_ray;
-        Float inv_len; ///< 1/ℓ of the current straight flight (0: no surface ahead)
-        UnpolarizedSpectrum mu_a; ///< μa's RGB of a fluorescent medium (density 1)
-        UInt32 channel;           ///< volpath's distance-sampling channel
-        Sampler *sampler;
-        DRJIT_STRUCT(LoopStateR, active, depth, ray, t, R, reduced, result, si, mei, medium, eta, last_scatter_event,
-                     last_scatter_direction_pdf, needs_intersection, specular_chain, valid_ray, inv_len, mu_a, channel,
-                     sampler)
-    };
-
-    /// The emitter sample's contribution through a shadow ray from a vertex whose operator
-    /// towards it is B (3×K, `matrix`: the path is in matrix form there) or, in RGB form,
-    /// `rgb` (the throughput times the vertex's value).
-    template <size_t K, typename Interaction>
-    Color3f reduced_light(const Interaction &ref, const DirectionSample3f &ds, const Color3f &emitter_val,
-                          const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
-                          const Rows<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active) const {
-        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, channel, B, active);
-        // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
-        Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
-        Color3f le = dr::select(met, emitter_val, emitter_val * tr);
-        Color3f via_matrix =
-            Reduced::template apply<K>(dr::select(met, B_met, B_out),
-                                       m_reduced.template emitter_coefficients<K>(ds.emitter, le, active));
-        return dr::select(met || matrix, via_matrix, rgb * emitter_val * tr);
-    }
-
-    /// volpath's loop with the reduced transport (RGB variants with fluorescence).
-    template <size_t K>
-    std::pair<Spectrum, Bool> trace_reduced(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                            const Medium *initial_medium, Bool active) const {
-        if constexpr (!is_rgb_v<Spectrum>) {
-            (void) scene, (void) sampler, (void) ray_, (void) initial_medium, (void) active;
-            return { 0.f, false };
-        } else {
-            LoopStateR<K> ls;
-            start(ls, scene, sampler, ray_, initial_medium, active);
-            ls.t = Color3f(1.f);
-            ls.R = dr::zeros<Rows<K>>();
-            ls.reduced = Mask(false);
-            ls.result = Color3f(0.f);
-            const bool surfaces = m_reduced.size() > 0, media = !m_rmedia.empty();
-
-            dr::tie(ls) = dr::while_loop(
-                dr::make_tuple(ls), [](const LoopStateR<K> &ls) { return ls.active; },
-                [this, scene, surfaces, media](LoopStateR<K> &ls) {
-                    Mask &active = ls.active;
-                    Sampler *sampler = ls.sampler;
-                    // A wavelength-preserving weight w: t·w, or R·diag(band albedos of w).
-                    auto scale = [this, &ls](const Color3f &w, const Mask &m) {
-                        Rows<K> scaled =
-                            Reduced::template scale_columns<K>(ls.R, m_reduced.template band_albedo<K>(w));
-                        ls.R = dr::select(m && ls.reduced, scaled, ls.R);
-                        dr::masked(ls.t, m && !ls.reduced) *= w;
-                    };
-
-                    // ----------------- Russian roulette, max_depth -----------------
-                    Float t_max = dr::select(ls.reduced, Reduced::template max_abs<K>(ls.R), dr::max(ls.t));
-                    auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
-                    dr::masked(ls.t, perform_rr) *= rr;
-                    dr::masked(ls.R, perform_rr) *= rr;
-                    if (dr::none_or<false>(active))
-                        return;
-
-                    // ------------------------ Sampling the RTE ---------------------
-                    Mask active_medium = active && ls.medium != nullptr;
-                    Mask active_surface = active && !active_medium;
-                    Mask act_null = false, act_scatter = false, escaped = false;
-                    Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
-                    Float p_null = 0.f, p_real = 1.f, d = 0.f;
-                    Coeffs<K> sigma_s = dr::zeros<Coeffs<K>>(); // a fluorescent collision's σs per band
-                    MediaMasks which;
-                    if (dr::any_or<true>(active_medium)) {
-                        is_spectral &= ls.medium->has_spectral_extinction();
-                        not_spectral = !is_spectral && active_medium;
-                        Mask fluo_flight = start_flight(scene, ls, active_medium);
-                        if (dr::any_or<true>(fluo_flight))
-                            dr::masked(ls.mu_a, fluo_flight) =
-                                absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
-                        if (media)
-                            which = which_media(ls.medium);
-                        // the majorant covers the source rate up to 1/ℓ (its bound over the bands)
-                        UnpolarizedSpectrum source_bound(media ? per_medium(which, &ReducedMedium::f_max, 0)
-                                                               : Float(0.f));
-                        Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                        auto [mei, mf, fl, dd] =
-                            sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), ls.channel, rate,
-                                          ls.mu_a, source_bound, active_medium);
-                        (void) mf;
-                        place_collision(scene, ls, mei, active_medium);
-                        d = dd;
-                        is_fluo = fl && active_medium;
-                        is_spectral &= !is_fluo;
-                        Mask weighted = is_spectral; // (escaping flights too)
-                        auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
-                        scale(Color3f(w), weighted);
-
-                        // Null or real: volpath's rule, band tracking in fluorescent media (on R).
-                        p_null = pn;
-                        p_real = pr;
-                        Float majorant = ls.mei.combined_extinction[0];
-                        if (media && dr::any_or<true>(is_fluo)) {
-                            ls.R = dr::select(is_fluo && !ls.reduced, m_reduced.template output_rows<K>(ls.t), ls.R);
-                            ls.reduced |= is_fluo;
-                            sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
-                            auto [pn, pr] = band_tracking<K>(ls.R, sigma_s, d, majorant, ls.inv_len, which);
-                            p_null = dr::select(is_fluo, pn, p_null);
-                            p_real = dr::select(is_fluo, pr, p_real);
-                        }
-                        Mask null_scatter = sampler->next_1d(active_medium) < p_null;
-                        act_null = null_scatter && active_medium;
-                        act_scatter = !null_scatter && active_medium;
-                        scale(ls.mei.sigma_n / p_null, act_null && is_spectral);
-                        Mask fl_null = act_null && is_fluo;
-                        if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
-                            Float s = dr::rcp(majorant * p_null);
-                            Coeffs<K> g;
-                            for (size_t k = 0; k < K; ++k)
-                                g[k] = (majorant - sigma_s[k]) * s;
-                            ls.R = dr::select(fl_null, medium_product<K>(ls.R, g, -d * s, &ReducedMedium::a, which),
-                                              ls.R);
-                        }
-                    }
-                    settle_collision(ls, act_null, act_scatter);
-
-                    if (dr::any_or<true>(act_scatter)) {
-                        // A fluorescent medium's real collision: the source operator
-                        // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
-                        Mask fl_scatter = act_scatter && is_fluo;
-                        Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
-                        scale(ls.mei.sigma_s / p_real, act_scatter && is_spectral);
-                        scale(ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
-
-                        PhaseFunctionContext phase_ctx(sampler);
-                        auto [phase, active_e] = begin_scatter(ls, act_scatter);
-
-                        // ------------------------ Emitter sampling -----------------
-                        if (dr::any_or<true>(active_e)) {
-                            auto [ds, emitter_val] =
-                                scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
-                            active_e &= ds.pdf != 0.f;
-                            auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
-                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
-                            Color3f pv(phase_val);
-                            Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
-                            Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
-                            if (media && dr::any_or<true>(fl_scatter))
-                                B = dr::select(fl_scatter, source_product<K>(ls.R, sigma_s, pv, d, InvFourPi,
-                                                                             real_scale, which),
-                                               B);
-                            Color3f v = reduced_light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium,
-                                                         ls.channel, B, ls.t * pv, ls.reduced, active_e);
-                            dr::masked(ls.result, active_e) += v * mis;
-                        }
-
-                        // ---------------------- Phase function sampling ------------
-                        Float phase_1 = sampler->next_1d(act_scatter);
-                        Point2f phase_2 = sampler->next_2d(act_scatter);
-                        auto [wo, phase_weight, phase_pdf] =
-                            phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter);
-                        act_scatter &= phase_pdf > 0.f;
-                        fl_scatter &= act_scatter;
-                        if (media && dr::any_or<true>(fl_scatter))
-                            ls.R = dr::select(fl_scatter,
-                                              source_product<K>(ls.R, sigma_s, Color3f(phase_weight), d,
-                                                                InvFourPi / phase_pdf, real_scale, which),
-                                              ls.R);
-                        scale(Color3f(phase_weight), act_scatter && !is_fluo);
-                        dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo);
-                        ls.needs_intersection |= act_scatter;
-                        dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
-                    }
-
-                    // ----------------------- Surface interactions ------------------
-                    active_surface |= escaped;
-                    Mask intersect = reach_surface(scene, ls, active_surface);
-
-                    if (dr::any_or<true>(active_surface)) {
-                        auto [emitter, emitted, weight, active_e] =
-                            surface_emission(scene, ls, active_surface, intersect);
-                        if (dr::any_or<true>(active_e))
-                            dr::masked(ls.result, active_e) +=
-                                m_reduced.template through<K>(ls.R, ls.t, ls.reduced, emitter, emitted, active_e) *
-                                weight;
-                    }
-                    active_surface &= ls.si.is_valid();
-                    if (dr::any_or<true>(active_surface)) {
-                        BSDFContext ctx;
-                        SurfaceInteraction3f &si = ls.si;
-                        BSDFPtr bsdf = si.bsdf(ls.ray);
-                        typename Wrappers::Perturbations perturbed;
-                        if (!m_wrappers.empty())
-                            bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
-
-                        // ------------------------ Emitter sampling -----------------
-                        Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
-                                        ls.depth + 1 < (uint32_t) m_max_depth;
-                        DirectionSample3f ds = dr::zeros<DirectionSample3f>();
-                        Color3f emitter_val = 0.f;
-                        if (dr::any_or<true>(active_e)) {
-                            std::tie(ds, emitter_val) =
-                                scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
-                            active_e &= ds.pdf != 0.f && perturbed.keeps_side(ds.d);
-                        }
-                        Vector3f wo = si.to_local(ds.d);
-
-                        // ---------------- Emitter contribution, BSDF sampling ------
-                        Float sample_1 = sampler->next_1d(active_surface);
-                        Point2f sample_2 = sampler->next_2d(active_surface);
-                        auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
-                            bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
-
-                        Rows<K> Rm = dr::select(ls.reduced, ls.R, m_reduced.template output_rows<K>(ls.t));
-                        Mask is_fl = false, native_elastic = false;
-                        Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
-                        if (surfaces)
-                            std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
-                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
-                                m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
-                        Mask matrix = ls.reduced || is_fl;
-                        if (dr::any_or<true>(active_e)) {
-                            Rows<K> B_red =
-                                Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
-                            Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
-                            Color3f v = reduced_light<K>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel,
-                                                         B, ls.t * bsdf_val, matrix, active_e);
-                            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
-                            dr::masked(ls.result, active_e) += v * mis;
-                        }
-
-                        m_reduced.template scatter<K>(ls.R, ls.t, ls.reduced, Rm, R_fl, is_fl, native_elastic,
-                                                      bsdf_weight, active_surface);
-                        leave_surface(ls, si, bs, active_surface);
-                        active_surface &= perturbed.keeps_side(ls.ray.d);
-                    }
-                    active &= active_surface || active_medium;
-                });
-            // Out-of-gamut colours are clipped per sample (as fluo_path does).
-            return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
-        }
     }
 
     /// R·W·s with W = diag(σs∘p) + d·iso·F: a fluorescent medium's real collision for the

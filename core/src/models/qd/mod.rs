@@ -1002,7 +1002,7 @@ mod tests {
 
     #[test]
     fn jit_tables_interpolate_the_model() {
-        const ROWS: usize = 129; // fluo_qd_jit.cpp's JitCosNodes
+        const ROWS: usize = 65; // fluo_qd.cpp's JitCosNodes
         for substrate in [GOLD, Substrate::Constant { eta: 1.5, k: 0.0 }] {
             for radius in [1.5, 2.2, 3.3] {
                 let m = QdModel::new(
