@@ -238,9 +238,9 @@ VERTEX_MATERIALS = {
 }
 
 
-def closed_box(res: int, integrator: str, bsdf: dict) -> dict:
-    """The per-vertex rows' scene (VERTEX_DEPTH; reduced RGB in x7)."""
-    props = {"basis": "x7"} if integrator == "fluo_path" else {}
+def closed_box(res: int, integrator: str, bsdf: dict, basis: str = "x7") -> dict:
+    """The per-vertex rows' scene (VERTEX_DEPTH; reduced RGB in `basis`)."""
+    props = {"basis": basis} if integrator == "fluo_path" else {}
     return {
         "type": "scene",
         "integrator": {"type": integrator, "max_depth": VERTEX_DEPTH, "rr_depth": VERTEX_DEPTH + 100, **props},
@@ -258,6 +258,14 @@ def vertex_row(variant: str, model: str, res: int, spp: int, rounds: int) -> dic
     fl, native = VERTEX_MATERIALS[model]
     pair = render_pair_jit if variant.startswith("llvm_") else render_pair
     return pair(variant, closed_box(res, "fluo_path", fl), closed_box(res, "path", native), spp, rounds)
+
+
+def basis_row(variant: str, res: int, spp: int, rounds: int) -> dict:
+    """Per-vertex cost of the adaptive basis over x7 (fluo_jung walls under the D65
+    fluo_illuminant: auto builds its light band from it)."""
+    fl, _ = VERTEX_MATERIALS["jung"]
+    pair = render_pair_jit if variant.startswith("llvm_") else render_pair
+    return pair(variant, closed_box(res, "fluo_path", fl, "auto"), closed_box(res, "fluo_path", fl, "x7"), spp, rounds)
 
 
 def paired(a, b, rounds: int) -> dict:
@@ -523,6 +531,7 @@ WORKER_ROWS = {
     "vertex_matrix_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "matrix", a.res, a.spp, a.rounds),
     "vertex_gmm_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "gmm", a.res, a.spp, a.rounds),
     "vertex_qd_llvm_ad_rgb": lambda a: vertex_row("llvm_ad_rgb", "qd", a.res, a.spp, a.rounds),
+    "vertex_auto_llvm_ad_rgb": lambda a: basis_row("llvm_ad_rgb", a.res, a.spp, a.rounds),
     **{f"many_{v}_{m}_{int(f)}": (lambda a, v=v, m=m, f=f: first_render(v, many_materials(a.res, m, f), a.spp))
        for v in ("llvm_ad_spectral", "llvm_ad_rgb") for m in ("jung", "qd") for f in (True, False)},
     "speedup_scalar_spectral": lambda a: render_times("scalar_spectral", box(a.res, bsdf=jung), a.spp, a.rounds),
@@ -622,6 +631,10 @@ ROWS = {
     "vertex_matrix_llvm_ad_rgb": ("per vertex, closed box: fluo_matrix / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_matrix_llvm_ad_rgb", a)),
     "vertex_gmm_llvm_ad_rgb": ("per vertex, closed box: fluo_gmm / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_gmm_llvm_ad_rgb", a)),
     "vertex_qd_llvm_ad_rgb": ("per vertex, closed box: fluo_qd / roughconductor, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_qd_llvm_ad_rgb", a)),
+    "vertex_auto_scalar_rgb": ("per vertex, closed box: basis auto / x7 (fluo_jung), scalar_rgb", 1.05,
+                               lambda a: basis_row("scalar_rgb", a.res, a.spp, a.rounds)),
+    "vertex_auto_llvm_ad_rgb": ("per vertex, closed box: basis auto / x7 (fluo_jung), llvm_ad_rgb", 1.05,
+                                lambda a: in_worker("vertex_auto_llvm_ad_rgb", a)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,
              lambda a: load_row(a.res, a.rounds)),
     "llvm_plain": ("llvm: no fluorescence: fluo_path / path, plain box (llvm_ad_spectral)", 1.05,

@@ -52,8 +52,8 @@ Wavelength-shifting volumetric path tracer (:monosp:`fluo_volpath`)
      ``fluo_path``. (Default: 300)
  * - basis
    - |string|
-   - RGB variants only: transport basis of the reduced transport, ``rgb``, ``xyzu`` or
-     ``x7``, as for ``fluo_path`` (whose documentation says which when).
+   - RGB variants only: transport basis of the reduced transport, ``rgb``, ``xyzu``,
+     ``x7`` or ``auto``, as for ``fluo_path`` (whose documentation says which when).
      (Default: ``x7``)
  * - method
    - |string|

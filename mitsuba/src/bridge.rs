@@ -441,8 +441,12 @@ mod bridge {
         fn fluo_emission_range(f: &Fluorescence) -> Range;
         /// Reduced (matrix-throughput) transport for scalar_rgb (core/src/reduce/).
         type TransportBasis;
-        /// `basis`: rgb, xyzu or x7; `method`: ours or naive.
+        /// `basis`: rgb, xyzu, x7 or auto (x7's bands until `transport_adaptive`); `method`:
+        /// ours or naive.
         fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>>;
+        /// The scene-adaptive transport (`auto`) for the scene's light spectra, `lights`
+        /// their samples on the reduction grid one after the other (`illuminant_on_grid`).
+        fn transport_adaptive(lights: &[f64], method: &str) -> Result<Box<TransportBasis>>;
         /// Number of transported channels K.
         fn transport_size(t: &TransportBasis) -> usize;
         /// 3×K row major: linear sRGB = output · c.
@@ -452,8 +456,9 @@ mod bridge {
         /// K: coefficients of RGB white (1, 1, 1), to turn RGB albedos into per-band ones.
         fn transport_white(t: &TransportBasis, out: &mut [f64]);
         fn transport_name(t: &TransportBasis) -> &'static str;
-        /// The basis and the reduction method ("x7/Ours"): two transports with the same
-        /// label reduce a material alike (a key for caching reductions).
+        /// The basis and the reduction method ("x7/Ours"; `auto`'s with a digest of its light
+        /// band): two transports with the same label reduce a material alike (a key for
+        /// caching reductions).
         fn transport_label(t: &TransportBasis) -> String;
         /// A fluorescent medium's operators reduced for a transport (`fluo_volpath` in
         /// scalar_rgb), K×K row major, 1/m at density 1: `absorption` A (the reduction of
@@ -492,6 +497,8 @@ mod bridge {
         fn reduced_low_rank_tolerance() -> f64;
         /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
         fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
+        /// Its values at the reduction grid's wavelengths, appended to `out`.
+        fn illuminant_on_grid(s: &Illuminant, out: &mut Vec<f64>);
         /// `fluo_jung` in the vectorised variants: its reduced operator split so that c
         /// and Q stay differentiable, M = `reflectance` − c·`absorbed` + c·Q·`reradiation`
         /// (each K×K row major, f = M/π; the reduction is linear in the operator). The

@@ -25,6 +25,13 @@ pub struct TransportBasis(Transport);
 pub(crate) fn transport_new(basis: &str, method: &str) -> Result<Box<TransportBasis>, String> {
     guarded(|| Ok(Box::new(TransportBasis(Transport::new(basis, Method::from_name(method)?)?))))
 }
+pub(crate) fn transport_adaptive(lights: &[f64], method: &str) -> Result<Box<TransportBasis>, String> {
+    guarded(|| {
+        let n = fluo::reduce::grid().len();
+        let lights: Vec<Vec<f64>> = lights.chunks(n).map(<[f64]>::to_vec).collect();
+        Ok(Box::new(TransportBasis(Transport::adaptive(&lights, Method::from_name(method)?)?)))
+    })
+}
 pub(crate) fn transport_size(t: &TransportBasis) -> usize {
     t.0.len()
 }
@@ -41,7 +48,15 @@ pub(crate) fn transport_name(t: &TransportBasis) -> &'static str {
     t.0.name
 }
 pub(crate) fn transport_label(t: &TransportBasis) -> String {
-    format!("{}/{:?}", t.0.name, t.0.method)
+    let b = &t.0.basis;
+    if b.kind() != fluo::reduce::BasisKind::Adaptive {
+        return format!("{}/{:?}", t.0.name, t.0.method);
+    }
+    // FNV-1a over the light band's samples
+    let digest = fluo::reduce::grid()
+        .iter()
+        .fold(0xcbf2_9ce4_8422_2325_u64, |h, &l| (h ^ b.band(b.len() - 1, l).to_bits()).wrapping_mul(0x0100_0000_01b3));
+    format!("{}/{:?}/{digest:016x}", t.0.name, t.0.method)
 }
 
 pub(crate) fn medium_grid_absorption_max(model: &FluoMedium) -> f64 {
@@ -188,6 +203,10 @@ pub(crate) fn reduced_microfacet_low_rank(
 }
 pub(crate) fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]) {
     copy_into(&t.0.coefficients(&|l| s.spectrum.eval(l)), out);
+}
+
+pub(crate) fn illuminant_on_grid(s: &Illuminant, out: &mut Vec<f64>) {
+    out.extend(fluo::reduce::grid().into_iter().map(|l| s.spectrum.eval(l)));
 }
 
 /// Marks the plugin library: `import fluo` checks for it, so that `FLUO_LIBRARY` naming

@@ -256,8 +256,9 @@ def methods(cache: Path) -> list[Method]:
     ms += [Method(f"spectral, color cube {res}³ {lookup} (fluo_path)", "scalar_spectral", _cube_knob(res, lookup),
                   _material_bytes, {"cube"}, knob="cube resolution")
            for res, lookup in ((9, "nearest"), (17, "nearest"), (33, "trilinear"))]
-    ms += [Method(f"rgb {m}-{b} (fluo_path)", "scalar_rgb", _reduced(b, m), _reduced_bytes({"rgb": 3, "xyzu": 4, "x7": 7}[b]))
-           for m in ("ours", "naive") for b in ("rgb", "xyzu", "x7")]
+    ms += [Method(f"rgb {m}-{b} (fluo_path)", "scalar_rgb", _reduced(b, m),
+                  _reduced_bytes({"rgb": 3, "xyzu": 4, "x7": 7, "auto": 7}[b]))
+           for m in ("ours", "naive") for b in ("rgb", "xyzu", "x7", "auto") if (m, b) != ("naive", "auto")]
     ms += [Method("rgb plain, no fluorescence (path)", "scalar_rgb", lambda t: _remove_dyes(_to_path(t)),
                   lambda _: 0.0, note="what a user gets today"),
            Method("spectral native path, nearest material", "scalar_spectral", lambda t: _to_native(_to_path(t)),
@@ -268,6 +269,8 @@ def methods(cache: Path) -> list[Method]:
            Method("llvm spectral GMM-8 (fluo_path)", "llvm_ad_spectral", _gmm(8, cache), _material_bytes,
                   {"matrix"}, serves=JIT_KINDS),
            Method("llvm rgb ours-x7 (fluo_path)", "llvm_ad_rgb", _reduced("x7", "ours"), _reduced_bytes(7),
+                  serves=JIT_KINDS),
+           Method("llvm rgb ours-auto (fluo_path)", "llvm_ad_rgb", _reduced("auto", "ours"), _reduced_bytes(7),
                   serves=JIT_KINDS),
            Method("llvm spectral native path, nearest material", "llvm_ad_spectral",
                   lambda t: _to_native(_to_path(t)), lambda _: 0.0, serves=JIT_KINDS, note="llvm's cost floor")]

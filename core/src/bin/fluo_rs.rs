@@ -648,7 +648,7 @@ fn print_saturated(rows: &[fluo::reports::reduction::SaturatedRow]) {
          and ΔE2000 of the patch (white = illuminant; UV365: equal-energy light of its power); \
          - where the spectral patch is black"
     );
-    eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", "material", "light", "rgb", "xyzu", "x7");
+    eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15} {:>15}", "material", "light", "rgb", "xyzu", "x7", "auto");
     let mut seen: Vec<(&str, &str)> = Vec::new();
     for r in rows {
         if seen.contains(&(r.case, r.illuminant)) {
@@ -664,7 +664,15 @@ fn print_saturated(rows: &[fluo::reports::reduction::SaturatedRow]) {
                 })
                 .unwrap_or_default()
         };
-        eprintln!("{:<15} {:<5} {:>15} {:>15} {:>15}", r.case, r.illuminant, cell("rgb"), cell("xyzu"), cell("x7"));
+        eprintln!(
+            "{:<15} {:<5} {:>15} {:>15} {:>15} {:>15}",
+            r.case,
+            r.illuminant,
+            cell("rgb"),
+            cell("xyzu"),
+            cell("x7"),
+            cell("auto")
+        );
     }
 }
 

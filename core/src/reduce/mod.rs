@@ -92,6 +92,10 @@ pub enum BasisKind {
     Xyzu,
     /// The seven-band split of appendix A (with U).
     X7,
+    /// The six visible bands of `x7` and a band built from the scene's light spectra
+    /// ([`Basis::adaptive`]): the part of their sum outside the visible bands' span, so
+    /// that the light (UV included) is reconstructed exactly.
+    Adaptive,
 }
 
 impl BasisKind {
@@ -101,7 +105,8 @@ impl BasisKind {
             "xyz" => Ok(Self::Xyz),
             "xyzu" => Ok(Self::Xyzu),
             "x7" => Ok(Self::X7),
-            _ => Err(Error::param("basis", format!("\"{name}\""), "one of xyz, xyzu, x7")),
+            "auto" => Ok(Self::Adaptive),
+            _ => Err(Error::param("basis", format!("\"{name}\""), "one of xyz, xyzu, x7, auto")),
         }
     }
 
@@ -111,6 +116,7 @@ impl BasisKind {
             Self::Xyz => "xyz",
             Self::Xyzu => "xyzu",
             Self::X7 => "x7",
+            Self::Adaptive => "auto",
         }
     }
 }
@@ -181,48 +187,103 @@ pub fn grid() -> Vec<f64> {
     (0..=n).map(|i| GRID_START_NM + i as f64 * GRID_STEP_NM).collect()
 }
 
+/// The six visible bands of `x7` on the grid (appendix A): x̄ split at 500 nm and around
+/// 590 nm, ȳ around 570 nm, z̄.
+fn visible_x7(observer: Observer) -> Vec<Vec<f64>> {
+    let c = cmf(observer);
+    let (x, y, z) = (c.x(), c.y(), c.z());
+    let split = |l: f64| smoothstep(l, 500.0, 2.0);
+    let bands: [&dyn Fn(f64) -> f64; 6] = [
+        &|l| x.eval(l) * (1.0 - split(l)),
+        &|l| x.eval(l) * split(l) * smoothstep(l, 590.0, 60.0),
+        &|l| x.eval(l) * split(l) * (1.0 - smoothstep(l, 590.0, 60.0)),
+        &|l| y.eval(l) * smoothstep(l, 570.0, 60.0),
+        &|l| y.eval(l) * (1.0 - smoothstep(l, 570.0, 60.0)),
+        &|l| z.eval(l),
+    ];
+    let lambdas = grid();
+    bands.iter().map(|f| lambdas.iter().map(|&l| f(l)).collect()).collect()
+}
+
 impl Basis {
-    /// Build a basis from the CMFs of `observer` (the paper uses CIE 2006).
+    /// Build a basis from the CMFs of `observer` (the paper uses CIE 2006). `Adaptive`
+    /// without lights: the bands of `x7`.
     pub fn new(kind: BasisKind, observer: Observer) -> Result<Self> {
+        if kind == BasisKind::Adaptive {
+            return Self::adaptive(observer, &[]);
+        }
         let c = cmf(observer);
         let lambdas = grid();
+        let (x, y, z) = (c.x(), c.y(), c.z());
+        let mut bands: Vec<Vec<f64>> = match kind {
+            BasisKind::X7 | BasisKind::Adaptive => visible_x7(observer),
+            _ => vec![
+                lambdas.iter().map(|&l| x.eval(l)).collect(),
+                lambdas.iter().map(|&l| y.eval(l)).collect(),
+                lambdas.iter().map(|&l| z.eval(l)).collect(),
+            ],
+        };
+        if kind != BasisKind::Xyz {
+            bands.push(lambdas.iter().map(|&l| u_band(l)).collect());
+        }
+        Self::from_bands(kind, observer, &bands)
+    }
+
+    /// The scene-adaptive basis: the six visible bands of `x7` (x̄₁, x̄₂, x̄₃, ȳ₁, ȳ₂, z̄)
+    /// and one light band r, the part of the lights' summed spectrum Σ L (sampled on the
+    /// reduction grid) outside the visible bands' span (W-orthogonal residual). The
+    /// lights' sum is then in the span: the dual basis reconstructs it exactly, so a
+    /// material lit directly by it reduces exactly (Sᵀ W 𝒫 L: every band's integral of
+    /// the light it re-emits), its UV part included, whatever the lamp's shape. A single
+    /// light is exact on its own; several are exact together (each alone up to the part
+    /// of its residual not along r). Without lights, or with lights inside the visible
+    /// span (residual below 1e-6 of their norm), the band is x7's U (the basis is x7).
+    pub fn adaptive(observer: Observer, lights: &[Vec<f64>]) -> Result<Self> {
+        let lambdas = grid();
         let n = lambdas.len();
-        let bands: Vec<Box<dyn Fn(f64) -> f64>> = {
-            let (x, y, z) = (c.x().clone(), c.y().clone(), c.z().clone());
-            let (x1, x2, x3) = (x.clone(), x.clone(), x.clone());
-            let (y1, y2) = (y.clone(), y.clone());
-            let z2 = z.clone();
-            match kind {
-                BasisKind::Xyz | BasisKind::Xyzu => {
-                    let mut v: Vec<Box<dyn Fn(f64) -> f64>> =
-                        vec![Box::new(move |l| x.eval(l)), Box::new(move |l| y.eval(l)), Box::new(move |l| z.eval(l))];
-                    if kind == BasisKind::Xyzu {
-                        v.push(Box::new(u_band));
-                    }
-                    v
-                }
-                BasisKind::X7 => vec![
-                    Box::new(move |l| x1.eval(l) * (1.0 - smoothstep(l, 500.0, 2.0))),
-                    Box::new(move |l| x2.eval(l) * smoothstep(l, 500.0, 2.0) * smoothstep(l, 590.0, 60.0)),
-                    Box::new(move |l| x3.eval(l) * smoothstep(l, 500.0, 2.0) * (1.0 - smoothstep(l, 590.0, 60.0))),
-                    Box::new(move |l| y1.eval(l) * smoothstep(l, 570.0, 60.0)),
-                    Box::new(move |l| y2.eval(l) * (1.0 - smoothstep(l, 570.0, 60.0))),
-                    Box::new(move |l| z2.eval(l)),
-                    Box::new(u_band),
-                ],
+        let mut bands = visible_x7(observer);
+        let mut total = vec![0.0; n];
+        for light in lights {
+            if light.len() != n {
+                return Err(Error::data(format!("adaptive basis: a light has {} samples, {n} expected", light.len())));
             }
+            if light.iter().any(|v| !v.is_finite()) {
+                return Err(Error::data("adaptive basis: a light spectrum is not finite"));
+            }
+            for (t, v) in total.iter_mut().zip(light) {
+                *t += v;
+            }
+        }
+        let visible = Self::from_bands(BasisKind::Adaptive, observer, &bands)?;
+        let w = &visible.w;
+        let norm = |v: &[f64]| v.iter().zip(w.iter()).map(|(a, b)| a * a * b).sum::<f64>().sqrt();
+        // r = L − S̃ Sᵀ W L (the dual basis reconstructs the projection onto the span)
+        let c = visible.down_sampled(&total);
+        let projection = visible.up(&c);
+        let residual: Vec<f64> = total.iter().zip(&projection).map(|(l, p)| l - p).collect();
+        let (r, l) = (norm(&residual), norm(&total));
+        let band = if l > 0.0 && r > 1e-6 * l {
+            // scaled to U's peak: coefficients of comparable size
+            let peak = residual.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            residual.iter().map(|v| v * U_PEAK / peak).collect()
+        } else {
+            lambdas.iter().map(|&l| u_band(l)).collect()
         };
+        bands.push(band);
+        Self::from_bands(BasisKind::Adaptive, observer, &bands)
+    }
+
+    /// A basis from its bands sampled on the grid (x̄, ȳ, z̄ or the six split visible bands
+    /// first, then bands outside the CMFs), its dual and its transfer to XYZ.
+    fn from_bands(kind: BasisKind, observer: Observer, bands: &[Vec<f64>]) -> Result<Self> {
+        let n = grid().len();
         let k = bands.len();
-        let s = DMatrix::from_fn(n, k, |i, j| bands[j](lambdas[i]));
+        let s = DMatrix::from_fn(n, k, |i, j| bands[j][i]);
         let w = DVector::from_fn(n, |i, _| if i == 0 || i == n - 1 { 0.5 * GRID_STEP_NM } else { GRID_STEP_NM });
-        let t = match kind {
-            BasisKind::Xyz => DMatrix::identity(3, 3),
-            BasisKind::Xyzu => DMatrix::from_fn(3, 4, |r, c| if r == c { 1.0 } else { 0.0 }),
-            BasisKind::X7 => {
-                let owner = [0usize, 0, 0, 1, 1, 2]; // band -> X, Y or Z (U -> none)
-                DMatrix::from_fn(3, 7, |r, c| if c < 6 && owner[c] == r { 1.0 } else { 0.0 })
-            }
-        };
+        // band -> X, Y or Z (the visible bands sum to the CMFs; the others add nothing)
+        let owner: &[usize] =
+            if kind == BasisKind::X7 || kind == BasisKind::Adaptive { &[0, 0, 0, 1, 1, 2] } else { &[0, 1, 2] };
+        let t = DMatrix::from_fn(3, k, |r, c| if c < owner.len() && owner[c] == r { 1.0 } else { 0.0 });
         let mut b = Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY };
         let gram = b.gram(&b.s);
         let eig = SymmetricEigen::try_new(gram.clone(), f64::EPSILON, max_iterations(k)).ok_or_else(|| {
@@ -291,6 +352,12 @@ impl Basis {
     pub fn down(&self, f: &dyn Fn(f64) -> f64) -> Vec<f64> {
         let lambdas = grid();
         let fw = DVector::from_fn(lambdas.len(), |i, _| f(lambdas[i]) * self.w[i]);
+        (self.s.transpose() * fw).iter().copied().collect()
+    }
+
+    /// Downsample a spectrum sampled on the grid.
+    pub fn down_sampled(&self, f: &[f64]) -> Vec<f64> {
+        let fw = DVector::from_fn(f.len(), |i, _| f[i] * self.w[i]);
         (self.s.transpose() * fw).iter().copied().collect()
     }
 
@@ -604,6 +671,61 @@ mod tests {
             }
             assert!(b.condition_number().is_finite());
         }
+    }
+
+    /// XYZ of the light a material re-emits under `light` (grid samples): exact, and
+    /// through the basis (T · M · Sᵀ W L).
+    fn single_bounce_xyz(op: &Operator, basis: &Basis, light: &[f64]) -> ([f64; 3], [f64; 3]) {
+        let m = operator(op, basis);
+        let out = &m * DVector::from_column_slice(light);
+        let exact = basis.to_xyz(&basis.down_sampled(out.as_slice()));
+        let r = reduce(op, basis, Method::Ours);
+        let reduced = basis.to_xyz(&r.apply(&basis.down_sampled(light)));
+        (exact, reduced)
+    }
+
+    #[test]
+    fn adaptive_basis_reduces_direct_light_exactly() {
+        let lambdas = grid();
+        let gauss = |mu: f64, s: f64| lambdas.iter().map(move |&l| (-0.5 * ((l - mu) / s).powi(2)).exp());
+        // a narrow 365 nm lamp, and the same with a dim D65 fill
+        let lamp: Vec<f64> = gauss(365.0, 5.0).collect();
+        let d65 = illuminant("D65").unwrap();
+        let fill: Vec<f64> = lambdas.iter().map(|&l| 0.002 * d65.eval(l)).collect();
+        // a brightener: absorbs 330-400 nm, re-emits around 440 nm; grey elastic part
+        let brightener = Operator::new(
+            |_| 0.5,
+            |li: f64, lo: f64| {
+                let a = (-0.5 * ((li - 360.0) / 20.0).powi(2)).exp();
+                0.8 * a * (-0.5 * ((lo - 440.0) / 20.0).powi(2)).exp() / (20.0 * (2.0 * std::f64::consts::PI).sqrt())
+            },
+        );
+        let x7 = Basis::new(BasisKind::X7, Observer::Cie1931).unwrap();
+        let lab = |xyz: [f64; 3], white: f64| xyz_to_lab(xyz.map(|v| v / white), [0.95047, 1.0, 1.08883]);
+        for (lights, name) in [(vec![lamp.clone()], "lamp"), (vec![lamp.clone(), fill.clone()], "lamp + fill")] {
+            let auto = Basis::adaptive(Observer::Cie1931, &lights).unwrap();
+            assert_eq!((auto.len(), auto.kind()), (7, BasisKind::Adaptive));
+            let total: Vec<f64> = (0..lambdas.len()).map(|i| lights.iter().map(|l| l[i]).sum()).collect();
+            // the lights' sum is in the span: reconstructed exactly
+            let back = auto.up(&auto.down_sampled(&total));
+            let peak = total.iter().fold(0.0_f64, |m, v| m.max(*v));
+            assert!(back.iter().zip(&total).all(|(a, b)| (a - b).abs() < 1e-9 * peak), "{name}");
+            let (exact, reduced) = single_bounce_xyz(&brightener, &auto, &total);
+            let white = exact[1].max(1e-30) * 2.0;
+            let de = ciede2000(lab(exact, white), lab(reduced, white));
+            assert!(de < 1e-6, "{name}: auto ΔE00 {de}");
+            // x7's fixed U band misjudges the lamp's absorption
+            let (exact, reduced) = single_bounce_xyz(&brightener, &x7, &total);
+            let de_x7 = ciede2000(lab(exact, white), lab(reduced, white));
+            assert!(de_x7 > 1.0, "{name}: x7 ΔE00 {de_x7}");
+        }
+        // without lights (or with lights in the visible span) the basis is x7
+        let plain = Basis::adaptive(Observer::Cie1931, &[]).unwrap();
+        assert!((plain.s.clone() - x7.s.clone()).abs().max() < 1e-12);
+        let visible: Vec<f64> = (0..lambdas.len()).map(|i| x7.s[(i, 3)] + 0.5 * x7.s[(i, 5)]).collect();
+        let inside = Basis::adaptive(Observer::Cie1931, &[visible]).unwrap();
+        assert!((inside.s.clone() - x7.s.clone()).abs().max() < 1e-12);
+        assert!(Basis::adaptive(Observer::Cie1931, &[vec![1.0; 3]]).is_err());
     }
 
     #[test]

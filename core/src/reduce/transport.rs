@@ -31,17 +31,32 @@ pub struct Transport {
 }
 
 impl Transport {
-    /// Prepare `rgb`, `xyzu` or `x7` transport.
+    /// Prepare `rgb`, `xyzu`, `x7` or `auto` transport (`auto` without lights: the bands of
+    /// `x7`; [`Transport::adaptive`] builds it for a scene's lights).
     pub fn new(name: &str, method: Method) -> Result<Self> {
         let kind = match name.to_ascii_lowercase().as_str() {
             "rgb" | "xyz" => BasisKind::Xyz,
             "xyzu" => BasisKind::Xyzu,
             "x7" => BasisKind::X7,
-            _ => return Err(Error::param("basis", format!("\"{name}\""), "one of rgb, xyzu, x7")),
+            "auto" => BasisKind::Adaptive,
+            _ => return Err(Error::param("basis", format!("\"{name}\""), "one of rgb, xyzu, x7, auto")),
         };
         let label =
             if name.eq_ignore_ascii_case("rgb") || name.eq_ignore_ascii_case("xyz") { "rgb" } else { kind.name() };
-        let basis = Basis::new(kind, Observer::Cie1931)?;
+        Self::with_basis(label, Basis::new(kind, Observer::Cie1931)?, method)
+    }
+
+    /// The scene-adaptive transport (`auto`, [`Basis::adaptive`]) for the lights' spectra
+    /// `lights`, each sampled on the reduction grid ([`super::grid`]).
+    pub fn adaptive(lights: &[Vec<f64>], method: Method) -> Result<Self> {
+        Self::with_basis("auto", Basis::adaptive(Observer::Cie1931, lights)?, method)
+    }
+
+    fn with_basis(label: &'static str, basis: Basis, method: Method) -> Result<Self> {
+        if label == "auto" && method == Method::Naive {
+            // the naive reduction divides by each band's area: the light band has none to speak of
+            return Err(Error::param("method", "\"naive\"", "\"ours\" with basis \"auto\""));
+        }
         let m = nalgebra::Matrix3::from_fn(|r, c| crate::colour::mitsuba::XYZ_TO_SRGB[r][c]);
         let minv = m.try_inverse().ok_or_else(|| Error::data("XYZ→sRGB matrix is singular"))?;
         // XYZ basis (for upsampling RGB light) in the same normalisation.

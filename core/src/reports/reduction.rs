@@ -27,7 +27,7 @@ pub const TABLE1_XYZU_NAIVE: [f64; 7] = [10.56, 11.20, 13.43, 13.40, 15.18, 11.5
 pub struct Table1Row {
     /// `ours` or `naive`.
     pub method: &'static str,
-    /// `xyz`, `xyzu` or `x7`.
+    /// `xyz`, `xyzu`, `x7` or `auto` (built for each illuminant).
     pub basis: &'static str,
     /// Mean over materials, per illuminant (in [`TABLE1_ILLUMINANTS`] order).
     pub mean: Vec<f64>,
@@ -44,18 +44,33 @@ pub fn table1(materials: &[&dyn Bispectral]) -> Result<Vec<Table1Row>> {
     use crate::colour::{ciede2000, xyz_to_lab};
     let lights: Vec<crate::spectrum::RegularSpectrum> =
         TABLE1_ILLUMINANTS.iter().map(|n| crate::spectrum::illuminant(n)).collect::<Result<_>>()?;
+    // `auto` (ours only: the naive reduction's area-normalised bands need positive ones) is
+    // built per illuminant, for that light alone: what a patch lit by it sees.
+    let adaptive: Vec<Basis> = lights
+        .iter()
+        .map(|light| Basis::adaptive(Observer::Cie2006, &[grid().iter().map(|&l| light.eval(l)).collect()]))
+        .collect::<Result<_>>()?;
     let mut rows = Vec::new();
     for method in [Method::Naive, Method::Ours] {
-        for kind in [BasisKind::Xyz, BasisKind::Xyzu, BasisKind::X7] {
-            let basis = Basis::new(kind, Observer::Cie2006)?;
+        for kind in [BasisKind::Xyz, BasisKind::Xyzu, BasisKind::X7, BasisKind::Adaptive] {
+            if kind == BasisKind::Adaptive && method == Method::Naive {
+                continue;
+            }
+            let fixed = Basis::new(kind, Observer::Cie2006)?;
             let mut per_material = Vec::new();
             for m in materials {
-                let r = reduce(&Operator::of(*m), &basis, method);
+                let r = reduce(&Operator::of(*m), &fixed, method);
                 let des = lights
                     .iter()
-                    .map(|light| {
-                        let (xyz, w) = reduced_patch_xyz(&r, &basis, light)?;
-                        let (sxyz, sw) = spectral_patch_xyz(&Operator::of(*m), &basis, light)?;
+                    .zip(&adaptive)
+                    .map(|(light, own)| {
+                        let (basis, r) = if kind == BasisKind::Adaptive {
+                            (own, reduce(&Operator::of(*m), own, method))
+                        } else {
+                            (&fixed, r.clone())
+                        };
+                        let (xyz, w) = reduced_patch_xyz(&r, basis, light)?;
+                        let (sxyz, sw) = spectral_patch_xyz(&Operator::of(*m), basis, light)?;
                         Ok(ciede2000(xyz_to_lab(xyz, w), xyz_to_lab(sxyz, sw)))
                     })
                     .collect::<Result<Vec<f64>>>()?;
@@ -77,7 +92,7 @@ pub fn table1(materials: &[&dyn Bispectral]) -> Result<Vec<Table1Row>> {
 pub struct SaturatedRow {
     /// The material (see [`SATURATED_CASES`]).
     pub case: &'static str,
-    /// Transport basis (`rgb`, `xyzu`, `x7`).
+    /// Transport basis (`rgb`, `xyzu`, `x7`, `auto` built for the row's light).
     pub basis: &'static str,
     /// CIE illuminant.
     pub illuminant: &'static str,
@@ -185,7 +200,9 @@ pub fn saturated_rows(
             let fluorescent = to_xyz(spectrum_to_srgb(shifted)).map(|v| v * scale);
             let elastic = to_xyz(spectrum_to_srgb(|l| material.elastic_albedo(l) * light.eval(l))).map(|v| v * scale);
             let reference = [0, 1, 2].map(|r| elastic[r] + fluorescent[r]);
-            for t in &transports {
+            // `auto` built for this light alone: exact for the patch it lights
+            let own = Transport::adaptive(std::slice::from_ref(&i), Method::Ours)?;
+            for t in transports.iter().chain(std::iter::once(&own)) {
                 let k = t.len();
                 let c = t.coefficients(&|l| light.eval(l));
                 let patch = |mm: &[f64]| {
@@ -223,7 +240,7 @@ mod saturated_tests {
         // reproduce the spectral patch (the reference path is Mitsuba's spectrum → sRGB).
         let grey = JungParams { concentration: 0.0, ..Default::default() };
         let rows = saturated_rows(&[("grey", 0.6, grey)], &["D65", "A", "FL2"]).unwrap();
-        assert_eq!(rows.len(), 9);
+        assert_eq!(rows.len(), 12);
         for r in &rows {
             assert!((r.luminance_ratio.unwrap() - 1.0).abs() < 2e-3 && r.delta_e < 0.05, "{r:?}");
         }
@@ -232,7 +249,7 @@ mod saturated_tests {
     #[test]
     fn the_report_shows_what_each_basis_can_carry() {
         let rows = saturated_report().unwrap();
-        assert_eq!(rows.len(), SATURATED_CASES.len() * SATURATED_ILLUMINANTS.len() * 3);
+        assert_eq!(rows.len(), SATURATED_CASES.len() * SATURATED_ILLUMINANTS.len() * 4);
         assert!(rows.iter().all(|r| r.luminance_ratio.is_none_or(f64::is_finite) && r.delta_e.is_finite()));
         // rgb has no UV band: a brightener's reradiation under daylight all but vanishes,
         // while the UV bases carry most of it.
@@ -243,6 +260,12 @@ mod saturated_tests {
             // over 300-400 nm: its glow comes out ~5x too dark (what fluo_path warns of).
             let uv = row(&rows, "UV brightener", UV_LAMP, b).fluorescence_ratio.unwrap();
             assert!(uv > 0.1 && uv < 0.35, "{b}: {uv}");
+        }
+        // `auto`, built for each light, reduces every patch it lights exactly (the
+        // spectral patch integrates on Mitsuba's 360-830 nm, the basis on 300-830 nm).
+        for r in rows.iter().filter(|r| r.basis == "auto") {
+            assert!(r.delta_e < 0.1 && r.luminance_ratio.is_none_or(|v| (v - 1.0).abs() < 5e-3), "{r:?}");
+            assert!(r.fluorescence_ratio.is_none_or(|v| (v - 1.0).abs() < 5e-3), "{r:?}");
         }
         // Emitters that do not absorb at 365 nm are black under the lamp: no ratio.
         assert!(row(&rows, "green emitter", UV_LAMP, "x7").luminance_ratio.is_none());

@@ -290,7 +290,8 @@ inline void warn_uv_emitter(const char *plugin, const char *variant, const Objec
     std::string name = emitter->id().empty() ? std::string(emitter->class_name()) : std::string(emitter->id());
     Log(Warn, "%s (%s): emitter %s is mostly ultraviolet; reduced transport carries it in one UV band, which "
               "can misstate UV-excited fluorescence several times over (a narrow 365 nm lamp: ~5x too dark, see "
-              "`fluo-rs saturated-report`). Render UV-lit scenes in a spectral variant where that matters.",
+              "`fluo-rs saturated-report`). Give fluo_path basis \"auto\" (built from the lights' spectra) or render "
+              "UV-lit scenes in a spectral variant.",
         plugin, variant, name);
 }
 

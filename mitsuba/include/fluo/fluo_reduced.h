@@ -32,19 +32,14 @@ public:
     template <size_t K> using Coeffs = dr::Array<Float, K>;
     template <size_t K> using Rows = dr::Array<Float, 3 * K>;
 
-    /// The basis `basis` with reduction `method`; errors name `plugin`.
-    ReducedTransport(const char *plugin, const std::string &basis, const std::string &method) : m_plugin(plugin) {
-        m_transport = rust_call(plugin, [&] { return fluo::transport_new(basis, method); });
-        m_k = fluo::transport_size(**m_transport);
+    /// The basis `basis` with reduction `method`; errors name `plugin`. `auto` is built for
+    /// each render's lights in prepare() (x7's bands until then).
+    ReducedTransport(const char *plugin, const std::string &basis, const std::string &method)
+        : m_plugin(plugin), m_method(method), m_adaptive(basis == "auto") {
+        set(rust_call(plugin, [&] { return fluo::transport_new(basis, method); }));
         if (m_k != 3 && m_k != 4 && m_k != KMax)
             Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4 and %zu", plugin, basis, m_k,
                   KMax);
-        m_output.resize(3 * m_k);
-        m_from_rgb.resize(3 * m_k);
-        m_white.resize(m_k);
-        fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
-        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
-        fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
     }
 
     size_t bands() const { return m_k; }
@@ -64,12 +59,24 @@ public:
                 Collector ce;
                 ce.visit(const_cast<Emitter *>(emitter.get()));
                 for (Object *o : ce.objects)
-                    if (auto *src = dynamic_cast<SpectralSource *>(o); src && !m_sources.count(emitter.get())) {
-                        Source s{ std::vector<double>(m_k), src->rgb_luminance(), &src->illuminant() };
-                        fluo::illuminant_coefficients(src->illuminant(), **m_transport,
-                                                      rust::Slice<double>(s.coeffs.data(), m_k));
-                        m_sources.emplace(emitter.get(), s);
-                    }
+                    if (auto *src = dynamic_cast<SpectralSource *>(o); src && !m_sources.count(emitter.get()))
+                        m_sources.emplace(emitter.get(), Source{ {}, src->rgb_luminance(), &src->illuminant() });
+            }
+            if (m_adaptive) { // the basis of these lights (each distinct spectrum once)
+                rust::Vec<double> lights;
+                std::unordered_set<const fluo::Illuminant *> seen;
+                for (const auto &[emitter, src] : m_sources)
+                    if (seen.insert(src.illuminant).second)
+                        fluo::illuminant_on_grid(*src.illuminant, lights);
+                set(rust_call(m_plugin, [&] {
+                    return fluo::transport_adaptive(rust::Slice<const double>(lights.data(), lights.size()),
+                                                    m_method);
+                }));
+            }
+            for (auto &[emitter, src] : m_sources) {
+                src.coeffs.assign(m_k, 0.0);
+                fluo::illuminant_coefficients(*src.illuminant, **m_transport,
+                                              rust::Slice<double>(src.coeffs.data(), m_k));
             }
             for (Bispectral *b : bsdfs) {
                 Entry e{ dynamic_cast<const BSDF *>(b), b };
@@ -99,7 +106,7 @@ public:
                 m_entries.push_back(std::move(e));
             }
             opaque_operators();
-            if ((!m_entries.empty() || media) && m_uv_warned != scene) {
+            if ((!m_entries.empty() || media) && !m_adaptive && m_uv_warned != scene) {
                 for (const auto &[emitter, src] : m_sources)
                     if (fluo::illuminant_is_mostly_uv(*src.illuminant)) {
                         warn_uv_emitter(m_plugin, "llvm_ad_rgb", emitter);
@@ -480,7 +487,21 @@ private:
         return std::make_pair(out_a, out_b);
     }
 
+    /// The transport `t`, its size and RGB maps.
+    void set(rust::Box<fluo::TransportBasis> t) {
+        m_transport = std::move(t);
+        m_k = fluo::transport_size(**m_transport);
+        m_output.resize(3 * m_k);
+        m_from_rgb.resize(3 * m_k);
+        m_white.resize(m_k);
+        fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
+        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
+        fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
+    }
+
     const char *m_plugin;
+    std::string m_method;
+    bool m_adaptive; ///< basis "auto": built in prepare() from the scene's light spectra
     std::optional<rust::Box<fluo::TransportBasis>> m_transport;
     size_t m_k = 3;
     std::vector<double> m_output, m_from_rgb, m_white;
