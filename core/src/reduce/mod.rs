@@ -726,6 +726,10 @@ mod tests {
         let inside = Basis::adaptive(Observer::Cie1931, &[visible]).unwrap();
         assert!((inside.s.clone() - x7.s.clone()).abs().max() < 1e-12);
         assert!(Basis::adaptive(Observer::Cie1931, &[vec![1.0; 3]]).is_err());
+        // RGB light has no light-band coefficient (exactly: band albedos divide by it)
+        let d65_grid: Vec<f64> = lambdas.iter().map(|&l| d65.eval(l)).collect();
+        let t = Transport::adaptive(&[lamp, d65_grid], Method::Ours).unwrap();
+        assert!(t.white[6] == 0.0 && t.from_rgb[18..21].iter().all(|v| *v == 0.0), "{:?}", t.white);
     }
 
     #[test]

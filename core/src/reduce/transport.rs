@@ -64,7 +64,16 @@ impl Transport {
         // K×3 map: c_K = Sᵀ W S̃_xyz · xyz, xyz = M⁻¹ rgb   (coefficients of a spectrum are
         // scaled by 1/∫ȳ on both sides, so the map is scale-free)
         let proj = basis.gram(&xyz.dual); // K×3 (Sᵀ W S̃_xyz)
-        let from_rgb_m = &proj * DMatrix::from_fn(3, 3, |r, c| minv[(r, c)]);
+        let mut from_rgb_m = &proj * DMatrix::from_fn(3, 3, |r, c| minv[(r, c)]);
+        let k = basis.len();
+        let u_band_last = super::grid().iter().all(|&l| basis.band(k - 1, l) == super::u_band(l));
+        if basis.kind() == BasisKind::Adaptive && !u_band_last {
+            // RGB light lies in span(x̄, ȳ, z̄), W-orthogonal to the light band: its row is
+            // zero (what the product leaves is rounding, which band albedos would divide)
+            for c in 0..3 {
+                from_rgb_m[(basis.len() - 1, c)] = 0.0;
+            }
+        }
         let t = &basis.t;
         let out_m = DMatrix::from_fn(3, 3, |r, c| m[(r, c)]) * t; // 3×K
         let (output, from_rgb) = if label == "rgb" {
