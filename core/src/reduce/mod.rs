@@ -179,6 +179,8 @@ pub struct Basis {
     t: DMatrix<f64>,
     /// Condition number of the Gram matrix Sᵀ W S.
     condition: f64,
+    /// `auto`: its last band is the lights' residual (not x7's U).
+    light_band: bool,
 }
 
 /// Wavelengths of the reduction grid.
@@ -262,7 +264,8 @@ impl Basis {
         let projection = visible.up(&c);
         let residual: Vec<f64> = total.iter().zip(&projection).map(|(l, p)| l - p).collect();
         let (r, l) = (norm(&residual), norm(&total));
-        let band = if l > 0.0 && r > 1e-6 * l {
+        let light_band = l > 0.0 && r > 1e-6 * l;
+        let band = if light_band {
             // scaled to U's peak: coefficients of comparable size
             let peak = residual.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
             residual.iter().map(|v| v * U_PEAK / peak).collect()
@@ -270,7 +273,12 @@ impl Basis {
             lambdas.iter().map(|&l| u_band(l)).collect()
         };
         bands.push(band);
-        Self::from_bands(BasisKind::Adaptive, observer, &bands)
+        Ok(Self { light_band, ..Self::from_bands(BasisKind::Adaptive, observer, &bands)? })
+    }
+
+    /// Whether the last band is built from lights ([`Basis::adaptive`]).
+    pub fn has_light_band(&self) -> bool {
+        self.light_band
     }
 
     /// A basis from its bands sampled on the grid (x̄, ȳ, z̄ or the six split visible bands
@@ -284,7 +292,8 @@ impl Basis {
         let owner: &[usize] =
             if kind == BasisKind::X7 || kind == BasisKind::Adaptive { &[0, 0, 0, 1, 1, 2] } else { &[0, 1, 2] };
         let t = DMatrix::from_fn(3, k, |r, c| if c < owner.len() && owner[c] == r { 1.0 } else { 0.0 });
-        let mut b = Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY };
+        let mut b =
+            Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY, light_band: false };
         let gram = b.gram(&b.s);
         let eig = SymmetricEigen::try_new(gram.clone(), f64::EPSILON, max_iterations(k)).ok_or_else(|| {
             Error::data(format!("basis {}: the Gram matrix's eigenvalues did not converge", kind.name()))

@@ -65,9 +65,7 @@ impl Transport {
         // scaled by 1/∫ȳ on both sides, so the map is scale-free)
         let proj = basis.gram(&xyz.dual); // K×3 (Sᵀ W S̃_xyz)
         let mut from_rgb_m = &proj * DMatrix::from_fn(3, 3, |r, c| minv[(r, c)]);
-        let k = basis.len();
-        let u_band_last = super::grid().iter().all(|&l| basis.band(k - 1, l) == super::u_band(l));
-        if basis.kind() == BasisKind::Adaptive && !u_band_last {
+        if basis.has_light_band() {
             // RGB light lies in span(x̄, ȳ, z̄), W-orthogonal to the light band: its row is
             // zero (what the product leaves is rounding, which band albedos would divide)
             for c in 0..3 {
