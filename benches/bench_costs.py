@@ -36,6 +36,7 @@ llvm: quantum-dot cuvette, ``llvm_ad_spectral``   ``fluo_volpath`` Q 0.8 / ``vol
 llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``fluo_path``    report
 per vertex, closed box (4 models × 4 variants)    fluorescent walls / native walls             1.25
 llvm: 200 distinct materials (jung, qd; both)     first render, peak memory / native ones      2.0
+llvm: one backward pass, peak memory (spectral)   ``fluo_prb`` / AD through ``fluo_path``      0.5
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -480,8 +481,62 @@ def many_row(a, variant: str, model: str) -> dict:
             "a_mb": statistics.median(mems[True]), "b_mb": statistics.median(mems[False])}
 
 
+#: The backward rows' setting (issue: one backward pass at 256², 64 spp, max_depth 8).
+BACKWARD_RES, BACKWARD_SPP = 256, 64
+
+
+def backward_pass(variant: str, integrator: str) -> dict:
+    """Load the fluorescent Cornell box (its fluo_jung walls' concentration with gradients;
+    Mitsuba's `prb`: diffuse walls, their reflectance) and run one reverse-mode pass of
+    mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process: its
+    peak resident memory, and what the process held before the pass."""
+    import resource
+
+    import drjit as dr
+
+    mi.set_variant(jit_variant(variant))
+    import fluo  # noqa: F401
+
+    native = integrator == "prb"
+    scene = mi.load_dict(box(BACKWARD_RES, integrator=integrator, bsdf=diffuse if native else jung))
+    params = mi.traverse(scene)
+    key = "white.reflectance.value" if native else "white.concentration"
+    dr.enable_grad(params[key])
+    params.update()
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    t0 = time.perf_counter()
+    image = mi.render(scene, params, spp=BACKWARD_SPP, seed=1)
+    dr.backward(dr.mean(image, axis=None))
+    grad = float(np.abs(np.array(dr.ravel(dr.grad(params[key])))).sum())
+    dr.sync_thread()
+    return {"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "before_mb": before,
+            "seconds": time.perf_counter() - t0, "grad": grad}
+
+
+def backward_row(a, variant: str) -> dict:
+    """Peak memory of one backward pass: fluo_prb over AD through fluo_path (the recorded
+    loop), and over Mitsuba's prb on the same box with diffuse walls; each in a fresh
+    process, two rounds."""
+    got = {side: [] for side in ("fluo_prb", "fluo_path", "prb")}
+    for r in range(2):
+        for side in (("fluo_prb", "fluo_path", "prb") if r == 0 else ("prb", "fluo_path", "fluo_prb")):
+            got[side].append(in_worker(f"backward_{variant}_{side}", a))
+    mb = {side: statistics.median(x["peak_mb"] for x in runs) for side, runs in got.items()}
+    ratios = [p["peak_mb"] / q["peak_mb"] for p, q in zip(got["fluo_prb"], got["fluo_path"])]
+    if min(x["grad"] for runs in got.values() for x in runs) <= 0.0:
+        raise SystemExit(f"backward row {variant}: a side computed no gradient: {got}")
+    return {"ratio": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
+            "a_mb": mb["fluo_prb"], "b_mb": mb["fluo_path"], "native_mb": mb["prb"],
+            "native_ratio": mb["fluo_prb"] / mb["prb"],
+            "a_s": statistics.median(x["seconds"] for x in got["fluo_prb"]),
+            "b_s": statistics.median(x["seconds"] for x in got["fluo_path"]),
+            "native_s": statistics.median(x["seconds"] for x in got["prb"])}
+
+
 #: Rows measured in a fresh process (llvm), by name: what the worker runs.
 WORKER_ROWS = {
+    **{f"backward_{v}_{side}": (lambda a, v=v, side=side: backward_pass(v, side))
+       for v in ("llvm_ad_spectral",) for side in ("fluo_prb", "fluo_path", "prb")},
     "llvm_plain": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=diffuse, light=None),
                                             box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds),
     "llvm_plain_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=diffuse, light=None),
@@ -672,6 +727,9 @@ ROWS = {
         f"{'diffuse' if m == 'jung' else 'roughconductor'}: load + first render (compile), {v}", 2.0,
         lambda a, v=v, m=m: many_row(a, v, m))
        for m in ("jung", "qd") for v in ("llvm_ad_spectral", "llvm_ad_rgb")},
+    "llvm_backward_memory": ("llvm: backward pass peak memory, fluo_prb / AD through fluo_path (fluo_jung box, "
+                             "256², 64 spp, max_depth 8), llvm_ad_spectral", 0.5,
+                             lambda a: backward_row(a, "llvm_ad_spectral")),
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,
@@ -700,6 +758,9 @@ def readme_region(run: dict, source: str) -> str:
             if "memory_ratio" in r:
                 got += (f" ({r['a_s']:.1f} s vs {r['b_s']:.1f} s; peak memory {r['a_mb']:.0f} / {r['b_mb']:.0f} MB "
                         f"= {r['memory_ratio']:.2f}, target ≤ 2)")
+            if "native_ratio" in r:
+                got += (f" ({r['a_mb']:.0f} / {r['b_mb']:.0f} MB, {r['a_s']:.1f} s vs {r['b_s']:.1f} s; over Mitsuba's "
+                        f"prb with diffuse walls {r['native_mb']:.0f} MB: {r['native_ratio']:.2f}, target ≤ 1.5)")
         lines.append(f"| {r['label']} | {got} | {target} |")
     return "\n".join(lines + [END]) + "\n"
 
@@ -768,6 +829,9 @@ def main() -> None:
                 extra = f", kernel compile {max(0.0, r['compile_s']):.1f} s" if "compile_s" in r else ""
                 if "memory_ratio" in r:
                     extra += f", {r['a_s']:.1f} s vs {r['b_s']:.1f} s, peak memory x{r['memory_ratio']:.2f}"
+                if "native_ratio" in r:
+                    extra += (f", {r['a_mb']:.0f} / {r['b_mb']:.0f} MB; over Mitsuba's prb ({r['native_mb']:.0f} MB) "
+                              f"x{r['native_ratio']:.2f}")
                 print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] ({goal}{extra})", flush=True)
     if a.merge:
         fresh = {r["row"]: r for r in results}

@@ -12,6 +12,7 @@
 #include <mitsuba/render/scene.h>
 
 #include <array>
+#include <atomic>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -190,10 +191,34 @@ fluorescence. Mitsuba's own integrators
 (``path``, ...) render only the elastic part of fluorescent materials, and say so once
 per scene.
 
+**Path replay (``fluo_prb``).** The same class registered as ``fluo_prb`` renders exactly
+what ``fluo_path`` renders (the same loop, random numbers and images) and differs only in
+reverse-mode differentiation (``mi.render(scene, params)`` followed by ``dr.backward``):
+instead of differentiating the recorded loop, whose memory grows with the path depth,
+it replays each path (path replay backpropagation, Vicini et al. 2021, as Mitsuba's
+``prb``) in three passes with the render's seed: the film's derivative per sample (δL),
+the primal radiance L, then the same paths again (same vertices, elastic/shift choices
+and wavelengths) carrying the radiance still to come, each vertex backpropagating δL
+times its emission, its next-event estimate and the rest of the path through the
+relative derivative of its weight (the shift's reradiation included), inside the loop:
+memory independent of depth (one backward pass of the fluorescent Cornell box at 256²,
+64 spp, ``max_depth`` 8: the cost row ``llvm_backward_memory``). Sampling is detached
+(directions, wavelength choices and probabilities carry no derivative, as in ``prb``);
+gradients of geometry are not computed. Spectral AD variants (``llvm_ad_spectral``,
+``cuda_ad_spectral``) and RGB scenes without fluorescent materials replay; in an RGB
+variant with fluorescent materials the reduced transport carries a 3×K matrix throughput
+whose per-vertex factor path replay cannot divide out, and ``fluo_prb`` differentiates the
+recorded loop there as ``fluo_path`` does (one warning). Polarized variants refuse it.
+
 .. tabs::
     .. code-tab:: xml
 
         <integrator type="fluo_path">
+            <integer name="max_depth" value="8"/>
+        </integrator>
+
+        <!-- gradients with memory independent of path depth -->
+        <integrator type="fluo_prb">
             <integer name="max_depth" value="8"/>
         </integrator>
 */
@@ -213,7 +238,13 @@ public:
     FluoPath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
           m_reduced(Plugin, std::string(props.get<std::string_view>("basis", "x7")),
-                    std::string(props.get<std::string_view>("method", "ours"))) {}
+                    std::string(props.get<std::string_view>("method", "ours"))),
+          m_replay(props.plugin_name() == "fluo_prb") {
+        if (m_replay && is_polarized_v<Spectrum>)
+            Throw("fluo_prb: path replay is not available in the polarized variants (its adjoint divides "
+                  "the throughput per wavelength, which a Mueller matrix does not allow); render them "
+                  "with fluo_path, whose gradients differentiate the recorded loop");
+    }
 
     using Base::render;
     TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
@@ -223,11 +254,46 @@ public:
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
     }
 
+    using Base::render_backward;
+    void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
+                         uint32_t spp) override {
+        if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
+            if (m_replay) {
+                prepare(scene);
+                m_prepared.mark(scene);
+                if (m_reduced.size() == 0)
+                    return replay_backward(scene, grad_in, sensor, seed, spp);
+                if (!m_matrix_warned.exchange(true))
+                    Log(Warn, "fluo_prb: the reduced RGB transport of fluorescent materials carries a 3xK "
+                              "matrix throughput, which path replay cannot invert per vertex; this scene's "
+                              "gradients differentiate the recorded loop instead (exact, but their memory "
+                              "grows with path depth, as fluo_path's). Render in a spectral variant for "
+                              "replay. (Printed once per integrator.)");
+            }
+        }
+        Base::render_backward(scene, params, grad_in, sensor, seed, spp);
+    }
+
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
+        if constexpr (dr::is_diff_v<Float>) {
+            if (m_pass == Pass::Seed) { // replay_backward: the film's derivative per sample
+                m_seed = dr::full<Spectrum>(1.f, dr::width(ray));
+                dr::enable_grad(m_seed);
+                return { m_seed, true };
+            }
+        }
         m_prepared.ensure(scene, [&] { const_cast<FluoPath *>(this)->prepare(const_cast<Scene *>(scene)); });
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
+        if (m_pass != Pass::Render) { // replay_backward: the film receives nothing of these passes
+            if (m_pass == Pass::Adjoint) {
+                trace<0>(scene, sampler, ray, active, true);
+            } else {
+                std::tie(m_primal, m_valid) = trace<0>(scene, sampler, ray, active);
+            }
+            return { 0.f, false };
+        }
         if constexpr (is_rgb_v<Spectrum>) {
             if (m_reduced.size() > 0) {
                 if (m_reduced.bands() == 3)
@@ -277,6 +343,48 @@ private:
         m_range_hi = hi;
         m_directional = directional && !m_bsdfs.empty();
         m_varying = m_directional && m_reduced.varying();
+    }
+
+    /// fluo_prb's reverse mode (Vicini et al. 2021, path replay backpropagation, as Mitsuba's
+    /// `prb`): three passes of Mitsuba's render with the same seed. (1) Every sample's
+    /// radiance is a unit value with gradients: backpropagating `grad_in` through the film
+    /// (filter, spectrum to RGB, normalisation; linear in the radiance) gives each sample's
+    /// adjoint radiance δL. (2) The primal path: its radiance L. (3) The same paths replayed
+    /// (same random numbers, so the same vertices, choices and wavelengths) carrying the
+    /// radiance still to come; each vertex backpropagates δL times what it contributes
+    /// (emission, next-event estimate, and the rest of the path through its weight's
+    /// relative derivative) at once, inside the loop: memory does not grow with depth.
+    void replay_backward(Scene *scene, const TensorXf &grad_in, Sensor *sensor, UInt32 seed, uint32_t spp) {
+        struct Reset { // the passes end with the integrator rendering again
+            const FluoPath *self;
+            ~Reset() {
+                self->m_pass = Pass::Render;
+                self->m_seed = self->m_primal = self->m_adjoint = Spectrum();
+                self->m_valid = Bool();
+            }
+        } reset{ this };
+        dr::suspend_grad<Float> detached;
+        {
+            dr::resume_grad<Float> attached;
+            m_pass = Pass::Seed;
+            TensorXf image = Base::render(scene, sensor, seed, spp, true, false);
+            if (image.size() != grad_in.size())
+                Throw("fluo_prb: the gradient image holds %zu values, the film develops %zu", grad_in.size(),
+                      image.size());
+            dr::set_grad(image.array(), grad_in.array());
+            dr::enqueue(dr::ADMode::Backward, image.array());
+            dr::traverse<Float>(dr::ADMode::Backward);
+            m_adjoint = dr::grad(m_seed);
+            m_seed = Spectrum();
+        }
+        // the primal loop stays symbolic: Dr.Jit traces it into the replay's kernel, so no
+        // per-sample radiance is stored between the passes (as Mitsuba's prb)
+        m_pass = Pass::Primal;
+        Base::render(scene, sensor, seed, spp, false, false);
+        m_adjoint = dr::select(m_valid, m_adjoint, 0.f);
+        m_pass = Pass::Adjoint;
+        Base::render(scene, sensor, seed, spp, false, false);
+        dr::eval();
     }
 
     /// First intersection of a camera ray, skipping area emitters when they are hidden
@@ -385,9 +493,11 @@ private:
     };
 
     /// path.cpp's loop; what differs between the carried throughputs is marked K == 0 / K > 0.
+    /// `adjoint` (fluo_prb's third pass, K = 0): the replay of replay_backward, `result`
+    /// holding the radiance still to come (the primal's, less what the vertices passed gave).
     template <size_t K>
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                    Bool active) const {
+                                    Bool active, bool adjoint = false) const {
         if constexpr (K > 0 && !is_rgb_v<Spectrum>) {
             return { 0.f, false };
         } else {
@@ -402,20 +512,43 @@ private:
             ls.pi = camera_intersection(scene, ls.ray, ls.active);
             const bool shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty(), directional = m_directional;
             const double range_lo = m_range_lo, range_hi = m_range_hi;
+            Spectrum delta_L; // fluo_prb's adjoint radiance (replay_backward)
+            if constexpr (K == 0 && dr::is_diff_v<Float>) {
+                if (adjoint) {
+                    ls.result = m_primal;
+                    delta_L = m_adjoint;
+                }
+            }
 
             dr::tie(ls) = dr::while_loop(
                 dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
-                [this, scene, shifting, directional, range_lo, range_hi](LoopState<K> &ls) {
+                [this, scene, shifting, directional, range_lo, range_hi, adjoint, delta_L](LoopState<K> &ls) {
                     BSDFContext bsdf_ctx;
                     Carried<K> &c = ls.c;
+                    // the replay: this vertex's values with gradients, what it gives (Lo) backpropagated
+                    dr::resume_grad<Float> attached(adjoint);
+                    Spectrum Lo = 0.f;
+                    auto backpropagate = [&] {
+                        if constexpr (dr::is_diff_v<Float>) {
+                            if (dr::grad_enabled(Lo)) {
+                                Spectrum weighted = delta_L * Lo;
+                                dr::backward_from(weighted);
+                            }
+                        }
+                    };
                     SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
 
                     // ---------------------- Direct emission ----------------------
                     if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
                         auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
-                        if constexpr (K == 0)
-                            ls.result = dr::fmadd(c.throughput, le * mis_bsdf, ls.result);
-                        else
+                        if constexpr (K == 0) {
+                            if (adjoint) {
+                                Lo = c.throughput * le * mis_bsdf;
+                                ls.result -= dr::detach(Lo);
+                            } else {
+                                ls.result = dr::fmadd(c.throughput, le * mis_bsdf, ls.result);
+                            }
+                        } else
                             ls.result = dr::fmadd(
                                 m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, le, emitter != nullptr),
                                 mis_bsdf, ls.result);
@@ -425,6 +558,7 @@ private:
                     // a directly seen emitter is a valid sample even where the path ends here
                     ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
                     if (dr::none_or<false>(active_next)) {
+                        backpropagate();
                         ls.active = active_next;
                         return;
                     }
@@ -452,9 +586,20 @@ private:
                     if constexpr (K == 0) {
                         if (shifting)
                             shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_next, bsdf_val, bsdf_weight);
-                        if (dr::any_or<true>(active_em))
-                            ls.result[active_em] = dr::fmadd(c.throughput, bsdf_val * em_weight * mis_em, ls.result);
-                        c.throughput *= bsdf_weight;
+                        if (adjoint) {
+                            // next-event estimate, then the rest of the path through this weight
+                            Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
+                            ls.result -= dr::detach(direct);
+                            Spectrum w = dr::detach(bsdf_weight);
+                            Lo += direct + ls.result * dr::select(w != 0.f, bsdf_weight / dr::select(w != 0.f, w, 1.f), 0.f);
+                            backpropagate();
+                            c.throughput *= w;
+                        } else {
+                            if (dr::any_or<true>(active_em))
+                                ls.result[active_em] =
+                                    dr::fmadd(c.throughput, bsdf_val * em_weight * mis_em, ls.result);
+                            c.throughput *= bsdf_weight;
+                        }
                     } else {
                         // the matrix throughput, diag(t)·O on first entering it
                         Rows<K> R = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
@@ -486,6 +631,12 @@ private:
 
                     // ---------------------- BSDF sampling ----------------------
                     advance(ls, si, bs);
+                    if (adjoint) { // the path itself carries no gradients
+                        ls.ray = dr::detach(ls.ray);
+                        ls.eta = dr::detach(ls.eta);
+                        ls.prev_si = dr::detach(ls.prev_si);
+                        ls.prev_bsdf_pdf = dr::detach(ls.prev_bsdf_pdf);
+                    }
                     active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
 
                     // -------------------- Stopping criterion ---------------------
@@ -517,9 +668,18 @@ private:
     mutable fluo_detail::PreparedScene m_prepared; ///< the scene prepared last (nested use)
     bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
     bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
+
+    // fluo_prb (replay_backward): which pass Mitsuba's render runs, and what passes between them
+    enum class Pass { Render, Seed, Primal, Adjoint };
+    bool m_replay = false; ///< registered as fluo_prb
+    std::atomic<bool> m_matrix_warned{ false };
+    mutable Pass m_pass = Pass::Render;
+    mutable Spectrum m_seed, m_primal, m_adjoint; ///< unit radiance (pass 1), L (2), δL
+    mutable Bool m_valid;
 };
 
 static const bool fluo_path_jit_registered =
-    (fluo_detail::register_plugin<FluoPath>("fluo_path", ObjectType::Integrator), true);
+    (fluo_detail::register_plugin<FluoPath>("fluo_path", ObjectType::Integrator),
+     fluo_detail::register_plugin<FluoPath>("fluo_prb", ObjectType::Integrator), true);
 
 NAMESPACE_END(mitsuba)

@@ -10,7 +10,7 @@ or ``{"variant", "bsdf" (a plugin dict), "points": [[wi, wo, wavelengths], ...]}
 evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths, or
 ``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
 derivative of the image mean by automatic differentiation and by central differences
-(same seed) for each parameter of ``mi.traverse``, or ``{"variant", "load": a plugin
+(same seed) for each parameter of ``mi.traverse`` (``"ad_only": true``: AD alone), or ``{"variant", "load": a plugin
 dict}`` to instantiate one plugin (an error says why it cannot be), or ``{"variant",
 "traverse": a plugin dict}`` for the keys ``mi.traverse`` lists (and which are differentiable).
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
@@ -41,7 +41,7 @@ def run(job: dict) -> dict:
         return {"keys": list(params.keys()), "differentiable": differentiable}
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0),
-                                       job.get("forward", False))}
+                                       job.get("forward", False), job.get("ad_only", False))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -71,10 +71,11 @@ def eval_bsdf(bsdf, points) -> list:
     return out
 
 
-def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False) -> dict:
+def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad_only: bool = False) -> dict:
     """{key: [AD derivative, central difference]} of the mean image for each parameter, along
     the parameter's all-ones direction (every channel of a colour moves together); with
-    `forward`, the forward difference (a parameter at the lower end of its range)."""
+    `forward`, the forward difference (a parameter at the lower end of its range); with
+    `ad_only`, [AD derivative, None]."""
     import drjit as dr
 
     params = mi.traverse(scene)
@@ -93,6 +94,9 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False) ->
             if "does not depend on the input variable" not in str(err):
                 raise
             ad = 0.0
+        if ad_only:
+            out[key] = [ad, None]
+            continue
         values = []
         for d in ((0.0, h) if forward else (-h, h)):
             params[key] = x0 + d
