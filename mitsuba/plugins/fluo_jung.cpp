@@ -224,6 +224,7 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using Dye = fluo_detail::JungDye<UnpolarizedSpectrum>;
     using fluo_detail::BispectralBSDF<Float, Spectrum>::MaxTerms;
+    using fluo_detail::BispectralBSDF<Float, Spectrum>::DerivTerms;
     using Choice = typename fluo_detail::BispectralBSDF<Float, Spectrum>::Choice;
 
     static constexpr const char *Plugin = "fluo_jung";
@@ -267,10 +268,6 @@ public:
         for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
             if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load
                 cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
-            else if (is_rgb_v<Spectrum> && (i == fluo_detail::JungPeak || i == fluo_detail::JungShift))
-                // RGB: the dye's shape is baked into the reduced matrices (updates re-bake
-                // them; no gradient flows through the bake)
-                cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::NonDifferentiable);
             else
                 cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
         }
@@ -313,6 +310,48 @@ public:
     }
     /// c·Q = 0 with gradients on c or Q: the dye's bands from its closed forms (Rust's
     /// ranges are empty for a dye that re-emits nothing).
+    /// λe or s carry gradients (a uniform dye in a JIT AD variant): RGB then adds the
+    /// derivatives of what it bakes from them (jit_reduced_derivatives, the RGB parts).
+    bool shape_gradients() const {
+        bool one_shape = !m_shapes || (!m_param_tex[fluo_detail::JungPeak] && !m_param_tex[fluo_detail::JungShift]);
+        return one_shape && !m_texels && (dr::grad_enabled(m_peak) || dr::grad_enabled(m_shift));
+    }
+    /// What RGB bakes from the dye's shape at `cfg` (fluo::jung_rgb_parts with this base):
+    /// reflectance_absorbed, absorbed_scale, fluorescence (9 values).
+    std::vector<double> rgb_parts_at(const fluo::JungConfig &cfg) const {
+        double pk = cfg.emission_peak, sh = cfg.stokes_shift;
+        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
+        fluo::JungRgbParts q = fluo::jung_rgb_parts(fluo::jung_shapes_model(*u, 0), **m_model);
+        return { q.reflectance_absorbed.r, q.reflectance_absorbed.g, q.reflectance_absorbed.b,
+                 q.absorbed_scale.r,       q.absorbed_scale.g,       q.absorbed_scale.b,
+                 q.fluorescence.r,         q.fluorescence.g,         q.fluorescence.b };
+    }
+    /// ∂f/∂λe (i = 0) or ∂f/∂s (i = 1) of a host computation f(config) by central differences
+    /// with a 0.25 nm step (one-sided at a range end, where Rust refuses the step).
+    template <typename F> std::vector<double> shape_derivative(size_t i, F &&f) const {
+        constexpr double h = 0.25;
+        auto at = [&](double delta) -> std::optional<std::vector<double>> {
+            fluo::JungConfig cfg = m_config;
+            (i == 0 ? cfg.emission_peak : cfg.stokes_shift) += delta;
+            try {
+                return f(cfg);
+            } catch (const std::exception &) {
+                return std::nullopt; // outside the parameter's range
+            }
+        };
+        std::optional<std::vector<double>> hi = at(h), lo = at(-h);
+        double span = (hi ? h : 0.0) + (lo ? h : 0.0);
+        if (!hi)
+            hi = at(0.0);
+        if (!lo)
+            lo = at(0.0);
+        std::vector<double> out(hi->size(), 0.0);
+        if (span > 0.0)
+            for (size_t j = 0; j < out.size(); ++j)
+                out[j] = ((*hi)[j] - (*lo)[j]) / span;
+        return out;
+    }
+
     bool gradient_only() const {
         return !m_shapes && !m_texels && !fluo::jung_is_fluorescent(**m_model) &&
                (dr::grad_enabled(m_conc) || dr::grad_enabled(m_yield));
@@ -356,6 +395,45 @@ public:
     }
     std::array<Float, MaxTerms> jit_reduced_weights() const override {
         return { Float(1.f), -m_conc, m_conc * m_yield };
+    }
+
+    /// RGB with gradients on λe or s (one dye shape): a uniform dye's A = M_0 − c·M_1(λe, s) +
+    /// c·Q·M_2(λe, s), so ∂A/∂λe = −c·∂M_1/∂λe + c·Q·∂M_2/∂λe (and for s); with a textured c
+    /// or Q the hit's c·Q times ∂M/∂λe of the shape's unit reradiation M (jit_reduced_table).
+    /// Central differences of the reductions (shape_derivative).
+    size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
+                                   std::array<std::vector<double>, DerivTerms> &d) const override {
+        if (!shape_gradients())
+            return 0;
+        size_t kk = d[0].size();
+        double c = m_config.concentration, q = m_config.quantum_yield;
+        for (size_t i = 0; i < 2; ++i)
+            d[i] = shape_derivative(i, [&](const fluo::JungConfig &cfg) {
+                std::vector<double> r(kk), a(kk), e(kk), out(kk);
+                if (m_shapes) {
+                    double pk = cfg.emission_peak, sh = cfg.stokes_shift;
+                    auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
+                    auto reduced = fluo::reduced_new(fluo::jung_fluorescence(fluo::jung_shapes_model(*u, 0)), transport);
+                    fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk));
+                    return out;
+                }
+                auto model = fluo::jung_new(cfg);
+                fluo::jung_reduced_parts(*model, transport, rust::Slice<double>(r.data(), kk),
+                                         rust::Slice<double>(a.data(), kk), rust::Slice<double>(e.data(), kk));
+                for (size_t j = 0; j < kk; ++j)
+                    out[j] = -c * a[j] + c * q * e[j];
+                return out;
+            });
+        return 2;
+    }
+    std::array<Float, DerivTerms> jit_reduced_derivative_weights(const SurfaceInteraction3f &si,
+                                                                 Mask active) const override {
+        Float scale = 1.f;
+        if (m_shapes) {
+            Hit h = hit(si, active);
+            scale = h.t.conc * h.t.yield;
+        }
+        return { (m_peak - dr::detach(m_peak)) * scale, (m_shift - dr::detach(m_shift)) * scale };
     }
 
     /// Textured parameters: each dye shape's reduced reradiation at c = Q = 1, one per
@@ -498,6 +576,16 @@ private:
             m_rgb_reflectance_absorbed = color(p.reflectance_absorbed);
             m_rgb_absorbed_scale = color(p.absorbed_scale);
             m_rgb_fluorescence = color(p.fluorescence);
+            if (shape_gradients()) { // the parts' derivatives along λe and s (zero in value)
+                Float delta[2] = { m_peak - dr::detach(m_peak), m_shift - dr::detach(m_shift) };
+                for (size_t i = 0; i < 2; ++i) {
+                    std::vector<double> g = shape_derivative(i, [&](const fluo::JungConfig &cfg) { return rgb_parts_at(cfg); });
+                    auto part = [&](size_t o) { return Color3f((float) g[o], (float) g[o + 1], (float) g[o + 2]); };
+                    m_rgb_reflectance_absorbed += delta[i] * part(0);
+                    m_rgb_absorbed_scale += delta[i] * part(3);
+                    m_rgb_fluorescence += delta[i] * part(6);
+                }
+            }
             if (m_shapes) { // per dye shape, gathered per lane
                 size_t n = fluo::jung_shapes_len(**m_shapes->shapes);
                 std::vector<float> parts[ShapeFields];
@@ -515,6 +603,14 @@ private:
                 }
                 for (size_t f = 0; f < ShapeFields; ++f)
                     m_shape_parts[f] = dr::load<FloatStorage>(parts[f].data(), n);
+                if (shape_gradients()) { // one shape: its parts' derivatives along λe and s
+                    Float delta[2] = { m_peak - dr::detach(m_peak), m_shift - dr::detach(m_shift) };
+                    for (size_t i = 0; i < 2; ++i) {
+                        std::vector<double> g = shape_derivative(i, [&](const fluo::JungConfig &cfg) { return rgb_parts_at(cfg); });
+                        for (size_t f = 3; f < ShapeFields; ++f) // (reflectance, 0..2, holds no dye)
+                            m_shape_parts[f] = m_shape_parts[f] + FloatStorage(delta[i] * (float) g[f - 3]);
+                    }
+                }
             }
         }
         for (size_t i = 0; i < 3; ++i)

@@ -203,8 +203,11 @@ times its emission, its next-event estimate and the rest of the path through the
 relative derivative of its weight (the shift's reradiation included), inside the loop:
 memory independent of depth (one backward pass of the fluorescent Cornell box at 256²,
 64 spp, ``max_depth`` 8: the cost row ``llvm_backward_memory``). Sampling is detached
-(directions, wavelength choices and probabilities carry no derivative, as in ``prb``);
-gradients of geometry are not computed. Spectral AD variants (``llvm_ad_spectral``,
+(directions, wavelength choices and probabilities carry no derivative; each vertex
+differentiates the BSDF's and the emitter's values at the sampled directions, as ``prb``
+does); the surface interactions are detached, so shapes get no gradient (geometry needs
+reparameterisation, which neither ``fluo_path`` nor this replay does). A render in several
+passes (``samples_per_pass``, or more than 2^32 samples) is refused. Spectral AD variants (``llvm_ad_spectral``,
 ``cuda_ad_spectral``) and RGB scenes without fluorescent materials replay; in an RGB
 variant with fluorescent materials the reduced transport carries a 3×K matrix throughput
 whose per-vertex factor path replay cannot divide out, and ``fluo_prb`` differentiates the
@@ -278,8 +281,10 @@ public:
                                      const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
         if constexpr (dr::is_diff_v<Float>) {
             if (m_pass == Pass::Seed) { // replay_backward: the film's derivative per sample
-                m_seed = dr::full<Spectrum>(1.f, dr::width(ray));
-                dr::enable_grad(m_seed);
+                if (dr::width(ray) != dr::width(m_seed))
+                    Throw("fluo_prb: the render runs in several passes (%zu samples per pass of %zu: "
+                          "\"samples_per_pass\", or more than 2^32 samples); path replay needs one pass",
+                          dr::width(ray), dr::width(m_seed));
                 return { m_seed, true };
             }
         }
@@ -363,9 +368,22 @@ private:
                 self->m_valid = Bool();
             }
         } reset{ this };
+        if (m_max_depth == 0)
+            return; // nothing is rendered, nothing depends on the parameters
         dr::suspend_grad<Float> detached;
+        // one unit radiance per sample of the (single-pass) wavefront; only it carries
+        // gradients through the film (not the sensor's or the film's own parameters)
+        auto *film = sensor->film();
+        ScalarVector2u size = film->crop_size();
+        if (film->sample_border())
+            size += 2 * film->rfilter()->border_size();
+        m_seed = dr::full<Spectrum>(1.f, (size_t) size.x() * size.y() * (spp ? spp : sensor->sampler()->sample_count()));
         {
             dr::resume_grad<Float> attached;
+            dr::enable_grad(m_seed);
+        }
+        {
+            dr::resume_grad<Float> attached(true, m_seed);
             m_pass = Pass::Seed;
             TensorXf image = Base::render(scene, sensor, seed, spp, true, false);
             if (image.size() != grad_in.size())
@@ -537,6 +555,8 @@ private:
                         }
                     };
                     SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+                    if (adjoint) // the replay differentiates materials and emitters, not geometry
+                        si = dr::detach(si);
 
                     // ---------------------- Direct emission ----------------------
                     if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
@@ -572,16 +592,34 @@ private:
                     if (shifting)
                         shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, range_lo, range_hi);
 
+                    // the replay samples as the primal did, without gradients (as prb: detached
+                    // sampling), and differentiates the values at those samples below
+                    auto detached = [adjoint](auto &&f) {
+                        dr::suspend_grad<Float> off(adjoint);
+                        return f();
+                    };
+
                     // ---------------------- Emitter sampling ----------------------
-                    auto [ds, em_weight, wo, active_em] = sample_emitter(scene, si, ls.sampler, bsdf, active_next);
+                    auto [ds, em_weight, wo, active_em] =
+                        detached([&] { return sample_emitter(scene, si, ls.sampler, bsdf, active_next); });
                     active_em &= perturbed.keeps_side(ds.d);
 
                     // ------ Evaluate BSDF * cos(theta) and sample direction -------
                     Float sample_1 = ls.sampler->next_1d();
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
-                        bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2);
+                        detached([&] { return bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2); });
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+                    if constexpr (K == 0 && dr::is_diff_v<Float>) {
+                        if (adjoint) { // values with gradients at the detached samples
+                            Spectrum em_value = scene->eval_emitter_direction(si, ds, active_em);
+                            em_weight = dr::replace_grad(
+                                em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
+                            bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
+                            Spectrum v = bsdf->eval(bsdf_ctx, si, bs.wo, active_next), vd = dr::detach(v);
+                            bsdf_weight *= dr::select(vd != 0.f, v / dr::select(vd != 0.f, vd, 1.f), 1.f);
+                        }
+                    }
 
                     if constexpr (K == 0) {
                         if (shifting)
@@ -651,6 +689,8 @@ private:
                         c.t[rr_active] *= rr_scale;
                     }
                     ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+                    if (adjoint)
+                        ls.pi = dr::detach(ls.pi);
                 });
             // K > 0: out-of-gamut colours are clipped per sample (the docs' reduced transport)
             if constexpr (K > 0)

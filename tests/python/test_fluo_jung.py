@@ -565,15 +565,17 @@ def test21_bilinear_texels_interpolate_reradiation(variant, tmp_path, capsys):
 
 @pytest.mark.parametrize("variant", VARIANTS)
 def test22_differentiable_flags_say_where_gradients_flow(variant):
-    """Issue 32 finding 14: in the RGB variants the dye's shape (emission_peak,
-    stokes_shift) is baked into the reduced matrices, so those parameters are flagged
-    non-differentiable there (dr.backward found no dependence on them); concentration and
-    quantum_yield weigh the matrices per lane and stay differentiable, as all four do in
-    the spectral variants."""
+    """Issue 32 finding 14, issue 35: the four dye parameters of a uniform fluo_jung are
+    differentiable in every variant: in RGB, λe and s, baked into the reduced matrices,
+    carry gradients through the matrices' derivatives (jit_reduced_derivatives; test_fluo_prb
+    test05 compares them with central differences); a textured parameter selects baked
+    dye shapes and is flagged non-differentiable."""
     mi.set_variant(variant)
     params = mi.traverse(mi.load_dict({"type": "fluo_jung"}))
-    baked = variant.endswith("_rgb")
     for key in ("emission_peak", "stokes_shift", "concentration", "quantum_yield"):
         flags = params.flags(key)
-        non_diff = bool(flags & mi.ParamFlags.NonDifferentiable)
-        assert non_diff == (baked and key in ("emission_peak", "stokes_shift")), (variant, key, flags)
+        assert not flags & mi.ParamFlags.NonDifferentiable, (variant, key, flags)
+    textured = mi.traverse(mi.load_dict({"type": "fluo_jung", "emission_peak": {
+        "type": "checkerboard", "color0": 520.0, "color1": 560.0}}))
+    key = next(k for k in textured.keys() if k.startswith("emission_peak"))
+    assert textured.flags(key) & mi.ParamFlags.NonDifferentiable, (variant, key)

@@ -143,12 +143,15 @@ def test04_textured_concentration_gradient(tmp_path):
 
 def test05_rgb_with_fluorescence_differentiates_the_loop():
     """llvm_ad_rgb: the reduced transport's matrix throughput cannot be replayed; fluo_prb
-    says so once and its gradients (the recorded loop's) still match central differences;
+    says so once and its gradients (the recorded loop's) still match central differences,
+    the dye's shape (emission peak, Stokes shift) included through the derivatives of the
+    reduced matrices and RGB parts (fluo_jung's jit_reduced_derivatives);
     a scene without fluorescent materials (the dye replaced by a diffuse BSDF) replays."""
     plain = box("fluo_prb", '<bsdf type="diffuse" id="dye"><rgb name="reflectance" '
                                                   'value="0.5"/></bsdf>')
     jobs = [{"variant": "llvm_ad_rgb", "xml": box("fluo_prb", JUNG), "spp": 512, "seed": 3,
-             "gradients": {"dye.concentration": 0.05, "dye.quantum_yield": 0.05, "dye.reflectance.value": 0.05}},
+             "gradients": {"dye.concentration": 0.05, "dye.quantum_yield": 0.05, "dye.reflectance.value": 0.05,
+                           "dye.emission_peak": 4.0, "dye.stokes_shift": 4.0}},
             {"variant": "llvm_ad_rgb", "xml": plain, "spp": 512, "seed": 3,
              "gradients": {"dye.reflectance.value": 0.05, "wall.reflectance.value": 0.05}}]
     results, log = run_worker(jobs)

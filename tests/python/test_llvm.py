@@ -271,16 +271,17 @@ def test06_gradients_match_finite_differences():
     central finite differences with the same seed: within 10 % for concentration, quantum
     yield and the reflectance (measured: under 2 %), within 25 % for emission peak and Stokes
     shift (measured: 1 % and 13 %; changing the dye's shape re-bakes its sampling table, so
-    the two finite-difference renders share fewer random numbers) in llvm_ad_spectral; concentration, yield and reflectance in llvm_ad_rgb,
-    where the dye's shape is baked into the reduced matrices: emission peak and Stokes shift
-    are flagged non-differentiable there (test_fluo_jung.py test22)."""
+    the two finite-difference renders share fewer random numbers) in llvm_ad_spectral; the same
+    five in llvm_ad_rgb, where the dye's shape reaches the image through the reduced matrices
+    and RGB parts baked from it, differentiated through their derivatives along λe and s
+    (fluo_jung's jit_reduced_derivatives)."""
     steps = {"dye.concentration": 0.05, "dye.quantum_yield": 0.05, "dye.emission_peak": 4.0,
              "dye.stokes_shift": 2.0, "dye.reflectance.value": 0.05}
     jobs = [{"variant": "llvm_ad_spectral", "xml": GRAD_SCENE.format(basis=""), "spp": 512, "seed": 3,
              "gradients": steps},
             {"variant": "llvm_ad_rgb", "xml": GRAD_SCENE.format(basis='<string name="basis" value="x7"/>'),
              "spp": 512, "seed": 3,
-             "gradients": {k: h for k, h in steps.items() if k not in ("dye.emission_peak", "dye.stokes_shift")}}]
+             "gradients": steps}]
     results = run_llvm(jobs)
     for job, res in zip(jobs, results):
         assert "error" not in res, res

@@ -185,6 +185,24 @@ public:
                                       std::array<std::vector<double>, MaxTerms> &m) const = 0;
     virtual std::array<Float, MaxTerms> jit_reduced_weights() const = 0;
 
+    /// RGB reduced transport with gradients on parameters baked into the matrices (fluo_jung's
+    /// λe and s): up to DerivTerms matrices D_d (host, row major, sized K·K by the caller),
+    /// D_d = ∂A/∂θ_d at this render's values, which the vertex operator adds with the weights
+    /// jit_reduced_derivative_weights() (per lane), each (θ_d − detach(θ_d)) times the
+    /// lane's weight of the term D_d differentiates: zero in value, so A is unchanged and its
+    /// derivative along θ_d is that weight times D_d. Returns how many (0: none, the default;
+    /// asked when a render starts, so only materials whose such parameters carry gradients
+    /// pay for it).
+    static constexpr size_t DerivTerms = 2;
+    virtual size_t jit_reduced_derivatives(const fluo::TransportBasis & /* transport */,
+                                           std::array<std::vector<double>, DerivTerms> & /* d */) const {
+        return 0;
+    }
+    virtual std::array<Float, DerivTerms> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
+                                                                         Mask /* active */) const {
+        return { Float(0.f), Float(0.f) };
+    }
+
     /// Elastic albedo at si.wavelengths (spectral), or its linear sRGB (RGB variant).
     virtual UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const = 0;
 

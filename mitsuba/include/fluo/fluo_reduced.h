@@ -11,6 +11,7 @@
 #include <mitsuba/render/emitter.h>
 #include <mitsuba/render/scene.h>
 
+#include <algorithm>
 #include <array>
 #include <optional>
 #include <string>
@@ -83,6 +84,9 @@ public:
                 for (auto &m : e.m)
                     m.assign(m_k * m_k, 0.0);
                 e.full = rust_call(m_plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
+                for (auto &d : e.d)
+                    d.assign(m_k * m_k, 0.0);
+                e.n_d = rust_call(m_plugin, [&] { return b->jit_reduced_derivatives(**m_transport, e.d); });
                 std::vector<double> nodes;
                 if (!b->jit_lambertian()) {
                     std::vector<double> dm;
@@ -303,6 +307,10 @@ private:
         bool full = false; ///< the operator includes the elastic part
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
+        /// Derivative matrices of parameters baked into `m` (Bispectral::jit_reduced_derivatives)
+        std::array<std::vector<double>, Bispectral::DerivTerms> d;
+        std::array<std::vector<Float>, Bispectral::DerivTerms> dv; ///< `d` as opaque values
+        size_t n_d = 0;
         /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
         /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
         DynamicBuffer<Float> nodes;
@@ -358,6 +366,9 @@ private:
         Coeffs<K> d = dr::zeros<Coeffs<K>>();
         if (elastic)
             d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
+        std::array<Float, Bispectral::DerivTerms> wd;
+        if (e.n_d > 0)
+            wd = e.bispectral->jit_reduced_derivative_weights(si, on);
         UInt32 base(0);
         Float wn(0.f);
         if (e.n_table > 0) {
@@ -373,6 +384,9 @@ private:
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
                     if (nonzero(e, t, k * K + j))
                         col[k] = dr::fmadd(w[t], entry(e, t, k * K + j), col[k]);
+                for (size_t t = 0; t < e.n_d; ++t)
+                    if (e.d[t][k * K + j] != 0.0)
+                        col[k] = dr::fmadd(wd[t], e.dv[t][k * K + j], col[k]);
                 if (elastic && k == j)
                     col[k] += d[k];
             }
@@ -510,7 +524,18 @@ private:
     std::array<std::vector<bool>, Bispectral::MaxTerms> m_any; ///< per term: entries non-zero in some material
 
     void opaque_operators() {
-        m_opaque = m_entries.size() > LiteralEntries;
+        // (gradients on baked parameters: their values change every optimisation step, and
+        // literals would compile a kernel per step)
+        m_opaque = m_entries.size() > LiteralEntries ||
+                   std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return e.n_d > 0; });
+        for (Entry &e : m_entries)
+            for (size_t t = 0; t < e.n_d; ++t) {
+                e.dv[t].resize(e.d[t].size());
+                for (size_t i = 0; i < e.d[t].size(); ++i) {
+                    e.dv[t][i] = Float((float) e.d[t][i]);
+                    dr::make_opaque(e.dv[t][i]);
+                }
+            }
         if (!m_opaque)
             return;
         for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
