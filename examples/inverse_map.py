@@ -15,8 +15,8 @@ of the iterations). It prints, per iteration, the loss, the
 map's RMSE against the hidden map and the emission peak, and exits with status 1 when the
 final RMSE exceeds 0.05 (or the peak misses by more than 5 nm). In llvm_ad_rgb the peak is
 baked into the reduced matrices; its gradient exists (their derivatives, baked when a
-render starts) but costs ~1.7 s of host work per render here, so the RGB run recovers the
-map at the true peak.
+render starts) but each update of it recompiles the render kernel (~1.7 s here), so the RGB
+run recovers the map at the true peak.
 """
 
 from __future__ import annotations
