@@ -576,15 +576,19 @@ private:
             m_rgb_reflectance_absorbed = color(p.reflectance_absorbed);
             m_rgb_absorbed_scale = color(p.absorbed_scale);
             m_rgb_fluorescence = color(p.fluorescence);
-            if (shape_gradients()) { // the parts' derivatives along λe and s (zero in value)
-                Float delta[2] = { m_peak - dr::detach(m_peak), m_shift - dr::detach(m_shift) };
-                for (size_t i = 0; i < 2; ++i) {
-                    std::vector<double> g = shape_derivative(i, [&](const fluo::JungConfig &cfg) { return rgb_parts_at(cfg); });
-                    auto part = [&](size_t o) { return Color3f((float) g[o], (float) g[o + 1], (float) g[o + 2]); };
-                    m_rgb_reflectance_absorbed += delta[i] * part(0);
-                    m_rgb_absorbed_scale += delta[i] * part(3);
-                    m_rgb_fluorescence += delta[i] * part(6);
-                }
+            // with gradients on λe or s: the parts' derivatives along them (rgb_parts_at's order),
+            // added times θ − detach(θ) (zero in value) to the uniform parts and to a single dye
+            // shape's gathered ones
+            const bool derive = shape_gradients();
+            Float delta[2] = { m_peak - dr::detach(m_peak), m_shift - dr::detach(m_shift) };
+            std::vector<double> dparts[2];
+            for (size_t i = 0; derive && i < 2; ++i) {
+                dparts[i] = shape_derivative(i, [&](const fluo::JungConfig &cfg) { return rgb_parts_at(cfg); });
+                const std::vector<double> &g = dparts[i];
+                auto part = [&](size_t o) { return Color3f((float) g[o], (float) g[o + 1], (float) g[o + 2]); };
+                m_rgb_reflectance_absorbed += delta[i] * part(0);
+                m_rgb_absorbed_scale += delta[i] * part(3);
+                m_rgb_fluorescence += delta[i] * part(6);
             }
             if (m_shapes) { // per dye shape, gathered per lane
                 size_t n = fluo::jung_shapes_len(**m_shapes->shapes);
@@ -603,14 +607,9 @@ private:
                 }
                 for (size_t f = 0; f < ShapeFields; ++f)
                     m_shape_parts[f] = dr::load<FloatStorage>(parts[f].data(), n);
-                if (shape_gradients()) { // one shape: its parts' derivatives along λe and s
-                    Float delta[2] = { m_peak - dr::detach(m_peak), m_shift - dr::detach(m_shift) };
-                    for (size_t i = 0; i < 2; ++i) {
-                        std::vector<double> g = shape_derivative(i, [&](const fluo::JungConfig &cfg) { return rgb_parts_at(cfg); });
-                        for (size_t f = 3; f < ShapeFields; ++f) // (reflectance, 0..2, holds no dye)
-                            m_shape_parts[f] = m_shape_parts[f] + FloatStorage(delta[i] * (float) g[f - 3]);
-                    }
-                }
+                for (size_t i = 0; derive && i < 2; ++i) // (one shape; fields 0..2, reflectance, hold no dye)
+                    for (size_t f = 3; f < ShapeFields; ++f)
+                        m_shape_parts[f] = m_shape_parts[f] + FloatStorage(delta[i] * (float) dparts[i][f - 3]);
             }
         }
         for (size_t i = 0; i < 3; ++i)

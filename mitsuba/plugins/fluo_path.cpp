@@ -474,6 +474,12 @@ private:
 
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
 
+    /// x / detach(x): value 1 (also where x is 0), derivative ∂x/x (fluo_prb's replay).
+    static Spectrum relative(const Spectrum &x) {
+        Spectrum d = dr::detach(x);
+        return dr::select(d != 0.f, x / dr::select(d != 0.f, d, 1.f), 1.f);
+    }
+
     // ------------------------------------------------------------ the loop
     template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
     template <size_t K> using Rows = typename Reduced::template Rows<K>;
@@ -616,8 +622,7 @@ private:
                             em_weight = dr::replace_grad(
                                 em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
                             bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
-                            Spectrum v = bsdf->eval(bsdf_ctx, si, bs.wo, active_next), vd = dr::detach(v);
-                            bsdf_weight *= dr::select(vd != 0.f, v / dr::select(vd != 0.f, vd, 1.f), 1.f);
+                            bsdf_weight *= relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
                         }
                     }
 
@@ -628,10 +633,9 @@ private:
                             // next-event estimate, then the rest of the path through this weight
                             Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
                             ls.result -= dr::detach(direct);
-                            Spectrum w = dr::detach(bsdf_weight);
-                            Lo += direct + ls.result * dr::select(w != 0.f, bsdf_weight / dr::select(w != 0.f, w, 1.f), 0.f);
+                            Lo += direct + ls.result * relative(bsdf_weight);
                             backpropagate();
-                            c.throughput *= w;
+                            c.throughput *= dr::detach(bsdf_weight);
                         } else {
                             if (dr::any_or<true>(active_em))
                                 ls.result[active_em] =
@@ -669,12 +673,6 @@ private:
 
                     // ---------------------- BSDF sampling ----------------------
                     advance(ls, si, bs);
-                    if (adjoint) { // the path itself carries no gradients
-                        ls.ray = dr::detach(ls.ray);
-                        ls.eta = dr::detach(ls.eta);
-                        ls.prev_si = dr::detach(ls.prev_si);
-                        ls.prev_bsdf_pdf = dr::detach(ls.prev_bsdf_pdf);
-                    }
                     active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
 
                     // -------------------- Stopping criterion ---------------------
@@ -689,8 +687,13 @@ private:
                         c.t[rr_active] *= rr_scale;
                     }
                     ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
-                    if (adjoint)
+                    if (adjoint) { // the path itself carries no gradients
+                        ls.ray = dr::detach(ls.ray);
                         ls.pi = dr::detach(ls.pi);
+                        ls.eta = dr::detach(ls.eta);
+                        ls.prev_si = dr::detach(ls.prev_si);
+                        ls.prev_bsdf_pdf = dr::detach(ls.prev_bsdf_pdf);
+                    }
                 });
             // K > 0: out-of-gamut colours are clipped per sample (the docs' reduced transport)
             if constexpr (K > 0)
