@@ -72,7 +72,8 @@ peak memory: a JIT variant compiles one callable per distinct instance unless th
 values are kernel inputs rather than literals (issue 32, finding 15: 60 s for 200 dyes).
 
 The medium rows render ``MEDIA_SPP_FACTOR`` (4) times the samples of the others (a 16-spp
-cuvette render is too short to time on a shared machine). The llvm rows render
+cuvette render is too short to time on a shared machine), the scalar basis row
+``BASIS_SPP_FACTOR`` (4) times (its two sides differ by a few multiplies per vertex). The llvm rows render
 ``LLVM_SPP_FACTOR`` (8) times the samples of the others and run in
 a fresh process each (Mitsuba 3.8 cannot start an llvm variant in a
 process that has rendered in a scalar one): A and B are interleaved there as everywhere
@@ -329,6 +330,12 @@ def load_row(res: int, rounds: int) -> dict:
 #: moved single paired ratios by ±0.2 (the no-fluorescence row, the very code path of
 #: volpath, came out 0.90-1.21).
 MEDIA_SPP_FACTOR = 4
+
+#: The basis rows compare two renders of one scene that differ by a few multiplies per
+#: vertex (auto and x7 both carry K = 7 bands): at 16 spp (0.6 s a render on the 2-core
+#: machine) single ratios of the scalar row spread 0.87-1.31 from block scheduling alone, so
+#: the scalar row renders this many times the samples (the llvm row has LLVM_SPP_FACTOR).
+BASIS_SPP_FACTOR = 4
 
 #: The llvm rows render this many times the samples of the others: a vectorised render of
 #: a 96² image at 16 spp takes milliseconds, where kernel launches and thread start-up
@@ -687,7 +694,7 @@ ROWS = {
     "vertex_gmm_llvm_ad_rgb": ("per vertex, closed box: fluo_gmm / diffuse, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_gmm_llvm_ad_rgb", a)),
     "vertex_qd_llvm_ad_rgb": ("per vertex, closed box: fluo_qd / roughconductor, llvm_ad_rgb", 1.25, lambda a: in_worker("vertex_qd_llvm_ad_rgb", a)),
     "vertex_auto_scalar_rgb": ("per vertex, closed box: basis auto / x7 (fluo_jung), scalar_rgb", 1.05,
-                               lambda a: basis_row("scalar_rgb", a.res, a.spp, a.rounds)),
+                               lambda a: basis_row("scalar_rgb", a.res, a.spp * BASIS_SPP_FACTOR, a.rounds)),
     "vertex_auto_llvm_ad_rgb": ("per vertex, closed box: basis auto / x7 (fluo_jung), llvm_ad_rgb", 1.05,
                                 lambda a: in_worker("vertex_auto_llvm_ad_rgb", a)),
     "load": (f"load: {COLOURED} coloured fluo_jung / diffuse (ms, MB per material)", 0.2,

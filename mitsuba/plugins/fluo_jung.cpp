@@ -224,7 +224,6 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using Dye = fluo_detail::JungDye<UnpolarizedSpectrum>;
     using fluo_detail::BispectralBSDF<Float, Spectrum>::MaxTerms;
-    using fluo_detail::BispectralBSDF<Float, Spectrum>::DerivTerms;
     using Choice = typename fluo_detail::BispectralBSDF<Float, Spectrum>::Choice;
 
     static constexpr const char *Plugin = "fluo_jung";
@@ -329,7 +328,6 @@ public:
     /// ∂f/∂λe (i = 0) or ∂f/∂s (i = 1) of a host computation f(config) by central differences
     /// with a 0.25 nm step (one-sided at a range end, where Rust refuses the step).
     template <typename F> std::vector<double> shape_derivative(size_t i, F &&f) const {
-        constexpr double h = 0.25;
         auto at = [&](double delta) -> std::optional<std::vector<double>> {
             fluo::JungConfig cfg = m_config;
             (i == 0 ? cfg.emission_peak : cfg.stokes_shift) += delta;
@@ -339,17 +337,8 @@ public:
                 return std::nullopt; // outside the parameter's range
             }
         };
-        std::optional<std::vector<double>> hi = at(h), lo = at(-h);
-        double span = (hi ? h : 0.0) + (lo ? h : 0.0);
-        if (!hi)
-            hi = at(0.0);
-        if (!lo)
-            lo = at(0.0);
-        std::vector<double> out(hi->size(), 0.0);
-        if (span > 0.0)
-            for (size_t j = 0; j < out.size(); ++j)
-                out[j] = ((*hi)[j] - (*lo)[j]) / span;
-        return out;
+        std::optional<std::vector<double>> d = fluo_detail::central_difference(0.25, at);
+        return d ? *d : std::vector<double>(at(0.0).value_or(std::vector<double>()).size(), 0.0);
     }
 
     bool gradient_only() const {
@@ -402,10 +391,11 @@ public:
     /// or Q the hit's c·Q times ∂M/∂λe of the shape's unit reradiation M (jit_reduced_table).
     /// Central differences of the reductions (shape_derivative).
     size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
-                                   std::array<std::vector<double>, DerivTerms> &d) const override {
+                                   std::vector<std::vector<double>> &d) const override {
         if (!shape_gradients())
             return 0;
-        size_t kk = d[0].size();
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        d.resize(2);
         double c = m_config.concentration, q = m_config.quantum_yield;
         for (size_t i = 0; i < 2; ++i)
             d[i] = shape_derivative(i, [&](const fluo::JungConfig &cfg) {
@@ -426,8 +416,7 @@ public:
             });
         return 2;
     }
-    std::array<Float, DerivTerms> jit_reduced_derivative_weights(const SurfaceInteraction3f &si,
-                                                                 Mask active) const override {
+    std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f &si, Mask active) const override {
         Float scale = 1.f;
         if (m_shapes) {
             Hit h = hit(si, active);

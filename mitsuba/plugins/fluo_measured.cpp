@@ -97,6 +97,18 @@ and tables are concatenated and each lane reads its file's (the index rounded pe
 binary search runs over the longest grid with each lane clamped to its own), and in the
 RGB variants each file's reduced matrix is gathered per lane.
 
+**Parameters and gradients.** With one file, ``mi.traverse`` exposes P at the matrix's
+nodes as the array ``reradiation`` (nm⁻¹, λo rows of λi entries). An update is validated
+by Rust (every entry finite and ≥ 0, one per node: an error naming it, and the previous
+matrix stays) and the sampling tables are baked again. It is differentiable in every AD
+variant (``llvm_ad_*``, ``cuda_ad_*``): in the spectral ones through the value of the
+shift at the sampled wavelength (the sampling and its mass detached); in the RGB ones,
+where P is baked into the reduced matrix per render, through that matrix's derivative,
+exactly: the reduction is linear in P, so Rust's Jacobian of the reduction (one K×K
+matrix per node) turns P's change into the change of each of the operator's entries
+once per render (only while P carries gradients; the operator is then a kernel input).
+Changing the diagonal or the grids needs a new file.
+
 A malformed file (truncated, a NaN, a wrong header, a wavelength off its grid) raises
 an error naming the file and the line and column.
 
@@ -203,8 +215,12 @@ exposes the ``index`` texture only, not the mixtures.
 
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``weights``, ``means_excitation`` and
 ``means_emission`` are differentiable: in the spectral variants gradients reach them
-through the reradiation's value (the sampling is detached); in the RGB variants the
-mixture is baked into the reduced matrix per render and gets no gradient.
+through the reradiation's value (the sampling is detached); in the RGB variants, where the
+mixture is baked into the reduced matrix per render, through that matrix's derivatives
+(``fluo_path``): along each renormalised weight the operator of its component alone, along
+each mean central differences (0.25 nm) of the reductions, computed at a render's start
+only while the arrays carry gradients (3 × components K×K matrices; the operator then
+becomes a kernel input, not literals).
 
 A malformed fit file (bad JSON, weights not summing to 1, a covariance that is not
 symmetric positive definite, non-finite numbers) raises an error naming the field.
@@ -252,31 +268,38 @@ public:
         if (m_index)
             cb->put("index", m_index, ParamFlags::NonDifferentiable);
         if (m_gmm && !m_index) { // one file: its mixture's weights and means
-            // (RGB: baked into the reduced matrices, updated by re-baking, no gradient)
-            auto flags = is_rgb_v<Spectrum> ? ParamFlags::NonDifferentiable : ParamFlags::Differentiable;
-            cb->put("weights", m_weights, flags);
-            cb->put("means_excitation", m_means_i, flags);
-            cb->put("means_emission", m_means_o, flags);
+            // (RGB: baked into the reduced matrices, updated by re-baking; gradients through
+            // the operator's derivative matrices, jit_reduced_derivatives)
+            cb->put("weights", m_weights, ParamFlags::Differentiable);
+            cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
+            cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
         }
+        if (!m_gmm && !m_index) // one matrix: P at its nodes (nm⁻¹, [λo][λi])
+            cb->put("reradiation", m_p, ParamFlags::Differentiable);
     }
 
     /// fluo_gmm: Rust validates the updated mixture (weights renormalised to sum 1, means
-    /// within range) and bakes the RGB parts and reduced matrices again; a refused update
+    /// within range), fluo_matrix its reradiation P (finite, ≥ 0, one value per node), and
+    /// bakes the RGB parts, reduced matrices and sampling tables again; a refused update
     /// puts every traversed value back (fluo_detail::UpdateRecord), so the material keeps
     /// working.
     void parameters_changed(const std::vector<std::string> &keys) override {
         m_record.update(this, [&] {
             if (m_index) // a changed index map is validated again
                 fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
-            if (!m_gmm || m_index)
+            if (m_index)
                 return;
-            auto host = [](const FloatStorage &v) {
-                FloatStorage d = dr::detach(v);
-                dr::eval(d);
-                std::vector<float> f(dr::width(d));
-                dr::store(f.data(), d);
-                return std::vector<double>(f.begin(), f.end());
-            };
+            if (!m_gmm) { // Rust validates the matrix and bakes its rows' integrals again
+                std::vector<double> p = host(m_p);
+                m_models[0] = fluo_detail::rust_call(m_plugin, [&] {
+                    return fluo::matrix_updated(*m_models[0], rust::Slice<const double>(p.data(), p.size()));
+                });
+                rust::Vec<double> rcdf = fluo::measured_tables(*m_models[0]).row_cdf;
+                std::vector<float> f(rcdf.begin(), rcdf.end());
+                m_rcdf = dr::load<FloatStorage>(f.data(), f.size());
+                update_rgb();
+                return;
+            }
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
             if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
                 Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
@@ -327,6 +350,110 @@ public:
     }
     std::array<Float, MaxTerms> jit_reduced_weights() const override {
         return { Float(m_index ? 0.f : 1.f), Float(0.f), Float(0.f) };
+    }
+
+    /// fluo_gmm (one file) in RGB with gradients on its mixture: A = E + S·Σ_k π̂_k R_k (π̂ the
+    /// renormalised weights, R_k component k's reduced unit normal). Along π̂_k: the operator
+    /// of component k alone (weight 1), E + S·R_k (E, the same for every k, adds nothing: the
+    /// π̂_k's derivatives sum to 0). Along a mean: central differences of the reductions
+    /// (0.25 nm; one-sided where Rust refuses the step, out of the measured rectangle). In
+    /// the order of jit_reduced_derivative_weights: weights, means_excitation,
+    /// means_emission, each per component, for the arrays that carry gradients.
+    ///
+    /// fluo_matrix (one file) in RGB with gradients on its reradiation P: the reduced operator
+    /// is linear in P's nodes, A = E + Σ_n p_n·J_n (J from Rust, fluo::matrix_reduced_jacobian),
+    /// so the change of each entry of A, δA_e = Σ_n J_n[e]·(p_n − detach(p_n)), is summed once
+    /// per render (zero in value, P's derivative) and added to that entry: one unit matrix per
+    /// entry some J_n reaches.
+    size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
+                                   std::vector<std::vector<double>> &d) const override {
+        if (m_index)
+            return 0;
+        if (!m_gmm) {
+            m_delta.clear();
+            if (!dr::grad_enabled(m_p))
+                return 0;
+            rust::Vec<double> jac = fluo::matrix_reduced_jacobian(*m_models[0], transport);
+            size_t nodes = dr::width(m_p), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+            if (jac.size() != nodes * kk)
+                Throw("%s: the reduction's derivative has %zu entries, %zu nodes × %zu expected", m_plugin, jac.size(),
+                      nodes, kk);
+            FloatStorage delta = m_p - dr::detach(m_p);
+            std::vector<float> column(nodes);
+            for (size_t e = 0; e < kk; ++e) {
+                bool any = false;
+                for (size_t n = 0; n < nodes; ++n)
+                    any |= (column[n] = (float) jac[n * kk + e]) != 0.f;
+                if (!any)
+                    continue;
+                m_delta.push_back(Float(dr::sum(dr::load<FloatStorage>(column.data(), nodes) * delta)));
+                d.emplace_back(kk, 0.0);
+                d.back()[e] = 1.0;
+            }
+            return d.size();
+        }
+        if (!mixture_gradients())
+            return 0;
+        size_t n = m_n_comps, kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        std::array<std::vector<double>, 3> x = { host(m_weights), host(m_means_i), host(m_means_o) };
+        auto reduce = [&](const std::array<std::vector<double>, 3> &y) -> std::optional<std::vector<double>> {
+            auto slice = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
+            std::vector<double> out(kk);
+            try {
+                auto model = fluo::gmm_updated(*m_models[0], slice(y[0]), slice(y[1]), slice(y[2]));
+                auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*model), transport);
+                if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk)))
+                    return std::nullopt;
+            } catch (const std::exception &) {
+                return std::nullopt; // a mean stepped out of range
+            }
+            return out;
+        };
+        const FloatStorage *arrays[3] = { &m_weights, &m_means_i, &m_means_o };
+        for (size_t a = 0; a < 3; ++a) {
+            if (!dr::grad_enabled(*arrays[a]))
+                continue;
+            for (size_t c = 0; c < n; ++c) {
+                std::optional<std::vector<double>> dc;
+                if (a == 0) { // component c alone
+                    std::array<std::vector<double>, 3> one = x;
+                    one[0].assign(n, 0.0);
+                    one[0][c] = 1.0;
+                    dc = reduce(one);
+                } else {
+                    dc = fluo_detail::central_difference(0.25, [&](double delta) {
+                        std::array<std::vector<double>, 3> y = x;
+                        y[a][c] += delta;
+                        return reduce(y);
+                    });
+                }
+                if (!dc)
+                    Throw("%s: no derivative of the reduced operator along component %zu's %s", m_plugin, c,
+                          a == 0 ? "weight" : a == 1 ? "excitation mean" : "emission mean");
+                d.push_back(std::move(*dc));
+            }
+        }
+        return d.size();
+    }
+    /// θ − detach(θ) per derivative matrix: the renormalised weights π̂_k, the means
+    /// (fluo_gmm); the entries' δA (fluo_matrix).
+    std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
+                                                      Mask active) const override {
+        if (!m_gmm)
+            return m_delta;
+        std::vector<Float> w;
+        if (dr::grad_enabled(m_weights)) {
+            fluo_detail::Scratch<Float> p = weights(UInt32(0), active);
+            for (size_t c = 0; c < m_n_comps; ++c)
+                w.push_back(p[c] - dr::detach(p[c]));
+        }
+        for (const FloatStorage *means : { &m_means_i, &m_means_o })
+            if (dr::grad_enabled(*means))
+                for (size_t c = 0; c < m_n_comps; ++c) {
+                    Float m = dr::gather<Float>(*means, UInt32((uint32_t) c), active);
+                    w.push_back(m - dr::detach(m));
+                }
+        return w;
     }
     /// Several files: each one's reduced operator, selected per lane by the index texture.
     size_t jit_reduced_table(const fluo::TransportBasis &transport, std::vector<double> &m) const override {
@@ -613,7 +740,9 @@ protected:
         auto [j, o0, o1] = m_go.cell(go, lo, ok);
         Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
         UInt32 r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last = gi.n - 1;
-        auto p = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_p, r + k, ok); };
+        // (the sampling and the mass from P detached; the value attached when P carries gradients)
+        const FloatStorage p_tab = dr::detach(m_p);
+        auto p = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(p_tab, r + k, ok); };
         auto c = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_rcdf, r + k, ok); };
         // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Float &x) {
@@ -651,6 +780,10 @@ protected:
         Float x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
         Float s = dr::clip((x - x0) / h, 0.f, 1.f);
         Float value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
+        if (dr::grad_enabled(m_p)) {
+            auto pa = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_p, r + k, ok); };
+            value = dr::lerp(dr::lerp(pa(r0, k), pa(r0, k + 1), s), dr::lerp(pa(r1, k), pa(r1, k + 1), s), t);
+        }
         return { mass, x, dr::select(ok, value, 0.f) };
     }
 
@@ -718,12 +851,11 @@ protected:
         Mixture m;
         for (auto *v : { &m.weight, &m.mu_i, &m.mu_o, &m.half_inv_var_o, &m.slope, &m.cond_sd })
             v->resize(n);
-        Float wsum = 0.f;
         UInt32 base = mat * (uint32_t) n;
         fluo_detail::Scratch<Float> norm(n);
+        m.weight = weights(mat, active);
         for (size_t k = 0; k < n; ++k) {
             UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
-            m.weight[k] = dr::gather<Float>(m_weights, index, active);
             m.mu_i[k] = dr::gather<Float>(m_means_i, index, active);
             m.mu_o[k] = dr::gather<Float>(m_means_o, index, active);
             const Comp &c = m_comps[k];
@@ -731,20 +863,45 @@ protected:
             for (size_t i = 0; i < 4; ++i)
                 *fixed[i] = m_index ? dr::gather<Float>(m_d_comp[i], index, active) : Float((&c.half_inv_var_o)[i]);
         }
-        // The weights relative to the largest (a constant: detached) before they are summed,
-        // so that tiny ones (1e-30) normalise without overflowing 1/wsum² in the gradient.
-        Float wmax = 0.f;
         for (size_t k = 0; k < n; ++k)
-            wmax = dr::maximum(wmax, dr::detach(m.weight[k]));
+            m.weight[k] *= norm[k];
+        return m;
+    }
+
+    /// The mixture's weights at a lane's file renormalised to sum 1 (differentiable): taken
+    /// relative to the largest (a constant: detached) before they are summed, so that tiny
+    /// ones (1e-30) normalise without overflowing 1/wsum² in the gradient.
+    fluo_detail::Scratch<Float> weights(const UInt32 &mat, const Mask &active) const {
+        size_t n = m_n_comps;
+        fluo_detail::Scratch<Float> w(n);
+        UInt32 base = mat * (uint32_t) n;
+        Float wmax = 0.f, wsum = 0.f;
+        for (size_t k = 0; k < n; ++k) {
+            w[k] = dr::gather<Float>(m_weights, m_index ? base + (uint32_t) k : UInt32((uint32_t) k), active);
+            wmax = dr::maximum(wmax, dr::detach(w[k]));
+        }
         Float rel = dr::select(wmax > 0.f, dr::rcp(wmax), 0.f);
         for (size_t k = 0; k < n; ++k) {
-            m.weight[k] *= rel;
-            wsum += m.weight[k];
+            w[k] *= rel;
+            wsum += w[k];
         }
         Float inv_wsum = dr::rcp(wsum);
         for (size_t k = 0; k < n; ++k)
-            m.weight[k] *= inv_wsum * norm[k];
-        return m;
+            w[k] *= inv_wsum;
+        return w;
+    }
+
+    bool mixture_gradients() const {
+        return dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o);
+    }
+
+    /// A differentiable array's values on the host (detached).
+    static std::vector<double> host(const FloatStorage &v) {
+        FloatStorage d = dr::detach(v);
+        dr::eval(d);
+        std::vector<float> f(dr::width(d));
+        dr::store(f.data(), d);
+        return std::vector<double>(f.begin(), f.end());
     }
 
     /// fluo_gmm's shift given λo on [a, b]: (the shift's weight in the elastic/shift choice,
@@ -759,7 +916,7 @@ protected:
     std::tuple<Value, Value, Value> gmm_shift(const Mixture &mix, const File &file, const Value &lambda_o,
                                               const Value &a, const Value &b, const Value &u,
                                               const dr::mask_t<Value> &ok) const {
-        if (dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o))
+        if (mixture_gradients())
             return gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok);
         return gmm_shift_split(mix, file, lambda_o, a, b, u, ok);
     }
@@ -891,6 +1048,7 @@ protected:
     std::vector<float> m_scale;
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
+    mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)
     std::vector<Comp> m_comps;
     FloatStorage m_d_comp[4];              ///< the Comp fields per (file, component), for several files
     FloatStorage m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)

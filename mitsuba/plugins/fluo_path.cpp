@@ -48,32 +48,38 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
    - |string|
    - RGB variants only: transport basis for fluorescence, ``rgb`` (3 channels),
      ``xyzu`` (CIE 1931 XYZ plus a UV band), ``x7`` (7 bands: X split in three, Y in two,
-     Z, U) or ``auto`` (x7's six visible bands and, in place of U, a band built at render
-     start from the scene's ``fluo_illuminant`` spectra: the part of their sum outside the
-     visible bands, so that light is in the basis's span and a material lit directly by it
-     is reduced exactly, UV lamps included; a single lamp exactly on its own, several
-     exactly together; light after fluorescent or coloured bounces stays approximate as in
-     ``x7``; without spectral lights it is ``x7``). (Default: ``x7``: over the ``fluo bench`` scenes its mean ΔE00 against the
-     spectral reference is the lowest on average and within noise of the best on each
-     scene; README's generated bench table has the numbers. Its 7×7 matrices cost 392
-     bytes per material and no measurable time over ``xyzu``.) Which basis when
-     (``fluo-rs saturated-report`` and the second table of ``fluo bench`` measure it
-     per basis): ``x7`` for saturated, narrow-band
-     emitters (a pure green dye keeps its luminance within 20 % under daylight and
-     incandescent light, where ``rgb`` and ``xyzu`` lose a third or more) and for
-     anything excited in the UV; ``xyzu`` when materials are broad and 4×4 matrices
-     matter; ``rgb`` only for scenes without UV excitation (it has no UV band: an
-     optical brightener's reradiation under daylight all but vanishes) or to compare
-     with a plain RGB renderer. Under narrow UV lamps every fixed basis is coarse: one UV
-     band averages a dye's absorption over 300-400 nm (a brightener under a 365 nm lamp
-     glows ~5x too dark in ``xyzu``/``x7``, and not at all in ``rgb``); fluo_path warns
-     once per scene when an emitter is mostly ultraviolet. Use ``auto`` there (lights
-     given as ``fluo_illuminant``): a grey room with a brightener, a green dye, a measured
-     matrix and a quantum-dot coating under a 365 nm lamp and a dim D65 fill renders within
-     mean ΔE00 0.28 (8×8-pixel blocks) of the spectral render where ``x7`` is 2.42; the
-     same room under an FL2 tube 0.23 against 0.46 (two spectral seeds differ by 0.19 and
-     0.11; ``tests/python/test_adaptive_basis.py``). It costs what ``x7`` costs per vertex
-     (K = 7) and a reduction of each material per render, as every basis does.
+     Z, U) or ``auto`` (x7's six visible bands and, in place of U, one or two bands built
+     at render start from the scene's ``fluo_illuminant`` spectra: the part of a light
+     outside the bands before it, so that light is in the basis's span and a material lit
+     directly by it is reduced exactly, UV lamps included; one or two distinct spectra each
+     exactly on its own (K = 7, or 8 where a second band holds more than 1e-3 of its
+     light), more: the one least in the visible span exactly, the others exactly together;
+     light after fluorescent or coloured bounces stays approximate as in ``x7``; without
+     spectral lights it is ``x7``). (Default: ``auto``: on the ``fluo
+     bench`` scenes its mean ΔE00 floor against the spectral reference is at or below
+     ``x7``'s on every surface scene (blacklight box 2.48 against 6.63, measured box 0.73
+     against 0.84, jung box 0.72 against 0.75, the rest equal); README's generated bench
+     table has the numbers. With one light spectrum it costs what ``x7`` costs per vertex
+     (K = 7; cost row ``vertex_auto_*``: 0.98-0.99 of x7's time), with two K = 8, and a
+     reduction of each material per render, as every basis does. One band for the sum of
+     a D65 sky and a 365 nm lamp rendered a dye's glow 16 % too dark where ``x7`` was 10 %
+     too bright; with a band per light it is exact for light arriving directly from either.) Which basis when (``fluo-rs saturated-report`` and the
+     second table of ``fluo bench`` measure it per basis): ``auto`` whenever the lights are
+     ``fluo_illuminant`` spectra, above all under narrow UV lamps, where every fixed basis
+     is coarse: one UV band averages a dye's absorption over 300-400 nm (a brightener under
+     a 365 nm lamp glows ~5x too dark in ``xyzu``/``x7``, and not at all in ``rgb``), while
+     ``auto`` renders a grey room with a brightener, a green dye, a measured matrix and a
+     quantum-dot coating under a 365 nm lamp and a dim D65 fill within mean ΔE00 0.28
+     (8×8-pixel blocks) of the spectral render where ``x7`` is 2.42, the same room under an
+     FL2 tube 0.23 against 0.46 (two spectral seeds differ by 0.19 and 0.11;
+     ``tests/python/test_adaptive_basis.py``); ``x7`` for saturated, narrow-band emitters
+     under RGB lights (a pure green dye keeps its luminance within 20 % under daylight and
+     incandescent light, where ``rgb`` and ``xyzu`` lose a third or more); ``xyzu`` when
+     materials are broad and 4×4 matrices matter; ``rgb`` only for scenes without UV
+     excitation (it has no UV band: an optical brightener's reradiation under daylight all
+     but vanishes) or to compare with a plain RGB renderer. With a fixed basis fluo_path
+     warns once per scene when an emitter is mostly ultraviolet. Light after several
+     fluorescent or coloured bounces is approximate in every basis.
  * - method
    - |string|
    - RGB variants only: reduction of the reradiation, ``ours`` (dual basis, Fichet et
@@ -99,7 +105,10 @@ The fluorescent materials are reached through ``dr::dispatch`` (a direct call in
 scalar variants) and evaluate baked tables and closed forms per lane; no variant calls
 Rust per vertex. **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials'
 probabilities are detached, their values differentiable, so ``mi.render`` with
-``params`` gives gradients of dye parameters.
+``params`` gives gradients of dye parameters; a sampled direction that moves with a
+parameter (a roughness) is detached and the BSDF's value differentiated there, as
+Mitsuba's ``path`` does (differentiating the sample's motion gave d/dalpha of the wrong
+sign, for ``roughconductor`` as for ``fluo_qd``).
 
 **Polarized variants** (``scalar_spectral_polarized``, ``llvm_ad_spectral_polarized``,
 ``cuda_ad_spectral_polarized``): the throughput is a Mueller matrix as in ``path``; the
@@ -240,7 +249,7 @@ public:
 
     FluoPath(const Properties &props)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
-          m_reduced(Plugin, std::string(props.get<std::string_view>("basis", "x7")),
+          m_reduced(Plugin, std::string(props.get<std::string_view>("basis", "auto")),
                     std::string(props.get<std::string_view>("method", "ours"))),
           m_replay(props.plugin_name() == "fluo_prb") {
         if (m_replay && is_polarized_v<Spectrum>)
@@ -305,7 +314,9 @@ public:
                     return trace<3>(scene, sampler, ray, active);
                 if (m_reduced.bands() == 4)
                     return trace<4>(scene, sampler, ray, active);
-                return trace<Reduced::KMax>(scene, sampler, ray, active);
+                if (m_reduced.bands() == 7)
+                    return trace<7>(scene, sampler, ray, active);
+                return trace<Reduced::KMax>(scene, sampler, ray, active); // auto with two light bands
             }
         }
         return trace<0>(scene, sampler, ray, active);
@@ -615,6 +626,24 @@ private:
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         detached([&] { return bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2); });
+                    if constexpr (dr::is_diff_v<Float>) {
+                        if (!adjoint && dr::grad_enabled(bs.wo)) {
+                            // A sampled direction that moves with a parameter (a roughness):
+                            // differentiating it would differentiate the sample's motion, not
+                            // the integrand (measured: fluo_qd's and roughconductor's d/dalpha
+                            // came out of the wrong sign). As Mitsuba's path: the sample and
+                            // the probabilities detached, the BSDF's value differentiated there.
+                            bs = dr::detach(bs);
+                            bsdf_pdf = dr::detach(bsdf_pdf);
+                            if constexpr (is_polarized_v<Spectrum>) {
+                                auto [v2, p2] = bsdf->eval_pdf(bsdf_ctx, si, bs.wo, active_next);
+                                bsdf_weight = dr::select(p2 > 0.f, v2 / dr::detach(p2), dr::detach(bsdf_weight));
+                            } else {
+                                bsdf_weight = dr::detach(bsdf_weight) *
+                                              relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
+                            }
+                        }
+                    }
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                     if constexpr (K == 0 && dr::is_diff_v<Float>) {
                         if (adjoint) { // values with gradients at the detached samples

@@ -208,15 +208,22 @@ within the model's share), in the RGB variants with a number drawn for it (3·K�
 of the picked model's terms per vertex instead of up to four times as many).
 
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``quantum_yield`` is differentiable (the
-reradiation is linear in it), and in the spectral variants so are ``radius`` and
-``density`` of a uniform material: when a render asks for their gradient, Rust bakes the
+reradiation is linear in it), and so are ``radius`` and ``density`` of a uniform
+material: when a render asks for their gradient, Rust bakes the
 tables again at each ± 1e-3 (one-sided at the ends of their ranges) on the model's own λ
 grid, and a lane's table value and emission parameters carry value + (θ − detach(θ))·∂/∂θ
-from those differences (the same value; the sampling stays detached). ``test_llvm.py``
-holds AD against central differences of the image. In the RGB variants they are baked
-into the reduced matrices and ``mi.traverse`` lists them as not differentiable, as
-``alpha`` and ``width``, which can be updated (the tables are baked again) but carry no
-gradient; at ``density`` = 0 the material is ``roughconductor`` and has no density
+from those differences (the same value; the sampling stays detached). In the RGB variants,
+where they are baked into the reduced matrices, the RGB tables (R_spe, pass at the
+channels) carry the same tangents, and the reduced reradiation's derivative at each
+cosine node (central differences of Rust's reductions at ± 1e-2, per unit Q) is added per
+lane between the nodes with weight θ − detach(θ), computed at a render's start only while
+they carry gradients. ``test_llvm.py`` holds AD against central differences of the image
+in both variants. ``width`` can be updated (the tables are baked again) but carries no
+gradient.
+``alpha`` of a uniform material is differentiable in every AD variant: no table depends on
+it, the microfacet lobe D·G/(4 cos θi) is evaluated per lane from it (the sampled directions
+are detached and the lobe's value differentiated there, as Mitsuba's ``path`` and ``prb``
+do for ``roughconductor``). At ``density`` = 0 the material is ``roughconductor`` and has no density
 derivative. A textured parameter is not differentiable (``mi.traverse`` lists its
 texture).
 
@@ -283,20 +290,21 @@ public:
             cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
         else
             cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
-        // radius and density: differentiable in the spectral variants of a uniform material
-        // (tangents()); RGB bakes them into its reduced matrices
-        auto flag = is_spectral_v<Spectrum> && !m_tex.any() ? ParamFlags::Differentiable
-                                                            : ParamFlags::NonDifferentiable;
+        // radius and density: differentiable in every variant of a uniform material (tangents();
+        // RGB: the reduced operator's derivative at the cosine nodes, jit_reduced_derivatives)
+        auto flag = !m_tex.any() ? ParamFlags::Differentiable : ParamFlags::NonDifferentiable;
         for (auto [i, value] : { std::pair{ Tex::Radius, &m_radius }, std::pair{ Tex::Density, &m_density } }) {
             if (m_tex.tex[i])
                 cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
             else
                 cb->put(Tex::Names[i], *value, flag);
         }
+        // alpha: differentiable in every AD variant of a uniform material (the lobe D·G/(4 cos θi)
+        // is evaluated per lane from it; no table depends on it)
         if (m_tex.tex[Tex::Alpha])
             cb->put("alpha", m_tex.tex[Tex::Alpha], ParamFlags::NonDifferentiable);
         else
-            cb->put("alpha", m_alpha, ParamFlags::NonDifferentiable);
+            cb->put("alpha", m_alpha, m_tex.any() ? ParamFlags::NonDifferentiable : ParamFlags::Differentiable);
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
@@ -320,6 +328,8 @@ public:
             rebuild();
             // gradients asked for (an optimiser's update): the tangents now, outside any trace
             tangents();
+            if (!m_tex.any() && dr::grad_enabled(m_alpha)) // the roughness keeps its AD graph
+                m_alpha_v = dr::maximum(m_alpha, 1e-4f);
         });
         Base::parameters_changed(keys);
     }
@@ -422,6 +432,63 @@ public:
         return m_reduced_n;
     }
     std::array<Float, MaxTerms> jit_reduced_weights() const override { return { m_q, Float(0.f), Float(0.f) }; }
+
+    /// RGB with gradients on radius or density (a uniform material): ∂M_j/∂θ of the reduced
+    /// reradiation at each cosine node (per unit Q, as jit_reduced_nodes), central differences
+    /// of Rust's reductions at θ ± NodeStep (one-sided at a range end); fluo_path adds them
+    /// per lane between the nodes with the weights θ − detach(θ).
+    size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
+                                   std::vector<std::vector<double>> &d) const override {
+        if (textured() || !(wants(0) || wants(1)))
+            return 0;
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        const fluo_detail::QdSamples &eta = m_samples[0], &k = m_samples[1], &qd_eta = m_samples[2],
+                                     &qd_k = m_samples[3];
+        for (size_t p = 0; p < 2; ++p) {
+            if (!wants(p))
+                continue;
+            // the node matrices M_j = Σ_t w[j][t]·B_t at θ + δ (Q = 1), or nothing out of range
+            auto at = [&](double delta) -> std::optional<std::vector<double>> {
+                fluo::QdConfig c = m_config;
+                c.quantum_yield = 1.0;
+                (p == 0 ? c.radius : c.density) += delta;
+                std::vector<double> basis, nodes;
+                double error = 0.0;
+                size_t n = 0;
+                try {
+                    rust::Box<fluo::QdModel> m = fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
+                    n = reduce_nodes(*m, 1.0, transport, kk, basis, nodes, error);
+                } catch (const std::exception &) {
+                    return std::nullopt;
+                }
+                std::vector<double> full(n * kk, 0.0);
+                for (size_t j = 0; j < n; ++j)
+                    for (size_t t = 0; t < MaxTerms; ++t)
+                        for (size_t i = 0; i < kk; ++i)
+                            full[j * kk + i] += nodes[j * MaxTerms + t] * basis[t * kk + i];
+                return full;
+            };
+            std::optional<std::vector<double>> dp = fluo_detail::central_difference(NodeStep, at);
+            if (!dp)
+                Throw("%s: no derivative of the reduced reradiation in \"%s\" at %f", Plugin,
+                      p == 0 ? "radius" : "density", p == 0 ? m_config.radius : m_config.density);
+            d.push_back(std::move(*dp));
+        }
+        return d.size();
+    }
+    /// RGB node derivatives (radius, density in that order, those carrying gradients).
+    std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
+                                                      Mask /* active */) const override {
+        std::vector<Float> w;
+        for (size_t p = 0; p < 2; ++p)
+            if (wants(p))
+                w.push_back(delta(p));
+        return w;
+    }
+    /// The step of jit_reduced_derivatives' differences (nm for radius; density): the node
+    /// matrices come through a truncated SVD held to ~1e-5 of the largest entry, which a step
+    /// of 1e-3 would amplify to ~1 % of the derivative.
+    static constexpr double NodeStep = 1e-2;
 
     /// Textured: every baked model's terms (Q = 1: the hit's Q enters the corners' weights).
     size_t jit_reduced_nodes_table(const fluo::TransportBasis &transport, std::vector<double> &m,
@@ -857,22 +924,18 @@ private:
     /// value, and its derivative for AD. Sampling stays detached.
     struct Tangents {
         uint64_t build = 0;
-        std::array<FloatStorage, 2> a_tot, r_spe, pass;
+        std::array<FloatStorage, 2> a_tot, r_spe, pass, rgb_r_spe, rgb_pass;
         std::array<float, 2> peak{}, scale{}, inv_norm{};
     };
     static constexpr double TangentStep[2] = { 1e-3, 1e-3 }; ///< h: radius (nm), density
 
     /// The tangents where radius or density carry gradients (else null).
     const Tangents *tangents() const {
-        if constexpr (!is_spectral_v<Spectrum>) {
+        if (textured() || !(wants(0) || wants(1)))
             return nullptr;
-        } else {
-            if (textured() || !(wants(0) || wants(1)))
-                return nullptr;
-            if (m_tangents.build != m_build)
-                bake_tangents();
-            return &m_tangents;
-        }
+        if (m_tangents.build != m_build)
+            bake_tangents();
+        return &m_tangents;
     }
     /// Whether radius (p = 0) or density (p = 1) carries a gradient.
     bool wants(size_t p) const { return dr::grad_enabled(p == 0 ? m_radius : m_density); }
@@ -898,7 +961,9 @@ private:
                 field = x;
                 try {
                     rust::Box<fluo::QdModel> m = fluo::qd_new(c, eta.view(), k.view(), qd_eta.view(), qd_k.view());
-                    return fluo::qd_jit_tables(*m, JitCosNodes, grid,
+                    // (RGB: the channels' tables alone, as rebuild())
+                    return fluo::qd_jit_tables(*m, JitCosNodes,
+                                               is_spectral_v<Spectrum> ? grid : rust::Slice<const double>(),
                                                rust::Slice<const double>(extra.data(), extra.size()));
                 } catch (const std::exception &) {
                     return std::nullopt;
@@ -920,9 +985,14 @@ private:
                     d[i] = (float) ((a[i] - b[i]) * inv);
                 return dr::load<FloatStorage>(d.data(), d.size());
             };
-            t.a_tot[p] = diff(hi->a_tot, lo->a_tot);
-            t.r_spe[p] = diff(hi->r_spe, lo->r_spe);
-            t.pass[p] = diff(hi->pass, lo->pass);
+            if constexpr (is_spectral_v<Spectrum>) {
+                t.a_tot[p] = diff(hi->a_tot, lo->a_tot);
+                t.r_spe[p] = diff(hi->r_spe, lo->r_spe);
+                t.pass[p] = diff(hi->pass, lo->pass);
+            } else {
+                t.rgb_r_spe[p] = diff(hi->extra_r_spe, lo->extra_r_spe);
+                t.rgb_pass[p] = diff(hi->extra_pass, lo->extra_pass);
+            }
             auto inv_norm = [](const fluo::QdJitTables &x) { return x.emission_norm > 0.0 ? 1.0 / x.emission_norm : 0.0; };
             t.peak[p] = (float) ((hi->emission_peak_nm - lo->emission_peak_nm) * inv);
             t.scale[p] = (float) ((hi->emission_scale_nm - lo->emission_scale_nm) * inv);
@@ -1012,6 +1082,12 @@ private:
             } else {
                 r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
                 pass = rgb_rows(m_rgb_pass, cos_m, h.model[i], on);
+                if (const Tangents *tg = tangents())
+                    for (size_t p = 0; p < 2; ++p)
+                        if (wants(p)) {
+                            r_spe += delta(p) * rgb_rows(tg->rgb_r_spe[p], cos_m, h.model[i], on);
+                            pass += delta(p) * rgb_rows(tg->rgb_pass[p], cos_m, h.model[i], on);
+                        }
             }
             UnpolarizedSpectrum v = r_spe + pass * F / dr::maximum(1.f - F * r_spe, 1e-12f);
             mixed = h.n == 1 ? v : dr::fmadd(h.weight[i], v, mixed);
@@ -1159,7 +1235,7 @@ private:
         m_density = (ScalarFloat) m_config.density;
         m_alpha = (ScalarFloat) m_config.alpha;
         m_width = (ScalarFloat) m_config.width;
-        dr::make_opaque(m_q, m_radius, m_density); // (see rebuild())
+        dr::make_opaque(m_q, m_radius, m_density, m_alpha); // (see rebuild())
     }
 
     fluo::QdConfig m_config = fluo::qd_default_config(); ///< the defaults live in Rust (QdParams)
@@ -1192,7 +1268,8 @@ private:
     Float m_em[7];
     Float m_q = 0.f; ///< Q (differentiable)
     Float m_radius = 0.f, m_density = 0.f; ///< differentiable in the spectral variants (uniform material)
-    ScalarFloat m_alpha = 0.f, m_width = 0.f;
+    Float m_alpha = 0.f; ///< the traversed roughness (differentiable, uniform material; m_alpha_v follows it)
+    ScalarFloat m_width = 0.f;
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
                    m_a_tot, m_cdf,

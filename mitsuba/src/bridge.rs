@@ -426,6 +426,14 @@ mod bridge {
             means_excitation: &[f64],
             means_emission: &[f64],
         ) -> Result<Box<MeasuredModel>>;
+        /// `fluo_matrix` after an update through `mi.traverse`: the same matrix with the
+        /// reradiation P at the nodes replaced (nm⁻¹, the layout of `MeasuredTables::p`),
+        /// each entry finite and ≥ 0.
+        fn matrix_updated(model: &MeasuredModel, reradiation: &[f64]) -> Result<Box<MeasuredModel>>;
+        /// `fluo_matrix`: the reduced reradiation's derivative with respect to each node of
+        /// P in transport `t` (`fluo::reduce::bilinear_jacobian`): one K×K matrix (row major)
+        /// per node, in the layout of `MeasuredTables::p`.
+        fn matrix_reduced_jacobian(model: &MeasuredModel, t: &TransportBasis) -> Result<Vec<f64>>;
     }
 
     // ------------------------------------------- fluo_path: generic handle, reduced RGB

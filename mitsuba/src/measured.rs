@@ -123,6 +123,15 @@ pub(crate) fn gmm_updated(
     })
 }
 
+pub(crate) fn matrix_updated(model: &MeasuredModel, reradiation: &[f64]) -> Result<Box<MeasuredModel>, String> {
+    guarded(|| {
+        let Model::Matrix(m) = &model.0.model else {
+            return Err(fluo::Error::data("not a reradiation matrix".to_string()));
+        };
+        Ok(MeasuredModel::new(Model::Matrix(Arc::new(m.with_reradiation(reradiation)?))))
+    })
+}
+
 pub(crate) fn measured_fluorescence(model: &MeasuredModel) -> &Fluorescence {
     &model.0
 }

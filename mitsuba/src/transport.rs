@@ -215,3 +215,10 @@ pub(crate) fn illuminant_on_grid(s: &Illuminant, out: &mut Vec<f64>) {
 pub extern "C" fn fluo_plugins_built() -> u32 {
     1
 }
+
+pub(crate) fn matrix_reduced_jacobian(model: &MeasuredModel, t: &TransportBasis) -> Result<Vec<f64>, String> {
+    guarded(|| match &measured_fluorescence(model).model {
+        Model::Matrix(m) => Ok(t.0.reduce_jacobian_bilinear(m.lambda_i(), m.lambda_o())),
+        _ => Err(fluo::Error::data("not a reradiation matrix".to_string())),
+    })
+}

@@ -10,7 +10,8 @@ or ``{"variant", "bsdf" (a plugin dict), "points": [[wi, wo, wavelengths], ...]}
 evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths, or
 ``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
 derivative of the image mean by automatic differentiation and by central differences
-(same seed) for each parameter of ``mi.traverse`` (``"ad_only": true``: AD alone), or ``{"variant", "load": a plugin
+(same seed) for each parameter of ``mi.traverse`` (``"ad_only": true``: AD alone;
+``"relative": true``: along the parameter's own values), or ``{"variant", "load": a plugin
 dict}`` to instantiate one plugin (an error says why it cannot be), or ``{"variant",
 "traverse": a plugin dict}`` for the keys ``mi.traverse`` lists (and which are differentiable).
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
@@ -41,7 +42,8 @@ def run(job: dict) -> dict:
         return {"keys": list(params.keys()), "differentiable": differentiable}
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0),
-                                       job.get("forward", False), job.get("ad_only", False))}
+                                       job.get("forward", False), job.get("ad_only", False),
+                                       job.get("relative", False))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -71,9 +73,11 @@ def eval_bsdf(bsdf, points) -> list:
     return out
 
 
-def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad_only: bool = False) -> dict:
+def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad_only: bool = False,
+              relative: bool = False) -> dict:
     """{key: [AD derivative, central difference]} of the mean image for each parameter, along
-    the parameter's all-ones direction (every channel of a colour moves together); with
+    the parameter's all-ones direction (every channel of a colour moves together; with
+    `relative`, along its own values: x·(1 + t), so zero entries stay zero); with
     `forward`, the forward difference (a parameter at the lower end of its range); with
     `ad_only`, [AD derivative, None]."""
     import drjit as dr
@@ -82,9 +86,10 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
     out = {}
     for key, h in steps.items():
         x0 = type(params[key])(params[key])
+        direction = x0 if relative else 1.0
         t = mi.Float(0.0)
         dr.enable_grad(t)
-        params[key] = x0 + t
+        params[key] = x0 + direction * t
         params.update()
         loss = dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None)
         try:
@@ -99,7 +104,7 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
             continue
         values = []
         for d in ((0.0, h) if forward else (-h, h)):
-            params[key] = x0 + d
+            params[key] = x0 + direction * d
             params.update()
             values.append(float(dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None).array[0]))
         params[key] = x0

@@ -579,7 +579,7 @@ print("RESULT " + json.dumps({{"error": err, "before": float(before), "after": f
 
 def test12_gmm_gradients_and_updates():
     """fluo_gmm's mixture weights (renormalised) and means are differentiable in
-    llvm_ad_spectral: d(mean image)/d(parameter) by AD equals central finite differences,
+    llvm_ad_spectral and llvm_ad_rgb: d(mean image)/d(parameter) by AD equals central finite differences,
     each averaged over three seeds (moving a weight or a mean also moves where λi is
     sampled, so the two difference renders share fewer random numbers: single seeds scatter
     by ~10 % for the weights; measured means agree within 5 %), within 12 %; an update Rust
@@ -596,8 +596,43 @@ def test12_gmm_gradients_and_updates():
         print(key, "ad", ad, "fd", fd)
         assert abs(fd) > 1e-5, f"{key}: the image does not depend on it, the check would be empty"
         assert abs(ad - fd) <= 0.12 * abs(fd), f"{key}: AD {ad} vs finite differences {fd}"
+    # llvm_ad_rgb (default basis, auto): the mixture reaches the image through the reduced
+    # matrix; its derivatives (each component's operator, central differences along the
+    # means) against central differences of renders with the same seed (no wavelength is
+    # sampled in RGB: the differences are smooth)
+    rgb = run_llvm([{"variant": "llvm_ad_rgb", "xml": xml, "spp": 256, "seed": 3, "gradients": steps}])[0]
+    assert "error" not in rgb, rgb
+    for key in steps:
+        ad, fd = rgb["gradients"][key]
+        print("llvm_ad_rgb", key, "ad", ad, "fd", fd)
+        assert abs(fd) > 1e-5, f"{key}: the image does not depend on it, the check would be empty"
+        assert abs(ad - fd) <= 0.10 * abs(fd), f"llvm_ad_rgb {key}: AD {ad} vs finite differences {fd}"
     out = rejected_update(xml, "gmm.weights", "w = np.array(value); w[0] = -0.5; value = mi.Float(w)")
     assert out["error"] is not None and "weights" in out["error"], out
+    assert out["after"] == pytest.approx(out["before"], rel=1e-6)
+
+
+def test12b_matrix_reradiation_gradients_and_updates():
+    """fluo_matrix's reradiation P (its nodes, ``reradiation`` in ``mi.traverse``) is
+    differentiable in both AD variants: spectral through the shift's value (the sampling
+    and its mass detached), RGB through the reduced operator's derivative (linear in P:
+    Rust's Jacobian of the reduction, ``cargo test`` checks it against the reduction). AD
+    equals central differences along P itself (P·(1 + t): every node scaled, zeros stay
+    zero) within 10 %; an update Rust refuses (a negative entry) names it and the material
+    renders as before."""
+    m = MATRICES / "jung_orange.csv"
+    xml = closeup(f'<bsdf type="fluo_matrix" id="mat"><string name="filename" value="{m}"/></bsdf>', D65, res=16)
+    steps = {"mat.reradiation": 0.05}
+    runs = run_llvm([{"variant": v, "xml": xml, "spp": spp, "seed": 3, "gradients": steps, "relative": True}
+                     for v, spp in (("llvm_ad_spectral", 4096), ("llvm_ad_rgb", 256))])
+    for v, r in zip(("llvm_ad_spectral", "llvm_ad_rgb"), runs):
+        assert "error" not in r, r
+        ad, fd = r["gradients"]["mat.reradiation"]
+        print(v, "ad", ad, "fd", fd)
+        assert abs(fd) > 1e-3, f"{v}: the image does not depend on P, the check would be empty"
+        assert abs(ad - fd) <= 0.10 * abs(fd), f"{v}: AD {ad} vs finite differences {fd}"
+    out = rejected_update(xml, "mat.reradiation", "q = np.array(value); q[5] = -1.0; value = mi.Float(q)")
+    assert out["error"] is not None and "reradiation" in out["error"], out
     assert out["after"] == pytest.approx(out["before"], rel=1e-6)
 
 
@@ -978,12 +1013,15 @@ def test20_textured_qd_in_llvm(tmp_path):
 
 
 def test21_qd_radius_and_density_gradients(tmp_path):
-    """fluo_qd's radius and density are differentiable in llvm_ad_spectral (a uniform
+    """fluo_qd's radius and density are differentiable in both AD variants (a uniform
     material: the tables' derivatives, central differences of Rust's tables at ± 1e-3 on the
     model's λ grid, carried per lane with sampling detached): AD equals central differences
     of the image mean on the aluminium coating under D65 (the elastic lobe and the glow) and
-    the gold one under a 300-350 nm lamp (the glow alone); llvm_ad_rgb lists both as not
-    differentiable (they are baked into its reduced matrices), as a textured material does."""
+    the gold one under a 300-350 nm lamp (the glow alone); in llvm_ad_rgb (the aluminium
+    coating) through the reduced operator's derivative at its cosine nodes and the RGB
+    tables' tangents; a textured material lists them as not differentiable.
+    alpha (the lobe, evaluated per lane) is differentiable in both AD variants: AD against
+    central differences on the aluminium coating under D65."""
     lamp = tmp_path / "uv_300_350.csv"
     lamp.write_text("nm,value\n299,0\n300,1\n350,1\n351,0\n")
     uv_light = f'<string name="filename" value="{lamp}"/><boolean name="normalize" value="false"/>'
@@ -1001,19 +1039,37 @@ def test21_qd_radius_and_density_gradients(tmp_path):
                            'value="2.2"/>' + checker_xml("density", 0.2, 0.6, 4) + '</bsdf>', uv_light, res=16)
     jobs.append({"variant": "llvm_ad_spectral", "xml": textured_xml, "spp": 2048, "seed": 3,
                  "gradients": {"qd.quantum_yield": 0.05}})
+    # alpha (both AD variants, uniform material): the lobe per lane, no table
+    alpha_xml = scenes["al d65"]
+    jobs += [{"variant": v, "xml": alpha_xml, "spp": 2048, "seed": 3, "gradients": {"qd.alpha": 0.01}}
+             for v in ("llvm_ad_spectral", "llvm_ad_rgb")]
+    # the same through Mitsuba's roughconductor (no fluorescence): fluo_path's sampled
+    # direction moved with alpha and gave +0.53 where central differences give -0.38
+    rough = re.sub(r'<bsdf type="fluo_qd" id="qd">.*?</bsdf>',
+                   '<bsdf type="roughconductor" id="qd"><string name="material" value="Al"/>'
+                   '<string name="distribution" value="ggx"/><float name="alpha" value="0.15"/></bsdf>',
+                   alpha_xml, flags=re.S)
+    jobs.append({"variant": "llvm_ad_spectral", "xml": rough, "spp": 2048, "seed": 3,
+                 "gradients": {"qd.alpha.value": 0.01}})
+    # radius and density in RGB: the reduced operator's derivative at the cosine nodes and the
+    # RGB tables' tangents (the same seed: no wavelength is sampled, the differences are smooth)
+    jobs.append({"variant": "llvm_ad_rgb", "xml": scenes["al d65"], "spp": 512, "seed": 3, "gradients": steps})
     jobs += [{"variant": v, "traverse": {"type": "fluo_qd", "density": d}}
              for v, d in (("llvm_ad_spectral", 0.8), ("llvm_ad_rgb", 0.8),
                           ("llvm_ad_spectral", {"type": "checkerboard", "color0": 0.2, "color1": 0.8}))]
+    tolerance.update({"alpha spectral": 0.05, "alpha rgb": 0.05, "roughconductor alpha": 0.05, "al d65 rgb": 0.05})
     *grads, spectral, rgb, textured = run_llvm(jobs)
-    for name, res in zip(list(scenes) + ["textured density, Q"], grads):
+    names = list(scenes) + ["textured density, Q", "alpha spectral", "alpha rgb", "roughconductor alpha", "al d65 rgb"]
+    for name, res in zip(names, grads):
         assert "error" not in res, res
         for key, (ad, fd) in res["gradients"].items():
             print(name, key, "ad", ad, "fd", fd)
             assert abs(fd) > 1e-3 and ad == pytest.approx(fd, rel=tolerance[name]), (name, key, ad, fd)
     assert {"radius", "density", "quantum_yield"} <= set(spectral["differentiable"]), spectral
-    assert "radius" not in rgb["differentiable"] and "density" not in rgb["differentiable"], rgb
-    assert "quantum_yield" in rgb["differentiable"], rgb
-    assert "radius" not in textured["differentiable"], textured
+    assert "radius" in rgb["differentiable"] and "density" in rgb["differentiable"], rgb
+    assert "quantum_yield" in rgb["differentiable"] and "alpha" in rgb["differentiable"], rgb
+    assert "alpha" in spectral["differentiable"], spectral
+    assert "radius" not in textured["differentiable"] and "alpha" not in textured["differentiable"], textured
 
 
 def test22_distinct_materials_share_one_callable():

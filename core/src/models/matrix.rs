@@ -767,16 +767,57 @@ impl MatrixModel {
                 p[j * ni + k] = f.off[j * ni + k] / f.band_nm[j];
             }
         }
+        Ok(Self::baked(
+            f.source.clone(),
+            f.lambda_i.clone(),
+            f.lambda_o.clone(),
+            f.diagonal_nm.clone(),
+            f.diagonal.clone(),
+            p,
+        ))
+    }
+
+    /// The same material with the reradiation P at the nodes replaced by `p` (nm⁻¹, the
+    /// layout of [`MatrixModel::row_tables`]): every entry finite and ≥ 0, one per node.
+    pub fn with_reradiation(&self, p: &[f64]) -> Result<Self> {
+        let n = self.lambda_i.len() * self.lambda_o.len();
+        if p.len() != n {
+            return Err(Error::param("reradiation", format!("{} entries", p.len()), format!("{n} (λo × λi nodes)")));
+        }
+        if let Some((i, v)) = p.iter().enumerate().find(|(_, v)| !(v.is_finite() && **v >= 0.0)) {
+            return Err(Error::param("reradiation", format!("{v} at entry {i}"), "[0, ∞) (nm⁻¹)"));
+        }
+        Ok(Self::baked(
+            self.source.clone(),
+            self.lambda_i.clone(),
+            self.lambda_o.clone(),
+            self.diagonal_nm.clone(),
+            self.diagonal.clone(),
+            p.to_vec(),
+        ))
+    }
+
+    /// The model of reradiation `p` at the nodes of the grids: its running integrals and
+    /// supports.
+    fn baked(
+        source: String,
+        lambda_i: Vec<f64>,
+        lambda_o: Vec<f64>,
+        diagonal_nm: Vec<f64>,
+        diagonal: Vec<f64>,
+        p: Vec<f64>,
+    ) -> Self {
+        let (ni, no) = (lambda_i.len(), lambda_o.len());
         let mut col_cdf = vec![0.0; ni * no];
         for k in 0..ni {
-            let c = cumulative(&f.lambda_o, |j| p[j * ni + k]);
+            let c = cumulative(&lambda_o, |j| p[j * ni + k]);
             for j in 0..no {
                 col_cdf[j * ni + k] = c[j];
             }
         }
         let mut row_cdf = vec![0.0; ni * no];
         for j in 0..no {
-            let c = cumulative(&f.lambda_i, |k| p[j * ni + k]);
+            let c = cumulative(&lambda_i, |k| p[j * ni + k]);
             row_cdf[j * ni..(j + 1) * ni].copy_from_slice(&c);
         }
         // Support: the nodes with mass, widened by one cell (the interpolant's reach).
@@ -787,23 +828,23 @@ impl MatrixModel {
                 _ => None,
             }
         };
-        let excitation_range = support(&f.lambda_i, &|k| (0..no).any(|j| p[j * ni + k] > 0.0));
-        let emission_range = support(&f.lambda_o, &|j| (0..ni).any(|k| p[j * ni + k] > 0.0));
-        Ok(Self {
-            source: f.source.clone(),
-            lambda_i: f.lambda_i.clone(),
-            lambda_o: f.lambda_o.clone(),
-            diagonal_nm: f.diagonal_nm.clone(),
-            diagonal: f.diagonal.clone(),
-            index_i: GridIndex::new(&f.lambda_i),
-            index_o: GridIndex::new(&f.lambda_o),
-            index_diagonal: GridIndex::new(&f.diagonal_nm),
+        let excitation_range = support(&lambda_i, &|k| (0..no).any(|j| p[j * ni + k] > 0.0));
+        let emission_range = support(&lambda_o, &|j| (0..ni).any(|k| p[j * ni + k] > 0.0));
+        Self {
+            source,
+            index_i: GridIndex::new(&lambda_i),
+            index_o: GridIndex::new(&lambda_o),
+            index_diagonal: GridIndex::new(&diagonal_nm),
+            lambda_i,
+            lambda_o,
+            diagonal_nm,
+            diagonal,
             p,
             col_cdf,
             row_cdf,
             excitation_range,
             emission_range,
-        })
+        }
     }
 
     /// Source file.

@@ -179,9 +179,12 @@ pub struct Basis {
     t: DMatrix<f64>,
     /// Condition number of the Gram matrix Sᵀ W S.
     condition: f64,
-    /// `auto`: its last band is the lights' residual (not x7's U).
-    light_band: bool,
+    /// `auto`: how many of its last bands are lights' residuals (0: x7's U).
+    light_bands: usize,
 }
+
+/// The most light bands [`Basis::adaptive`] builds (K = 6 + this at most).
+pub const MAX_LIGHT_BANDS: usize = 2;
 
 /// Wavelengths of the reduction grid.
 pub fn grid() -> Vec<f64> {
@@ -232,19 +235,20 @@ impl Basis {
     }
 
     /// The scene-adaptive basis: the six visible bands of `x7` (x̄₁, x̄₂, x̄₃, ȳ₁, ȳ₂, z̄)
-    /// and one light band r, the part of the lights' summed spectrum Σ L (sampled on the
-    /// reduction grid) outside the visible bands' span (W-orthogonal residual). The
-    /// lights' sum is then in the span: the dual basis reconstructs it exactly, so a
-    /// material lit directly by it reduces exactly (Sᵀ W 𝒫 L: every band's integral of
-    /// the light it re-emits), its UV part included, whatever the lamp's shape. A single
-    /// light is exact on its own; several are exact together (each alone up to the part
-    /// of its residual not along r). Without lights, or with lights inside the visible
-    /// span (residual below 1e-6 of their norm), the band is x7's U (the basis is x7).
+    /// and up to [`MAX_LIGHT_BANDS`] light bands, each the part of a light spectrum (sampled
+    /// on the reduction grid) outside the span of the bands before it (W-orthogonal
+    /// residual): first the light whose residual is largest, then the sum of the others. A
+    /// light in the span is reconstructed exactly by the dual basis, so a material lit
+    /// directly by it reduces exactly (Sᵀ W 𝒫 L: every band's integral of the light it
+    /// re-emits), its UV part included, whatever the lamp's shape: one or two distinct
+    /// lights each exactly on its own (K = 7 or 8), more: the first exactly and the rest
+    /// exactly together. Without lights, or with lights inside the visible span (residual
+    /// below 1e-6 of their norm), the band is x7's U (the basis is x7); a second band is
+    /// added only where it holds more than 1e-3 of its lights (below that it would cost
+    /// K = 8 for nothing visible).
     pub fn adaptive(observer: Observer, lights: &[Vec<f64>]) -> Result<Self> {
         let lambdas = grid();
         let n = lambdas.len();
-        let mut bands = visible_x7(observer);
-        let mut total = vec![0.0; n];
         for light in lights {
             if light.len() != n {
                 return Err(Error::data(format!("adaptive basis: a light has {} samples, {n} expected", light.len())));
@@ -252,33 +256,47 @@ impl Basis {
             if light.iter().any(|v| !v.is_finite()) {
                 return Err(Error::data("adaptive basis: a light spectrum is not finite"));
             }
-            for (t, v) in total.iter_mut().zip(light) {
-                *t += v;
+        }
+        let mut bands = visible_x7(observer);
+        let mut remaining: Vec<Vec<f64>> = lights.to_vec();
+        let mut light_bands = 0;
+        while light_bands < MAX_LIGHT_BANDS && !remaining.is_empty() {
+            let span = Self::from_bands(BasisKind::Adaptive, observer, &bands)?;
+            let norm = |v: &[f64]| v.iter().zip(span.w.iter()).map(|(a, b)| a * a * b).sum::<f64>().sqrt();
+            // r = L − S̃ Sᵀ W L (the dual basis reconstructs the projection onto the span)
+            let residual = |l: &[f64]| -> Vec<f64> {
+                let projection = span.up(&span.down_sampled(l));
+                l.iter().zip(&projection).map(|(l, p)| l - p).collect()
+            };
+            let light = if light_bands + 1 == MAX_LIGHT_BANDS || remaining.len() == 1 {
+                // the last band: the remaining lights together
+                let total = (0..n).map(|i| remaining.iter().map(|l| l[i]).sum()).collect();
+                remaining.clear();
+                total
+            } else {
+                let largest = (0..remaining.len())
+                    .max_by(|&a, &b| norm(&residual(&remaining[a])).total_cmp(&norm(&residual(&remaining[b]))))
+                    .unwrap_or(0);
+                remaining.remove(largest)
+            };
+            let r = residual(&light);
+            let threshold = if light_bands == 0 { 1e-6 } else { 1e-3 };
+            if norm(&light) > 0.0 && norm(&r) > threshold * norm(&light) {
+                // scaled to U's peak: coefficients of comparable size
+                let peak = r.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+                bands.push(r.iter().map(|v| v * U_PEAK / peak).collect());
+                light_bands += 1;
             }
         }
-        let visible = Self::from_bands(BasisKind::Adaptive, observer, &bands)?;
-        let w = &visible.w;
-        let norm = |v: &[f64]| v.iter().zip(w.iter()).map(|(a, b)| a * a * b).sum::<f64>().sqrt();
-        // r = L − S̃ Sᵀ W L (the dual basis reconstructs the projection onto the span)
-        let c = visible.down_sampled(&total);
-        let projection = visible.up(&c);
-        let residual: Vec<f64> = total.iter().zip(&projection).map(|(l, p)| l - p).collect();
-        let (r, l) = (norm(&residual), norm(&total));
-        let light_band = l > 0.0 && r > 1e-6 * l;
-        let band = if light_band {
-            // scaled to U's peak: coefficients of comparable size
-            let peak = residual.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-            residual.iter().map(|v| v * U_PEAK / peak).collect()
-        } else {
-            lambdas.iter().map(|&l| u_band(l)).collect()
-        };
-        bands.push(band);
-        Ok(Self { light_band, ..Self::from_bands(BasisKind::Adaptive, observer, &bands)? })
+        if light_bands == 0 {
+            bands.push(lambdas.iter().map(|&l| u_band(l)).collect());
+        }
+        Ok(Self { light_bands, ..Self::from_bands(BasisKind::Adaptive, observer, &bands)? })
     }
 
-    /// Whether the last band is built from lights ([`Basis::adaptive`]).
-    pub fn has_light_band(&self) -> bool {
-        self.light_band
+    /// How many of the last bands are built from lights ([`Basis::adaptive`]; 0: none).
+    pub fn light_bands(&self) -> usize {
+        self.light_bands
     }
 
     /// A basis from its bands sampled on the grid (x̄, ȳ, z̄ or the six split visible bands
@@ -293,7 +311,7 @@ impl Basis {
             if kind == BasisKind::X7 || kind == BasisKind::Adaptive { &[0, 0, 0, 1, 1, 2] } else { &[0, 1, 2] };
         let t = DMatrix::from_fn(3, k, |r, c| if c < owner.len() && owner[c] == r { 1.0 } else { 0.0 });
         let mut b =
-            Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY, light_band: false };
+            Self { kind, observer, s, w, dual: DMatrix::zeros(0, 0), t, condition: f64::INFINITY, light_bands: 0 };
         let gram = b.gram(&b.s);
         let eig = SymmetricEigen::try_new(gram.clone(), f64::EPSILON, max_iterations(k)).ok_or_else(|| {
             Error::data(format!("basis {}: the Gram matrix's eigenvalues did not converge", kind.name()))
@@ -483,12 +501,81 @@ fn operator(material: &Operator, basis: &Basis) -> DMatrix<f64> {
 /// Reduce a material's reradiation to a K×K matrix in the given basis.
 pub fn reduce(material: &Operator, basis: &Basis, method: Method) -> Reduced {
     let op = operator(material, basis);
-    let m = match method {
-        Method::Ours => {
-            // Sᵀ W 𝒫 S̃
-            let ps = &op * &basis.dual;
-            basis.gram(&ps)
+    let m = basis.gram(&(&op * right(basis, method)));
+    Reduced {
+        basis: basis.kind.name(),
+        method: method.name(),
+        matrix: (0..m.nrows()).map(|r| (0..m.ncols()).map(|c| m[(r, c)]).collect()).collect(),
+    }
+}
+
+/// The reduction's derivative with respect to each node value of a bilinear reradiation
+/// table: for P(λi, λo) = Σ p_jk·h_j(λo)·h_k(λi) on λi ≤ λo (h the piecewise-linear hat
+/// of a node on `lambda_o`, `lambda_i`, zero outside the grids; [`reduce`] is linear in
+/// P), ∂M/∂p_jk = Sᵀ W 𝒫_jk R with 𝒫_jk that hat product's operator (no elastic part).
+/// One K×K matrix per node, index j·n_i + k (λo row j, λi column k).
+pub fn bilinear_jacobian(basis: &Basis, method: Method, lambda_i: &[f64], lambda_o: &[f64]) -> Vec<DMatrix<f64>> {
+    let lambdas = grid();
+    let r = right(basis, method);
+    let k_len = basis.len();
+    // each node's hat on the reduction grid: (first grid index, values)
+    let hats = |g: &[f64]| -> Vec<(usize, Vec<f64>)> {
+        (0..g.len())
+            .map(|j| {
+                let lo = if j > 0 { g[j - 1] } else { g[j] };
+                let hi = if j + 1 < g.len() { g[j + 1] } else { g[j] };
+                let first = lambdas.partition_point(|&l| l < lo);
+                let values = lambdas[first..]
+                    .iter()
+                    .take_while(|&&l| l <= hi)
+                    .map(|&l| match l.partial_cmp(&g[j]) {
+                        Some(std::cmp::Ordering::Less) => (l - lo) / (g[j] - lo),
+                        Some(std::cmp::Ordering::Greater) => (hi - l) / (hi - g[j]),
+                        _ => 1.0,
+                    })
+                    .collect();
+                (first, values)
+            })
+            .collect()
+    };
+    let (h_i, h_o) = (hats(lambda_i), hats(lambda_o));
+    let mut out = vec![DMatrix::zeros(k_len, k_len); lambda_i.len() * lambda_o.len()];
+    for (j, (o0, ho)) in h_o.iter().enumerate() {
+        for (k, (i0, hi)) in h_i.iter().enumerate() {
+            let m = &mut out[j * lambda_i.len() + k];
+            for (di, &hk) in hi.iter().enumerate() {
+                let i = i0 + di;
+                if hk == 0.0 {
+                    continue;
+                }
+                // 𝒫[o, i] = P(λi, λo)·w_i (operator()), row o weighted by W in the gram
+                let wi = hk * basis.w[i];
+                for (dj, &hj) in ho.iter().enumerate() {
+                    let o = o0 + dj;
+                    if o < i || hj == 0.0 {
+                        continue;
+                    }
+                    let c = hj * wi * basis.w[o];
+                    for a in 0..k_len {
+                        let sa = basis.s[(o, a)] * c;
+                        if sa != 0.0 {
+                            for b in 0..k_len {
+                                m[(a, b)] += sa * r[(i, b)];
+                            }
+                        }
+                    }
+                }
+            }
         }
+    }
+    out
+}
+
+/// The right-hand factor R of a reduction Sᵀ W 𝒫 R: the dual basis S̃ (`ours`), or the
+/// area-normalised bands (`naive`).
+fn right(basis: &Basis, method: Method) -> DMatrix<f64> {
+    match method {
+        Method::Ours => basis.dual.clone(),
         Method::Naive => {
             // Our reading of eq. 6–7 (the extraction's S̄ᵀ 𝒫 S̄ cannot be meant literally:
             // with s̄ on the outgoing side c_o would not be a colour in the units of c_i).
@@ -500,20 +587,14 @@ pub fn reduce(material: &Operator, basis: &Basis, method: Method) -> Reduced {
             let norms: Vec<f64> = (0..basis.len())
                 .map(|k| (0..basis.s.nrows()).map(|i| basis.s[(i, k)] * basis.w[i]).sum::<f64>())
                 .collect();
-            let sbar = DMatrix::from_fn(basis.s.nrows(), basis.len(), |i, k| {
+            DMatrix::from_fn(basis.s.nrows(), basis.len(), |i, k| {
                 if norms[k] > 0.0 {
                     basis.s[(i, k)] / norms[k]
                 } else {
                     0.0
                 }
-            });
-            basis.gram(&(&op * &sbar))
+            })
         }
-    };
-    Reduced {
-        basis: basis.kind.name(),
-        method: method.name(),
-        matrix: (0..m.nrows()).map(|r| (0..m.ncols()).map(|c| m[(r, c)]).collect()).collect(),
     }
 }
 
@@ -711,20 +792,31 @@ mod tests {
         );
         let x7 = Basis::new(BasisKind::X7, Observer::Cie1931).unwrap();
         let lab = |xyz: [f64; 3], white: f64| xyz_to_lab(xyz.map(|v| v / white), [0.95047, 1.0, 1.08883]);
-        for (lights, name) in [(vec![lamp.clone()], "lamp"), (vec![lamp.clone(), fill.clone()], "lamp + fill")] {
+        // a bright D65 sky with the lamp: two light bands, each light exact on its own
+        let sky: Vec<f64> = lambdas.iter().map(|&l| 0.05 * d65.eval(l)).collect();
+        let cases = [
+            (vec![lamp.clone()], "lamp", 7),
+            (vec![lamp.clone(), fill.clone()], "lamp + fill", 8),
+            (vec![sky.clone(), lamp.clone()], "sky + lamp", 8),
+            (vec![lamp.clone(), lamp.iter().map(|v| 3.0 * v).collect()], "lamp twice", 7),
+        ];
+        for (lights, name, k) in cases {
             let auto = Basis::adaptive(Observer::Cie1931, &lights).unwrap();
-            assert_eq!((auto.len(), auto.kind()), (7, BasisKind::Adaptive));
+            assert_eq!((auto.len(), auto.kind(), auto.light_bands()), (k, BasisKind::Adaptive, k - 6), "{name}");
             let total: Vec<f64> = (0..lambdas.len()).map(|i| lights.iter().map(|l| l[i]).sum()).collect();
-            // the lights' sum is in the span: reconstructed exactly
-            let back = auto.up(&auto.down_sampled(&total));
-            let peak = total.iter().fold(0.0_f64, |m, v| m.max(*v));
-            assert!(back.iter().zip(&total).all(|(a, b)| (a - b).abs() < 1e-9 * peak), "{name}");
-            let (exact, reduced) = single_bounce_xyz(&brightener, &auto, &total);
-            let white = exact[1].max(1e-30) * 2.0;
-            let de = ciede2000(lab(exact, white), lab(reduced, white));
-            assert!(de < 1e-6, "{name}: auto ΔE00 {de}");
+            for (i, light) in lights.iter().chain(std::iter::once(&total)).enumerate() {
+                // each light (and their sum) is in the span: reconstructed exactly
+                let back = auto.up(&auto.down_sampled(light));
+                let peak = light.iter().fold(0.0_f64, |m, v| m.max(*v));
+                assert!(back.iter().zip(light).all(|(a, b)| (a - b).abs() < 1e-9 * peak), "{name} light {i}");
+                let (exact, reduced) = single_bounce_xyz(&brightener, &auto, light);
+                let white = exact[1].max(1e-30) * 2.0;
+                let de = ciede2000(lab(exact, white), lab(reduced, white));
+                assert!(de < 1e-6, "{name} light {i}: auto ΔE00 {de}");
+            }
             // x7's fixed U band misjudges the lamp's absorption
             let (exact, reduced) = single_bounce_xyz(&brightener, &x7, &total);
+            let white = exact[1].max(1e-30) * 2.0;
             let de_x7 = ciede2000(lab(exact, white), lab(reduced, white));
             assert!(de_x7 > 1.0, "{name}: x7 ΔE00 {de_x7}");
         }

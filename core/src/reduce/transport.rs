@@ -65,11 +65,11 @@ impl Transport {
         // scaled by 1/∫ȳ on both sides, so the map is scale-free)
         let proj = basis.gram(&xyz.dual); // K×3 (Sᵀ W S̃_xyz)
         let mut from_rgb_m = &proj * DMatrix::from_fn(3, 3, |r, c| minv[(r, c)]);
-        if basis.has_light_band() {
-            // RGB light lies in span(x̄, ȳ, z̄), W-orthogonal to the light band: its row is
-            // zero (what the product leaves is rounding, which band albedos would divide)
+        // RGB light lies in span(x̄, ȳ, z̄), W-orthogonal to the light bands: their rows are
+        // zero (what the product leaves is rounding, which band albedos would divide)
+        for band in basis.len() - basis.light_bands()..basis.len() {
             for c in 0..3 {
-                from_rgb_m[(basis.len() - 1, c)] = 0.0;
+                from_rgb_m[(band, c)] = 0.0;
             }
         }
         let t = &basis.t;
@@ -109,7 +109,21 @@ impl Transport {
     pub fn reduce(&self, material: &Operator) -> Vec<f64> {
         let r = reduce(material, &self.basis, self.method);
         let k = self.basis.len();
-        let mx = DMatrix::from_fn(k, k, |i, j| r.matrix[i][j]);
+        self.finish(DMatrix::from_fn(k, k, |i, j| r.matrix[i][j]))
+    }
+
+    /// [`Transport::reduce`]'s derivative with respect to each node value of a bilinear
+    /// reradiation table on the grids `lambda_i`, `lambda_o` ([`super::bilinear_jacobian`]):
+    /// one K×K matrix (row major) per node, node j·n_i + k, one after the other.
+    pub fn reduce_jacobian_bilinear(&self, lambda_i: &[f64], lambda_o: &[f64]) -> Vec<f64> {
+        super::bilinear_jacobian(&self.basis, self.method, lambda_i, lambda_o)
+            .into_iter()
+            .flat_map(|m| self.finish(m))
+            .collect()
+    }
+
+    /// A reduced matrix in this transport's channels (`rgb`: eq. 16 from XYZ), row major.
+    fn finish(&self, mx: DMatrix<f64>) -> Vec<f64> {
         let out = if self.name == "rgb" {
             let m = DMatrix::from_fn(3, 3, |i, j| crate::colour::mitsuba::XYZ_TO_SRGB[i][j]);
             let minv = m.clone().try_inverse().unwrap_or_else(|| DMatrix::identity(3, 3));
@@ -140,6 +154,37 @@ impl Transport {
 #[cfg(test)]
 mod transport_tests {
     use super::*;
+
+    #[test]
+    fn bilinear_jacobian_times_the_table_is_the_reduction() {
+        // the reduction is linear in the table: Σ_node ∂M/∂p·p must be the reduction of the
+        // model's reradiation (evaluated by the model itself), in every basis and method
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../data/matrices/jung_orange.csv");
+        let model = crate::models::matrix::MatrixModel::from_file(&path).unwrap();
+        let (p, _) = model.row_tables();
+        let rerad = Operator::new(|_| 0.0, |li, lo| model.reradiation(li, lo));
+        for (name, method) in [("x7", Method::Ours), ("rgb", Method::Ours), ("xyzu", Method::Naive)] {
+            let t = Transport::new(name, method).unwrap();
+            let kk = t.len() * t.len();
+            let jac = t.reduce_jacobian_bilinear(model.lambda_i(), model.lambda_o());
+            assert_eq!(jac.len(), kk * p.len());
+            let want = t.reduce(&rerad);
+            let scale = want.iter().fold(0.0_f64, |m, v| m.max(v.abs()));
+            assert!(scale > 1e-3, "{name}: nothing reduced");
+            for e in 0..kk {
+                let got: f64 = p.iter().enumerate().map(|(n, v)| v * jac[n * kk + e]).sum();
+                assert!((got - want[e]).abs() <= 1e-9 * scale, "{name} entry {e}: {got} vs {want:?}");
+            }
+        }
+        // an updated table is validated
+        let mut q = p.to_vec();
+        q[3] = -1.0;
+        let err = model.with_reradiation(&q).unwrap_err().to_string();
+        assert!(err.contains("reradiation") && err.contains("-1"), "{err}");
+        assert!(model.with_reradiation(&q[1..]).is_err());
+        q[3] = 0.0;
+        assert!(model.with_reradiation(&q).is_ok());
+    }
 
     #[test]
     fn rgb_transport_maps_white_to_white_and_matches_mitsuba_conversion() {

@@ -18,6 +18,7 @@
 #include <array>
 #include <atomic>
 #include <cmath>
+#include <optional>
 #include <tuple>
 #include <vector>
 
@@ -89,6 +90,24 @@ template <typename Float> double host_param(const char *plugin, const char *name
 template <typename Float> double updated_param(const char *plugin, const char *name, const Float &v, double current) {
     double x = host_param(plugin, name, v);
     return x == (double) (float) current ? current : x;
+}
+
+/// ∂f/∂θ of a host computation f (values in a vector) by central differences with step h,
+/// (f(θ + h) − f(θ − h))/2h, one-sided where a step is refused: `at(δ)` evaluates f at θ + δ
+/// and returns nothing outside the parameter's range. Nothing if neither step is allowed.
+/// (The RGB reductions' derivatives with respect to parameters baked into them.)
+template <typename At> std::optional<std::vector<double>> central_difference(double h, At &&at) {
+    std::optional<std::vector<double>> hi = at(h), lo = at(-h);
+    double span = (hi ? h : 0.0) + (lo ? h : 0.0);
+    if (!hi)
+        hi = at(0.0);
+    if (!lo)
+        lo = at(0.0);
+    if (!hi || !lo || !(span > 0.0) || hi->size() != lo->size())
+        return std::nullopt;
+    for (size_t j = 0; j < hi->size(); ++j)
+        (*hi)[j] = ((*hi)[j] - (*lo)[j]) / span;
+    return hi;
 }
 
 /// A single-lane JIT (or scalar) value read on the host.
@@ -186,21 +205,20 @@ public:
     virtual std::array<Float, MaxTerms> jit_reduced_weights() const = 0;
 
     /// RGB reduced transport with gradients on parameters baked into the matrices (fluo_jung's
-    /// λe and s): up to DerivTerms matrices D_d (host, row major, sized K·K by the caller),
-    /// D_d = ∂A/∂θ_d at this render's values, which the vertex operator adds with the weights
-    /// jit_reduced_derivative_weights() (per lane), each (θ_d − detach(θ_d)) times the
-    /// lane's weight of the term D_d differentiates: zero in value, so A is unchanged and its
-    /// derivative along θ_d is that weight times D_d. Returns how many (0: none, the default;
-    /// asked when a render starts, so only materials whose such parameters carry gradients
-    /// pay for it).
-    static constexpr size_t DerivTerms = 2;
+    /// λe and s, fluo_gmm's mixture): matrices D_d (host, row major, K·K each, appended to
+    /// `d` by the callee), D_d = ∂A/∂θ_d at this render's values, which the vertex operator
+    /// adds with the weights jit_reduced_derivative_weights() (per lane, one per D_d, in the
+    /// same order), each (θ_d − detach(θ_d)) times the lane's weight of the term D_d
+    /// differentiates: zero in value, so A is unchanged and its derivative along θ_d is that
+    /// weight times D_d. Returns how many (0: none, the default; asked when a render starts,
+    /// so only materials whose such parameters carry gradients pay for it).
     virtual size_t jit_reduced_derivatives(const fluo::TransportBasis & /* transport */,
-                                           std::array<std::vector<double>, DerivTerms> & /* d */) const {
+                                           std::vector<std::vector<double>> & /* d */) const {
         return 0;
     }
-    virtual std::array<Float, DerivTerms> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
-                                                                         Mask /* active */) const {
-        return { Float(0.f), Float(0.f) };
+    virtual std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
+                                                              Mask /* active */) const {
+        return {};
     }
 
     /// Elastic albedo at si.wavelengths (spectral), or its linear sRGB (RGB variant).

@@ -29,7 +29,9 @@ template <typename Float, typename Spectrum> class ReducedTransport {
 public:
     MI_IMPORT_TYPES(Scene, Emitter, EmitterPtr, BSDF, BSDFPtr)
     using Bispectral = BispectralBSDF<Float, Spectrum>;
-    static constexpr size_t KMax = 7;
+    /// The transport is compiled for K = 3 (rgb), 4 (xyzu), 7 (x7; auto with one light band)
+    /// and KMax (auto with two light bands).
+    static constexpr size_t KMax = 8;
     template <size_t K> using Coeffs = dr::Array<Float, K>;
     template <size_t K> using Rows = dr::Array<Float, 3 * K>;
 
@@ -38,9 +40,6 @@ public:
     ReducedTransport(const char *plugin, const std::string &basis, const std::string &method)
         : m_plugin(plugin), m_method(method), m_adaptive(basis == "auto") {
         set(rust_call(plugin, [&] { return fluo::transport_new(basis, method); }));
-        if (m_k != 3 && m_k != 4 && m_k != KMax)
-            Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4 and %zu", plugin, basis, m_k,
-                  KMax);
     }
 
     size_t bands() const { return m_k; }
@@ -84,8 +83,6 @@ public:
                 for (auto &m : e.m)
                     m.assign(m_k * m_k, 0.0);
                 e.full = rust_call(m_plugin, [&] { return b->jit_reduced_matrices(**m_transport, e.m); });
-                for (auto &d : e.d)
-                    d.assign(m_k * m_k, 0.0);
                 e.n_d = rust_call(m_plugin, [&] { return b->jit_reduced_derivatives(**m_transport, e.d); });
                 std::vector<double> nodes;
                 if (!b->jit_lambertian()) {
@@ -103,6 +100,18 @@ public:
                 }
                 if (e.n_nodes > 0)
                     e.nodes = load(nodes);
+                // derivative matrices: K·K each, or per cosine node for a direction-dependent lobe
+                size_t per = (e.n_nodes > 0 && e.n_models == 0 ? e.n_nodes : 1) * m_k * m_k;
+                if (e.n_d != e.d.size() || (e.n_d > 0 && e.n_models > 0) ||
+                    std::any_of(e.d.begin(), e.d.end(), [&](const std::vector<double> &d) { return d.size() != per; }))
+                    Throw("%s: %s returned %zu derivative matrices (counted %zu), each of %zu entries expected", m_plugin,
+                          e.bsdf->class_name(), e.d.size(), e.n_d, per);
+                if (e.n_d > 0 && e.n_nodes > 0) { // [derivative][node][K][K], read per lane
+                    std::vector<double> all;
+                    for (const auto &d : e.d)
+                        all.insert(all.end(), d.begin(), d.end());
+                    e.node_d = load(all);
+                }
                 std::vector<double> table;
                 e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
                 if (e.n_table > 0)
@@ -308,9 +317,12 @@ private:
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
         /// Derivative matrices of parameters baked into `m` (Bispectral::jit_reduced_derivatives)
-        std::array<std::vector<double>, Bispectral::DerivTerms> d;
-        std::array<std::vector<Float>, Bispectral::DerivTerms> dv; ///< `d` as opaque values
+        std::vector<std::vector<double>> d;
+        std::vector<std::vector<Float>> dv; ///< `d` as opaque values (Lambertian)
         size_t n_d = 0;
+        /// A direction-dependent lobe's derivative matrices at the cosine nodes
+        /// ([n_d][n_nodes][K][K], per unit w_0, linear between the nodes)
+        DynamicBuffer<Float> node_d;
         /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
         /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
         DynamicBuffer<Float> nodes;
@@ -366,9 +378,11 @@ private:
         Coeffs<K> d = dr::zeros<Coeffs<K>>();
         if (elastic)
             d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
-        std::array<Float, Bispectral::DerivTerms> wd;
+        std::vector<Float> wd;
         if (e.n_d > 0)
             wd = e.bispectral->jit_reduced_derivative_weights(si, on);
+        if (wd.size() != e.n_d)
+            Throw("%s: %zu derivative weights for %zu derivative matrices", m_plugin, wd.size(), e.n_d);
         UInt32 base(0);
         Float wn(0.f);
         if (e.n_table > 0) {
@@ -425,6 +439,8 @@ private:
         Weights w_a = weights(wa), w_b = weights(wb);
         std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
         Rows<K> out_b = dr::zeros<Rows<K>>();
+        if (e.n_d > 0) // parameters baked into the nodes with gradients: Σ_d wd_d·lobe·w_0·R·∂M/∂θ_d(cos θ)
+            node_derivatives<K, Block>(e, si, R, c, wa, wb, on, out_a, out_b);
         for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
             for (size_t j = 0; j < K; ++j) {
                 Float wc = Block ? w_a[t] : w_a[t] * c[j];
@@ -447,6 +463,50 @@ private:
                 }
             }
         return std::make_pair(out_a, out_b);
+    }
+
+    /// The derivative terms of directional_products (Bispectral::jit_reduced_derivatives of a
+    /// direction-dependent lobe): per derivative d, wd_d·lobe·w_0·R·D_d(cos θ) towards wa
+    /// (times c unless `Block`) and wb, D_d linear between the nodes as the operator is;
+    /// zero in value (wd_d = θ_d − detach(θ_d)), so only the derivative along θ_d remains.
+    template <size_t K, bool Block, typename OutA>
+    void node_derivatives(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
+                          const Vector3f &wa, const Vector3f &wb, const Mask &on, OutA &out_a, Rows<K> &out_b) const {
+        constexpr uint32_t KK = (uint32_t) (K * K);
+        std::vector<Float> wd = e.bispectral->jit_reduced_derivative_weights(si, on);
+        if (wd.size() != e.n_d)
+            Throw("%s: %zu derivative weights for %zu derivative matrices", m_plugin, wd.size(), e.n_d);
+        Float w0 = e.bispectral->jit_reduced_weights()[0];
+        for (int side = 0; side < 2; ++side) {
+            auto [lobe, cos_h] = e.bispectral->jit_lobe(si, side == 0 ? wa : wb, on);
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
+            Float f = x - Float(j);
+            Mask live = on && lobe != 0.f;
+            for (size_t d = 0; d < e.n_d; ++d) {
+                Float scale = wd[d] * lobe * w0;
+                UInt32 base = ((uint32_t) d * e.n_nodes + j) * KK;
+                for (size_t col = 0; col < K; ++col) {
+                    Coeffs<K> m; // ∂A/∂θ_d [:, col] at cos θ
+                    for (size_t k = 0; k < K; ++k) {
+                        uint32_t i = (uint32_t) (k * K + col);
+                        m[k] = dr::lerp(dr::gather<Float>(e.node_d, base + i, live),
+                                        dr::gather<Float>(e.node_d, base + KK + i, live), f) * scale;
+                    }
+                    for (size_t r = 0; r < 3; ++r) {
+                        Float acc = R[r * K] * m[0];
+                        for (size_t k = 1; k < K; ++k)
+                            acc = dr::fmadd(R[r * K + k], m[k], acc);
+                        if (side == 1)
+                            out_b[r * K + col] += acc;
+                        else if constexpr (Block)
+                            out_a[r * K + col] += acc;
+                        else
+                            out_a[r] = dr::fmadd(acc, c[col], out_a[r]);
+                    }
+                }
+            }
+        }
     }
 
     /// directional_products for a lobe that varies over the surface: per lane the model m and
@@ -501,10 +561,17 @@ private:
         return std::make_pair(out_a, out_b);
     }
 
+    void check_bands() const {
+        if (m_k != 3 && m_k != 4 && m_k != 7 && m_k != KMax)
+            Throw("%s: basis \"%s\" has %zu bands; the transport is compiled for 3, 4, 7 and %zu", m_plugin,
+                  name(), m_k, KMax);
+    }
+
     /// The transport `t`, its size and RGB maps.
     void set(rust::Box<fluo::TransportBasis> t) {
         m_transport = std::move(t);
         m_k = fluo::transport_size(**m_transport);
+        check_bands();
         m_output.resize(3 * m_k);
         m_from_rgb.resize(3 * m_k);
         m_white.resize(m_k);
@@ -528,14 +595,16 @@ private:
         // literals would compile a kernel per step)
         m_opaque = m_entries.size() > LiteralEntries ||
                    std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return e.n_d > 0; });
-        for (Entry &e : m_entries)
-            for (size_t t = 0; t < e.n_d; ++t) {
+        for (Entry &e : m_entries) {
+            e.dv.resize(e.n_nodes > 0 ? 0 : e.n_d);
+            for (size_t t = 0; t < e.dv.size(); ++t) {
                 e.dv[t].resize(e.d[t].size());
                 for (size_t i = 0; i < e.d[t].size(); ++i) {
                     e.dv[t][i] = Float((float) e.d[t][i]);
                     dr::make_opaque(e.dv[t][i]);
                 }
             }
+        }
         if (!m_opaque)
             return;
         for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
