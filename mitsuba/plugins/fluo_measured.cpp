@@ -353,9 +353,10 @@ public:
     }
 
     /// fluo_gmm (one file) in RGB with gradients on its mixture: A = E + S·Σ_k π̂_k R_k (π̂ the
-    /// renormalised weights, R_k component k's reduced unit normal). Along π̂_k: the operator
-    /// of component k alone (weight 1), E + S·R_k (E, the same for every k, adds nothing: the
-    /// π̂_k's derivatives sum to 0). Along a mean: central differences of the reductions
+    /// renormalised weights, R_k component k's reduced unit normal). Along π̂_k: S·R_k − S·Σ_j
+    /// π̂_j R_j, exactly (A(w + ε e_k) − A(w))·(W + ε)/ε for weights w of sum W (the common
+    /// part adds nothing: the π̂_k's derivatives sum to 0; a small ε keeps the mixture within
+    /// the bound Rust holds a fit's peak to, which a component alone may exceed). Along a mean: central differences of the reductions
     /// (0.25 nm; one-sided where Rust refuses the step, out of the measured rectangle). In
     /// the order of jit_reduced_derivative_weights: weights, means_excitation,
     /// means_emission, each per component, for the arrays that carry gradients.
@@ -410,16 +411,26 @@ public:
             return out;
         };
         const FloatStorage *arrays[3] = { &m_weights, &m_means_i, &m_means_o };
+        std::optional<std::vector<double>> at_x; // A at the current mixture (the weights' differences)
         for (size_t a = 0; a < 3; ++a) {
             if (!dr::grad_enabled(*arrays[a]))
                 continue;
             for (size_t c = 0; c < n; ++c) {
                 std::optional<std::vector<double>> dc;
-                if (a == 0) { // component c alone
-                    std::array<std::vector<double>, 3> one = x;
-                    one[0].assign(n, 0.0);
-                    one[0][c] = 1.0;
-                    dc = reduce(one);
+                if (a == 0) { // along π̂_c: (A(w + ε e_c) − A(w))·(W + ε)/ε, W = Σ w (A is linear in π̂)
+                    double total = 0.0;
+                    for (double v : x[0])
+                        total += v;
+                    double eps = 1e-3 * total;
+                    std::array<std::vector<double>, 3> y = x;
+                    y[0][c] += eps;
+                    if (!at_x)
+                        at_x = reduce(x);
+                    std::optional<std::vector<double>> up = reduce(y);
+                    if (up && at_x)
+                        for (size_t j = 0; j < kk; ++j)
+                            (*up)[j] = ((*up)[j] - (*at_x)[j]) * (total + eps) / eps;
+                    dc = at_x ? up : std::nullopt;
                 } else {
                     dc = fluo_detail::central_difference(0.25, [&](double delta) {
                         std::array<std::vector<double>, 3> y = x;

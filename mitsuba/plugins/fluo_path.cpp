@@ -53,7 +53,8 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      outside the bands before it, so that light is in the basis's span and a material lit
      directly by it is reduced exactly, UV lamps included; one or two distinct spectra each
      exactly on its own (K = 7, or 8 where a second band holds more than 1e-3 of its
-     light), more: the one least in the visible span exactly, the others exactly together;
+     light), more: the one with the most light outside the visible bands exactly, the
+     others exactly together;
      light after fluorescent or coloured bounces stays approximate as in ``x7``; without
      spectral lights it is ``x7``). (Default: ``auto``: on the ``fluo
      bench`` scenes its mean ΔE00 floor against the spectral reference is at or below
@@ -485,11 +486,8 @@ private:
 
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
 
-    /// x / detach(x): value 1 (also where x is 0), derivative ∂x/x (fluo_prb's replay).
-    static Spectrum relative(const Spectrum &x) {
-        Spectrum d = dr::detach(x);
-        return dr::select(d != 0.f, x / dr::select(d != 0.f, d, 1.f), 1.f);
-    }
+    /// x / detach(x) (fluo_prb's replay): fluo_detail::relative.
+    static Spectrum relative(const Spectrum &x) { return fluo_detail::relative(x); }
 
     // ------------------------------------------------------------ the loop
     template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
@@ -626,24 +624,8 @@ private:
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
                         detached([&] { return bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2); });
-                    if constexpr (dr::is_diff_v<Float>) {
-                        if (!adjoint && dr::grad_enabled(bs.wo)) {
-                            // A sampled direction that moves with a parameter (a roughness):
-                            // differentiating it would differentiate the sample's motion, not
-                            // the integrand (measured: fluo_qd's and roughconductor's d/dalpha
-                            // came out of the wrong sign). As Mitsuba's path: the sample and
-                            // the probabilities detached, the BSDF's value differentiated there.
-                            bs = dr::detach(bs);
-                            bsdf_pdf = dr::detach(bsdf_pdf);
-                            if constexpr (is_polarized_v<Spectrum>) {
-                                auto [v2, p2] = bsdf->eval_pdf(bsdf_ctx, si, bs.wo, active_next);
-                                bsdf_weight = dr::select(p2 > 0.f, v2 / dr::detach(p2), dr::detach(bsdf_weight));
-                            } else {
-                                bsdf_weight = dr::detach(bsdf_weight) *
-                                              relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
-                            }
-                        }
-                    }
+                    if (!adjoint) // (the replay's samples carry no gradients)
+                        fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next);
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
                     if constexpr (K == 0 && dr::is_diff_v<Float>) {
                         if (adjoint) { // values with gradients at the detached samples

@@ -52,11 +52,11 @@ pub(crate) fn transport_label(t: &TransportBasis) -> String {
     if b.kind() != fluo::reduce::BasisKind::Adaptive {
         return format!("{}/{:?}", t.0.name, t.0.method);
     }
-    // FNV-1a over the light band's samples
-    let digest = fluo::reduce::grid()
-        .iter()
-        .fold(0xcbf2_9ce4_8422_2325_u64, |h, &l| (h ^ b.band(b.len() - 1, l).to_bits()).wrapping_mul(0x0100_0000_01b3));
-    format!("{}/{:?}/{digest:016x}", t.0.name, t.0.method)
+    // FNV-1a over every band after the six visible ones (the light bands, or x7's U)
+    let digest = (6..b.len()).fold(0xcbf2_9ce4_8422_2325_u64, |h, k| {
+        fluo::reduce::grid().iter().fold(h, |h, &l| (h ^ b.band(k, l).to_bits()).wrapping_mul(0x0100_0000_01b3))
+    });
+    format!("{}/{:?}/K{}/{digest:016x}", t.0.name, t.0.method, b.len())
 }
 
 pub(crate) fn medium_grid_absorption_max(model: &FluoMedium) -> f64 {

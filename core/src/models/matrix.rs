@@ -784,8 +784,14 @@ impl MatrixModel {
         if p.len() != n {
             return Err(Error::param("reradiation", format!("{} entries", p.len()), format!("{n} (λo × λi nodes)")));
         }
-        if let Some((i, v)) = p.iter().enumerate().find(|(_, v)| !(v.is_finite() && **v >= 0.0)) {
-            return Err(Error::param("reradiation", format!("{v} at entry {i}"), "[0, ∞) (nm⁻¹)"));
+        // as a file's entries: D = P·Δλo_j within MAX_MATRIX_VALUE (renders stay finite in f32)
+        let bands = band_widths(&self.lambda_o);
+        let ni = self.lambda_i.len();
+        for (i, v) in p.iter().enumerate() {
+            let max = MAX_MATRIX_VALUE / bands[i / ni];
+            if !(v.is_finite() && *v >= 0.0 && *v <= max) {
+                return Err(Error::param("reradiation", format!("{v} at entry {i}"), format!("[0, {max}] (nm⁻¹)")));
+            }
         }
         Ok(Self::baked(
             self.source.clone(),

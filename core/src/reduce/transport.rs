@@ -182,6 +182,8 @@ mod transport_tests {
         let err = model.with_reradiation(&q).unwrap_err().to_string();
         assert!(err.contains("reradiation") && err.contains("-1"), "{err}");
         assert!(model.with_reradiation(&q[1..]).is_err());
+        q[3] = 1e30; // beyond a file's bound: renders in f32 would overflow
+        assert!(model.with_reradiation(&q).unwrap_err().to_string().contains("reradiation"));
         q[3] = 0.0;
         assert!(model.with_reradiation(&q).is_ok());
     }

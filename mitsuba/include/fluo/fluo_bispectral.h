@@ -110,6 +110,39 @@ template <typename At> std::optional<std::vector<double>> central_difference(dou
     return hi;
 }
 
+/// x / detach(x): value 1 (also where x is 0), derivative ∂x/x.
+template <typename Value> Value relative(const Value &x) {
+    Value d = dr::detach(x);
+    return dr::select(d != 0.f, x / dr::select(d != 0.f, d, 1.f), 1.f);
+}
+
+/// A BSDF sample (`bs`, its weight, and `pdf`, the BSDF's pdf towards the emitter sample)
+/// whose direction carries gradients, i.e. moves with a parameter (a roughness):
+/// differentiating it would differentiate the sample's motion, not the integrand (measured:
+/// d/dalpha of the wrong sign, for roughconductor as for fluo_qd). As Mitsuba's path: the
+/// sample and the probabilities detached, the BSDF's value differentiated at the detached
+/// direction (the weight's value unchanged; Mueller matrices: value / detached pdf). Nothing
+/// where the direction carries no gradient (primal kernels are unchanged).
+template <typename BSDFPtr_, typename Context, typename Interaction, typename Sample, typename Float_,
+          typename Weight, typename Mask_>
+void detach_moving_sample(const BSDFPtr_ &bsdf, const Context &ctx, const Interaction &si, Sample &bs, Float_ &pdf,
+                          Weight &weight, const Mask_ &active) {
+    if constexpr (dr::is_diff_v<Float_>) {
+        if (!dr::grad_enabled(bs.wo))
+            return;
+        bs = dr::detach(bs);
+        pdf = dr::detach(pdf);
+        if constexpr (is_polarized_v<Weight>) {
+            auto [value, p] = bsdf->eval_pdf(ctx, si, bs.wo, active);
+            weight = dr::select(p > 0.f, value / dr::detach(p), dr::detach(weight));
+        } else {
+            weight = dr::detach(weight) * relative(bsdf->eval(ctx, si, bs.wo, active));
+        }
+    } else {
+        (void) bsdf, (void) ctx, (void) si, (void) bs, (void) pdf, (void) weight, (void) active;
+    }
+}
+
 /// A single-lane JIT (or scalar) value read on the host.
 template <typename Float> double host_value(const Float &v) {
     if constexpr (dr::is_jit_v<Float>)
@@ -205,8 +238,9 @@ public:
     virtual std::array<Float, MaxTerms> jit_reduced_weights() const = 0;
 
     /// RGB reduced transport with gradients on parameters baked into the matrices (fluo_jung's
-    /// λe and s, fluo_gmm's mixture): matrices D_d (host, row major, K·K each, appended to
-    /// `d` by the callee), D_d = ∂A/∂θ_d at this render's values, which the vertex operator
+    /// λe and s, fluo_gmm's mixture, fluo_qd's radius and density): matrices D_d (host, row
+    /// major, K·K each, or n_nodes·K·K at the cosine nodes of a direction-dependent lobe,
+    /// jit_reduced_nodes; appended to `d` by the callee), D_d = ∂A/∂θ_d at this render's values, which the vertex operator
     /// adds with the weights jit_reduced_derivative_weights() (per lane, one per D_d, in the
     /// same order), each (θ_d − detach(θ_d)) times the lane's weight of the term D_d
     /// differentiates: zero in value, so A is unchanged and its derivative along θ_d is that

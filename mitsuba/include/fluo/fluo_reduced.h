@@ -599,10 +599,11 @@ private:
             e.dv.resize(e.n_nodes > 0 ? 0 : e.n_d);
             for (size_t t = 0; t < e.dv.size(); ++t) {
                 e.dv[t].resize(e.d[t].size());
-                for (size_t i = 0; i < e.d[t].size(); ++i) {
-                    e.dv[t][i] = Float((float) e.d[t][i]);
-                    dr::make_opaque(e.dv[t][i]);
-                }
+                for (size_t i = 0; i < e.d[t].size(); ++i)
+                    if (e.d[t][i] != 0.0) { // (only these are read: lambertian_product)
+                        e.dv[t][i] = Float((float) e.d[t][i]);
+                        dr::make_opaque(e.dv[t][i]);
+                    }
             }
         }
         if (!m_opaque)
