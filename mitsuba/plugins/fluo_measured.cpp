@@ -99,8 +99,8 @@ RGB variants each file's reduced matrix is gathered per lane.
 
 **Parameters and gradients.** With one file, ``mi.traverse`` exposes P at the matrix's
 nodes as the array ``reradiation`` (nm⁻¹, λo rows of λi entries). An update is validated
-by Rust (every entry finite and ≥ 0, one per node: an error naming it, and the previous
-matrix stays) and the sampling tables are baked again. It is differentiable in every AD
+by Rust (one entry per node, each finite, ≥ 0 and, times its emission band width, within a
+file's bound of 1e3: an error naming it, and the previous matrix stays) and the sampling tables are baked again. It is differentiable in every AD
 variant (``llvm_ad_*``, ``cuda_ad_*``): in the spectral ones through the value of the
 shift at the sampled wavelength (the sampling and its mass detached); in the RGB ones,
 where P is baked into the reduced matrix per render, through that matrix's derivative,
@@ -217,8 +217,9 @@ exposes the ``index`` texture only, not the mixtures.
 ``means_emission`` are differentiable: in the spectral variants gradients reach them
 through the reradiation's value (the sampling is detached); in the RGB variants, where the
 mixture is baked into the reduced matrix per render, through that matrix's derivatives
-(``fluo_path``): along each renormalised weight the operator of its component alone, along
-each mean central differences (0.25 nm) of the reductions, computed at a render's start
+(``fluo_path``): along each renormalised weight the difference of the reductions at a
+0.1 % step of it (exact: the reduced operator is linear in the weights), along each mean
+central differences (0.25 nm) of the reductions, computed at a render's start
 only while the arrays carry gradients (3 × components K×K matrices; the operator then
 becomes a kernel input, not literals).
 
@@ -412,16 +413,16 @@ public:
         };
         const FloatStorage *arrays[3] = { &m_weights, &m_means_i, &m_means_o };
         std::optional<std::vector<double>> at_x; // A at the current mixture (the weights' differences)
+        double total = 0.0; // W, and the weights' step ε
+        for (double v : x[0])
+            total += v;
+        const double eps = 1e-3 * total;
         for (size_t a = 0; a < 3; ++a) {
             if (!dr::grad_enabled(*arrays[a]))
                 continue;
             for (size_t c = 0; c < n; ++c) {
                 std::optional<std::vector<double>> dc;
                 if (a == 0) { // along π̂_c: (A(w + ε e_c) − A(w))·(W + ε)/ε, W = Σ w (A is linear in π̂)
-                    double total = 0.0;
-                    for (double v : x[0])
-                        total += v;
-                    double eps = 1e-3 * total;
                     std::array<std::vector<double>, 3> y = x;
                     y[0][c] += eps;
                     if (!at_x)

@@ -54,18 +54,18 @@ Wavelength-shifting path tracer (:monosp:`fluo_path`)
      directly by it is reduced exactly, UV lamps included; one or two distinct spectra each
      exactly on its own (K = 7, or 8 where a second band holds more than 1e-3 of its
      light), more: the one with the most light outside the visible bands exactly, the
-     others exactly together;
-     light after fluorescent or coloured bounces stays approximate as in ``x7``; without
-     spectral lights it is ``x7``). (Default: ``auto``: on the ``fluo
-     bench`` scenes its mean ΔE00 floor against the spectral reference is at or below
+     others exactly together; light after fluorescent or coloured bounces stays
+     approximate as in ``x7``; without spectral lights it is ``x7``). (Default: ``auto``:
+     on the ``fluo bench`` scenes its mean ΔE00 floor against the spectral reference is at or below
      ``x7``'s on every surface scene (blacklight box 2.48 against 6.63, measured box 0.73
      against 0.84, jung box 0.72 against 0.75, the rest equal); README's generated bench
      table has the numbers. With one light spectrum it costs what ``x7`` costs per vertex
      (K = 7; cost row ``vertex_auto_*``: 0.98-0.99 of x7's time), with two K = 8, and a
      reduction of each material per render, as every basis does. One band for the sum of
      a D65 sky and a 365 nm lamp rendered a dye's glow 16 % too dark where ``x7`` was 10 %
-     too bright; with a band per light it is exact for light arriving directly from either.) Which basis when (``fluo-rs saturated-report`` and the
-     second table of ``fluo bench`` measure it per basis): ``auto`` whenever the lights are
+     too bright; with a band per light it is exact for light arriving directly from
+     either.) Which basis when (``fluo-rs saturated-report`` and the second table of
+     ``fluo bench`` measure it per basis): ``auto`` whenever the lights are
      ``fluo_illuminant`` spectra, above all under narrow UV lamps, where every fixed basis
      is coarse: one UV band averages a dye's absorption over 300-400 nm (a brightener under
      a 365 nm lamp glows ~5x too dark in ``xyzu``/``x7``, and not at all in ``rgb``), while
@@ -486,8 +486,6 @@ private:
 
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
 
-    /// x / detach(x) (fluo_prb's replay): fluo_detail::relative.
-    static Spectrum relative(const Spectrum &x) { return fluo_detail::relative(x); }
 
     // ------------------------------------------------------------ the loop
     template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
@@ -633,7 +631,7 @@ private:
                             em_weight = dr::replace_grad(
                                 em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
                             bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
-                            bsdf_weight *= relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
+                            bsdf_weight *= fluo_detail::relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
                         }
                     }
 
@@ -644,7 +642,7 @@ private:
                             // next-event estimate, then the rest of the path through this weight
                             Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
                             ls.result -= dr::detach(direct);
-                            Lo += direct + ls.result * relative(bsdf_weight);
+                            Lo += direct + ls.result * fluo_detail::relative(bsdf_weight);
                             backpropagate();
                             c.throughput *= dr::detach(bsdf_weight);
                         } else {

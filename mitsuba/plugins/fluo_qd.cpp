@@ -223,8 +223,8 @@ gradient.
 ``alpha`` of a uniform material is differentiable in every AD variant: no table depends on
 it, the microfacet lobe D·G/(4 cos θi) is evaluated per lane from it (the sampled directions
 are detached and the lobe's value differentiated there, as Mitsuba's ``path`` and ``prb``
-do for ``roughconductor``). At ``density`` = 0 the material is ``roughconductor`` and has no density
-derivative. A textured parameter is not differentiable (``mi.traverse`` lists its
+do for ``roughconductor``). At ``density`` = 0 the material is ``roughconductor`` and has
+no density derivative. A textured parameter is not differentiable (``mi.traverse`` lists its
 texture).
 
 Invalid parameters raise an error naming the parameter, its value and the valid range.

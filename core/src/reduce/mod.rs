@@ -274,9 +274,8 @@ impl Basis {
                 remaining.clear();
                 total
             } else {
-                let largest = (0..remaining.len())
-                    .max_by(|&a, &b| norm(&residual(&remaining[a])).total_cmp(&norm(&residual(&remaining[b]))))
-                    .unwrap_or(0);
+                let outside: Vec<f64> = remaining.iter().map(|l| norm(&residual(l))).collect();
+                let largest = (0..outside.len()).max_by(|&a, &b| outside[a].total_cmp(&outside[b])).unwrap_or(0);
                 remaining.remove(largest)
             };
             let r = residual(&light);

@@ -366,6 +366,17 @@ private:
         return nullptr;
     }
 
+    /// The weights of `e`'s derivative matrices at a hit (Bispectral::jit_reduced_derivative_weights),
+    /// one per matrix; none when it has none.
+    std::vector<Float> derivative_weights(const Entry &e, const SurfaceInteraction3f &si, const Mask &on) const {
+        if (e.n_d == 0)
+            return {};
+        std::vector<Float> wd = e.bispectral->jit_reduced_derivative_weights(si, on);
+        if (wd.size() != e.n_d)
+            Throw("%s: %zu derivative weights for %zu derivative matrices", m_plugin, wd.size(), e.n_d);
+        return wd;
+    }
+
     /// R·A for a Lambertian fluorescent vertex, A = Σ w_t·M_t (+ the elastic band albedos
     /// when A lacks them; + w·M_n of a varying material's table, gathered per lane).
     template <size_t K>
@@ -378,11 +389,7 @@ private:
         Coeffs<K> d = dr::zeros<Coeffs<K>>();
         if (elastic)
             d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
-        std::vector<Float> wd;
-        if (e.n_d > 0)
-            wd = e.bispectral->jit_reduced_derivative_weights(si, on);
-        if (wd.size() != e.n_d)
-            Throw("%s: %zu derivative weights for %zu derivative matrices", m_plugin, wd.size(), e.n_d);
+        std::vector<Float> wd = derivative_weights(e, si, on);
         UInt32 base(0);
         Float wn(0.f);
         if (e.n_table > 0) {
@@ -473,9 +480,7 @@ private:
     void node_derivatives(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
                           const Vector3f &wa, const Vector3f &wb, const Mask &on, OutA &out_a, Rows<K> &out_b) const {
         constexpr uint32_t KK = (uint32_t) (K * K);
-        std::vector<Float> wd = e.bispectral->jit_reduced_derivative_weights(si, on);
-        if (wd.size() != e.n_d)
-            Throw("%s: %zu derivative weights for %zu derivative matrices", m_plugin, wd.size(), e.n_d);
+        std::vector<Float> wd = derivative_weights(e, si, on);
         Float w0 = e.bispectral->jit_reduced_weights()[0];
         for (int side = 0; side < 2; ++side) {
             auto [lobe, cos_h] = e.bispectral->jit_lobe(si, side == 0 ? wa : wb, on);
