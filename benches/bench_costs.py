@@ -89,9 +89,11 @@ sample little (1.75 with a constant λi instead of 1.82): the rest is the re-emi
 itself, paths that go on where volpath's absorbed light stops, which the lean llvm volpath
 baseline does not dilute as the scalar one does (its row: 1.41).
 
-``--backend cuda`` runs the llvm rows (the rows named ``llvm_*``) in the cuda variants
-instead (``cuda_ad_spectral``, ``cuda_ad_rgb``, same scenes, same pairs), on a machine with
-an NVIDIA GPU; their labels then say "cuda". The speed-up rows compare scalar with cuda.
+``--backend cuda`` runs the JIT rows (``llvm_*`` and the per-vertex ``vertex_*_llvm_*``) in
+the cuda variants instead (``cuda_ad_spectral``, ``cuda_ad_rgb``, same scenes, same pairs),
+on a machine with an NVIDIA GPU; their labels then say "cuda". The speed-up rows compare
+scalar with cuda. Memory there is the peak of Dr.Jit's device allocations
+(``malloc_watermark``), not the process's resident set.
 
 Usage: python benches/bench_costs.py [--spp 16] [--res 96] [--rounds 7] [--rows a,b] [--json]
        python benches/bench_costs.py --backend cuda --rows llvm_jung,llvm_qd --json   # on a GPU
@@ -352,6 +354,19 @@ def jit_variant(variant: str) -> str:
     return variant.replace("llvm_", f"{JIT_BACKEND}_", 1) if variant.startswith("llvm_") else variant
 
 
+def peak_mb() -> float:
+    """Peak memory of this process so far, in MB: its resident set on the CPU backends; on
+    the GPU (``--backend cuda``) the peak of Dr.Jit's device allocations (the renders'
+    arrays, Mitsuba's scene and the recorded AD graph all live there)."""
+    import resource
+
+    if JIT_BACKEND == "cuda":
+        import drjit as dr
+
+        return dr.detail.malloc_watermark(dr.detail.AllocType.Device) / 2**20
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
 def in_worker(row: str, a) -> dict:
     """Run one row (or one side of one) in a fresh process; its JSON result."""
     cmd = [sys.executable, __file__, "--worker", row, "--spp", str(a.spp * LLVM_SPP_FACTOR), "--res", str(a.res),
@@ -447,9 +462,7 @@ def many_materials(res: int, model: str, fluorescent: bool) -> dict:
 
 def first_render(variant: str, d: dict, spp: int) -> dict:
     """Load and first render (tracing and compiling every kernel: the worker runs with an
-    empty kernel cache) of one scene in this fresh process, and its peak resident memory."""
-    import resource
-
+    empty kernel cache) of one scene in this fresh process, and its peak memory (peak_mb)."""
     import drjit as dr
 
     mi.set_variant(jit_variant(variant))
@@ -459,7 +472,7 @@ def first_render(variant: str, d: dict, spp: int) -> dict:
     img = mi.render(mi.load_dict(d), spp=spp, seed=1)
     dr.eval(img)
     dr.sync_thread()
-    return {"first_s": time.perf_counter() - t0, "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+    return {"first_s": time.perf_counter() - t0, "peak_mb": peak_mb()}
 
 
 def many_row(a, variant: str, model: str) -> dict:
@@ -496,9 +509,7 @@ def backward_pass(variant: str, integrator: str) -> dict:
     """Load the fluorescent Cornell box (its fluo_jung walls' concentration with gradients;
     Mitsuba's `prb`: diffuse walls, their reflectance) and run one reverse-mode pass of
     mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process: its
-    peak resident memory, and what the process held before the pass."""
-    import resource
-
+    peak memory (peak_mb), and what the process held before the pass."""
     import drjit as dr
 
     mi.set_variant(jit_variant(variant))
@@ -510,13 +521,13 @@ def backward_pass(variant: str, integrator: str) -> dict:
     key = "white.reflectance.value" if native else "white.concentration"
     dr.enable_grad(params[key])
     params.update()
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    before = peak_mb()
     t0 = time.perf_counter()
     image = mi.render(scene, params, spp=BACKWARD_SPP, seed=1)
     dr.backward(dr.mean(image, axis=None))
     grad = float(np.abs(np.array(dr.ravel(dr.grad(params[key])))).sum())
     dr.sync_thread()
-    return {"peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "before_mb": before,
+    return {"peak_mb": peak_mb(), "before_mb": before,
             "seconds": time.perf_counter() - t0, "grad": grad}
 
 
@@ -786,6 +797,11 @@ def write_readme(saved: Path, readme: Path) -> None:
     readme.write_text(text[:start] + region + (rest[1:] if rest.startswith("\n") else rest))
 
 
+def jit_row(key: str) -> bool:
+    """Whether a row runs in a JIT variant (so on the backend --backend names)."""
+    return key.startswith("llvm_") or (key.startswith("vertex_") and "_llvm_" in key)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--spp", type=int, default=16)
@@ -805,9 +821,9 @@ def main() -> None:
     global JIT_BACKEND
     JIT_BACKEND = a.backend
     if a.backend != "llvm":
-        if any(not key.startswith("llvm_") for key in a.rows.split(",")) and not a.worker:
-            ap.error("--backend cuda runs the llvm_* rows only: name them with --rows")
-        ROWS.update({k: (v[0].replace("llvm", a.backend), *v[1:]) for k, v in ROWS.items() if k.startswith("llvm_")})
+        if any(not jit_row(key) for key in a.rows.split(",")) and not a.worker:
+            ap.error("--backend cuda runs the JIT rows only (llvm_*, vertex_*_llvm_*): name them with --rows")
+        ROWS.update({k: (v[0].replace("llvm", a.backend), *v[1:]) for k, v in ROWS.items() if jit_row(k)})
     if a.worker:
         mi.set_log_level(mi.LogLevel.Error)
         print("RESULT " + json.dumps(WORKER_ROWS[a.worker](a)))

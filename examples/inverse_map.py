@@ -2,7 +2,7 @@
 spectral variant, the dye's emission peak) from a target image, by gradient descent
 through fluo_prb (path replay: memory independent of path depth).
 
-    .venv/bin/python examples/inverse_map.py [--variant llvm_ad_spectral|llvm_ad_rgb]
+    .venv/bin/python examples/inverse_map.py [--variant llvm_ad_spectral|llvm_ad_rgb|cuda_ad_*]
         [--iterations 200] [--spp 16]
 
 A plate painted with fluo_jung whose concentration is a 32×32 bitmap (one value per texel,
@@ -67,7 +67,8 @@ def scene_dict(concentration: np.ndarray, peak: float, res: int) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--variant", default="llvm_ad_spectral", choices=("llvm_ad_spectral", "llvm_ad_rgb"))
+    ap.add_argument("--variant", default="llvm_ad_spectral",
+                    choices=("llvm_ad_spectral", "llvm_ad_rgb", "cuda_ad_spectral", "cuda_ad_rgb"))
     ap.add_argument("--iterations", type=int, default=200)
     ap.add_argument("--spp", type=int, default=16)
     a = ap.parse_args()
