@@ -33,7 +33,8 @@ Fluorescent dye medium (:monosp:`fluo_dye_medium`)
    - |float|
    - Peak absorption coefficient in 1/m, [0, 1e9]; with ``scale`` and the largest density,
      at most 1e5 per scene unit (refused at load beyond: tracking would not finish).
-     (Default: 100)
+     Traversed, updated as ``fluo_qd_medium``'s concentration (the tables scaled, not
+     re-baked; not differentiable). (Default: 100)
  * - density, sigma_s, (phase function), scale
    - 
    - As for ``fluo_qd_medium``: an optional density grid multiplying the dye, the host's
@@ -77,8 +78,13 @@ public:
                  { "emission_peak", &c.emission_peak }, { "stokes_shift", &c.stokes_shift },
                  { "quantum_yield", &c.quantum_yield }, { "sigma_a", &c.sigma_a } })
             *field = fluo_detail::medium_double(props, Plugin, name, *field);
-        init(fluo_detail::rust_call(Plugin, [&] { return fluo::dye_medium_new(c); }),
-             tfm::format("sigma_a = %g", c.sigma_a));
+        init(
+            [c](double sigma_a) {
+                fluo::DyeMediumConfig at = c;
+                at.sigma_a = sigma_a;
+                return fluo_detail::rust_call(Plugin, [&] { return fluo::dye_medium_new(at); });
+            },
+            "sigma_a", c.sigma_a, "sigma_a");
     }
 
     std::string to_string() const override { return describe("FluoDyeMedium"); }

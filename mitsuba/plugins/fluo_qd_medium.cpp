@@ -35,7 +35,11 @@ Quantum-dot medium (:monosp:`fluo_qd_medium`)
    - |float|
    - Molar concentration of dots in µmol/L, [0, 1e6]. μa(λ) = c · σ_abs(λ) · N_A·10⁻²¹
      in 1/m with σ_abs in nm²; μa's peak × ``scale`` × the largest density is at most 1e5
-     per scene unit (refused at load beyond: delta tracking would not finish). (Default: 1)
+     per scene unit (refused at load beyond: delta tracking would not finish). Traversed: an
+     update through ``mi.traverse`` is validated as the load is and scales the tables
+     baked at load (μa and the re-emission are linear in it), recompiling nothing; not
+     differentiable (AD through fluo_volpath's tracking measured 0.81× the derivative of
+     its image). (Default: 1)
  * - density
    - |volume|
    - Optional spatially varying multiplier of the concentration (a ``gridvolume``, as
@@ -110,8 +114,8 @@ docs).
             <ref name="interior" id="dots"/>
         </shape>
 */
-/// The Rust model of a fluo_qd_medium from its properties (every variant).
-inline rust::Box<fluo::FluoMedium> qd_medium_model(const Properties &props, const char *plugin) {
+/// A fluo_qd_medium's configuration from its properties (every variant).
+inline fluo::QdMediumConfig qd_medium_config(const Properties &props, const char *plugin) {
     fluo::QdMediumConfig c = fluo::qd_medium_default_config(); // the defaults live in Rust
     fluo::QdConstants &k = c.constants;
     for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
@@ -124,7 +128,7 @@ inline rust::Box<fluo::FluoMedium> qd_medium_model(const Properties &props, cons
              { "vacuum_permittivity", &k.vacuum_permittivity },
              { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
         *field = fluo_detail::medium_double(props, plugin, name, *field);
-    return fluo_detail::rust_call(plugin, [&] { return fluo::qd_medium_new(c); });
+    return c;
 }
 
 /// The plugin over Rust's tables (FluoMediumBase, fluo_medium.h), in every variant.
@@ -139,7 +143,14 @@ public:
     static constexpr const char *Plugin = "fluo_qd_medium";
 
     FluoQdMedium(const Properties &props) : Base(props, Plugin) {
-        init(qd_medium_model(props, Plugin), "the dots' concentration and radius");
+        fluo::QdMediumConfig c = qd_medium_config(props, Plugin);
+        init(
+            [c](double concentration) {
+                fluo::QdMediumConfig at = c;
+                at.concentration = concentration;
+                return fluo_detail::rust_call(Plugin, [&] { return fluo::qd_medium_new(at); });
+            },
+            "concentration", c.concentration, "the dots' concentration and radius");
     }
 
     std::string to_string() const override { return describe("FluoQdMedium"); }

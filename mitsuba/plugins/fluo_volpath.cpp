@@ -697,9 +697,11 @@ private:
                     weigh<K>(c, w, weighted);
 
                     // Null or real: volpath's rule; in fluorescent media spectral tracking
-                    // (K = 0) or band tracking on R (K > 0).
-                    p_null = pn;
-                    p_real = pr;
+                    // (K = 0) or band tracking on R (K > 0). The probabilities are detached:
+                    // a weight σ/p then differentiates σ alone (the choice's own derivative
+                    // is not the integrand's).
+                    p_null = dr::detach(pn);
+                    p_real = dr::detach(pr);
                     Float majorant = ls.mei.combined_extinction[0];
                     if (media && dr::any_or<true>(is_fluo)) {
                         std::pair<Float, Float> p;
@@ -711,8 +713,8 @@ private:
                             sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
                             p = band_tracking<K>(c.R, sigma_s, d, majorant, ls.inv_len, which);
                         }
-                        p_null = dr::select(is_fluo, p.first, p_null);
-                        p_real = dr::select(is_fluo, p.second, p_real);
+                        p_null = dr::select(is_fluo, dr::detach(p.first), p_null);
+                        p_real = dr::select(is_fluo, dr::detach(p.second), p_real);
                     }
                     Mask null_scatter = sampler->next_1d(active_medium) < p_null;
                     act_null = null_scatter && active_medium;
@@ -920,7 +922,11 @@ private:
             Mask valid = total > 0.f && dr::isfinite(total);
             Mask elastic = ux[j] * total < ss;
             Mask shift = active && valid && !elastic && ok[j];
-            sigma_s[j] = dr::select(active, dr::select(valid && (elastic || shift), total, 0.f), sigma_s[j]);
+            // the chosen branch's rate over its detached probability: σs + μf in value, and
+            // the derivative of that branch's rate alone
+            Float branch = dr::select(elastic, ss, sf), branch_d = dr::detach(branch);
+            Float w = branch * dr::select(branch_d > 0.f, dr::detach(total) / branch_d, 0.f);
+            sigma_s[j] = dr::select(active, dr::select(valid && (elastic || shift), w, 0.f), sigma_s[j]);
             shifted[j] = shift;
         }
         ls.mei.wavelengths = dr::select(shifted, li, ls.mei.wavelengths);

@@ -45,10 +45,12 @@ CASES = {
         "weights": ("scale", ["nan", "negative"]),
     }),
     "fluo_dye_medium": ({"type": "fluo_dye_medium", "scale": 0.01, "sigma_s": 5.0}, {
+        "sigma_a": ([50.0, 150.0, 400.0], [-1.0, NAN, 2e9]),
         "density.value.value": ([0.5, 1.0, 2.0], [NAN, -1.0]),
         "sigma_s.value.value": ([1.0, 5.0, 20.0], [NAN, -3.0]),
     }),
     "fluo_qd_medium": ({"type": "fluo_qd_medium", "concentration": 0.3, "scale": 0.01, "sigma_s": 5.0}, {
+        "concentration": ([0.1, 0.5, 0.9], [-0.5, NAN, 2e6]),
         "density.value.value": ([0.5, 1.5], [NAN, -1.0]),
         "sigma_s.value.value": ([2.0, 8.0], [NAN, -2.0]),
     }),
@@ -141,6 +143,38 @@ def test01_random_update_sequences_equal_a_fresh_load(variant, plugin):
     b = np.array(mi.render(fresh, spp=16, seed=3), dtype=np.float64)
     assert np.isfinite(a).all() and a.mean() > 0
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("plugin, key, start, value", [("fluo_qd_medium", "concentration", 0.3, 0.8),
+                                                       ("fluo_qd_medium", "concentration", 0.0, 0.5),
+                                                       ("fluo_dye_medium", "sigma_a", 100.0, 260.0)])
+def test01b_a_media_amount_update_renders_as_a_load(variant, plugin, key, start, value):
+    """A medium's absorber amount (fluo_qd_medium's concentration, fluo_dye_medium's sigma_a)
+    is traversed: an update keeps the tables baked at load (at 1 where the amount was 0: μa
+    and the re-emission are linear in it) and scales them through the density, the majorant
+    following. The render equals a fresh load at the new value (tables baked there) with the
+    same seed: mean within 1 %, 95 % of the pixels within 5 % (the two scale the same
+    numbers in another order, so a few tracking decisions flip and those paths decorrelate:
+    measured ±0.1 % on the mean at 256 spp over three seeds; an update the render ignored
+    would be about 10 % off here: the concentration 0.3 renders 1.40 against 1.56)."""
+    mi.set_variant(variant)
+
+    def scene(amount):
+        d = _scene({"type": plugin, key: amount, "scale": 0.01, "sigma_s": 5.0})
+        d["sensor"]["film"].update(width=16, height=16)
+        return mi.load_dict(d)
+
+    updated = scene(start)
+    params = mi.traverse(updated)
+    k = _key(params, key)
+    assert params.flags(k) & int(mi.ParamFlags.NonDifferentiable), "flagged differentiable"
+    params[k] = value
+    params.update()
+    a = np.array(mi.render(updated, spp=64, seed=5), dtype=np.float64)
+    b = np.array(mi.render(scene(value), spp=64, seed=5), dtype=np.float64)
+    assert a.mean() > 0 and a.mean() == pytest.approx(b.mean(), rel=1e-2)
+    assert np.mean(np.isclose(a, b, rtol=5e-2, atol=1e-6)) > 0.95
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

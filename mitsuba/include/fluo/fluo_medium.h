@@ -14,6 +14,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <functional>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -217,6 +218,9 @@ public:
 
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
+        // not differentiable yet: AD through fluo_volpath's tracking gives 0.81x the
+        // derivative of its own (analytically checked) image in a pure absorber (issue 35)
+        cb->put(m_amount_name, m_amount, ParamFlags::NonDifferentiable);
         cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
         cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
         Base::traverse(cb);
@@ -281,7 +285,7 @@ public:
         mint = dr::select(active, dr::maximum(mint, 0.f), 0.f);
         maxt = dr::select(active, dr::minimum(ray.maxt, maxt), dr::Infinity<Float>);
         // the requested rate in 1/m at density 1
-        Float cap = rate * (float) (1.0 / std::max(m_common.max_density * m_common.scale, 1e-300));
+        Float cap = rate * m_inv_rate_unit;
         UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active, false);
         Float t = mint - dr::log(1.f - u) / m_bar[0];
         Mask valid = active && t <= maxt;
@@ -339,9 +343,22 @@ protected:
         m_has_spectral_extinction = true;
     }
 
-    /// Adopt the plugin's Rust model and bake its tables.
-    /// `what`: the parameters that set μa, for the absorption check's message.
-    void init(rust::Box<fluo::FluoMedium> model, const std::string &what) {
+    /// Adopt the plugin's Rust model and bake its tables. `build(x)`: the model with the
+    /// absorber's amount `amount_name` (μa and the re-emission are linear in it) set to x,
+    /// validated by Rust; `amount`: its value; `what`: the parameters that set μa, for the
+    /// absorption check's message. The tables are baked at the amount (at 1 where it is 0)
+    /// and the density carries the ratio (m_amount), so an update of it through mi.traverse
+    /// re-bakes nothing and recompiles nothing.
+    void init(std::function<rust::Box<fluo::FluoMedium>(double)> build, const char *amount_name, double amount,
+              const std::string &what) {
+        m_build = std::move(build);
+        m_amount_name = amount_name;
+        rust::Box<fluo::FluoMedium> model = m_build(amount);
+        m_amount_host = amount;
+        m_amount_baked = amount > 0.0 ? amount : 1.0;
+        m_amount = dr::opaque<Float>((float) amount);
+        if (!(amount > 0.0))
+            model = m_build(m_amount_baked);
         m_model = std::move(model);
         m_fluorescent = fluo::medium_is_fluorescent(**m_model);
         m_range = fluo::medium_lambda_range(**m_model);
@@ -361,28 +378,44 @@ protected:
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
         m_mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
         m_what = what;
-        m_common.check_absorption(m_plugin, m_mu_max, what);
-        m_majorant_floor = m_common.majorant_floor(m_mu_max);
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                   m_mu_a_rgb[2] });
+        refresh_majorant();
     }
 
-    /// An update of the density or σs (mi.traverse): the majorant's maxima, the absorption
+    /// After a change of the amount, the density or σs: the absorption check and the
+    /// majorant's parts (kernel inputs, so that an update recompiles nothing), from the
+    /// host values. μa's tables are per baked amount: their maxima scale by the ratio.
+    void refresh_majorant() {
+        const double ratio = m_amount_host / m_amount_baked, d = m_common.max_density * ratio;
+        m_common.check_absorption(m_plugin, m_mu_max * ratio, m_what);
+        m_maj_density = dr::opaque<Float>((float) d);
+        m_maj_sigma_s = dr::opaque<Float>((float) m_common.max_sigma_s);
+        m_maj_floor = dr::opaque<Float>((float) m_common.majorant_floor(m_mu_max * ratio));
+        m_maj_rgb = dr::opaque<Float>((float) ((m_rgb_mu_max * d + m_common.max_sigma_s) * m_common.scale));
+        m_inv_rate_unit = dr::opaque<Float>((float) (1.0 / std::max(d * m_common.scale, 1e-300)));
+    }
+
+    /// An update of the amount, the density or σs (mi.traverse): the amount validated by Rust
+    /// (the model rebuilt with it, its tables unused), the majorant's maxima, the absorption
     /// check and the majorant's floor follow it (a stale majorant biases tracking). A refused
-    /// update puts the grids' values back (fluo_detail::UpdateRecord).
+    /// update puts the values back (fluo_detail::UpdateRecord).
     void parameters_changed(const std::vector<std::string> &keys) override {
-        m_record.update(this, [&] {
+        m_record.update(this, m_amount_host, [&] {
+            double amount = fluo_detail::updated_param(m_plugin, m_amount_name, m_amount, m_amount_host);
+            if (amount != m_amount_host)
+                (void) m_build(amount);
+            m_amount_host = amount;
             m_common.refresh(m_plugin);
-            m_common.check_absorption(m_plugin, m_mu_max, m_what);
-            m_majorant_floor = m_common.majorant_floor(m_mu_max);
+            refresh_majorant();
         });
         Base::parameters_changed(keys);
     }
 
     std::string describe(const char *name) const {
         std::ostringstream extra;
-        extra << "tables = " << m_grid.n << " absorption nodes, " << m_egrid.n
-              << " emission nodes";
+        extra << m_amount_name << " = " << m_amount_host << " (tables at " << m_amount_baked << "), tables = "
+              << m_grid.n << " absorption nodes, " << m_egrid.n << " emission nodes";
         return m_common.describe(name, **m_model, m_phase_function.get(), extra.str());
     }
 
@@ -392,10 +425,12 @@ private:
         return dr::load<FloatStorage>(f.data(), f.size());
     }
 
+    /// The density times the amount over the baked one.
     Float density(const Interaction3f &mi, const Mask &active) const {
+        Float ratio = m_amount * (float) (1.0 / m_amount_baked);
         if (!m_common.bounded)
-            return Float(1.f);
-        return m_common.density->eval_1(mi, active);
+            return ratio;
+        return m_common.density->eval_1(mi, active) * ratio;
     }
 
     Float mu_a_in(const Cell &c, const Mask &active) const {
@@ -422,14 +457,14 @@ private:
     /// distance, fly through where the others collide, leaving their collisions to rare,
     /// huge weights); in RGB under Mitsuba's interface (`spectrum_bound`) the spectrum's
     /// maximum bounds every channel (fluo_volpath passes its own bound).
+    /// Detached: it only places tentative collisions.
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */,
                                  bool spectrum_bound = true) const {
-        const double s = m_common.scale;
-        UnpolarizedSpectrum m = (bound * (float) m_common.max_density + (float) m_common.max_sigma_s) * (float) s;
+        UnpolarizedSpectrum m = dr::fmadd(dr::detach(bound), m_maj_density, m_maj_sigma_s) * (float) m_common.scale;
         if constexpr (is_rgb_v<Spectrum>)
             if (spectrum_bound)
-                m = dr::maximum(m, UnpolarizedSpectrum((float) ((m_rgb_mu_max * m_common.max_density + m_common.max_sigma_s) * s)));
-        return UnpolarizedSpectrum(dr::maximum(dr::max(m), (float) m_majorant_floor));
+                m = dr::maximum(m, UnpolarizedSpectrum(m_maj_rgb));
+        return UnpolarizedSpectrum(dr::maximum(dr::max(m), m_maj_floor));
     }
 
     /// [a, b]: the lights' range within the medium's.
@@ -470,8 +505,17 @@ private:
     bool m_fluorescent = false;
     fluo::Range m_range{ 0, 0 };
     std::array<double, 3> m_mu_a_rgb{};
-    double m_rgb_mu_max = 0.0, m_majorant_floor = fluo_detail::MediumMinMajorant;
-    double m_mu_max = 0.0; ///< μa's peak, 1/m at density 1
+    double m_rgb_mu_max = 0.0;
+    double m_mu_max = 0.0; ///< μa's peak, 1/m at density 1 and the baked amount
+    /// The absorber's amount (traversed), its value on the host, the value the
+    /// tables were baked at, its parameter's name and the Rust model for another amount.
+    Float m_amount;
+    double m_amount_host = 0.0, m_amount_baked = 1.0;
+    const char *m_amount_name = "";
+    std::function<rust::Box<fluo::FluoMedium>(double)> m_build;
+    /// The majorant's parts (refresh_majorant): largest density × amount ratio, largest σs
+    /// (1/m), floor and RGB bound (inverse scene units), 1/(largest density × ratio × scale).
+    Float m_maj_density, m_maj_sigma_s, m_maj_floor, m_maj_rgb, m_inv_rate_unit;
     fluo_detail::UpdateRecord<Float> m_record; ///< the traversed values, as last accepted
     std::string m_what;   ///< what sets μa (the absorption check's message)
     Grid m_grid, m_egrid; ///< μa's nodes, the emission's
