@@ -215,6 +215,8 @@ public:
     using Cell = typename Grid::Cell;
     using FloatStorage = DynamicBuffer<Float>;
     static constexpr size_t NW = dr::size_v<UnpolarizedSpectrum>;
+    /// The majorant under Mitsuba's medium interface over the shared one (majorant()).
+    static constexpr float NativeMajorantFactor = 2.f;
 
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
@@ -456,15 +458,22 @@ private:
     /// and a per-wavelength majorant would let the first hero wavelength, which samples the
     /// distance, fly through where the others collide, leaving their collisions to rare,
     /// huge weights); in RGB under Mitsuba's interface (`spectrum_bound`) the spectrum's
-    /// maximum bounds every channel (fluo_volpath passes its own bound).
-    /// Detached: it only places tentative collisions.
+    /// maximum bounds every channel (fluo_volpath passes its own bound), and the majorant is
+    /// NativeMajorantFactor times that: Mitsuba's volpath (also fluo_volpath's path where no
+    /// medium fluoresces) draws null or real with one channel's σt/μ̄, so a shared majorant
+    /// that this channel's σt reaches (the most absorbing of the hero wavelengths, in a medium
+    /// at its largest density) never draws a null collision and the other wavelengths die
+    /// at every real one: measured 3.3 % too dark through 2 cm of dots (0.1888 against 0.1952
+    /// computed from μa), d/dc 43 % off. With the factor, p_null ≥ 1/2 and a null weight is at
+    /// most 2. Detached: it only places tentative collisions.
     UnpolarizedSpectrum majorant(const UnpolarizedSpectrum &bound, const Mask & /* active */,
                                  bool spectrum_bound = true) const {
         UnpolarizedSpectrum m = dr::fmadd(dr::detach(bound), m_maj_density, m_maj_sigma_s) * (float) m_common.scale;
         if constexpr (is_rgb_v<Spectrum>)
             if (spectrum_bound)
                 m = dr::maximum(m, UnpolarizedSpectrum(m_maj_rgb));
-        return UnpolarizedSpectrum(dr::maximum(dr::max(m), m_maj_floor));
+        Float shared = dr::maximum(dr::max(m), m_maj_floor);
+        return UnpolarizedSpectrum(spectrum_bound ? shared * NativeMajorantFactor : shared);
     }
 
     /// [a, b]: the lights' range within the medium's.
