@@ -87,7 +87,9 @@ vectorised loop switched off, its tracking (spectral tracking, the source-rate f
 flight's rates) costs nothing over volpath (0.92 with shifts disabled) and the excitation
 sample little (1.75 with a constant λi instead of 1.82): the rest is the re-emitted light
 itself, paths that go on where volpath's absorbed light stops, which the lean llvm volpath
-baseline does not dilute as the scalar one does (its row: 1.41).
+baseline does not dilute as the scalar one does (its row: 1.41). (Those numbers predate
+2026-11-28, when the majorant fluo's media give Mitsuba's volpath was doubled to end a bias:
+the native baseline of every cuvette row changed then; llvm row 1.94 -> 1.47, scalar 1.66 -> 1.50.)
 
 ``--backend cuda`` runs the JIT rows (``llvm_*`` and the per-vertex ``vertex_*_llvm_*``) in
 the cuda variants instead (``cuda_ad_spectral``, ``cuda_ad_rgb``, same scenes, same pairs),
