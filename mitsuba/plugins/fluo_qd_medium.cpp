@@ -38,8 +38,8 @@ Quantum-dot medium (:monosp:`fluo_qd_medium`)
      per scene unit (refused at load beyond: delta tracking would not finish). Traversed: an
      update through ``mi.traverse`` is validated as the load is and scales the tables
      baked at load (μa and the re-emission are linear in it), recompiling nothing; not
-     differentiable (AD through fluo_volpath's tracking measured 0.81× the derivative of
-     its image). (Default: 1)
+     differentiable yet (AD through fluo_volpath matches its image's derivative in a pure
+     absorber, not with re-emission or in RGB). (Default: 1)
  * - density
    - |volume|
    - Optional spatially varying multiplier of the concentration (a ``gridvolume``, as

@@ -220,8 +220,8 @@ public:
 
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
-        // not differentiable yet: AD through fluo_volpath's tracking gives 0.81x the
-        // derivative of its own (analytically checked) image in a pure absorber (issue 35)
+        // not differentiable yet: in a pure absorber AD now matches the derivative of the
+        // (analytically checked) image, with re-emission and in RGB it does not (issue 35)
         cb->put(m_amount_name, m_amount, ParamFlags::NonDifferentiable);
         cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
         cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
@@ -244,7 +244,7 @@ public:
         UnpolarizedSpectrum mu_a = absorption(mi.wavelengths, active);
         UnpolarizedSpectrum sigma_s = m_common.sigma_s->eval(mi, active) * (Float) m_common.scale;
         UnpolarizedSpectrum sigma_t = mu_a * density(mi, active) * (Float) m_common.scale + sigma_s;
-        UnpolarizedSpectrum sigma_n = dr::maximum(majorant(mu_a, active) - sigma_t, 0.f);
+        UnpolarizedSpectrum sigma_n = null_rate(majorant(mu_a, active), sigma_t);
         return { sigma_s, sigma_n, sigma_t };
     }
 
@@ -298,7 +298,7 @@ public:
         Float d = density(mi, valid) * (float) m_common.scale;
         mi.sigma_s = m_common.sigma_s->eval(mi, valid) * (Float) m_common.scale;
         mi.sigma_t = mu_a * d + mi.sigma_s;
-        mi.sigma_n = dr::maximum(m_bar - mi.sigma_t, 0.f);
+        mi.sigma_n = null_rate(m_bar, mi.sigma_t);
         mi.combined_extinction = m_bar;
         return { mi, dr::select(valid, mu_f * d, 0.f), dr::select(valid, d, 0.f) };
     }
@@ -474,6 +474,15 @@ private:
                 m = dr::maximum(m, UnpolarizedSpectrum(m_maj_rgb));
         Float shared = dr::maximum(dr::max(m), m_maj_floor);
         return UnpolarizedSpectrum(spectrum_bound ? shared * NativeMajorantFactor : shared);
+    }
+
+    /// σn = μ̄ − σt, at least 0 in value (rounding) with the derivative −∂σt everywhere: the
+    /// majorant bounds σt by construction, and where the most absorbing wavelength sets it
+    /// (σn = 0 exactly) a clamp's derivative would be 0, dropping that wavelength's share of
+    /// the derivative (measured: AD 0.60-0.88x the image's derivative through a cube of dots).
+    static UnpolarizedSpectrum null_rate(const UnpolarizedSpectrum &m_bar, const UnpolarizedSpectrum &sigma_t) {
+        UnpolarizedSpectrum n = m_bar - sigma_t;
+        return n + dr::detach(dr::maximum(n, 0.f) - n);
     }
 
     /// [a, b]: the lights' range within the medium's.
