@@ -78,13 +78,9 @@ public:
                  { "emission_peak", &c.emission_peak }, { "stokes_shift", &c.stokes_shift },
                  { "quantum_yield", &c.quantum_yield }, { "sigma_a", &c.sigma_a } })
             *field = fluo_detail::medium_double(props, Plugin, name, *field);
-        init(
-            [c](double sigma_a) {
-                fluo::DyeMediumConfig at = c;
-                at.sigma_a = sigma_a;
-                return fluo_detail::rust_call(Plugin, [&] { return fluo::dye_medium_new(at); });
-            },
-            "sigma_a", c.sigma_a, "sigma_a");
+        init(fluo_detail::amount_builder(Plugin, c, &fluo::DyeMediumConfig::sigma_a,
+                                         [](const fluo::DyeMediumConfig &at) { return fluo::dye_medium_new(at); }),
+             "sigma_a", c.sigma_a, "sigma_a");
     }
 
     std::string to_string() const override { return describe("FluoDyeMedium"); }

@@ -144,13 +144,9 @@ public:
 
     FluoQdMedium(const Properties &props) : Base(props, Plugin) {
         fluo::QdMediumConfig c = qd_medium_config(props, Plugin);
-        init(
-            [c](double concentration) {
-                fluo::QdMediumConfig at = c;
-                at.concentration = concentration;
-                return fluo_detail::rust_call(Plugin, [&] { return fluo::qd_medium_new(at); });
-            },
-            "concentration", c.concentration, "the dots' concentration and radius");
+        init(fluo_detail::amount_builder(Plugin, c, &fluo::QdMediumConfig::concentration,
+                                         [](const fluo::QdMediumConfig &at) { return fluo::qd_medium_new(at); }),
+             "concentration", c.concentration, "the dots' concentration and radius");
     }
 
     std::string to_string() const override { return describe("FluoQdMedium"); }

@@ -923,9 +923,8 @@ private:
             Mask elastic = ux[j] * total < ss;
             Mask shift = active && valid && !elastic && ok[j];
             // the chosen branch's rate over its detached probability: σs + μf in value, and
-            // the derivative of that branch's rate alone
-            Float branch = dr::select(elastic, ss, sf), branch_d = dr::detach(branch);
-            Float w = branch * dr::select(branch_d > 0.f, dr::detach(total) / branch_d, 0.f);
+            // the derivative of that branch's rate alone (a chosen branch's rate is > 0)
+            Float w = dr::detach(total) * fluo_detail::relative(dr::select(elastic, ss, sf));
             sigma_s[j] = dr::select(active, dr::select(valid && (elastic || shift), w, 0.f), sigma_s[j]);
             shifted[j] = shift;
         }

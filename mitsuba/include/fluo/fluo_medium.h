@@ -39,6 +39,18 @@ inline double medium_double(const Properties &props, const char *plugin, const c
     }
 }
 
+/// A medium plugin's Rust model for any amount of its absorber (FluoMediumBase::init's
+/// `build`): its parsed configuration `c` with the field `amount` set, made by `make`.
+template <typename Config, typename Make>
+std::function<rust::Box<fluo::FluoMedium>(double)> amount_builder(const char *plugin, const Config &c,
+                                                                  double Config::*amount, Make make) {
+    return [plugin, c, amount, make](double x) {
+        Config at = c;
+        at.*amount = x;
+        return rust_call(plugin, [&] { return make(at); });
+    };
+}
+
 /// The majorant's floor relative to its largest value over the spectrum: null collisions
 /// where the medium is (nearly) transparent, at most one per 10⁶ mean free paths of its
 /// most opaque wavelength.
