@@ -48,13 +48,25 @@ pub trait Bispectral {
     /// Reradiation density P(λi, λo), nm⁻¹, for light arriving at incidence cosine
     /// `cos_i` (diffuse normalisation; zero for λo ≤ λi when there is no anti-Stokes part).
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64;
-    /// P(λi, λo) at one λi for every λo of `lambdas_o`, into `out`: what a reduction reads,
-    /// column by column. The default asks [`Bispectral::density`] per entry; a model whose
-    /// density factors (quantum dots: A_tot(θ, λi)·e(λo | λi)) computes its λi part once.
-    fn density_column(&self, cos_i: f64, lambda_i: f64, lambdas_o: &[f64], out: &mut [f64]) {
-        for (o, &lambda_o) in out.iter_mut().zip(lambdas_o) {
-            *o = self.density(cos_i, lambda_i, lambda_o);
+    /// P(λi, λo) for every pair of `lambdas` (λi = lambdas\[i\], λo = lambdas\[o\]) into
+    /// `out[i·n + o]`, n = `lambdas.len()`: what a reduction reads. The default asks
+    /// [`Bispectral::density`] per entry; a model whose density factors (quantum dots:
+    /// A_tot(θ, λi)·e(λo | λi)) evaluates each factor once per wavelength.
+    fn density_grid(&self, cos_i: f64, lambdas: &[f64], out: &mut [f64]) {
+        let n = lambdas.len();
+        for (i, column) in out.chunks_exact_mut(n).enumerate() {
+            for (o, &lambda_o) in column.iter_mut().zip(lambdas) {
+                *o = self.density(cos_i, lambdas[i], lambda_o);
+            }
         }
+    }
+    /// Where the density factors as P(λi, λo) = a(λi)·b(λo) for λi < λo and 0 for λi ≥ λo
+    /// (Stokes-only and separable: quantum dots), a and b on `lambdas`; `None` (the default)
+    /// otherwise. A reduction then sums over λi < λo as it runs along λo: O(N·K) instead of
+    /// the O(N²·K) of the whole operator.
+    fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
+        let _ = (cos_i, lambdas);
+        None
     }
     /// Reradiated radiance factor at λo for light along the normal:
     /// ∫ P(λi, λo) I(λi) dλi over `domain` (only excitation below λo reaches it),

@@ -516,11 +516,17 @@ public:
                 b[w] = dr::minimum(dr::minimum((float) range_hi, lambda_o[w]), file.rect[1]);
                 ok[w] = active && b[w] > a[w] && lambda_o[w] >= file.rect[2] && lambda_o[w] <= file.rect[3];
             }
+            // (scalar variants draw λi only where the shift is taken: `takes`)
             if (m_gmm)
-                std::tie(mass, x, value) = gmm_shift(mix, file, lambda_o, a, b, u2, ok);
+                std::tie(mass, x, value) = gmm_shift(mix, file, lambda_o, a, b, u2, ok, [&](const Wavelength &m) {
+                    return dr::any(fluo_detail::ShiftChoice<Wavelength>(we, m, u1, active).shifted);
+                });
             else
                 for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
-                    std::tie(mass[w], x[w], value[w]) = matrix_shift(file, lambda_o[w], a[w], b[w], u2[w], ok[w]);
+                    std::tie(mass[w], x[w], value[w]) =
+                        matrix_shift(file, lambda_o[w], a[w], b[w], u2[w], ok[w], [&](const Float &m) {
+                            return fluo_detail::ShiftChoice<Float>(we[w], m, u1[w], active).shifted;
+                        });
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, mass, u1, active);
             scale = choice.weight(dr::detach(value) / mass, u1);
             shifted = choice.shifted;
@@ -745,16 +751,24 @@ protected:
     /// times its mass on [a, b], then λi ∝ that row by inverting its CDF exactly (the last
     /// node whose running integral is ≤ the target, then the cell's quadratic root in the
     /// cancellation-free form of matrix.rs). The density is the slice's own, P/mass.
+    template <typename Takes>
     std::tuple<Float, Float, Float> matrix_shift(const File &file, const Float &lambda_o, const Float &a,
-                                                 const Float &b, const Float &u, const Mask &ok) const {
+                                                 const Float &b, const Float &u, const Mask &ok,
+                                                 const Takes &takes) const {
         const typename Grids::At &gi = file.gi, &go = file.go;
         Float lo = dr::clip(lambda_o, go.lo, go.hi);
         auto [j, o0, o1] = m_go.cell(go, lo, ok);
         Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
         UInt32 r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last = gi.n - 1;
         // (the sampling and the mass from P detached; the value attached when P carries gradients)
-        const FloatStorage p_tab = dr::detach(m_p);
-        auto p = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(p_tab, r + k, ok); };
+        // (AD variants: a detached view of the table, no copy; scalar ones read it as is, where
+        // dr::detach of the buffer copied the whole matrix per wavelength and vertex)
+        auto p = [&](const UInt32 &r, const UInt32 &k) {
+            if constexpr (dr::is_diff_v<Float>)
+                return dr::gather<Float>(dr::detach(m_p), r + k, ok);
+            else
+                return dr::gather<Float>(m_p, r + k, ok);
+        };
         auto c = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_rcdf, r + k, ok); };
         // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Float &x) {
@@ -769,6 +783,9 @@ protected:
         auto [cb0, cb1, k_hi] = cdf(b_);
         Float m0 = (1.f - t) * dr::maximum(cb0 - ca0, 0.f), m1 = t * dr::maximum(cb1 - ca1, 0.f);
         Float mass = dr::select(ok, m0 + m1, 0.f);
+        if constexpr (!dr::is_jit_v<Float>)
+            if (!takes(mass))
+                return { mass, lambda_o, 0.f };
         // The row, and u rescaled within its share.
         Float split = u * mass;
         Mask second = (split >= m0 && m1 > 0.f) || !(m0 > 0.f);
@@ -924,13 +941,13 @@ protected:
     /// gradient scattered 2x more per seed). Both are unbiased (test_llvm.py test09, test12);
     /// the whole mixture costs ~3x the split one per vertex in the scalar variants (measured:
     /// 4.8x diffuse's vertex against ~1.6x).
-    template <typename Value>
+    template <typename Value, typename Takes>
     std::tuple<Value, Value, Value> gmm_shift(const Mixture &mix, const File &file, const Value &lambda_o,
                                               const Value &a, const Value &b, const Value &u,
-                                              const dr::mask_t<Value> &ok) const {
+                                              const dr::mask_t<Value> &ok, const Takes &takes) const {
         if (mixture_gradients())
             return gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok);
-        return gmm_shift_split(mix, file, lambda_o, a, b, u, ok);
+        return gmm_shift_split(mix, file, lambda_o, a, b, u, ok, takes);
     }
 
     /// fluo_gmm, given λo on [a, b]: P(λi, λo) = S Σ_k π_k N(λo | μo_k, σoo_k) N(λi | m_k, s_k²)
@@ -944,10 +961,10 @@ protected:
     /// one per component. Returns (S·W·M_k, λi, S·W·M_k): value/weight = 1 as the density
     /// gives the estimate f_k/(p_k q_k) = S·W·M_k without evaluating f_k. Renders without
     /// gradients take this path (gmm_shift).
-    template <typename Value>
+    template <typename Value, typename Takes>
     std::tuple<Value, Value, Value> gmm_shift_split(const Mixture &mix, const File &file, const Value &lambda_o,
                                               const Value &a, const Value &b, const Value &u,
-                                              const dr::mask_t<Value> &ok) const {
+                                              const dr::mask_t<Value> &ok, const Takes &takes) const {
         size_t n = m_n_comps;
         fluo_detail::Scratch<Value> marginal(n);
         Value total = 0.f;
@@ -977,12 +994,15 @@ protected:
         dr::mask_t<Value> mirror = lo > 0.f;
         Value za = dr::select(mirror, -hi, lo), zb = dr::select(mirror, -lo, hi);
         Value pa = phi_cdf(za), pb = phi_cdf(zb), mass_k = dr::maximum(pb - pa, 0.f);
-        Value z = phi_inv(dr::fmadd(cu, pb - pa, pa));
-        // (clamped to the interval in the mirrored coordinate)
-        Value x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
         Value estimate = file.scale * total * mass_k;
         dr::mask_t<Value> good = ok && total > 0.f && mass_k > 0.f;
         estimate = dr::select(good, estimate, 0.f);
+        if constexpr (!dr::is_jit_v<Value>)
+            if (!takes(estimate))
+                return { estimate, lambda_o, estimate };
+        Value z = phi_inv(dr::fmadd(cu, pb - pa, pa));
+        // (clamped to the interval in the mirrored coordinate)
+        Value x = dr::clip(mean_d + csd * dr::select(mirror, -z, z), a, b);
         return { estimate, x, estimate };
     }
 

@@ -603,6 +603,11 @@ public:
                 Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
                 ok &= mass > 0.f;
                 fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
+                if constexpr (!dr::is_jit_v<Float>)
+                    if (!choice.shifted) { // (scalar variants draw λi only where the shift is taken)
+                        scale[w] = choice.weight(0.f, u1[w]);
+                        continue;
+                    }
                 // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
                 // then the cell's quadratic root (cancellation-free form); the search runs
                 // over the longest grid, each lane's row clamped to its own.

@@ -116,6 +116,9 @@ public:
                 e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
                 if (e.n_table > 0)
                     e.table = load(table);
+                for (size_t t = 0; t < Bispectral::MaxTerms; ++t) // (`m` as final: jit_reduced_nodes rewrites it)
+                    for (size_t i = 0; i < e.m[t].size() && i < m_k * m_k; ++i)
+                        e.mf[t][i] = (float) e.m[t][i];
                 m_entries.push_back(std::move(e));
             }
             opaque_operators();
@@ -154,14 +157,9 @@ public:
     /// (wavelength-preserving) BSDF, medium or phase weight acts on the K coefficients.
     template <size_t K> Coeffs<K> band_albedo(const Color3f &v) const {
         Coeffs<K> d;
-        Float mean = (v[0] + v[1] + v[2]) * (1.f / 3.f);
         for (size_t k = 0; k < K; ++k) {
-            double w = m_white[k];
-            if (std::abs(w) > 1e-12)
-                d[k] = ((float) m_from_rgb[3 * k] * v[0] + (float) m_from_rgb[3 * k + 1] * v[1] +
-                        (float) m_from_rgb[3 * k + 2] * v[2]) * (float) (1.0 / w);
-            else
-                d[k] = mean;
+            const float *a = &m_albedo_map[3 * k];
+            d[k] = a[0] * v[0] + a[1] * v[1] + a[2] * v[2];
         }
         return d;
     }
@@ -203,6 +201,18 @@ public:
     template <size_t K>
     void scatter(Rows<K> &R, Color3f &t, Mask &reduced, const Rows<K> &Rm, const Rows<K> &R_fl, const Mask &is_fl,
                  const Mask &native_elastic, const Color3f &w, const Mask &active) const {
+        if constexpr (!dr::is_jit_v<Float>) { // (what the lane takes, only)
+            if (!active)
+                return;
+            if (is_fl)
+                R = native_elastic ? R_fl + scale_columns<K>(Rm, band_albedo<K>(w)) : R_fl;
+            else if (reduced)
+                R = scale_columns<K>(Rm, band_albedo<K>(w));
+            else
+                t *= w;
+            reduced |= is_fl;
+            return;
+        }
         Rows<K> R_red = scale_columns<K>(Rm, band_albedo<K>(w));
         dr::masked(R, active) = dr::select(is_fl, R_fl + dr::select(native_elastic, R_red, 0.f),
                                            dr::select(reduced, R_red, R));
@@ -316,6 +326,8 @@ private:
         bool full = false; ///< the operator includes the elastic part
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
+        /// `m` in single precision (scalar variants: dense()), every term K·K entries
+        std::array<std::array<float, KMax * KMax>, Bispectral::MaxTerms> mf{};
         /// Derivative matrices of parameters baked into `m` (Bispectral::jit_reduced_derivatives)
         std::vector<std::vector<double>> d;
         std::vector<std::vector<Float>> dv; ///< `d` as opaque values (Lambertian)
@@ -366,6 +378,34 @@ private:
         return nullptr;
     }
 
+    /// Scalar variants: Σ_t w_t·M_t as one dense K×K (row major) and R times it, branch free
+    /// (the JIT path's per-entry zero tests, which keep literal kernels small, were most of a
+    /// scalar vertex's cost at K = 7).
+    template <size_t K> using Dense = std::array<float, K * K>;
+    template <size_t K> static Dense<K> dense(const Entry &e, const std::array<Float, Bispectral::MaxTerms> &w) {
+        Dense<K> a{};
+        for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
+            const float wt = w[t], *m = e.mf[t].data();
+            for (size_t i = 0; i < K * K; ++i)
+                a[i] += wt * m[i];
+        }
+        return a;
+    }
+    template <size_t K> static Rows<K> times(const Rows<K> &R, const Dense<K> &a) {
+        Rows<K> out;
+        for (size_t r = 0; r < 3; ++r) {
+            float acc[K] = {}; // (local accumulators: the rows of the product stay in registers)
+            for (size_t k = 0; k < K; ++k) {
+                const float rk = R[r * K + k];
+                for (size_t j = 0; j < K; ++j)
+                    acc[j] += rk * a[k * K + j];
+            }
+            for (size_t j = 0; j < K; ++j)
+                out[r * K + j] = acc[j];
+        }
+        return out;
+    }
+
     /// The weights of `e`'s derivative matrices at a hit (Bispectral::jit_reduced_derivative_weights),
     /// one per matrix; none when it has none.
     std::vector<Float> derivative_weights(const Entry &e, const SurfaceInteraction3f &si, const Mask &on) const {
@@ -384,6 +424,17 @@ private:
         Rows<K> ra;
         const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
         const bool elastic = !e.full;
+        if constexpr (!dr::is_jit_v<Float>) {
+            if (e.n_table == 0 && e.n_d == 0) {
+                Dense<K> a = dense<K>(e, w);
+                if (elastic) {
+                    Coeffs<K> d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
+                    for (size_t k = 0; k < K; ++k)
+                        a[k * K + k] += d[k];
+                }
+                return times<K>(R, a);
+            }
+        }
         // A is formed one column at a time (the M_t are the material's constants): K·K values
         // of A never live at once, which at K = 7 spilled registers (a third of the render time).
         Coeffs<K> d = dr::zeros<Coeffs<K>>();
@@ -444,6 +495,20 @@ private:
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
+        if constexpr (!dr::is_jit_v<Float>) {
+            if (e.n_d == 0) {
+                Dense<K> a = dense<K>(e, w_a);
+                if constexpr (Block) {
+                    return std::make_pair(times<K>(R, a), times<K>(R, dense<K>(e, w_b)));
+                } else {
+                    Coeffs<K> ac = dr::zeros<Coeffs<K>>(); // A(ωa)·c
+                    for (size_t k = 0; k < K; ++k)
+                        for (size_t j = 0; j < K; ++j)
+                            ac[k] = dr::fmadd(a[k * K + j], c[j], ac[k]);
+                    return std::make_pair(apply<K>(R, ac), times<K>(R, dense<K>(e, w_b)));
+                }
+            }
+        }
         std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
         Rows<K> out_b = dr::zeros<Rows<K>>();
         if (e.n_d > 0) // parameters baked into the nodes with gradients: Σ_d wd_d·lobe·w_0·R·∂M/∂θ_d(cos θ)
@@ -583,6 +648,12 @@ private:
         fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
         fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
         fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
+        // band_albedo's rows: F_k/(F·1)_k, or the mean where a band holds no white
+        m_albedo_map.resize(3 * m_k);
+        for (size_t k = 0; k < m_k; ++k)
+            for (size_t c = 0; c < 3; ++c)
+                m_albedo_map[3 * k + c] = std::abs(m_white[k]) > 1e-12 ? (float) (m_from_rgb[3 * k + c] / m_white[k])
+                                                                        : 1.f / 3.f;
     }
 
     const char *m_plugin;
@@ -591,6 +662,7 @@ private:
     std::optional<rust::Box<fluo::TransportBasis>> m_transport;
     size_t m_k = 3;
     std::vector<double> m_output, m_from_rgb, m_white;
+    std::vector<float> m_albedo_map; ///< band_albedo's K×3 map
     std::vector<Entry> m_entries;
     bool m_opaque = false; ///< see LiteralEntries
     std::array<std::vector<bool>, Bispectral::MaxTerms> m_any; ///< per term: entries non-zero in some material

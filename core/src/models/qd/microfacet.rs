@@ -165,11 +165,16 @@ pub enum Substrate {
 impl Substrate {
     /// Fresnel reflectance R(θ, λ).
     pub fn reflectance(&self, cos_theta: f64, lambda_nm: f64) -> f64 {
-        let (eta, k) = match self {
+        let (eta, k) = self.eta_k(lambda_nm);
+        fresnel_conductor(cos_theta, eta, k)
+    }
+
+    /// (η, k) at λ (tabulated: clamped to the table's ends).
+    pub fn eta_k(&self, lambda_nm: f64) -> (f64, f64) {
+        match self {
             Substrate::Constant { eta, k } => (*eta, *k),
             Substrate::Tabulated { eta, k } => (eval_clamped(eta, lambda_nm), eval_clamped(k, lambda_nm)),
-        };
-        fresnel_conductor(cos_theta, eta, k)
+        }
     }
 
     pub(super) fn validate(&self) -> Result<()> {

@@ -695,13 +695,16 @@ impl QdModel {
         };
         // R_spe and pass = (T_spe (1 − A_tf))² of the coating at (c, λ).
         let elastic = |co: &Coating| (co.r_spe, (co.t_spe * (1.0 - co.a_tf)).powi(2));
+        // the substrate's η, k once per λ (a tabulated metal's lookups were a third of a
+        // coating's bake)
+        let eta_k: Vec<(f64, f64)> = lambda.iter().map(|&l| self.substrate.eta_k(l)).collect();
         for j in 0..rows {
             let c = j as f64 / (rows - 1) as f64;
             let mut acc = 0.0;
             for k in 0..n {
                 // one coating and substrate evaluation per node ([`Self::a_tot`], [`Self::r_tot`])
                 let co = self.coating(c, lambda[k]);
-                let r = self.substrate_reflectance(c, lambda[k]);
+                let r = fresnel_conductor(c, eta_k[k].0, eta_k[k].1); // (substrate_reflectance)
                 let a = co.a_tot(r);
                 if k > 0 {
                     acc += 0.5 * (lambda[k] - lambda[k - 1]) * (a + t.a_tot[j * n + k - 1]);
@@ -865,19 +868,34 @@ impl crate::interface::Bispectral for QdModel {
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
         self.reradiation_fresnel(cos_i, lambda_i, lambda_o)
     }
-    /// reradiation_fresnel's values (the same operations), A_tot(θ, λi) evaluated once per
-    /// column instead of once per entry: a coating's reduction for RGB transport (17 cosines,
-    /// a 471×471 operator each) took 0.26 s, mostly re-evaluating the coating at λi.
-    fn density_column(&self, cos_i: f64, lambda_i: f64, lambdas_o: &[f64], out: &mut [f64]) {
+    /// P = (Q·A_tot(θ, λi))·(L(λo)/I) for λi < λo (reradiation_fresnel's factors).
+    fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
         let q = self.params.quantum_yield;
-        let mut a_tot = None;
-        for (o, &lambda_o) in out.iter_mut().zip(lambdas_o) {
-            let e = self.emission_given(lambda_i, lambda_o);
-            *o = if e == 0.0 || !(q > 0.0) {
-                0.0
-            } else {
-                q * *a_tot.get_or_insert_with(|| self.a_tot(cos_i, lambda_i)) * e
-            };
+        let a = lambdas.iter().map(|&l| if q > 0.0 { q * self.a_tot(cos_i, l) } else { 0.0 }).collect();
+        // (every λo is above -∞: the line alone)
+        let b = lambdas.iter().map(|&l| self.emission_given(f64::NEG_INFINITY, l)).collect();
+        Some((a, b))
+    }
+    /// reradiation_fresnel's values (the same operations), A_tot(θ, λi) once per λi and the
+    /// emission line L(λo)/I once per λo instead of once per entry: a coating's reduction for
+    /// RGB transport (17 cosines, a 471×471 operator each) took 0.26 s re-evaluating the
+    /// coating at λi, then most of its time in the N² logistic evaluations.
+    fn density_grid(&self, cos_i: f64, lambdas: &[f64], out: &mut [f64]) {
+        let q = self.params.quantum_yield;
+        let n = lambdas.len();
+        // e(λo | λi) = L(λo)/I where λo > λi: its λi-free part (every λo is above -∞)
+        let line: Vec<f64> = lambdas.iter().map(|&lo| self.emission_given(f64::NEG_INFINITY, lo)).collect();
+        for (column, &lambda_i) in out.chunks_exact_mut(n).zip(lambdas) {
+            // (the coating only where some λo re-emits, as density() evaluates it)
+            let emits = || lambdas.iter().zip(&line).any(|(&lo, &e)| lo > lambda_i && e != 0.0);
+            if !(q > 0.0) || !emits() {
+                column.fill(0.0);
+                continue;
+            }
+            let qa = q * self.a_tot(cos_i, lambda_i); // (q·A_tot·e, density()'s order)
+            for ((o, &lambda_o), &e) in column.iter_mut().zip(lambdas).zip(&line) {
+                *o = if lambda_o > lambda_i { qa * e } else { 0.0 };
+            }
         }
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
@@ -1087,14 +1105,16 @@ mod tests {
     }
 
     #[test]
-    fn density_columns_equal_the_density() {
+    fn density_grid_equals_the_density() {
         let m = model(QdParams { density: 0.8, ..QdParams::default() });
         let lambdas: Vec<f64> = (0..=106).map(|i| 300.0 + 5.0 * i as f64).collect();
-        let (mut col, mut positive) = (vec![f64::NAN; lambdas.len()], 0);
+        let n = lambdas.len();
+        let (mut grid, mut positive) = (vec![f64::NAN; n * n], 0);
         for cos_i in [0.05, 0.5, 1.0] {
-            for &li in &lambdas {
-                m.density_column(cos_i, li, &lambdas, &mut col);
-                for (&lo, &got) in lambdas.iter().zip(&col) {
+            m.density_grid(cos_i, &lambdas, &mut grid);
+            for (i, &li) in lambdas.iter().enumerate() {
+                for (o, &lo) in lambdas.iter().enumerate() {
+                    let got = grid[i * n + o];
                     assert_eq!(got.to_bits(), m.density(cos_i, li, lo).to_bits(), "cos {cos_i} {li} -> {lo}");
                     positive += usize::from(got > 0.0);
                 }
