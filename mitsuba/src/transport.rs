@@ -65,7 +65,7 @@ pub(crate) fn medium_grid_absorption_max(model: &FluoMedium) -> f64 {
 
 pub(crate) fn medium_reduced(model: &FluoMedium, t: &TransportBasis, absorption: &mut [f64], reradiation: &mut [f64]) {
     let m = &model.model;
-    copy_into(&t.0.reduce(&Operator::new(|l| m.absorption_per_m(l), |_, _| 0.0)), absorption);
+    copy_into(&t.0.reduce(&Operator::diagonal(|l| m.absorption_per_m(l))), absorption);
     copy_into(
         &t.0.reduce(&Operator::new(|_| 0.0, |li, lo| m.absorption_per_m(li) * m.reradiation_per_nm(li, lo))),
         reradiation,
@@ -105,10 +105,9 @@ pub(crate) fn reduced_new(f: &Fluorescence, t: &TransportBasis) -> Result<Box<Re
                 ReducedModel { directional: Directional::Microfacet { tables }, full: false }
             }
             (_, Some(r)) => ReducedModel {
-                directional: Directional::Lambertian(t.0.reduce(&Operator::new(
-                    |l| r.eval(l) * f.model.elastic_albedo(1.0, l),
-                    |li, lo| f.model.density(1.0, li, lo),
-                ))),
+                directional: Directional::Lambertian(
+                    t.0.reduce(&Operator::of(&f.model).with_elastic(|l| r.eval(l) * f.model.elastic_albedo(1.0, l))),
+                ),
                 full: true,
             },
             (_, None) => ReducedModel {
@@ -132,23 +131,11 @@ pub(crate) fn jung_reduced_parts(
         }
     };
     let dye = &model.dye;
-    copy(
-        t.0.reduce(&Operator::new(
-            |_| 0.0,
-            |li, lo| {
-                if lo > li {
-                    dye.absorption(li) * dye.emission(lo)
-                } else {
-                    0.0
-                }
-            },
-        )),
-        reradiation,
-    );
+    copy(t.0.reduce(&Operator::factored(|_| 0.0, |li| dye.absorption(li), |lo| dye.emission(lo))), reradiation);
     let has_reflectance = model.generic.elastic.is_some();
     if has_reflectance {
-        copy(t.0.reduce(&Operator::new(|l| model.reflectance(l), |_, _| 0.0)), reflectance);
-        copy(t.0.reduce(&Operator::new(|l| model.reflectance(l) * dye.absorption(l), |_, _| 0.0)), absorbed);
+        copy(t.0.reduce(&Operator::diagonal(|l| model.reflectance(l))), reflectance);
+        copy(t.0.reduce(&Operator::diagonal(|l| model.reflectance(l) * dye.absorption(l))), absorbed);
     } else {
         reflectance.fill(0.0);
         absorbed.fill(0.0);

@@ -646,6 +646,14 @@ impl Bispectral for JungFluorescence {
     fn density(&self, _cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
         JungFluorescence::reradiation(self, lambda_i, lambda_o)
     }
+    /// P = (c·Q·a(λi))·e(λo) for λi < λo.
+    fn density_factors(&self, _cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
+        let cq = self.params.concentration * self.params.quantum_yield;
+        Some((
+            lambdas.iter().map(|&l| cq * self.absorption(l)).collect(),
+            lambdas.iter().map(|&l| self.emission(l)).collect(),
+        ))
+    }
     fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
         let p = self.params();
         if !self.is_fluorescent() || !(self.emission(lambda_o) > 0.0) {
@@ -716,6 +724,9 @@ impl Bispectral for JungMaterial {
     }
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
         self.fluorescence.density(cos_i, lambda_i, lambda_o)
+    }
+    fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
+        self.fluorescence.density_factors(cos_i, lambdas)
     }
     fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
         self.fluorescence.reradiated(illum, domain, lambda_o)
