@@ -97,16 +97,18 @@ and tables are concatenated and each lane reads its file's (the index rounded pe
 binary search runs over the longest grid with each lane clamped to its own), and in the
 RGB variants each file's reduced matrix is gathered per lane.
 
-**Parameters and gradients.** With one file, ``mi.traverse`` exposes P at the matrix's
-nodes as the array ``reradiation`` (nm⁻¹, λo rows of λi entries). An update is validated
-by Rust (one entry per node, each finite, ≥ 0 and, times its emission band width, within a
-file's bound of 1e3: an error naming it, and the previous matrix stays) and the sampling tables are baked again. It is differentiable in every AD
+**Parameters and gradients.** ``mi.traverse`` exposes P at the matrix's nodes as the
+array ``reradiation`` (nm⁻¹, λo rows of λi entries; with several files, each file's matrix
+in file order). An update is validated by Rust (one entry per node, each finite, ≥ 0 and,
+times its emission band width, within a file's bound of 1e3: an error naming it, and the
+previous matrices stay) and the sampling tables are baked again. It is differentiable in every AD
 variant (``llvm_ad_*``, ``cuda_ad_*``): in the spectral ones through the value of the
 shift at the sampled wavelength (the sampling and its mass detached); in the RGB ones,
 where P is baked into the reduced matrix per render, through that matrix's derivative,
 exactly: the reduction is linear in P, so Rust's Jacobian of the reduction (one K×K
 matrix per node) turns P's change into the change of each of the operator's entries
-once per render (only while P carries gradients; the operator is then a kernel input).
+once per render (only while P carries gradients; the operator is then a kernel input;
+several files: each file's change, gathered per lane by its file).
 Changing the diagonal or the grids needs a new file.
 
 A malformed file (truncated, a NaN, a wrong header, a wavelength off its grid) raises
@@ -275,7 +277,7 @@ public:
             cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
             cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
         }
-        if (!m_gmm && !m_index) // one matrix: P at its nodes (nm⁻¹, [λo][λi])
+        if (!m_gmm) // P at its nodes (nm⁻¹, [λo][λi]; several files: theirs in file order)
             cb->put("reradiation", m_p, ParamFlags::Differentiable);
     }
 
@@ -288,19 +290,32 @@ public:
         m_record.update(this, [&] {
             if (m_index) // a changed index map is validated again
                 fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
-            if (m_index)
-                return;
-            if (!m_gmm) { // Rust validates the matrix and bakes its rows' integrals again
+            if (!m_gmm) { // Rust validates each file's matrix and bakes its rows' integrals again
                 std::vector<double> p = host(m_p);
-                m_models[0] = fluo_detail::rust_call(m_plugin, [&] {
-                    return fluo::matrix_updated(*m_models[0], rust::Slice<const double>(p.data(), p.size()));
-                });
-                rust::Vec<double> rcdf = fluo::measured_tables(*m_models[0]).row_cdf;
-                std::vector<float> f(rcdf.begin(), rcdf.end());
-                m_rcdf = dr::load<FloatStorage>(f.data(), f.size());
+                size_t total = m_file_off.back() + m_file_nodes.back();
+                if (p.size() != total)
+                    Throw("%s: \"reradiation\" must keep its %zu entries (one per node of %s), %zu given",
+                          m_plugin, total, m_models.size() > 1 ? "every file's matrix, in file order" : "the matrix",
+                          p.size());
+                std::vector<rust::Box<fluo::MeasuredModel>> models; // (all validated before any is kept)
+                std::vector<float> rcdf;
+                for (size_t f = 0; f < m_models.size(); ++f) {
+                    models.push_back(fluo_detail::rust_call(m_plugin, [&] {
+                        return fluo::matrix_updated(*m_models[f],
+                                                    rust::Slice<const double>(p.data() + m_file_off[f], m_file_nodes[f]));
+                    }));
+                    rust::Vec<double> r = fluo::measured_tables(*models.back()).row_cdf;
+                    rcdf.insert(rcdf.end(), r.begin(), r.end());
+                }
+                for (size_t f = 0; f < m_models.size(); ++f)
+                    m_models[f] = std::move(models[f]);
+                m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
+                m_table_key.clear(); // (the files' reduced operators: reduced again)
                 update_rgb();
                 return;
             }
+            if (m_index)
+                return;
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
             if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
                 Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
@@ -367,14 +382,20 @@ public:
     /// so the change of each entry of A, δA_e = Σ_n J_n[e]·(p_n − detach(p_n)), is summed once
     /// per render (zero in value, P's derivative) and added to that entry: one unit matrix per
     /// entry some J_n reaches.
+    ///
+    /// fluo_matrix with several files: the same per file, δA_f = J_fᵀ·δp_f for every file at
+    /// once (a block sum), gathered per lane by its file (jit_reduced_derivative_weights).
     size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
                                    std::vector<std::vector<double>> &d) const override {
-        if (m_index)
+        if (m_index && m_gmm)
             return 0;
         if (!m_gmm) {
             m_delta.clear();
+            m_delta_entries.clear();
             if (!dr::grad_enabled(m_p))
                 return 0;
+            if (m_index)
+                return table_derivatives(transport, d);
             rust::Vec<double> jac = fluo::matrix_reduced_jacobian(*m_models[0], transport);
             size_t nodes = dr::width(m_p), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
             if (jac.size() != nodes * kk)
@@ -449,8 +470,14 @@ public:
     }
     /// θ − detach(θ) per derivative matrix: the renormalised weights π̂_k, the means
     /// (fluo_gmm); the entries' δA (fluo_matrix).
-    std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f & /* si */,
-                                                      Mask active) const override {
+    std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f &si, Mask active) const override {
+        if (!m_gmm && m_index) { // the lane's file's δA entries
+            std::vector<Float> w;
+            UInt32 base = material(si, active) * (uint32_t) m_delta_kk;
+            for (uint32_t e : m_delta_entries)
+                w.push_back(dr::gather<Float>(m_delta_table, base + e, active));
+            return w;
+        }
         if (!m_gmm)
             return m_delta;
         std::vector<Float> w;
@@ -629,6 +656,8 @@ protected:
                 m_gi.add(t.lambda_i);
                 m_go.add(t.lambda_o);
                 p_off.push_back((uint32_t) p.size());
+                m_file_off.push_back(p.size());
+                m_file_nodes.push_back(t.p.size());
                 p.insert(p.end(), t.p.begin(), t.p.end());
                 rcdf.insert(rcdf.end(), t.row_cdf.begin(), t.row_cdf.end());
                 scale.push_back(0.f);
@@ -710,6 +739,44 @@ protected:
     }
 
     /// RGB variants: each file's albedos under equal-energy light, from Rust.
+    /// jit_reduced_derivatives of several matrices: [file][entry] sums of J_f[n][e]·δp_f[n]
+    /// over each file's nodes (padded to the largest file with zero weights), one unit
+    /// matrix per entry some file's Jacobian reaches.
+    size_t table_derivatives(const fluo::TransportBasis &transport, std::vector<std::vector<double>> &d) const {
+        size_t files = m_models.size(), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        size_t widest = *std::max_element(m_file_nodes.begin(), m_file_nodes.end());
+        std::vector<float> jac(files * kk * widest, 0.f);
+        std::vector<uint32_t> node(files * kk * widest, 0);
+        std::vector<bool> reached(kk, false);
+        for (size_t f = 0; f < files; ++f) {
+            rust::Vec<double> j = fluo::matrix_reduced_jacobian(*m_models[f], transport);
+            if (j.size() != m_file_nodes[f] * kk)
+                Throw("%s: the reduction's derivative of file %zu has %zu entries, %zu nodes × %zu expected", m_plugin,
+                      f, j.size(), m_file_nodes[f], kk);
+            for (size_t e = 0; e < kk; ++e)
+                for (size_t n = 0; n < m_file_nodes[f]; ++n) {
+                    size_t at = (f * kk + e) * widest + n;
+                    jac[at] = (float) j[n * kk + e];
+                    node[at] = (uint32_t) (m_file_off[f] + n);
+                    reached[e] = reached[e] || jac[at] != 0.f;
+                }
+        }
+        if constexpr (dr::is_diff_v<Float>) {
+            FloatStorage delta = m_p - dr::detach(m_p);
+            m_delta_table = dr::block_sum(dr::load<FloatStorage>(jac.data(), jac.size()) *
+                                              dr::gather<FloatStorage>(delta, dr::load<UInt32Storage>(node.data(), node.size())),
+                                          widest);
+        }
+        m_delta_kk = kk;
+        for (size_t e = 0; e < kk; ++e)
+            if (reached[e]) {
+                m_delta_entries.push_back((uint32_t) e);
+                d.emplace_back(kk, 0.0);
+                d.back()[e] = 1.0;
+            }
+        return d.size();
+    }
+
     void update_rgb() {
         if constexpr (is_rgb_v<Spectrum>) {
             std::vector<float> albedo, elastic;
@@ -1081,6 +1148,11 @@ protected:
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
     mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)
+    /// Several matrices: δA per file and entry ([file][kk]), the entries it holds, kk
+    mutable FloatStorage m_delta_table;
+    mutable std::vector<uint32_t> m_delta_entries;
+    mutable size_t m_delta_kk = 0;
+    std::vector<size_t> m_file_off, m_file_nodes; ///< each file's P within m_p (fluo_matrix)
     std::vector<Comp> m_comps;
     FloatStorage m_d_comp[4];              ///< the Comp fields per (file, component), for several files
     FloatStorage m_weights, m_means_i, m_means_o; ///< π_k, μi_k, μo_k (differentiable; π renormalised)

@@ -11,7 +11,8 @@ evaluate a BSDF (``eval``, f·cos θo) at given directions and hero wavelengths,
 ``{"variant", "xml", "spp", "seed", "gradients": {parameter key: step}}`` for the
 derivative of the image mean by automatic differentiation and by central differences
 (same seed) for each parameter of ``mi.traverse`` (``"ad_only": true``: AD alone;
-``"relative": true``: along the parameter's own values), or ``{"variant", "load": a plugin
+``"relative": true``: along the parameter's own values; ``"span": [i, j]``: and only on its
+entries i to j − 1), or ``{"variant", "load": a plugin
 dict}`` to instantiate one plugin (an error says why it cannot be), or ``{"variant",
 "traverse": a plugin dict}`` for the keys ``mi.traverse`` lists (and which are differentiable).
 It prints one line ``RESULT <json>``: per job the image's per-channel mean, the
@@ -43,7 +44,7 @@ def run(job: dict) -> dict:
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0),
                                        job.get("forward", False), job.get("ad_only", False),
-                                       job.get("relative", False))}
+                                       job.get("relative", False), job.get("span"))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -74,10 +75,11 @@ def eval_bsdf(bsdf, points) -> list:
 
 
 def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad_only: bool = False,
-              relative: bool = False) -> dict:
+              relative: bool = False, span: list | None = None) -> dict:
     """{key: [AD derivative, central difference]} of the mean image for each parameter, along
     the parameter's all-ones direction (every channel of a colour moves together; with
-    `relative`, along its own values: x·(1 + t), so zero entries stay zero); with
+    `relative`, along its own values: x·(1 + t), so zero entries stay zero; `span` [i, j):
+    only entries i to j − 1 move); with
     `forward`, the forward difference (a parameter at the lower end of its range); with
     `ad_only`, [AD derivative, None]."""
     import drjit as dr
@@ -87,6 +89,9 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
     for key, h in steps.items():
         x0 = type(params[key])(params[key])
         direction = x0 if relative else 1.0
+        if span is not None:
+            at = dr.arange(mi.UInt32, dr.width(x0))
+            direction = dr.select((at >= span[0]) & (at < span[1]), direction, 0.0)
         t = mi.Float(0.0)
         dr.enable_grad(t)
         params[key] = x0 + direction * t

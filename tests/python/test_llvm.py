@@ -636,6 +636,40 @@ def test12b_matrix_reradiation_gradients_and_updates():
     assert out["after"] == pytest.approx(out["before"], rel=1e-6)
 
 
+def test12c_matrix_reradiation_gradients_with_several_files(tmp_path):
+    """Two files selected by an ``index`` bitmap (the second on a quarter of the texels):
+    ``reradiation`` holds both matrices' nodes in file order and is differentiable per file in
+    both AD variants. AD equals central differences along all of P (P·(1 + t)) and along the
+    second file's nodes alone within 10 % (lanes reading the other file's change would see
+    it on three quarters of the sphere instead of one); an update of the wrong size, or one
+    Rust refuses in the second file, names it and leaves both."""
+    files = [MATRICES / "jung_orange.csv", MATRICES / "jung_yellow.csv"]
+    mi.set_variant("scalar_spectral")
+    n0, n1 = (len(np.array(mi.traverse(mi.load_dict({"type": "fluo_matrix", "filename": str(f)}))["reradiation"]))
+              for f in files)
+    index = tmp_path / "index.exr"
+    mi.Bitmap(np.array([[0, 0], [0, 1]], dtype=np.float32)).write(str(index))
+    bsdf = (f'<bsdf type="fluo_matrix" id="mat"><string name="filename0" value="{files[0]}"/>'
+            f'<string name="filename1" value="{files[1]}"/>' + bitmap_xml("index", index, 6, "nearest") + '</bsdf>')
+    xml = closeup(bsdf, D65, res=16)
+    cases = [(v, spp, span) for v, spp in (("llvm_ad_spectral", 4096), ("llvm_ad_rgb", 256))
+             for span in ([0, n0 + n1], [n0, n0 + n1])]
+    runs = run_llvm([{"variant": v, "xml": xml, "spp": spp, "seed": 3, "gradients": {"mat.reradiation": 0.05},
+                      "relative": True, "span": span} for v, spp, span in cases])
+    for (v, _, span), r in zip(cases, runs):
+        assert "error" not in r, r
+        ad, fd = r["gradients"]["mat.reradiation"]
+        print(v, span, "ad", ad, "fd", fd)
+        assert abs(fd) > 1e-3, f"{v} {span}: the image does not depend on these nodes, the check would be empty"
+        assert abs(ad - fd) <= 0.10 * abs(fd), f"{v} {span}: AD {ad} vs finite differences {fd}"
+    out = rejected_update(xml, "mat.reradiation", f"q = np.array(value); q[{n0 + 5}] = -1.0; value = mi.Float(q)")
+    assert out["error"] is not None and "reradiation" in out["error"], out
+    assert out["after"] == pytest.approx(out["before"], rel=1e-6)
+    out = rejected_update(xml, "mat.reradiation", "value = mi.Float(np.array(value)[:-1])")
+    assert out["error"] is not None and f"must keep its {n0 + n1} entries" in out["error"], out
+    assert out["after"] == pytest.approx(out["before"], rel=1e-6)
+
+
 #: fluo_qd coatings: on aluminium (GGX, orange dots), on glass (Beckmann, blue-green dots,
 #: mostly reradiation: the substrate reflects 4 %), and on gold with a thin coating.
 QD_MATERIALS = {
