@@ -425,8 +425,14 @@ private:
         const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
         const bool elastic = !e.full;
         if constexpr (!dr::is_jit_v<Float>) {
-            if (e.n_table == 0 && e.n_d == 0) {
+            if (e.n_d == 0) {
                 Dense<K> a = dense<K>(e, w);
+                if (e.n_table > 0 && on) { // + w·M_n of the hit's operator
+                    auto [n, weight] = e.bispectral->jit_reduced_select(si, on);
+                    const float *m = e.table.data() + (size_t) n * K * K;
+                    for (size_t i = 0; i < K * K; ++i)
+                        a[i] += weight * m[i];
+                }
                 if (elastic) {
                     Coeffs<K> d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
                     for (size_t k = 0; k < K; ++k)
