@@ -48,22 +48,11 @@ pub trait Bispectral {
     /// Reradiation density P(λi, λo), nm⁻¹, for light arriving at incidence cosine
     /// `cos_i` (diffuse normalisation; zero for λo ≤ λi when there is no anti-Stokes part).
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64;
-    /// P(λi, λo) for every pair of `lambdas` (λi = lambdas\[i\], λo = lambdas\[o\]) into
-    /// `out[i·n + o]`, n = `lambdas.len()`: what a reduction reads. The default asks
-    /// [`Bispectral::density`] per entry; a model whose density factors (quantum dots:
-    /// A_tot(θ, λi)·e(λo | λi)) evaluates each factor once per wavelength.
-    fn density_grid(&self, cos_i: f64, lambdas: &[f64], out: &mut [f64]) {
-        let n = lambdas.len();
-        for (i, column) in out.chunks_exact_mut(n).enumerate() {
-            for (o, &lambda_o) in column.iter_mut().zip(lambdas) {
-                *o = self.density(cos_i, lambdas[i], lambda_o);
-            }
-        }
-    }
     /// Where the density factors as P(λi, λo) = a(λi)·b(λo) for λi < λo and 0 for λi ≥ λo
-    /// (Stokes-only and separable: quantum dots), a and b on `lambdas`; `None` (the default)
-    /// otherwise. A reduction then sums over λi < λo as it runs along λo: O(N·K) instead of
-    /// the O(N²·K) of the whole operator.
+    /// (Stokes-only and separable: quantum dots, Jung's dye), a and b on `lambdas`; `None`
+    /// (the default) otherwise. A reduction then sums over λi < λo as it runs along λo:
+    /// O(N·K) instead of the O(N²·K) of the whole operator, whose N² entries it would
+    /// otherwise evaluate one by one.
     fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
         let _ = (cos_i, lambdas);
         None

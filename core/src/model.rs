@@ -100,9 +100,6 @@ impl Bispectral for Model {
     fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
         self.as_dyn().density(cos_i, lambda_i, lambda_o)
     }
-    fn density_grid(&self, cos_i: f64, lambdas: &[f64], out: &mut [f64]) {
-        self.as_dyn().density_grid(cos_i, lambdas, out)
-    }
     fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
         self.as_dyn().density_factors(cos_i, lambdas)
     }

@@ -377,14 +377,12 @@ public:
     /// the order of jit_reduced_derivative_weights: weights, means_excitation,
     /// means_emission, each per component, for the arrays that carry gradients.
     ///
-    /// fluo_matrix (one file) in RGB with gradients on its reradiation P: the reduced operator
-    /// is linear in P's nodes, A = E + Σ_n p_n·J_n (J from Rust, fluo::matrix_reduced_jacobian),
+    /// fluo_matrix in RGB with gradients on its reradiation P: a file's reduced operator is
+    /// linear in P's nodes, A = E + Σ_n p_n·J_n (J from Rust, fluo::matrix_reduced_jacobian),
     /// so the change of each entry of A, δA_e = Σ_n J_n[e]·(p_n − detach(p_n)), is summed once
-    /// per render (zero in value, P's derivative) and added to that entry: one unit matrix per
-    /// entry some J_n reaches.
-    ///
-    /// fluo_matrix with several files: the same per file, δA_f = J_fᵀ·δp_f for every file at
-    /// once (a block sum), gathered per lane by its file (jit_reduced_derivative_weights).
+    /// per render for every file at once (table_derivatives; zero in value, P's derivative) and
+    /// added to that entry: one unit matrix per entry some J_n reaches, its weight a value of
+    /// the kernel (one file) or gathered per lane by its file (several).
     size_t jit_reduced_derivatives(const fluo::TransportBasis &transport,
                                    std::vector<std::vector<double>> &d) const override {
         if (m_index && m_gmm)
@@ -394,26 +392,11 @@ public:
             m_delta_entries.clear();
             if (!dr::grad_enabled(m_p))
                 return 0;
-            if (m_index)
-                return table_derivatives(transport, d);
-            rust::Vec<double> jac = fluo::matrix_reduced_jacobian(*m_models[0], transport);
-            size_t nodes = dr::width(m_p), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
-            if (jac.size() != nodes * kk)
-                Throw("%s: the reduction's derivative has %zu entries, %zu nodes × %zu expected", m_plugin, jac.size(),
-                      nodes, kk);
-            FloatStorage delta = m_p - dr::detach(m_p);
-            std::vector<float> column(nodes);
-            for (size_t e = 0; e < kk; ++e) {
-                bool any = false;
-                for (size_t n = 0; n < nodes; ++n)
-                    any |= (column[n] = (float) jac[n * kk + e]) != 0.f;
-                if (!any)
-                    continue;
-                m_delta.push_back(Float(dr::sum(dr::load<FloatStorage>(column.data(), nodes) * delta)));
-                d.emplace_back(kk, 0.0);
-                d.back()[e] = 1.0;
-            }
-            return d.size();
+            size_t n = table_derivatives(transport, d);
+            if (!m_index) // one file: its entries as values of the kernel, not gathered per lane
+                for (uint32_t e : m_delta_entries)
+                    m_delta.push_back(dr::gather<Float>(m_delta_table, UInt32(e)));
+            return n;
         }
         if (!mixture_gradients())
             return 0;
@@ -739,7 +722,7 @@ protected:
     }
 
     /// RGB variants: each file's albedos under equal-energy light, from Rust.
-    /// jit_reduced_derivatives of several matrices: [file][entry] sums of J_f[n][e]·δp_f[n]
+    /// jit_reduced_derivatives of P: [file][entry] sums of J_f[n][e]·δp_f[n]
     /// over each file's nodes (padded to the largest file with zero weights), one unit
     /// matrix per entry some file's Jacobian reaches.
     size_t table_derivatives(const fluo::TransportBasis &transport, std::vector<std::vector<double>> &d) const {

@@ -414,19 +414,16 @@ impl Basis {
 pub struct Operator<'a> {
     elastic: Box<dyn Fn(f64) -> f64 + 'a>,
     density: Box<dyn Fn(f64, f64) -> f64 + 'a>,
-    /// The density on a whole grid at once, where the material computes that faster.
-    grid: Option<DensityGrid<'a>>,
     /// The density's factors on a grid, where it has them (Bispectral::density_factors).
     factors: Option<DensityFactors<'a>>,
 }
 
-type DensityGrid<'a> = Box<dyn Fn(&[f64], &mut [f64]) + 'a>;
 type DensityFactors<'a> = Box<dyn Fn(&[f64]) -> Option<(Vec<f64>, Vec<f64>)> + 'a>;
 
 impl<'a> Operator<'a> {
     /// An operator from its two parts.
     pub fn new(elastic: impl Fn(f64) -> f64 + 'a, density: impl Fn(f64, f64) -> f64 + 'a) -> Self {
-        Operator { elastic: Box::new(elastic), density: Box::new(density), grid: None, factors: None }
+        Operator { elastic: Box::new(elastic), density: Box::new(density), factors: None }
     }
     /// An operator without reradiation: the diagonal ρ(λ) alone.
     pub fn diagonal(elastic: impl Fn(f64) -> f64 + 'a) -> Self {
@@ -455,7 +452,6 @@ impl<'a> Operator<'a> {
     /// A material's operator for light arriving at incidence cosine `cos_i`.
     pub fn at<M: Bispectral + ?Sized>(material: &'a M, cos_i: f64) -> Self {
         Operator {
-            grid: Some(Box::new(move |lambdas, out| material.density_grid(cos_i, lambdas, out))),
             factors: Some(Box::new(move |lambdas| material.density_factors(cos_i, lambdas))),
             ..Self::new(move |l| material.elastic_albedo(cos_i, l), move |li, lo| material.density(cos_i, li, lo))
         }
@@ -481,17 +477,23 @@ impl<'a> Operator<'a> {
         let n = lambdas.len();
         self.factors.as_ref().and_then(|f| f(lambdas)).filter(|(a, b)| a.len() == n && b.len() == n)
     }
-    /// P(λi, λo) for every pair of `lambdas` into `out[i·n + o]` (Bispectral::density_grid).
-    pub fn density_grid(&self, lambdas: &[f64], out: &mut [f64]) {
-        match &self.grid {
-            Some(grid) => grid(lambdas, out),
-            None => {
-                let n = lambdas.len();
-                for (column, &lambda_i) in out.chunks_exact_mut(n).zip(lambdas) {
-                    for (o, &lambda_o) in column.iter_mut().zip(lambdas) {
-                        *o = self.density(lambda_i, lambda_o);
+    /// P(λi, λo) for every pair of `lambdas` into `out[i·n + o]`: from the factors where the
+    /// density has them (a(λi)·b(λo), each evaluated once per wavelength), else per entry.
+    fn density_grid(&self, lambdas: &[f64], out: &mut [f64]) {
+        let n = lambdas.len();
+        let factors = self.grid_factors(lambdas);
+        for (i, column) in out.chunks_exact_mut(n).enumerate() {
+            for (o, p) in column.iter_mut().enumerate() {
+                *p = match &factors {
+                    Some((a, b)) => {
+                        if lambdas[o] > lambdas[i] {
+                            a[i] * b[o]
+                        } else {
+                            0.0
+                        }
                     }
-                }
+                    None => self.density(lambdas[i], lambdas[o]),
+                };
             }
         }
     }

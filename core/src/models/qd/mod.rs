@@ -876,28 +876,6 @@ impl crate::interface::Bispectral for QdModel {
         let b = lambdas.iter().map(|&l| self.emission_given(f64::NEG_INFINITY, l)).collect();
         Some((a, b))
     }
-    /// reradiation_fresnel's values (the same operations), A_tot(θ, λi) once per λi and the
-    /// emission line L(λo)/I once per λo instead of once per entry: a coating's reduction for
-    /// RGB transport (17 cosines, a 471×471 operator each) took 0.26 s re-evaluating the
-    /// coating at λi, then most of its time in the N² logistic evaluations.
-    fn density_grid(&self, cos_i: f64, lambdas: &[f64], out: &mut [f64]) {
-        let q = self.params.quantum_yield;
-        let n = lambdas.len();
-        // e(λo | λi) = L(λo)/I where λo > λi: its λi-free part (every λo is above -∞)
-        let line: Vec<f64> = lambdas.iter().map(|&lo| self.emission_given(f64::NEG_INFINITY, lo)).collect();
-        for (column, &lambda_i) in out.chunks_exact_mut(n).zip(lambdas) {
-            // (the coating only where some λo re-emits, as density() evaluates it)
-            let emits = || lambdas.iter().zip(&line).any(|(&lo, &e)| lo > lambda_i && e != 0.0);
-            if !(q > 0.0) || !emits() {
-                column.fill(0.0);
-                continue;
-            }
-            let qa = q * self.a_tot(cos_i, lambda_i); // (q·A_tot·e, density()'s order)
-            for ((o, &lambda_o), &e) in column.iter_mut().zip(lambdas).zip(&line) {
-                *o = if lambda_o > lambda_i { qa * e } else { 0.0 };
-            }
-        }
-    }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
         if self.excitation.is_none() {
             return 0.0;
@@ -1105,16 +1083,16 @@ mod tests {
     }
 
     #[test]
-    fn density_grid_equals_the_density() {
+    fn density_factors_equal_the_density() {
+        // a(λi)·b(λo) on λi < λo, 0 elsewhere: the density entry by entry, to the bit
         let m = model(QdParams { density: 0.8, ..QdParams::default() });
         let lambdas: Vec<f64> = (0..=106).map(|i| 300.0 + 5.0 * i as f64).collect();
-        let n = lambdas.len();
-        let (mut grid, mut positive) = (vec![f64::NAN; n * n], 0);
+        let mut positive = 0;
         for cos_i in [0.05, 0.5, 1.0] {
-            m.density_grid(cos_i, &lambdas, &mut grid);
+            let (a, b) = m.density_factors(cos_i, &lambdas).unwrap();
             for (i, &li) in lambdas.iter().enumerate() {
                 for (o, &lo) in lambdas.iter().enumerate() {
-                    let got = grid[i * n + o];
+                    let got = if lo > li { a[i] * b[o] } else { 0.0 };
                     assert_eq!(got.to_bits(), m.density(cos_i, li, lo).to_bits(), "cos {cos_i} {li} -> {lo}");
                     positive += usize::from(got > 0.0);
                 }
