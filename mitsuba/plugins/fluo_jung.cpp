@@ -299,6 +299,9 @@ public:
     FLUO_LAMBERTIAN_BSDF_METHODS(albedo(si, active), this->warn_if_unmanaged(Plugin))
 
     // ------------------------------------------------ fluo_path's interface (fluo_bispectral.h)
+    bool jit_uniform() const override {
+        return !m_texels && !m_shapes && (!m_reflectance || !m_reflectance->is_spatially_varying());
+    }
     bool jit_fluorescent() const override {
         if (m_texels) // RGB: a colour texture is a plain BSDF (the colour the cube reproduces)
             return is_spectral_v<Spectrum> && fluo::jung_texture_is_fluorescent(**m_texture);
@@ -472,40 +475,64 @@ public:
                                  : Texel{ m_peak, m_shift, m_conc, m_yield };
             if (m_texels)
                 fluo_detail::rotate_hero(u2p); // uniform again given the texel
-            Dye dye(dr::detach(t.peak), dr::detach(t.shift));
-            fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
             UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
-            // The excitation range: the dye's absorption band inside the lights' range, as
-            // an interval of the b-spline coordinate v (decreasing in λ).
-            Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
-            Mask overlap = active && hi > lo;
-            Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
-                  v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
-            Float cdf_a = m_bspline.eval_cdf(Wavelength(v_a), overlap)[0],
-                  mass = dr::select(overlap, m_bspline.eval_cdf(Wavelength(v_b), overlap)[0] - cdf_a, 0.f);
-            // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
-            // any positive value where the shift integrand is positive keeps the estimate
-            // unbiased; a close one keeps the variance low.
-            Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
-            // With gradients on c or Q, c·Q has a floor in this weight: at c = 0 (or Q = 0) the
-            // shift would never be drawn and d/dc of the reradiation c·Q·a·e would be lost.
-            Float cq = dr::detach(t.conc * t.yield);
-            if (dr::grad_enabled(t.conc) || dr::grad_enabled(t.yield))
-                cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
-            UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
-            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
-            WMask &shifted = choice.shifted;
-            // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
-            // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
-            Wavelength v = m_bspline.sample((cdf_a + u2p * mass) * m_bspline.normalization(), shifted);
-            Wavelength lambda_i = dye.lambda_of(v);
-            UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
-            UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
-            // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
-            Dye exact(t.peak, t.shift);
-            UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
-            rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
-            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0) };
+            return choose_dye(t, we, lambda_o, u1, u2p, range_lo, range_hi, active);
+        }
+    }
+
+    /// Many materials: λe, s, c, Q and the reflectance at ChoiceNodes wavelengths over
+    /// Mitsuba's 360-830 nm (the elastic weight of the choice: any positive value where
+    /// the elastic part is positive keeps the estimate unbiased, so the reflectance is
+    /// read linearly between the nodes there, exact at them).
+    static constexpr size_t ChoiceNodes = 24;
+    bool jit_choice_row(std::vector<float> &row) const override {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) row;
+            return false;
+        } else {
+            if (!jit_uniform() || !jit_fluorescent() || dr::grad_enabled(m_peak) || dr::grad_enabled(m_shift) ||
+                dr::grad_enabled(m_conc) || dr::grad_enabled(m_yield))
+                return false;
+            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(ChoiceNodes / 4);
+            for (size_t w = 0; w < 4; ++w)
+                si.wavelengths[w] = MI_CIE_MIN + (MI_CIE_MAX - MI_CIE_MIN) / (ChoiceNodes - 1) *
+                                                     Float(dr::arange<UInt32>(ChoiceNodes / 4) * 4u + (uint32_t) w);
+            UnpolarizedSpectrum r = reflectance(si, true);
+            if (dr::grad_enabled(r))
+                return false;
+            row = { dr::slice(m_peak), dr::slice(m_shift), dr::slice(m_conc), dr::slice(m_yield) };
+            std::vector<float> nodes(ChoiceNodes);
+            for (size_t w = 0; w < 4; ++w) {
+                float v[ChoiceNodes / 4];
+                dr::store(v, dr::detach(r[w]));
+                for (size_t i = 0; i < ChoiceNodes / 4; ++i)
+                    nodes[4 * i + w] = v[i];
+            }
+            row.insert(row.end(), nodes.begin(), nodes.end());
+            return true;
+        }
+    }
+    Choice jit_choose_rows(const DynamicBuffer<Float> &rows, const UInt32 &row, const SurfaceInteraction3f &si,
+                           const Wavelength &u1, const Wavelength &u2, double range_lo, double range_hi,
+                           Mask active) const override {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) rows, (void) row, (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(si.wavelengths);
+        } else {
+            constexpr uint32_t W = 4 + ChoiceNodes;
+            UInt32 base = row * W;
+            auto at = [&](uint32_t k) { return dr::gather<Float>(rows, base + k, active); };
+            Texel t{ at(0), at(1), at(2), at(3) };
+            UnpolarizedSpectrum r;
+            for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w) {
+                Float x = dr::clip((si.wavelengths[w] - MI_CIE_MIN) * ((ChoiceNodes - 1) / (MI_CIE_MAX - MI_CIE_MIN)),
+                                   0.f, (float) (ChoiceNodes - 1));
+                UInt32 j = dr::minimum(UInt32(x), (uint32_t) ChoiceNodes - 2);
+                r[w] = dr::lerp(dr::gather<Float>(rows, base + 4u + j, active),
+                                dr::gather<Float>(rows, base + 5u + j, active), x - Float(j));
+            }
+            UnpolarizedSpectrum we = dr::maximum(r * (1.f - t.conc * Dye(t.peak, t.shift).absorption(si.wavelengths)), 0.f);
+            return choose_dye(t, we, si.wavelengths, u1, u2, range_lo, range_hi, active);
         }
     }
 
@@ -545,6 +572,49 @@ private:
         UInt32 shape; ///< peak-major index of the (λe, s) pair
         Texel t;
     };
+
+    /// jit_choose for the dye t with elastic weight `we`.
+    Choice choose_dye(const Texel &t, const UnpolarizedSpectrum &we, const Wavelength &lambda_o, const Wavelength &u1,
+                      const Wavelength &u2p, double range_lo, double range_hi, const Mask &active) const {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) t, (void) we, (void) u1, (void) u2p, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(lambda_o);
+        } else {
+            Dye dye(dr::detach(t.peak), dr::detach(t.shift));
+            fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
+            // The excitation range: the dye's absorption band inside the lights' range, as
+            // an interval of the b-spline coordinate v (decreasing in λ).
+            Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
+            Mask overlap = active && hi > lo;
+            Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
+                  v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
+            Float cdf_a = m_bspline.eval_cdf(Wavelength(v_a), overlap)[0],
+                  mass = dr::select(overlap, m_bspline.eval_cdf(Wavelength(v_b), overlap)[0] - cdf_a, 0.f);
+            // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
+            // any positive value where the shift integrand is positive keeps the estimate
+            // unbiased; a close one keeps the variance low.
+            Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
+            // With gradients on c or Q, c·Q has a floor in this weight: at c = 0 (or Q = 0) the
+            // shift would never be drawn and d/dc of the reradiation c·Q·a·e would be lost.
+            Float cq = dr::detach(t.conc * t.yield);
+            if (dr::grad_enabled(t.conc) || dr::grad_enabled(t.yield))
+                cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
+            UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
+            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
+            WMask &shifted = choice.shifted;
+            // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
+            // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
+            Wavelength v = m_bspline.sample((cdf_a + u2p * mass) * m_bspline.normalization(), shifted);
+            Wavelength lambda_i = dye.lambda_of(v);
+            UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
+            UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
+            // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
+            Dye exact(t.peak, t.shift);
+            UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
+            rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
+            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0) };
+        }
+    }
 
     /// Validate in Rust and bake what the lanes read.
     void rebuild() {

@@ -367,6 +367,7 @@ public:
     std::array<Float, MaxTerms> jit_reduced_weights() const override {
         return { Float(m_index ? 0.f : 1.f), Float(0.f), Float(0.f) };
     }
+    bool jit_uniform() const override { return !m_index; }
 
     /// fluo_gmm (one file) in RGB with gradients on its mixture: A = E + S·Σ_k π̂_k R_k (π̂ the
     /// renormalised weights, R_k component k's reduced unit normal). Along π̂_k: S·R_k − S·Σ_j

@@ -1155,3 +1155,96 @@ dr.eval(mi.render(s, spp=1))
             assert calls, (variant, name, (proc.stdout + proc.stderr)[-2000:])
             for site, unique, total in calls:
                 assert (int(unique), int(total)) == (1, 10), (variant, name, site, unique, total)
+            if name == "jung":  # its operator (RGB) or choice (spectral) is read per lane: no call of ours
+                assert "drjit::dispatch()" not in [site for site, _, _ in calls], (variant, calls)
+
+
+TILES = """<scene version="3.0.0">
+    <integrator type="fluo_path"><integer name="max_depth" value="3"/>{basis}
+        <boolean name="hide_emitters" value="true"/></integrator>
+    <sensor type="perspective"><float name="fov" value="90"/><string name="fov_axis" value="x"/>
+        <transform name="to_world"><lookat origin="0, 0, 2" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <film type="hdrfilm"><integer name="width" value="64"/><integer name="height" value="48"/></film>
+    </sensor>
+    <emitter type="constant"><spectrum type="fluo_illuminant" name="radiance">{light}</spectrum></emitter>
+    {tiles}
+</scene>"""
+
+
+def tiles_xml(bsdfs: list[str], light: str, basis: str = "") -> str:
+    """A 4×3 wall of unit squares filling the 64×48 view (16×16 pixels each, row-major from
+    the top left), square i with the BSDF element bsdfs[i]."""
+    tiles = "".join(
+        f'<shape type="rectangle"><transform name="to_world"><scale value="0.5"/>'
+        f'<translate value="{-1.5 + i % 4}, {1 - i // 4}, 0"/></transform>{b}</shape>' for i, b in enumerate(bsdfs))
+    return TILES.format(basis=basis, light=light, tiles=tiles)
+
+
+def tile_means(img: np.ndarray) -> np.ndarray:
+    """Per square of tiles_xml, the mean of its inner 12×12 pixels: [12, channels]."""
+    return np.stack([img[16 * (i // 4) + 2:16 * (i // 4) + 14, 16 * (i % 4) + 2:16 * (i % 4) + 14].mean(axis=(0, 1))
+                     for i in range(12)])
+
+
+def test23_many_materials_read_per_lane_equal_scalar(tmp_path):
+    """Issue 32, the many-materials cost: with more than 8 fluorescent materials, the
+    uniform ones (no texture, no gradient) are no longer reached through a call traced per
+    material: in RGB their reduced operators are formed once per render into one table read
+    per lane by the BSDF's registry id (fluo_reduced.h, gather_operators), in spectral
+    variants fluo_jung's choice reads each dye's numbers and reflectance nodes from one table
+    (Bispectral::jit_choice_row). Every square of a wall of twelve, each its own material
+    (ten distinct dyes and reflectances; one fluo_jung with a checkerboard reflectance and,
+    in the second scene, a fluo_qd, both still reached through the call; one diffuse),
+    renders in llvm what the scalar variants render (no table there), square by square (a
+    row read for the wrong material shows on two squares), by a pooled z over seeds."""
+    dyes = [f'<bsdf type="fluo_jung"><float name="concentration" value="{0.15 + 0.08 * i}"/>'
+            f'<float name="emission_peak" value="{470 + 14 * i}"/><float name="stokes_shift" value="{30 + 8 * (i % 3)}"/>'
+            f'<float name="quantum_yield" value="{0.5 + 0.05 * i}"/>'
+            f'<rgb name="reflectance" value="{0.2 + 0.07 * i}, {0.8 - 0.06 * i}, {0.3 + 0.04 * (i % 5)}"/></bsdf>'
+            for i in range(10)]
+    checker = ('<bsdf type="fluo_jung"><float name="concentration" value="0.5"/>'
+               '<texture type="checkerboard" name="reflectance"><rgb name="color0" value="0.1, 0.2, 0.6"/>'
+               '<rgb name="color1" value="0.7, 0.6, 0.1"/></texture></bsdf>')
+    diffuse = '<bsdf type="diffuse"><rgb name="reflectance" value="0.4, 0.5, 0.6"/></bsdf>'
+    qd = '<bsdf type="fluo_qd"><float name="radius" value="2.5"/><float name="alpha" value="0.3"/></bsdf>'
+    cases = []
+    for last in (diffuse, qd):
+        for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
+            cases.append((f"d65 {'qd' if last is qd else 'diffuse'}", v,
+                          {"variant": v, "xml": tiles_xml(dyes + [checker, last], D65, basis), "spp": 64,
+                           "image": True}))
+    llvm_seeds, scalar_seeds = 4, 6
+    # (a job list per scene: all of them in one argument would pass the kernel's limit)
+    results = [run_llvm([{**job, "seed": 11 + s} for s in range(llvm_seeds)]) for _, _, job in cases]
+    report, bad = [], []
+    for (name, v, job), runs in zip(cases, results):
+        assert all("error" not in r for r in runs), f"{name} {v}: {runs[0].get('error')}"
+        a = np.stack([tile_means(np.array(r["image"])) for r in runs])
+        mi.set_variant(v.replace("llvm_ad_", "scalar_"))
+        scene = mi.load_string(job["xml"])
+        b = np.stack([tile_means(np.array(mi.render(scene, spp=job["spp"], seed=s), dtype=np.float64))
+                      for s in range(scalar_seeds)])
+        assert np.all(b.mean(axis=(0, 2)) > 1e-3), f"{name} {v}: a black square, the comparison would be empty"
+        pooled = (np.var(a, axis=0, ddof=1) * (llvm_seeds - 1) + np.var(b, axis=0, ddof=1) * (scalar_seeds - 1)) / (
+            llvm_seeds + scalar_seeds - 2)
+        z = (a.mean(axis=0) - b.mean(axis=0)) / np.sqrt(pooled * (1 / llvm_seeds + 1 / scalar_seeds) + 1e-20)
+        rel = np.abs(a.mean(axis=0) - b.mean(axis=0)) / np.abs(b.mean(axis=(0, 2)))[:, None]
+        report.append(f"{name} {v}: max |z| {np.abs(z).max():.2f}, max rel {rel.max():.4f}")
+        for i in np.nonzero(np.any((np.abs(z) > Z) & (rel > REL_FLOOR), axis=1))[0]:
+            bad.append(f"{name} {v} square {i}: llvm {a.mean(axis=0)[i]} scalar {b.mean(axis=0)[i]} z {z[i]}")
+    print("\n".join(report))
+    assert not bad, "llvm differs from scalar beyond noise:\n" + "\n".join(bad)
+    # A material with gradients keeps its call among the others read per lane: AD equals
+    # central differences (same seed) for its concentration and emission peak.
+    steps = {"dye0.concentration": 0.05, "dye0.emission_peak": 4.0}
+    xml = tiles_xml(['<ref id="dye0"/>'] + dyes[1:] + [checker, diffuse], D65).replace(
+        "<shape", dyes[0].replace('type="fluo_jung"', 'type="fluo_jung" id="dye0"') + "<shape", 1)
+    jobs = [{"variant": "llvm_ad_spectral", "xml": xml, "spp": 256, "seed": 3, "gradients": steps},
+            {"variant": "llvm_ad_rgb", "xml": xml.replace("<boolean", '<string name="basis" value="x7"/><boolean'),
+             "spp": 256, "seed": 3, "gradients": steps}]
+    for job, res in zip(jobs, run_llvm(jobs)):
+        assert "error" not in res, res
+        for key, (ad, fd) in res["gradients"].items():
+            print(job["variant"], key, "ad", ad, "fd", fd)
+            assert abs(fd) > 1e-5, f"{key}: the image does not depend on it, the check would be empty"
+            assert abs(ad - fd) <= 0.25 * abs(fd), f"{job['variant']} {key}: AD {ad} vs finite differences {fd}"

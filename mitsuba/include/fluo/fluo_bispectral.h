@@ -19,7 +19,9 @@
 #include <atomic>
 #include <cmath>
 #include <optional>
+#include <string>
 #include <tuple>
+#include <typeinfo>
 #include <vector>
 
 #include "fluo_common.h"
@@ -274,6 +276,20 @@ public:
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 
+    /// Spectral, many materials (JIT variants): a material whose choice depends on a few
+    /// numbers of its own (no texture, no gradient) appends them to `row` (host) and
+    /// returns true; any material of its class then makes the choice of every lane whose
+    /// material did so with jit_choose_rows, from its row gathered per lane (`rows`: the
+    /// class's rows, each as long; `row`: the lane's). One evaluation per class instead
+    /// of a callable traced per material.
+    virtual bool jit_choice_row(std::vector<float> & /* row */) const { return false; }
+    virtual Choice jit_choose_rows(const DynamicBuffer<Float> & /* rows */, const UInt32 & /* row */,
+                                   const SurfaceInteraction3f &si, const Wavelength & /* u1 */,
+                                   const Wavelength & /* u2 */, double /* range_lo */, double /* range_hi */,
+                                   Mask /* active */) const {
+        return elastic_only(si.wavelengths);
+    }
+
     /// RGB reduced transport of a material whose reradiation varies over the surface among
     /// a finite set of Lambertian operators (fluo_jung's textured parameters: one per dye
     /// shape): the K×K matrices M_n (host, row major, f = M_n/π; into `m`, sized by the
@@ -294,6 +310,9 @@ public:
 
     /// Host: whether the reradiation lobe is Lambertian (f_fl·cos θo = rerad·cos θo/π).
     virtual bool jit_lambertian() const { return true; }
+    /// Host: whether jit_reduced_weights and jit_elastic_albedo are the same at every hit
+    /// (no texture): the reduced transport may then form the operator once per render.
+    virtual bool jit_uniform() const { return false; }
 
     /// cos θo/π where both directions are above the surface, else 0.
     static Float lambert(const SurfaceInteraction3f &si, const Vector3f &wo) {
@@ -379,6 +398,16 @@ template <typename Wavelength> void rotate_hero(Wavelength &u) {
     }
 }
 
+/// Per lane, a where `m` holds, else b (tuples of Dr.Jit values).
+template <typename M, typename... Ts>
+std::tuple<Ts...> select_tuple(const M &m, const std::tuple<Ts...> &a, const std::tuple<Ts...> &b) {
+    return std::apply(
+        [&](const auto &...x) {
+            return std::apply([&](const auto &...y) { return std::tuple<Ts...>(Ts(dr::select(m, x, y))...); }, b);
+        },
+        a);
+}
+
 /// The fluorescent BSDFs (or media) a render transports, looked up per vertex by address
 /// (sorted; a dynamic_cast there compares type names across libraries: ~3 % of a scalar
 /// vertex): Base is Mitsuba's interface (BSDF, Medium), Iface fluo's.
@@ -403,8 +432,74 @@ private:
     std::vector<std::pair<const Base *, const Iface *>> m_entries;
 };
 
+/// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them
+/// (more than ChoiceRowsFrom), those that give a row (Bispectral::jit_choice_row) grouped by
+/// class: SurfaceShift::choose reads their rows per lane by the BSDF's registry id and
+/// calls one material per class, where a dispatch would trace a callable per material
+/// (200 distinct dyes: most of their first render).
 template <typename Float, typename Spectrum>
-using FluorescentSet = InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF<Float, Spectrum>>;
+class FluorescentSet : public InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF<Float, Spectrum>> {
+public:
+    using Bispectral = BispectralBSDF<Float, Spectrum>;
+    using UInt32 = dr::uint32_array_t<Float>;
+    static constexpr size_t ChoiceRowsFrom = 8;
+    struct Group {
+        const Bispectral *first; ///< makes the class's choices
+        DynamicBuffer<Float> rows;
+        DynamicBuffer<UInt32> slots; ///< registry id → 1 + row (0: not in the group)
+        uint32_t n_slots;
+    };
+
+    template <typename B> void assign(const std::vector<B *> &objects) {
+        InterfaceSet<BSDF<Float, Spectrum>, Bispectral>::assign(objects);
+        m_groups.clear();
+        m_rowed.clear();
+        if constexpr (dr::is_jit_v<Float> && is_spectral_v<Spectrum>) {
+            if (objects.size() <= ChoiceRowsFrom)
+                return;
+            struct Building {
+                const Bispectral *first;
+                size_t width;
+                std::vector<float> rows;
+                std::vector<uint32_t> slots;
+            };
+            std::vector<std::pair<std::string, Building>> building;
+            for (B *b : objects) {
+                std::vector<float> row;
+                const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
+                uint32_t id = base ? jit_registry_id(base) : 0u;
+                if (id == 0 || !b->jit_choice_row(row) || row.empty())
+                    continue;
+                std::string cls = typeid(*b).name();
+                auto it = std::find_if(building.begin(), building.end(), [&](const auto &g) { return g.first == cls; });
+                if (it == building.end())
+                    it = building.insert(building.end(), { cls, Building{ b, row.size(), {}, {} } });
+                Building &g = it->second;
+                if (row.size() != g.width)
+                    continue;
+                if (g.slots.size() <= id)
+                    g.slots.resize(id + 1, 0u);
+                g.slots[id] = (uint32_t) (g.rows.size() / g.width) + 1u;
+                g.rows.insert(g.rows.end(), row.begin(), row.end());
+                m_rowed.push_back(base);
+            }
+            for (auto &[cls, g] : building)
+                m_groups.push_back(Group{ g.first, dr::load<DynamicBuffer<Float>>(g.rows.data(), g.rows.size()),
+                                          dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
+                                          (uint32_t) g.slots.size() });
+            std::sort(m_rowed.begin(), m_rowed.end());
+        }
+    }
+    const std::vector<Group> &groups() const { return m_groups; }
+    /// Whether `b`'s choices are made through its group's rows.
+    bool rowed(const BSDF<Float, Spectrum> *b) const { return std::binary_search(m_rowed.begin(), m_rowed.end(), b); }
+    /// Whether some material of the set is reached through a call.
+    bool dispatched() const { return m_rowed.size() < this->size(); }
+
+private:
+    std::vector<Group> m_groups;
+    std::vector<const BSDF<Float, Spectrum> *> m_rowed;
+};
 
 /// A fluorescent surface vertex of the spectral integrators (fluo_path,
 /// fluo_volpath): per lane and hero wavelength the elastic event or a shift (the material's
@@ -432,15 +527,33 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         u2[0] = u.y();
         rotate_hero(u1);
         rotate_hero(u2);
-        auto [li, sc, sh, rr, lc] = dispatch_any(
-            bsdf,
-            [lo, hi, &set](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
-                           const Wavelength &u2_, const Mask &on) {
-                if (const Bispectral *f = set.find(b))
-                    return f->jit_choose(si_, u1_, u2_, lo, hi, on);
-                return Bispectral::elastic_only(si_.wavelengths);
-            },
-            si, u1, u2, active);
+        typename Bispectral::Choice c = Bispectral::elastic_only(si.wavelengths);
+        Mask rest = active;
+        if constexpr (dr::is_jit_v<Float>) {
+            if (!set.groups().empty()) {
+                UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
+                for (const auto &g : set.groups()) {
+                    Mask known = active && id < g.n_slots;
+                    UInt32 row = dr::gather<UInt32>(g.slots, id, known);
+                    Mask in = known && row > 0u;
+                    auto cg = g.first->jit_choose_rows(g.rows, row - 1u, si, u1, u2, lo, hi, in);
+                    c = select_tuple(in, cg, c);
+                    rest &= !in;
+                }
+            }
+        }
+        if (set.dispatched())
+            c = select_tuple(rest, dispatch_any(
+                bsdf,
+                [lo, hi, &set](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
+                               const Wavelength &u2_, const Mask &on) {
+                    const Bispectral *f = set.find(b);
+                    if (f && !set.rowed(b))
+                        return f->jit_choose(si_, u1_, u2_, lo, hi, on);
+                    return Bispectral::elastic_only(si_.wavelengths);
+                },
+                si, u1, u2, rest), c);
+        auto [li, sc, sh, rr, lc] = c;
         Mask has_bsdf = active && bsdf != nullptr;
         si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
         scale = dr::select(has_bsdf, sc, 1.f);

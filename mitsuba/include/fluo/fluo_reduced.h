@@ -122,6 +122,7 @@ public:
                 m_entries.push_back(std::move(e));
             }
             opaque_operators();
+            gather_operators();
             if ((!m_entries.empty() || media) && !m_adaptive && m_uv_warned != scene) {
                 for (const auto &[emitter, src] : m_sources)
                     if (fluo::illuminant_is_mostly_uv(*src.illuminant)) {
@@ -277,17 +278,21 @@ public:
             }
         };
         Float inv_pdf = dr::select(pdf_b > 0.f, dr::rcp(pdf_b), 0.f);
+        // the operators formed once per render (gather_operators), read by registry id
+        auto [g, RG] = gathered_product<K>(bsdf, R, active);
+        Mask rest = active && !g;
         if (!directional) {
-            auto [f, RA] = dispatch_any(
+            auto [f, RA] = m_dispatch ? dispatch_any(
                 bsdf,
                 [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
                     const Entry *e = find(b);
-                    if (!e)
+                    if (!e || e->gathered)
                         return std::make_pair(Mask(false), dr::zeros<Rows<K>>());
                     return std::make_pair(Mask(true), lambertian_product<K>(*e, si_, R_, on));
                 },
-                si, R, active);
-            return std::make_tuple(Mask(f && active), Mask(false), towards(RA, c, Bispectral::lambert(si, wa)),
+                si, R, rest) : std::make_pair(Mask(false), dr::zeros<Rows<K>>());
+            RA = dr::select(g, RG, RA);
+            return std::make_tuple(Mask((f || g) && active), Mask(false), towards(RA, c, Bispectral::lambert(si, wa)),
                                    Rows<K>(RA * (Bispectral::lambert(si, wb) * inv_pdf)));
         }
         // Block = false: towards the emitter only R·A(ωa)·c leaves the call (3 values, not 3K).
@@ -296,7 +301,7 @@ public:
             [this, towards](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Coeffs<K> &c_,
                             const Vector3f &wa_, const Vector3f &wb_, const Float &u_, const Mask &on) {
                 const Entry *e = find(b);
-                if (!e)
+                if (!e || e->gathered)
                     return std::make_tuple(Mask(false), Mask(false), dr::zeros<Towards>(), dr::zeros<Rows<K>>());
                 if (e->n_nodes == 0) {
                     Rows<K> ra = lambertian_product<K>(*e, si_, R_, on);
@@ -307,9 +312,11 @@ public:
                                                   : directional_products<K, Block>(*e, si_, R_, c_, wa_, wb_, on);
                 return std::make_tuple(Mask(true), Mask(true), va_, rb_);
             },
-            si, R, c, wa, wb, u, active);
-        Mask is_fl = f && active;
-        return std::make_tuple(is_fl, Mask(native && is_fl), va, Rows<K>(rb * inv_pdf));
+            si, R, c, wa, wb, u, rest);
+        Mask is_fl = (f || g) && active;
+        return std::make_tuple(is_fl, Mask(native && f && active),
+                               dr::select(g, towards(RG, c, Bispectral::lambert(si, wa)), va),
+                               Rows<K>(dr::select(g, RG * Bispectral::lambert(si, wb), rb) * inv_pdf));
     }
 
 private:
@@ -324,6 +331,7 @@ private:
         const BSDF *bsdf;
         const Bispectral *bispectral;
         bool full = false; ///< the operator includes the elastic part
+        bool gathered = false; ///< its operator is a row of m_rows (gather_operators)
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
         /// `m` in single precision (scalar variants: dense()), every term K·K entries
@@ -404,6 +412,37 @@ private:
                 out[r * K + j] = acc[j];
         }
         return out;
+    }
+
+    /// R·A where the lane's BSDF has its operator in m_rows (`g`), A read per lane at the
+    /// row the BSDF's registry id maps to: no call, so no callable traced per material.
+    template <size_t K> std::pair<Mask, Rows<K>> gathered_product(const BSDFPtr &bsdf, const Rows<K> &R,
+                                                                   const Mask &active) const {
+        if constexpr (!dr::is_jit_v<Float>) {
+            (void) bsdf, (void) R, (void) active;
+            return { Mask(false), Rows<K>() };
+        } else {
+            if (m_n_rows == 0)
+                return { Mask(false), dr::zeros<Rows<K>>() };
+            UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
+            Mask known = active && id < m_n_slots;
+            UInt32 row = dr::gather<UInt32>(m_slots, id, known);
+            Mask g = known && row > 0u;
+            UInt32 base = (row - 1u) * (uint32_t) (K * K);
+            Rows<K> out = dr::zeros<Rows<K>>();
+            for (size_t j = 0; j < K; ++j) {
+                Coeffs<K> col; // A[:, j]
+                for (size_t k = 0; k < K; ++k)
+                    col[k] = dr::gather<Float>(m_rows, base + (uint32_t) (k * K + j), g);
+                for (size_t r = 0; r < 3; ++r) {
+                    Float acc = R[r * K] * col[0];
+                    for (size_t k = 1; k < K; ++k)
+                        acc = dr::fmadd(R[r * K + k], col[k], acc);
+                    out[r * K + j] = acc;
+                }
+            }
+            return { g, out };
+        }
     }
 
     /// The weights of `e`'s derivative matrices at a hit (Bispectral::jit_reduced_derivative_weights),
@@ -706,6 +745,72 @@ private:
                 }
             }
     }
+    /// Many materials (JIT variants, m_opaque): each Lambertian material whose operator is
+    /// the same at every hit and carries no gradient has A = Σ_t w_t·M_t (+ the elastic band
+    /// albedos where A lacks them) formed here, once per render, as a row of one table that
+    /// vertex() reads per lane through the BSDF's registry id, outside any call. Dr.Jit
+    /// traces and assembles a dispatch once per instance: 200 distinct dyes spent most of
+    /// their first render doing so for this product.
+    void gather_operators() {
+        m_n_rows = m_n_slots = 0;
+        m_dispatch = !m_entries.empty();
+        if constexpr (dr::is_jit_v<Float> && is_rgb_v<Spectrum>) {
+            if (!m_opaque)
+                return;
+            const size_t kk = m_k * m_k;
+            std::vector<float> rows;
+            std::vector<uint32_t> slots;
+            m_dispatch = false;
+            for (Entry &e : m_entries) {
+                e.gathered = false;
+                auto w = e.bispectral->jit_reduced_weights();
+                Color3f el(0.f);
+                bool plain = e.bispectral->jit_uniform() && e.n_nodes == 0 && e.n_table == 0 && e.n_d == 0 &&
+                             std::none_of(w.begin(), w.end(), [](const Float &x) { return dr::grad_enabled(x); });
+                if (plain && !e.full) {
+                    el = e.bispectral->jit_elastic_albedo(dr::zeros<SurfaceInteraction3f>(), Mask(true));
+                    plain = !dr::grad_enabled(el);
+                }
+                uint32_t id = plain ? jit_registry_id(e.bsdf) : 0u;
+                if (id == 0) {
+                    m_dispatch = true;
+                    continue;
+                }
+                e.gathered = true;
+                if (slots.size() <= id)
+                    slots.resize(id + 1, 0u);
+                slots[id] = (uint32_t) (rows.size() / kk) + 1u;
+                float wt[Bispectral::MaxTerms], e3[3];
+                for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                    wt[t] = dr::slice(w[t]);
+                for (size_t c = 0; c < 3; ++c)
+                    e3[c] = dr::slice(el[c]);
+                for (size_t i = 0; i < kk; ++i) {
+                    double a = 0.0;
+                    for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                        if (i < e.m[t].size())
+                            a += wt[t] * e.m[t][i];
+                    if (!e.full && i % (m_k + 1) == 0) { // the diagonal: band k's elastic albedo
+                        const float *map = &m_albedo_map[3 * (i / m_k)];
+                        a += map[0] * e3[0] + map[1] * e3[1] + map[2] * e3[2];
+                    }
+                    rows.push_back((float) a);
+                }
+            }
+            if (rows.empty())
+                return;
+            m_n_rows = rows.size() / kk;
+            m_n_slots = (uint32_t) slots.size();
+            m_rows = dr::load<DynamicBuffer<Float>>(rows.data(), rows.size());
+            m_slots = dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size());
+        }
+    }
+    DynamicBuffer<Float> m_rows;    ///< gathered operators, [row][K][K]
+    DynamicBuffer<UInt32> m_slots;  ///< BSDF registry id → 1 + its row (0: none)
+    size_t m_n_rows = 0;
+    uint32_t m_n_slots = 0;
+    bool m_dispatch = true; ///< some fluorescent material is reached through a call
+
     std::unordered_map<const Emitter *, Source> m_sources;
     const Scene *m_uv_warned = nullptr; ///< the scene last warned of a UV emitter
 };
