@@ -501,6 +501,7 @@ public:
             if (dr::grad_enabled(r))
                 return false;
             row = { dr::slice(m_peak), dr::slice(m_shift), dr::slice(m_conc), dr::slice(m_yield) };
+            dr::eval(r); // (one kernel for the four hero wavelengths' nodes)
             std::vector<float> nodes(ChoiceNodes);
             for (size_t w = 0; w < 4; ++w) {
                 float v[ChoiceNodes / 4];

@@ -432,8 +432,13 @@ private:
     std::vector<std::pair<const Base *, const Iface *>> m_entries;
 };
 
+/// With more fluorescent materials than this, a JIT render reads the per-material data that
+/// can be read per lane from tables (FluorescentSet's rows, the reduced transport's operators)
+/// rather than tracing a call per material; with fewer, literals keep their kernels small.
+inline constexpr size_t ManyMaterials = 8;
+
 /// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them
-/// (more than ChoiceRowsFrom), those that give a row (Bispectral::jit_choice_row) grouped by
+/// (more than ManyMaterials), those that give a row (Bispectral::jit_choice_row) grouped by
 /// class: SurfaceShift::choose reads their rows per lane by the BSDF's registry id and
 /// calls one material per class, where a dispatch would trace a callable per material
 /// (200 distinct dyes: most of their first render).
@@ -442,7 +447,6 @@ class FluorescentSet : public InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF
 public:
     using Bispectral = BispectralBSDF<Float, Spectrum>;
     using UInt32 = dr::uint32_array_t<Float>;
-    static constexpr size_t ChoiceRowsFrom = 8;
     struct Group {
         const Bispectral *first; ///< makes the class's choices
         DynamicBuffer<Float> rows;
@@ -455,7 +459,7 @@ public:
         m_groups.clear();
         m_rowed.clear();
         if constexpr (dr::is_jit_v<Float> && is_spectral_v<Spectrum>) {
-            if (objects.size() <= ChoiceRowsFrom)
+            if (objects.size() <= ManyMaterials)
                 return;
             struct Building {
                 const Bispectral *first;

@@ -324,7 +324,7 @@ private:
     /// values of the kernel (dr::make_opaque) instead of literals: with literals, every
     /// material with its own operator compiled its own callable (200 distinct dyes: minutes);
     /// with few, literals keep the per-vertex cost (a constant multiply, zero entries skipped).
-    static constexpr size_t LiteralEntries = 8;
+    static constexpr size_t LiteralEntries = ManyMaterials;
 
     /// A fluorescent BSDF and its reduced operator Σ w_i·M_i (f = M/π).
     struct Entry {
@@ -434,12 +434,9 @@ private:
                 Coeffs<K> col; // A[:, j]
                 for (size_t k = 0; k < K; ++k)
                     col[k] = dr::gather<Float>(m_rows, base + (uint32_t) (k * K + j), g);
-                for (size_t r = 0; r < 3; ++r) {
-                    Float acc = R[r * K] * col[0];
-                    for (size_t k = 1; k < K; ++k)
-                        acc = dr::fmadd(R[r * K + k], col[k], acc);
-                    out[r * K + j] = acc;
-                }
+                Color3f rc = apply<K>(R, col);
+                for (size_t r = 0; r < 3; ++r)
+                    out[r * K + j] = rc[r];
             }
             return { g, out };
         }
@@ -507,12 +504,9 @@ private:
                 if (elastic && k == j)
                     col[k] += d[k];
             }
-            for (size_t r = 0; r < 3; ++r) {
-                Float acc = R[r * K] * col[0];
-                for (size_t k = 1; k < K; ++k)
-                    acc = dr::fmadd(R[r * K + k], col[k], acc);
-                ra[r * K + j] = acc;
-            }
+            Color3f rc = apply<K>(R, col);
+            for (size_t r = 0; r < 3; ++r)
+                ra[r * K + j] = rc[r];
         }
         return ra;
     }
