@@ -225,6 +225,8 @@ public:
     using Dye = fluo_detail::JungDye<UnpolarizedSpectrum>;
     using fluo_detail::BispectralBSDF<Float, Spectrum>::MaxTerms;
     using Choice = typename fluo_detail::BispectralBSDF<Float, Spectrum>::Choice;
+    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
+    using Joined = typename Bispectral::Joined;
 
     static constexpr const char *Plugin = "fluo_jung";
     /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
@@ -480,48 +482,57 @@ public:
         }
     }
 
-    /// Many materials: λe, s, c, Q and the reflectance at ChoiceNodes wavelengths over
-    /// Mitsuba's 360-830 nm (the elastic weight of the choice: any positive value where
-    /// the elastic part is positive keeps the estimate unbiased, so the reflectance is
-    /// read linearly between the nodes there, exact at them).
-    static constexpr size_t ChoiceNodes = 24;
-    bool jit_choice_row(std::vector<float> &row) const override {
-        if constexpr (!is_spectral_v<Spectrum>) {
-            (void) row;
+    /// Many materials: a uniform dye without gradients joins the others of its class as a
+    /// row of λe, s, c, Q and its reflectance at ChoiceNodes wavelengths over Mitsuba's
+    /// 360-830 nm (the elastic weight of the choice: any positive value where the elastic
+    /// part is positive keeps the estimate unbiased, so the reflectance is read linearly
+    /// between the nodes there, exact at them).
+    static constexpr size_t ChoiceNodes = 24, RowWidth = 4 + ChoiceNodes;
+    bool jit_joinable() const override {
+        if (!is_spectral_v<Spectrum> || !jit_uniform() || !jit_fluorescent() || dr::grad_enabled(m_peak) ||
+            dr::grad_enabled(m_shift) || dr::grad_enabled(m_conc) || dr::grad_enabled(m_yield))
             return false;
+        // (a reflectance with gradients: traced, not evaluated)
+        return !dr::grad_enabled(reflectance(dr::zeros<SurfaceInteraction3f>(), true));
+    }
+    Joined jit_join(const std::vector<const Bispectral *> &members) const override {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) members;
+            return nullptr;
         } else {
-            if (!jit_uniform() || !jit_fluorescent() || dr::grad_enabled(m_peak) || dr::grad_enabled(m_shift) ||
-                dr::grad_enabled(m_conc) || dr::grad_enabled(m_yield))
-                return false;
-            SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(ChoiceNodes / 4);
-            for (size_t w = 0; w < 4; ++w)
-                si.wavelengths[w] = MI_CIE_MIN + (MI_CIE_MAX - MI_CIE_MIN) / (ChoiceNodes - 1) *
-                                                     Float(dr::arange<UInt32>(ChoiceNodes / 4) * 4u + (uint32_t) w);
-            UnpolarizedSpectrum r = reflectance(si, true);
-            if (dr::grad_enabled(r))
-                return false;
-            row = { dr::slice(m_peak), dr::slice(m_shift), dr::slice(m_conc), dr::slice(m_yield) };
-            dr::eval(r); // (one kernel for the four hero wavelengths' nodes)
-            std::vector<float> nodes(ChoiceNodes);
-            for (size_t w = 0; w < 4; ++w) {
-                float v[ChoiceNodes / 4];
-                dr::store(v, dr::detach(r[w]));
-                for (size_t i = 0; i < ChoiceNodes / 4; ++i)
-                    nodes[4 * i + w] = v[i];
+            auto rows = std::make_shared<std::vector<float>>();
+            for (const Bispectral *b : members) {
+                const auto *m = static_cast<const FluoJung *>(b);
+                SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(ChoiceNodes / 4);
+                for (size_t w = 0; w < 4; ++w)
+                    si.wavelengths[w] = MI_CIE_MIN + (MI_CIE_MAX - MI_CIE_MIN) / (ChoiceNodes - 1) *
+                                                         Float(dr::arange<UInt32>(ChoiceNodes / 4) * 4u + (uint32_t) w);
+                UnpolarizedSpectrum r = dr::detach(m->reflectance(si, true));
+                dr::eval(r); // (one kernel for the four hero wavelengths' nodes)
+                for (float v : { dr::slice(m->m_peak), dr::slice(m->m_shift), dr::slice(m->m_conc),
+                                 dr::slice(m->m_yield) })
+                    rows->push_back(v);
+                size_t at = rows->size();
+                rows->resize(at + ChoiceNodes);
+                for (size_t w = 0; w < 4; ++w) { // (a reflectance folded to one lane: broadcast)
+                    std::vector<float> v = fluo_detail::host_lanes(r[w], ChoiceNodes / 4);
+                    for (size_t i = 0; i < ChoiceNodes / 4; ++i)
+                        (*rows)[at + 4 * i + w] = v[i];
+                }
             }
-            row.insert(row.end(), nodes.begin(), nodes.end());
-            return true;
+            return std::make_shared<const DynamicBuffer<Float>>(
+                dr::load<DynamicBuffer<Float>>(rows->data(), rows->size()));
         }
     }
-    Choice jit_choose_rows(const DynamicBuffer<Float> &rows, const UInt32 &row, const SurfaceInteraction3f &si,
-                           const Wavelength &u1, const Wavelength &u2, double range_lo, double range_hi,
-                           Mask active) const override {
+    Choice jit_choose_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,
+                             const Wavelength &u1, const Wavelength &u2, double range_lo, double range_hi,
+                             Mask active) const override {
         if constexpr (!is_spectral_v<Spectrum>) {
-            (void) rows, (void) row, (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            (void) joined, (void) member, (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
             return this->elastic_only(si.wavelengths);
         } else {
-            constexpr uint32_t W = 4 + ChoiceNodes;
-            UInt32 base = row * W;
+            const auto &rows = *static_cast<const DynamicBuffer<Float> *>(joined.get());
+            UInt32 base = member * (uint32_t) RowWidth;
             auto at = [&](uint32_t k) { return dr::gather<Float>(rows, base + k, active); };
             Texel t{ at(0), at(1), at(2), at(3) };
             UnpolarizedSpectrum r;
@@ -832,10 +843,9 @@ private:
                 si.uv = Point2f((Float(i % (uint32_t) w) + .5f) / (float) w,
                                 (Float(i / (uint32_t) w) + .5f) / (float) h);
                 Color3f v = tex->eval_3(si, true);
-                for (size_t k = 0; k < 3; ++k) {
-                    Float channel = v[k];
-                    dr::eval(channel);
-                    dr::store(texels.data() + k * n, channel); // planar, reordered below
+                for (size_t k = 0; k < 3; ++k) { // planar, reordered below
+                    std::vector<float> channel = host_lanes(v[k], n);
+                    std::copy(channel.begin(), channel.end(), texels.begin() + (std::ptrdiff_t) (k * n));
                 }
             } else { // one call per texel
                 SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>();

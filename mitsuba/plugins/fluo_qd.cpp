@@ -23,6 +23,7 @@
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
+#include <atomic>
 #include <optional>
 #include <string>
 #include <vector>
@@ -263,6 +264,7 @@ public:
     using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
     using Bispectral::MaxTerms;
     using Choice = typename Bispectral::Choice;
+    using Joined = typename Bispectral::Joined;
     /// A textured hit mixes at most four models: two radii by two densities.
     static constexpr size_t MaxCorners = 4;
 
@@ -550,85 +552,99 @@ public:
     /// as probability by the first wavelength's u1 (then rescaled within the model's share:
     /// still uniform for the elastic/shift choice), scaled by the hit's Q; its index is
     /// `local` (an unbiased estimate of the mixture).
-    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1_, const Wavelength &u2, double range_lo,
+    Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
                       double range_hi, Mask active) const override {
-        const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
-            (void) u1_, (void) u2, (void) range_lo, (void) range_hi, (void) active;
-            return this->elastic_only(lambda_o);
+            (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(si.wavelengths);
         } else {
-            Float cos_i = Frame3f::cos_theta(si.wi);
-            // The cells of λo serve the elastic weight and, where λo is below the range's top,
-            // the excitation interval's upper end. Fluorescent: coated.
-            Hit h = hit(si, active, false);
-            Wavelength u1 = u1_;
-            Pick p = pick(h, u1[0]);
-            const ModelAt &mo = p.model;
-            Cells cells;
-            for (size_t w = 0; w < cells.size(); ++w)
-                cells[w] = cell(mo, lambda_o[w], active);
-            u1[0] = p.u;
-            fluo_detail::rotate_hero(u1); // uniform again given the pick
-            Emission em = emission_of(mo, active); // with radius's and density's gradients
-            // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
-            // weight positive where the elastic lobe is keeps the estimator unbiased; this one
-            // spares the substrate's eta/k lookups).
-            UnpolarizedSpectrum we;
-            for (size_t w = 0; w < cells.size(); ++w)
-                we[w] = dr::maximum(bilinear(m_r_tot, dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
-            // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
-            // within the model's excitation range.
-            Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
-            Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
-            Wavelength lambda_i = lambda_o;
-            UnpolarizedSpectrum scale(0.f), rerad(0.f);
-            WMask shifted(false);
-            // The A_tot row nearest cos θi (as the Rust model's sampling).
-            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
-            UInt32 last = mo.n - 1;
-            // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
-            // drawn and dQ of the reradiation Q·e would be lost).
-            Float q_choice = dr::detach(h.q);
-            if (dr::grad_enabled(h.q))
-                q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
-                Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
-                Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
-                Float e_ad = dr::select(ok, emission(lo, em), 0.f), e = dr::detach(e_ad);
-                ok &= e > 0.f;
-                Mask below = lo < hi_r;
-                Cell cb = select_cell(below, cells[w], c_hi);
-                Float c_a = running(row, ca, ok), c_b = running(row, cb, ok);
-                Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
-                ok &= mass > 0.f;
-                fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
-                if constexpr (!dr::is_jit_v<Float>)
-                    if (!choice.shifted) { // (scalar variants draw λi only where the shift is taken)
-                        scale[w] = choice.weight(0.f, u1[w]);
-                        continue;
-                    }
-                // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
-                // then the cell's quadratic root (cancellation-free form); the search runs
-                // over the longest grid, each lane's row clamped to its own.
-                Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
-                UInt32 k = dr::binary_search<UInt32>(1, grid_max() - 1, [&](const UInt32 &i) {
-                               return dr::gather<Float>(m_cdf, row + dr::minimum(i, last), ok) <= target;
-                           }) - 1;
-                k = dr::clip(k, ca.k, cb.k);
-                Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
-                Float f0 = dr::gather<Float>(m_a_tot, row + k, ok), f1 = dr::gather<Float>(m_a_tot, row + k + 1, ok);
-                Float h_ = x1 - x0;
-                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(m_cdf, row + k, ok));
-                Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
-                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
-                scale[w] = choice.weight(pdf, u1[w]);
-                shifted[w] = choice.shifted;
-                lambda_i[w] = dr::select(choice.shifted, x, lo);
-                rerad[w] = dr::select(choice.shifted, h.q * e_ad, 0.f); // Q·e(λo | λi), nm⁻¹
-            }
-            return { lambda_i, scale, shifted, rerad, mo.index };
+            return choose_at(hit(si, active, false), si, u1, u2, range_lo, range_hi, active);
         }
+    }
+
+    /// Many materials: a uniform coating without gradients joins the others of its class
+    /// and distribution as one model of a joined table set (as a textured material's
+    /// models), with its own Q and roughness.
+    bool jit_joinable() const override {
+        return is_spectral_v<Spectrum> && dr::is_jit_v<Float> && !textured() && dr::width(m_a_tot) > 0 &&
+               !dr::grad_enabled(m_q) && !dr::grad_enabled(m_radius) && !dr::grad_enabled(m_density) &&
+               !dr::grad_enabled(m_alpha) && !dr::grad_enabled(m_alpha_v);
+    }
+    std::string jit_join_tag() const override { return m_type == MicrofacetType::GGX ? "ggx" : "beckmann"; }
+    Joined jit_join(const std::vector<const Bispectral *> &members) const override {
+        // the tables are joined again only where a member was rebuilt (or the members changed)
+        std::vector<std::pair<const void *, uint64_t>> key;
+        for (const Bispectral *b : members) {
+            const auto *m = static_cast<const FluoQd *>(b);
+            if (m->m_rows != m_rows)
+                return nullptr; // (one table layout per class)
+            key.emplace_back(m, m->m_build);
+        }
+        if (!m_joined || m_joined->key != key) {
+            auto j = std::make_shared<JoinedTables>();
+            std::vector<float> a_tot, cdf, r_tot, emission;
+            std::vector<uint32_t> t_off;
+            // (the members' tables read back: no second copy is kept per material)
+            auto append = [](std::vector<float> &to, const FloatStorage &t) {
+                size_t at = to.size();
+                to.resize(at + dr::width(t));
+                dr::store(to.data() + at, t);
+            };
+            for (const Bispectral *b : members) {
+                const auto *m = static_cast<const FluoQd *>(b);
+                t_off.push_back((uint32_t) a_tot.size());
+                append(a_tot, m->m_a_tot);
+                append(cdf, m->m_cdf);
+                append(r_tot, m->m_r_tot);
+                for (const Float &v : m->m_em)
+                    emission.push_back(dr::slice(dr::detach(v)));
+                j->grids.add(m->m_grid.host, true);
+            }
+            j->grids.upload();
+            auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
+            j->a_tot = load(a_tot);
+            j->cdf = load(cdf);
+            j->r_tot = load(r_tot);
+            j->emission = load(emission);
+            j->t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
+            j->key = std::move(key);
+            m_joined = std::move(j);
+        }
+        // each member's Q and roughness, read at every join (a few floats)
+        std::vector<float> q, alpha;
+        for (const Bispectral *b : members) {
+            const auto *m = static_cast<const FluoQd *>(b);
+            q.push_back(dr::slice(dr::detach(m->m_q)));
+            alpha.push_back(dr::slice(dr::detach(m->m_alpha_v)));
+        }
+        auto j = std::make_shared<JoinedTables>(*m_joined);
+        j->q = dr::load<FloatStorage>(q.data(), q.size());
+        j->alpha = dr::load<FloatStorage>(alpha.data(), alpha.size());
+        return j;
+    }
+    Choice jit_choose_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,
+                             const Wavelength &u1, const Wavelength &u2, double range_lo, double range_hi,
+                             Mask active) const override {
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) joined, (void) member, (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(si.wavelengths);
+        } else {
+            const auto &j = *static_cast<const JoinedTables *>(joined.get());
+            Hit h;
+            h.model[0] = joined_model(j, member, active);
+            h.weight[0] = Float(1.f);
+            h.q = dr::gather<Float>(j.q, member, active);
+            h.alpha = dr::gather<Float>(j.alpha, member, active);
+            return choose_at(h, si, u1, u2, range_lo, range_hi, active);
+        }
+    }
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    jit_reradiation_joined(const Joined &joined, const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad,
+                           const UInt32 &local, const Vector3f &wo_a, const Vector3f &wo_b,
+                           Mask active) const override {
+        const auto &j = *static_cast<const JoinedTables *>(joined.get());
+        return reradiation_at(joined_model(j, local, active), dr::gather<Float>(j.alpha, local, active), si, rerad,
+                              wo_a, wo_b, active);
     }
 
     /// lobe(ωi, ωo)·A_tot(ωi·h, λi)·rerad towards both directions (si.wavelengths = λi), of
@@ -638,23 +654,8 @@ public:
                                                                         const UInt32 &local, const Vector3f &wo_a,
                                                                         const Vector3f &wo_b,
                                                                         Mask active) const override {
-        UnpolarizedSpectrum out_a(0.f), out_b(0.f);
-        if constexpr (is_spectral_v<Spectrum>) {
-            ModelAt mo = model_at(local, active);
-            Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : m_alpha_v;
-            auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
-            auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
-                Mask on = active && (dr::grad_enabled(rerad[w]) ? Mask(true) : Mask(rerad[w] != 0.f));
-                Cell c = cell(mo, si.wavelengths[w], on);
-                out_a[w] = rerad[w] * lobe_a * bilinear_ad(m_a_tot, &Tangents::a_tot, c_a, c, mo, on);
-                out_b[w] = rerad[w] * lobe_b * bilinear_ad(m_a_tot, &Tangents::a_tot, c_b, c, mo, on);
-            }
-        } else {
-            (void) si, (void) rerad, (void) local, (void) wo_a, (void) wo_b, (void) active;
-        }
-        return { out_a, out_b };
+        Float alpha = textured() ? level_alpha(local % (uint32_t) m_tex.alphas.size()) : m_alpha_v;
+        return reradiation_at(model_at(local, active), alpha, si, rerad, wo_a, wo_b, active);
     }
 
     std::string to_string() const override {
@@ -682,12 +683,33 @@ private:
     /// The longest λ grid of the baked models.
     uint32_t grid_max() const { return textured() ? m_grids.n_max : m_grid.n; }
 
+    /// Many materials: the tables of the members of a class (jit_join), as a textured
+    /// material's models (one per member), with each member's Q and roughness.
+    struct JoinedTables {
+        fluo_detail::LaneGridSet<Float> grids;
+        FloatStorage a_tot, cdf, r_tot, emission, q, alpha;
+        UInt32Storage t_off;
+        std::vector<std::pair<const void *, uint64_t>> key; ///< the members and their builds
+    };
+
     /// One baked model as a lane reads it: its tables at offset `off` ([rows][n] row major)
     /// and its λ grid (textured; a uniform material's is m_grid, with its bucket index).
     struct ModelAt {
         UInt32 index, off, n;
         GridAt grid;
+        const JoinedTables *joined = nullptr; ///< the tables read (null: the material's own)
     };
+    ModelAt joined_model(const JoinedTables &j, const UInt32 &m, const Mask &active) const {
+        GridAt g = j.grids.at(m, active);
+        return { m, dr::gather<UInt32>(j.t_off, m, active), g.n, g, &j };
+    }
+    /// One of the tables (m_a_tot, m_cdf, m_r_tot) as model mo reads it.
+    const FloatStorage &tab(const ModelAt &mo, const FloatStorage &own) const {
+        if (!mo.joined)
+            return own;
+        return &own == &m_a_tot ? mo.joined->a_tot : &own == &m_cdf ? mo.joined->cdf : mo.joined->r_tot;
+    }
+    uint32_t grid_max(const ModelAt &mo) const { return mo.joined ? mo.joined->grids.n_max : grid_max(); }
     ModelAt model_at(const UInt32 &m, const Mask &active) const {
         if (!textured())
             return { UInt32(0), UInt32(0), m_grid.v_n, GridAt{} };
@@ -699,7 +721,8 @@ private:
         return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.n, b.n),
                  GridAt{ dr::select(m, g.off, h.off), dr::select(m, g.n, h.n), dr::select(m, g.b_off, h.b_off),
                          dr::select(m, g.b_n, h.b_n), dr::select(m, g.lo, h.lo), dr::select(m, g.hi, h.hi),
-                         dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) } };
+                         dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) },
+                 a.joined };
     }
     static Cell select_cell(const Mask &m, const Cell &a, const Cell &b) {
         return { dr::select(m, a.k, b.k), dr::select(m, a.f, b.f), dr::select(m, a.x0, b.x0),
@@ -708,17 +731,17 @@ private:
 
     /// The cell of λ in a model's grid (uniform: the bucket index, else binary search).
     Cell cell(const ModelAt &mo, const Float &lambda, const Mask &active) const {
-        if (!textured())
+        if (!textured() && !mo.joined)
             return m_grid.cell(lambda, active);
         Float x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
-        auto [k, x0, x1] = m_grids.cell(mo.grid, x, active);
+        auto [k, x0, x1] = (mo.joined ? mo.joined->grids : m_grids).cell(mo.grid, x, active);
         return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
     }
     /// Node k of a model's grid.
     Float node(const ModelAt &mo, const UInt32 &k, const Mask &active) const {
-        if (!textured())
+        if (!textured() && !mo.joined)
             return dr::gather<Float>(m_grid.nodes, k, active);
-        return dr::gather<Float>(m_grids.nodes, mo.grid.off + k, active);
+        return dr::gather<Float>((mo.joined ? mo.joined->grids : m_grids).nodes, mo.grid.off + k, active);
     }
 
     /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
@@ -760,6 +783,111 @@ private:
             run += w;
         }
         return p;
+    }
+
+    /// jit_choose at a hit (its models' tables: the material's own, or joined ones).
+    Choice choose_at(const Hit &h, const SurfaceInteraction3f &si, const Wavelength &u1_, const Wavelength &u2,
+                     double range_lo, double range_hi, Mask active) const {
+        const Wavelength &lambda_o = si.wavelengths;
+        if constexpr (!is_spectral_v<Spectrum>) {
+            (void) h, (void) u1_, (void) u2, (void) range_lo, (void) range_hi, (void) active;
+            return this->elastic_only(lambda_o);
+        } else {
+            Float cos_i = Frame3f::cos_theta(si.wi);
+            // The cells of λo serve the elastic weight and, where λo is below the range's top,
+            // the excitation interval's upper end. Fluorescent: coated.
+            Wavelength u1 = u1_;
+            Pick p = pick(h, u1[0]);
+            const ModelAt &mo = p.model;
+            Cells cells;
+            for (size_t w = 0; w < cells.size(); ++w)
+                cells[w] = cell(mo, lambda_o[w], active);
+            u1[0] = p.u;
+            fluo_detail::rotate_hero(u1); // uniform again given the pick
+            Emission em = emission_of(mo, active); // with radius's and density's gradients
+            // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
+            // weight positive where the elastic lobe is keeps the estimator unbiased; this one
+            // spares the substrate's eta/k lookups).
+            UnpolarizedSpectrum we;
+            for (size_t w = 0; w < cells.size(); ++w)
+                we[w] = dr::maximum(bilinear(tab(mo, m_r_tot), dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
+            // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
+            // within the model's excitation range.
+            Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
+            Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
+            Wavelength lambda_i = lambda_o;
+            UnpolarizedSpectrum scale(0.f), rerad(0.f);
+            WMask shifted(false);
+            // The A_tot row nearest cos θi (as the Rust model's sampling).
+            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
+            UInt32 last = mo.n - 1;
+            // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
+            // drawn and dQ of the reradiation Q·e would be lost).
+            Float q_choice = dr::detach(h.q);
+            if (dr::grad_enabled(h.q))
+                q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
+            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
+                Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
+                Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
+                Float e_ad = dr::select(ok, emission(lo, em), 0.f), e = dr::detach(e_ad);
+                ok &= e > 0.f;
+                Mask below = lo < hi_r;
+                Cell cb = select_cell(below, cells[w], c_hi);
+                Float c_a = running(mo, row, ca, ok), c_b = running(mo, row, cb, ok);
+                Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
+                ok &= mass > 0.f;
+                fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
+                if constexpr (!dr::is_jit_v<Float>)
+                    if (!choice.shifted) { // (scalar variants draw λi only where the shift is taken)
+                        scale[w] = choice.weight(0.f, u1[w]);
+                        continue;
+                    }
+                // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
+                // then the cell's quadratic root (cancellation-free form); the search runs
+                // over the longest grid, each lane's row clamped to its own.
+                Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
+                const FloatStorage &cdf = tab(mo, m_cdf), &a_tot = tab(mo, m_a_tot);
+                UInt32 k = dr::binary_search<UInt32>(1, grid_max(mo) - 1, [&](const UInt32 &i) {
+                               return dr::gather<Float>(cdf, row + dr::minimum(i, last), ok) <= target;
+                           }) - 1;
+                k = dr::clip(k, ca.k, cb.k);
+                Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
+                Float f0 = dr::gather<Float>(a_tot, row + k, ok), f1 = dr::gather<Float>(a_tot, row + k + 1, ok);
+                Float h_ = x1 - x0;
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(cdf, row + k, ok));
+                Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
+                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
+                scale[w] = choice.weight(pdf, u1[w]);
+                shifted[w] = choice.shifted;
+                lambda_i[w] = dr::select(choice.shifted, x, lo);
+                rerad[w] = dr::select(choice.shifted, h.q * e_ad, 0.f); // Q·e(λo | λi), nm⁻¹
+            }
+            return { lambda_i, scale, shifted, rerad, mo.index };
+        }
+    }
+
+    /// jit_reradiation of model `mo` at roughness alpha.
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> reradiation_at(const ModelAt &mo, const Float &alpha,
+                                                                       const SurfaceInteraction3f &si,
+                                                                       const UnpolarizedSpectrum &rerad,
+                                                                       const Vector3f &wo_a, const Vector3f &wo_b,
+                                                                       Mask active) const {
+        UnpolarizedSpectrum out_a(0.f), out_b(0.f);
+        if constexpr (is_spectral_v<Spectrum>) {
+            auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
+            auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
+            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
+                // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
+                Mask on = active && (dr::grad_enabled(rerad[w]) ? Mask(true) : Mask(rerad[w] != 0.f));
+                Cell c = cell(mo, si.wavelengths[w], on);
+                out_a[w] = rerad[w] * lobe_a * bilinear_ad(tab(mo, m_a_tot), &Tangents::a_tot, c_a, c, mo, on);
+                out_b[w] = rerad[w] * lobe_b * bilinear_ad(tab(mo, m_a_tot), &Tangents::a_tot, c_b, c, mo, on);
+            }
+        } else {
+            (void) mo, (void) alpha, (void) si, (void) rerad, (void) wo_a, (void) wo_b, (void) active;
+        }
+        return { out_a, out_b };
     }
 
     /// A numeric parameter at si: its texture's value (Mitsuba's own eval_1), else the float.
@@ -901,10 +1029,11 @@ private:
         return dr::lerp(dr::gather<Float>(t, row + c.k, active), dr::gather<Float>(t, row + c.k + 1, active), c.f);
     }
     /// The running integral of row `row` (offset) of A_tot up to the cell's λ.
-    Float running(const UInt32 &row, const Cell &c, const Mask &active) const {
-        Float f0 = dr::gather<Float>(m_a_tot, row + c.k, active), f1 = dr::gather<Float>(m_a_tot, row + c.k + 1, active);
+    Float running(const ModelAt &mo, const UInt32 &row, const Cell &c, const Mask &active) const {
+        const FloatStorage &a_tot = tab(mo, m_a_tot);
+        Float f0 = dr::gather<Float>(a_tot, row + c.k, active), f1 = dr::gather<Float>(a_tot, row + c.k + 1, active);
         Float half = .5f * c.f * (c.x1 - c.x0);
-        return dr::gather<Float>(m_cdf, row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
+        return dr::gather<Float>(tab(mo, m_cdf), row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
     }
     /// Rows j, j + 1 around cos θ and the fraction between them.
     std::pair<UInt32, Float> rows_at(const Float &cos_theta) const {
@@ -1012,7 +1141,7 @@ private:
     Float bilinear_ad(const FloatStorage &t, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
                       const Cell &c, const ModelAt &mo, const Mask &active) const {
         Float v = bilinear(t, cos_theta, c, mo, active);
-        if (const Tangents *tg = tangents())
+        if (const Tangents *tg = mo.joined ? nullptr : tangents())
             for (size_t p = 0; p < 2; ++p)
                 if (wants(p))
                     v = dr::fmadd(delta(p), bilinear((tg->*table)[p], cos_theta, c, mo, active), v);
@@ -1037,7 +1166,7 @@ private:
         Float peak, scale, inv_norm, lmin, lmax, ex_lo, ex_hi;
     };
     Emission emission_of(const ModelAt &mo, const Mask &active) const {
-        if (!textured()) {
+        if (!textured() && !mo.joined) {
             Emission e{ m_em[0], m_em[1], m_em[2], m_em[3], m_em[4], m_em[5], m_em[6] };
             if (const Tangents *t = tangents())
                 for (size_t p = 0; p < 2; ++p) {
@@ -1053,7 +1182,8 @@ private:
         Emission e;
         Float *fields[EmissionFields] = { &e.peak, &e.scale, &e.inv_norm, &e.lmin, &e.lmax, &e.ex_lo, &e.ex_hi };
         for (uint32_t i = 0; i < EmissionFields; ++i)
-            *fields[i] = dr::gather<Float>(m_emission, mo.index * EmissionFields + i, active);
+            *fields[i] = dr::gather<Float>(mo.joined ? mo.joined->emission : m_emission, mo.index * EmissionFields + i,
+                                           active);
         return e;
     }
     static constexpr uint32_t EmissionFields = 7;
@@ -1121,12 +1251,16 @@ private:
         return n;
     }
 
-    /// One warning per reduction (a textured material: its worst model) where MaxTerms terms
-    /// hold the reduced reradiation less well than expected.
+    /// A warning where MaxTerms terms hold a reduction (a textured material: its worst model)
+    /// less well than expected: once per process, and again only for one at least twice as
+    /// far off as the last reported (200 coatings print a line or two, not 200).
     static void warn_low_rank(double error, const char *what) {
-        if (error > WarnLowRank)
+        static std::atomic<double> reported{ 0.0 };
+        double last = reported.load();
+        if (error > WarnLowRank && error > 2.0 * last && reported.compare_exchange_strong(last, error))
             Log(Warn, "%s: the reduced reradiation of %s is held by %zu terms to %.2g of its largest entry "
-                      "(expected below %.2g): RGB renders may be off by about that much", Plugin, what, MaxTerms,
+                      "(expected below %.2g): RGB renders may be off by about that much (further coatings "
+                      "held less well are reported only when twice as far off)", Plugin, what, MaxTerms,
                 error, WarnLowRank);
     }
     /// Truncation error above which warn_low_rank speaks: ten times Rust's rank tolerance
@@ -1230,7 +1364,8 @@ private:
         dr::make_opaque(m_em[0], m_em[1], m_em[2], m_em[3], m_em[4], m_em[5], m_em[6], m_alpha_v, m_q, m_radius,
                         m_density);
         m_coated = m_config.density > 0.0; // textured: the largest density level
-        ++m_build;
+        static std::atomic<uint64_t> builds{ 0 };
+        m_build = ++builds;
     }
 
     /// The traversed members from the configuration (at load).
@@ -1258,7 +1393,11 @@ private:
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
-    uint64_t m_build = 0; ///< counts rebuilds: keys the reductions below and the tangents
+    mutable std::shared_ptr<const JoinedTables> m_joined; ///< the last tables this material joined
+    /// this build, numbered across all materials (no two builds share one, even where a new
+    /// material reuses a freed one's address): keys the reductions below, the tangents and
+    /// the joined tables (jit_join)
+    uint64_t m_build = 0;
     mutable Tangents m_tangents; ///< the spectral tables' derivatives (tangents())
     std::array<fluo_detail::QdSamples, 4> m_samples; ///< eta, k, qd_eta, qd_k as Rust got them
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes), and

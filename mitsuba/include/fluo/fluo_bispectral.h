@@ -276,18 +276,31 @@ public:
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 
-    /// Spectral, many materials (JIT variants): a material whose choice depends on a few
-    /// numbers of its own (no texture, no gradient) appends them to `row` (host) and
-    /// returns true; any material of its class then makes the choice of every lane whose
-    /// material did so with jit_choose_rows, from its row gathered per lane (`rows`: the
-    /// class's rows, each as long; `row`: the lane's). One evaluation per class instead
-    /// of a callable traced per material.
-    virtual bool jit_choice_row(std::vector<float> & /* row */) const { return false; }
-    virtual Choice jit_choose_rows(const DynamicBuffer<Float> & /* rows */, const UInt32 & /* row */,
-                                   const SurfaceInteraction3f &si, const Wavelength & /* u1 */,
-                                   const Wavelength & /* u2 */, double /* range_lo */, double /* range_hi */,
-                                   Mask /* active */) const {
+    /// Spectral, many materials (JIT variants): a material whose choice and reradiation lobe
+    /// read data of its own alone (no texture, no gradient) is joinable; one member of its
+    /// class joins the data of every joinable member (jit_join, `members`: the class's, this
+    /// one among them; null: none joined) and then evaluates the lanes of all of them from
+    /// it, with `member` the lane's index in `members` (read per lane by the BSDF's registry
+    /// id). One evaluation per class instead of a callable traced per material.
+    using Joined = std::shared_ptr<const void>;
+    virtual bool jit_joinable() const { return false; }
+    /// Members of one class join only with those of an equal tag: what differs between
+    /// materials but enters the joined evaluation as a constant of the kernel (fluo_qd: its
+    /// microfacet distribution).
+    virtual std::string jit_join_tag() const { return {}; }
+    virtual Joined jit_join(const std::vector<const BispectralBSDF *> & /* members */) const { return nullptr; }
+    virtual Choice jit_choose_joined(const Joined & /* joined */, const UInt32 & /* member */,
+                                     const SurfaceInteraction3f &si, const Wavelength & /* u1 */,
+                                     const Wavelength & /* u2 */, double /* range_lo */, double /* range_hi */,
+                                     Mask /* active */) const {
         return elastic_only(si.wavelengths);
+    }
+    /// jit_reradiation of joined members (`local`: jit_choose_joined's); Lambertian by default.
+    virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
+    jit_reradiation_joined(const Joined & /* joined */, const SurfaceInteraction3f &si,
+                           const UnpolarizedSpectrum &rerad, const UInt32 & /* local */, const Vector3f &wo_a,
+                           const Vector3f &wo_b, Mask /* active */) const {
+        return { rerad * lambert(si, wo_a), rerad * lambert(si, wo_b) };
     }
 
     /// RGB reduced transport of a material whose reradiation varies over the surface among
@@ -433,76 +446,79 @@ private:
 };
 
 /// With more fluorescent materials than this, a JIT render reads the per-material data that
-/// can be read per lane from tables (FluorescentSet's rows, the reduced transport's operators)
-/// rather than tracing a call per material; with fewer, literals keep their kernels small.
+/// can be read per lane from tables (FluorescentSet's joined classes, the reduced transport's
+/// operators) rather than tracing a call per material; with fewer, literals keep their kernels
+/// small.
 inline constexpr size_t ManyMaterials = 8;
 
-/// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them
-/// (more than ManyMaterials), those that give a row (Bispectral::jit_choice_row) grouped by
-/// class: SurfaceShift::choose reads their rows per lane by the BSDF's registry id and
-/// calls one material per class, where a dispatch would trace a callable per material
-/// (200 distinct dyes: most of their first render).
+/// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them (more
+/// than ManyMaterials), the joinable ones (Bispectral::jit_join) grouped by class:
+/// SurfaceShift reads a lane's member index by the BSDF's registry id and calls one material
+/// per class, where a dispatch would trace a callable per material (200 distinct dyes or
+/// coatings: most of their first render).
 template <typename Float, typename Spectrum>
 class FluorescentSet : public InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF<Float, Spectrum>> {
 public:
     using Bispectral = BispectralBSDF<Float, Spectrum>;
     using UInt32 = dr::uint32_array_t<Float>;
     struct Group {
-        const Bispectral *first; ///< makes the class's choices
-        DynamicBuffer<Float> rows;
-        DynamicBuffer<UInt32> slots; ///< registry id → 1 + row (0: not in the group)
+        const Bispectral *first; ///< evaluates the class's lanes
+        typename Bispectral::Joined joined;
+        DynamicBuffer<UInt32> slots; ///< registry id → 1 + member index (0: not in the group)
         uint32_t n_slots;
     };
 
     template <typename B> void assign(const std::vector<B *> &objects) {
         InterfaceSet<BSDF<Float, Spectrum>, Bispectral>::assign(objects);
         m_groups.clear();
-        m_rowed.clear();
+        m_joined.clear();
         if constexpr (dr::is_jit_v<Float> && is_spectral_v<Spectrum>) {
             if (objects.size() <= ManyMaterials)
                 return;
-            struct Building {
-                const Bispectral *first;
-                size_t width;
-                std::vector<float> rows;
-                std::vector<uint32_t> slots;
+            struct Class {
+                std::string name;
+                std::vector<const Bispectral *> members;
+                std::vector<const BSDF<Float, Spectrum> *> bases;
+                std::vector<uint32_t> ids;
             };
-            std::vector<std::pair<std::string, Building>> building;
+            std::vector<Class> classes;
             for (B *b : objects) {
-                std::vector<float> row;
                 const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
                 uint32_t id = base ? jit_registry_id(base) : 0u;
-                if (id == 0 || !b->jit_choice_row(row) || row.empty())
+                if (id == 0 || !b->jit_joinable())
                     continue;
-                std::string cls = typeid(*b).name();
-                auto it = std::find_if(building.begin(), building.end(), [&](const auto &g) { return g.first == cls; });
-                if (it == building.end())
-                    it = building.insert(building.end(), { cls, Building{ b, row.size(), {}, {} } });
-                Building &g = it->second;
-                if (row.size() != g.width)
-                    continue;
-                if (g.slots.size() <= id)
-                    g.slots.resize(id + 1, 0u);
-                g.slots[id] = (uint32_t) (g.rows.size() / g.width) + 1u;
-                g.rows.insert(g.rows.end(), row.begin(), row.end());
-                m_rowed.push_back(base);
+                std::string name = std::string(typeid(*b).name()) + "/" + b->jit_join_tag();
+                auto it = std::find_if(classes.begin(), classes.end(), [&](const Class &c) { return c.name == name; });
+                if (it == classes.end())
+                    it = classes.insert(classes.end(), Class{ name, {}, {}, {} });
+                it->members.push_back(b);
+                it->bases.push_back(base);
+                it->ids.push_back(id);
             }
-            for (auto &[cls, g] : building)
-                m_groups.push_back(Group{ g.first, dr::load<DynamicBuffer<Float>>(g.rows.data(), g.rows.size()),
-                                          dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
-                                          (uint32_t) g.slots.size() });
-            std::sort(m_rowed.begin(), m_rowed.end());
+            for (Class &c : classes) {
+                typename Bispectral::Joined joined = c.members.front()->jit_join(c.members);
+                if (!joined)
+                    continue;
+                std::vector<uint32_t> slots(*std::max_element(c.ids.begin(), c.ids.end()) + 1, 0u);
+                for (size_t i = 0; i < c.ids.size(); ++i)
+                    slots[c.ids[i]] = (uint32_t) i + 1u;
+                m_groups.push_back(Group{ c.members.front(), std::move(joined),
+                                          dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size()),
+                                          (uint32_t) slots.size() });
+                m_joined.insert(m_joined.end(), c.bases.begin(), c.bases.end());
+            }
+            std::sort(m_joined.begin(), m_joined.end());
         }
     }
     const std::vector<Group> &groups() const { return m_groups; }
-    /// Whether `b`'s choices are made through its group's rows.
-    bool rowed(const BSDF<Float, Spectrum> *b) const { return std::binary_search(m_rowed.begin(), m_rowed.end(), b); }
+    /// Whether `b`'s lanes are evaluated through its group.
+    bool joined(const BSDF<Float, Spectrum> *b) const { return std::binary_search(m_joined.begin(), m_joined.end(), b); }
     /// Whether some material of the set is reached through a call.
-    bool dispatched() const { return m_rowed.size() < this->size(); }
+    bool dispatched() const { return m_joined.size() < this->size(); }
 
 private:
     std::vector<Group> m_groups;
-    std::vector<const BSDF<Float, Spectrum> *> m_rowed;
+    std::vector<const BSDF<Float, Spectrum> *> m_joined;
 };
 
 /// A fluorescent surface vertex of the spectral integrators (fluo_path,
@@ -517,6 +533,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
     UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
     WMask shifted = false;
     UInt32 local = 0; ///< the model a varying material picked (jit_choose)
+    UInt32 group = 0; ///< 1 + the lane's group in FluorescentSet (0: none)
 
     /// Choose per hero wavelength for the materials in `set`; si.wavelengths become the
     /// wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range. One 2D
@@ -536,12 +553,14 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         if constexpr (dr::is_jit_v<Float>) {
             if (!set.groups().empty()) {
                 UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
-                for (const auto &g : set.groups()) {
+                for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
+                    const auto &g = set.groups()[gi];
                     Mask known = active && id < g.n_slots;
-                    UInt32 row = dr::gather<UInt32>(g.slots, id, known);
-                    Mask in = known && row > 0u;
-                    auto cg = g.first->jit_choose_rows(g.rows, row - 1u, si, u1, u2, lo, hi, in);
+                    UInt32 slot = dr::gather<UInt32>(g.slots, id, known);
+                    Mask in = known && slot > 0u;
+                    auto cg = g.first->jit_choose_joined(g.joined, slot - 1u, si, u1, u2, lo, hi, in);
                     c = select_tuple(in, cg, c);
+                    group = dr::select(in, gi + 1u, group);
                     rest &= !in;
                 }
             }
@@ -552,7 +571,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                 [lo, hi, &set](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
                                const Wavelength &u2_, const Mask &on) {
                     const Bispectral *f = set.find(b);
-                    if (f && !set.rowed(b))
+                    if (f && !set.joined(b))
                         return f->jit_choose(si_, u1_, u2_, lo, hi, on);
                     return Bispectral::elastic_only(si_.wavelengths);
                 },
@@ -575,15 +594,30 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                Spectrum &weight) const {
         UnpolarizedSpectrum v_em, v_bs;
         if (directional) {
-            std::tie(v_em, v_bs) = dispatch_any(
-                bsdf,
-                [&set](const BSDF *b, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_,
-                       const UInt32 &lc_, const Vector3f &wa, const Vector3f &wb, const Mask &on) {
-                    if (const Bispectral *f = set.find(b))
-                        return f->jit_reradiation(si_, rr_, lc_, wa, wb, on);
-                    return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
-                },
-                si, rerad, local, wo, bs.wo, active && dr::any(shifted));
+            Mask rest = active && dr::any(shifted);
+            v_em = v_bs = 0.f;
+            for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
+                const auto &g = set.groups()[gi];
+                Mask in = rest && group == gi + 1u;
+                auto [a, b] = g.first->jit_reradiation_joined(g.joined, si, rerad, local, wo, bs.wo, in);
+                v_em = dr::select(in, a, v_em);
+                v_bs = dr::select(in, b, v_bs);
+                rest &= !in;
+            }
+            if (set.dispatched()) {
+                auto [a, b] = dispatch_any(
+                    bsdf,
+                    [&set](const BSDF *b_, const SurfaceInteraction3f &si_, const UnpolarizedSpectrum &rr_,
+                           const UInt32 &lc_, const Vector3f &wa, const Vector3f &wb, const Mask &on) {
+                        const Bispectral *f = set.find(b_);
+                        if (f && !set.joined(b_))
+                            return f->jit_reradiation(si_, rr_, lc_, wa, wb, on);
+                        return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                    },
+                    si, rerad, local, wo, bs.wo, rest);
+                v_em = dr::select(rest, a, v_em);
+                v_bs = dr::select(rest, b, v_bs);
+            }
         } else {
             v_em = rerad * Bispectral::lambert(si, wo);
             v_bs = rerad * Bispectral::lambert(si, bs.wo);

@@ -150,6 +150,23 @@ public:
     }
 };
 
+/// A JIT array's n lanes on the host (detached). An array of one lane is broadcast: Dr.Jit
+/// folds constant expressions (a texture or spectrum that does not vary, coefficients that
+/// cancel) to a single lane, which a plain read-back of n would leave unfilled.
+template <typename Float> std::vector<float> host_lanes(const Float &value, size_t n) {
+    auto v = dr::detach(value);
+    std::vector<float> out(n);
+    if (dr::width(v) == 1) {
+        std::fill(out.begin(), out.end(), (float) dr::slice(v));
+        return out;
+    }
+    if (dr::width(v) != n)
+        Throw("host_lanes: %zu lanes, %zu expected", dr::width(v), n);
+    dr::eval(v);
+    dr::store(out.data(), v);
+    return out;
+}
+
 /// Every entry of the data tensors that `obj`'s traverse() shows, its children's included
 /// (bitmap texels, grid voxels, in any precision): `f(values, channels)` per tensor, the
 /// values on the host as floats.

@@ -196,10 +196,7 @@ template <typename Float, typename Spectrum> struct QdSetup {
             }
             UnpolarizedSpectrum v = tex->eval(si, true);
             for (size_t j = 0; j < W; ++j) {
-                std::vector<float> w(m);
-                Float vj = dr::zeros<Float>(m) + dr::detach(v[j]); // a uniform texture returns one value
-                dr::eval(vj);
-                dr::store(w.data(), vj);
+                std::vector<float> w = host_lanes(v[j], m); // (a uniform texture returns one value)
                 for (size_t i = 0; i * W + j < n; ++i)
                     out[i * W + j] = w[i];
             }
