@@ -106,17 +106,17 @@ The fluorescent materials are reached through ``dr::dispatch`` (a direct call in
 scalar variants) and evaluate baked tables and closed forms per lane; no variant calls
 Rust per vertex. With more than 8 fluorescent materials in the llvm/cuda variants, those
 that do not vary over the surface and carry no gradient are read from one table per lane
-(by the BSDF's registry id) instead: in RGB their operators, formed once per render; in
-spectral variants each class's data joined (``fluo_jung``'s dye numbers, ``fluo_qd``'s
-coating tables), one choice and one reradiation lobe per class. Dr.Jit traces a dispatch
-once per material, which made 200 distinct dyes compile 2.3× as long as 200 ``diffuse``
-(1.2–1.6× so), and 200 coatings load and first-render 4.3× as long as 200
-``roughconductor`` (3.4× so: the rest is their tables' bake at load). **Gradients**
-(``llvm_ad_*``, ``cuda_ad_*``): the materials'
-probabilities are detached, their values differentiable, so ``mi.render`` with
-``params`` gives gradients of dye parameters; a sampled direction that moves with a
-parameter (a roughness) is detached and the BSDF's value differentiated there, as
-Mitsuba's ``path`` does (differentiating the sample's motion gave d/dalpha of the wrong
+(by the BSDF's registry id) instead: in RGB their operators, formed once per render, and a
+direction-dependent lobe's node weights and matrices (the lobe itself from one member of
+the class); in spectral variants each class's data joined (``fluo_jung``'s dye numbers,
+``fluo_qd``'s coating tables), one choice and one reradiation lobe per class. Dr.Jit traces
+a dispatch once per material, which made 200 distinct dyes compile 2.3× as long as 200
+``diffuse`` (1.2–1.6× so), and 200 coatings load and first-render 4.3× as long as 200
+``roughconductor`` (spectral 3.0×, the rest being their tables' bake at load; RGB 2.3×).
+**Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials' probabilities are detached,
+their values differentiable, so ``mi.render`` with ``params`` gives gradients of dye
+parameters; a sampled direction that moves with a parameter (a roughness) is detached and
+the BSDF's value differentiated there, as Mitsuba's ``path`` does (differentiating the sample's motion gave d/dalpha of the wrong
 sign, for ``roughconductor`` as for ``fluo_qd``).
 
 **Polarized variants** (``scalar_spectral_polarized``, ``llvm_ad_spectral_polarized``,

@@ -566,7 +566,7 @@ public:
     /// and distribution as one model of a joined table set (as a textured material's
     /// models), with its own Q and roughness.
     bool jit_joinable() const override {
-        return is_spectral_v<Spectrum> && dr::is_jit_v<Float> && !textured() && dr::width(m_a_tot) > 0 &&
+        return dr::is_jit_v<Float> && !textured() && (!is_spectral_v<Spectrum> || dr::width(m_a_tot) > 0) &&
                !dr::grad_enabled(m_q) && !dr::grad_enabled(m_radius) && !dr::grad_enabled(m_density) &&
                !dr::grad_enabled(m_alpha) && !dr::grad_enabled(m_alpha_v);
     }
@@ -580,7 +580,9 @@ public:
                 return nullptr; // (one table layout per class)
             key.emplace_back(m, m->m_build);
         }
-        if (!m_joined || m_joined->key != key) {
+        if (!is_spectral_v<Spectrum>) { // RGB: the lobe's roughness alone (jit_lobe_joined)
+            m_joined = std::make_shared<JoinedTables>();
+        } else if (!m_joined || m_joined->key != key) {
             auto j = std::make_shared<JoinedTables>();
             std::vector<float> a_tot, cdf, r_tot, emission;
             std::vector<uint32_t> t_off;
@@ -637,6 +639,11 @@ public:
             h.alpha = dr::gather<Float>(j.alpha, member, active);
             return choose_at(h, si, u1, u2, range_lo, range_hi, active);
         }
+    }
+    std::pair<Float, Float> jit_lobe_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,
+                                            const Vector3f &wo, Mask active) const override {
+        const auto &j = *static_cast<const JoinedTables *>(joined.get());
+        return lobe(si, wo, dr::gather<Float>(j.alpha, member, active), active);
     }
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
     jit_reradiation_joined(const Joined &joined, const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad,
@@ -1098,7 +1105,8 @@ private:
                     // (RGB: the channels' tables alone, as rebuild())
                     return fluo::qd_jit_tables(*m, JitCosNodes,
                                                is_spectral_v<Spectrum> ? grid : rust::Slice<const double>(),
-                                               rust::Slice<const double>(extra.data(), extra.size()));
+                                               rust::Slice<const double>(extra.data(), extra.size()),
+                                               is_spectral_v<Spectrum>);
                 } catch (const std::exception &) {
                     return std::nullopt;
                 }
@@ -1306,7 +1314,8 @@ private:
         m_grids = fluo_detail::LaneGridSet<Float>();
         for (const fluo::QdModel *m : models) {
             fluo::QdJitTables t =
-                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(extra.data(), extra.size()));
+                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(extra.data(), extra.size()),
+                                    is_spectral_v<Spectrum>); // (RGB: the channels' tables alone)
             if (t.lambda.size() < 2 || t.rows < 2)
                 Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
                       Plugin, t.lambda.size(), t.rows);

@@ -303,8 +303,10 @@ mod bridge {
         fn qd_default_config() -> QdConfig;
         fn qd_is_fluorescent(model: &QdModel) -> bool;
         /// The tables of [`QdJitTables`] at `rows` cosines, with the coating's
-        /// coefficients also at `extra_nm` (the RGB channels' wavelengths).
-        fn qd_jit_tables(model: &QdModel, rows: usize, lambda: &[f64], extra_nm: &[f64]) -> QdJitTables;
+        /// coefficients also at `extra_nm` (the RGB channels' wavelengths); `spectral`
+        /// false: those alone (the λ tables left empty, `lambda` the model's grid).
+        fn qd_jit_tables(model: &QdModel, rows: usize, lambda: &[f64], extra_nm: &[f64], spectral: bool)
+            -> QdJitTables;
         fn qd_to_string(model: &QdModel) -> String;
         /// The coating's bispectral part, for the integrator.
         fn qd_fluorescence(model: &QdModel) -> &Fluorescence;
@@ -676,8 +678,12 @@ mod tests {
         let e = qd_new(&qd_default_config(), &eta, &k, &qd_eta, &qd_k).err().unwrap();
         assert!(e.contains("qd_eta"), "{e}");
         let m = qd_new(&qd_default_config(), &eta, &k, &none, &none).unwrap();
-        let t = qd_jit_tables(&m, 3, &[], &[400.0, 500.0, 600.0]);
+        let t = qd_jit_tables(&m, 3, &[], &[400.0, 500.0, 600.0], true);
         assert_eq!((t.extra_r_spe.len(), t.extra_pass.len()), (9, 9));
+        // RGB: the channels' coefficients alone, equal to those of the whole bake
+        let rgb = qd_jit_tables(&m, 3, &[], &[400.0, 500.0, 600.0], false);
+        assert_eq!((rgb.extra_r_spe, rgb.extra_pass), (t.extra_r_spe.clone(), t.extra_pass.clone()));
+        assert!(rgb.a_tot.is_empty() && rgb.r_tot.is_empty() && rgb.lambda == t.lambda);
         assert!(t.extra_r_spe.iter().all(|r| *r >= 0.0) && t.extra_pass.iter().all(|p| *p > 0.0 && *p <= 1.0));
         assert_eq!(qd_fluorescence(&m).model.name(), "qd");
         assert_eq!(Arc::strong_count(&m.coating), 2);
@@ -690,7 +696,7 @@ mod tests {
         let k = spectrum(&[300.0, 900.0], &[2.0, 8.0]);
         let none = spectrum(&[], &[]);
         let m = qd_new(&qd_default_config(), &eta, &k, &none, &none).unwrap();
-        let t = qd_jit_tables(&m, 5, &[], &[]);
+        let t = qd_jit_tables(&m, 5, &[], &[], true);
         assert!(!t.r_tot.is_empty() && t.r_tot.iter().all(|r| r.is_finite() && *r > 0.0 && *r <= 1.0));
     }
 }

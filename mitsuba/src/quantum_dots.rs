@@ -122,9 +122,25 @@ pub(crate) fn qd_is_fluorescent(model: &QdModel) -> bool {
     model.coating.is_fluorescent()
 }
 
-pub(crate) fn qd_jit_tables(model: &QdModel, rows: usize, lambda: &[f64], extra_nm: &[f64]) -> QdJitTables {
+pub(crate) fn qd_jit_tables(
+    model: &QdModel,
+    rows: usize,
+    lambda: &[f64],
+    extra_nm: &[f64],
+    spectral: bool,
+) -> QdJitTables {
     let m = &model.coating;
-    let t = if lambda.is_empty() { m.jit_tables(rows, extra_nm) } else { m.jit_tables_on(rows, lambda, extra_nm) };
+    let t = if !spectral {
+        // (the RGB variants read the channels' coefficients alone: the λ tables were most of
+        // an RGB coating's load)
+        let mut t = m.jit_tables_on(rows, &[], extra_nm);
+        t.lambda = m.table_lambda().to_vec();
+        t
+    } else if lambda.is_empty() {
+        m.jit_tables(rows, extra_nm)
+    } else {
+        m.jit_tables_on(rows, lambda, extra_nm)
+    };
     let p = m.params();
     let (excitation_lo, excitation_hi) = t.excitation.unwrap_or((0.0, 0.0));
     QdJitTables {

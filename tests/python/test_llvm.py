@@ -1157,7 +1157,7 @@ dr.eval(mi.render(s, spp=1))
                 assert (int(unique), int(total)) == (1, 10), (variant, name, site, unique, total)
             if name == "jung":  # its operator (RGB) or choice (spectral) is read per lane: no call of ours
                 assert "drjit::dispatch()" not in [site for site, _, _ in calls], (variant, calls)
-            if name.startswith("qd") and variant == "llvm_ad_spectral":  # choice and lobe joined (jit_join)
+            if name.startswith("qd"):  # choice and lobe (spectral), reduced lobe (RGB) joined: jit_join
                 assert "drjit::dispatch()" not in [site for site, _, _ in calls], (variant, name, calls)
 
 
@@ -1254,20 +1254,23 @@ def test23_many_materials_read_per_lane_equal_scalar(tmp_path):
 
 def test24_many_coatings_joined_equal_scalar(tmp_path):
     """Issue 32, the many-materials cost of fluo_qd: with more than 8 fluorescent materials,
-    the uniform coatings without gradients are joined (Bispectral::jit_join): one of them
-    makes the spectral choice and evaluates the direction-dependent reradiation of every
-    coating's lanes from their tables joined as one set, the lane's coating read by its
-    BSDF's registry id, instead of a callable traced per coating. A wall of twelve squares,
-    each its own material: nine distinct coatings (radius, density, quantum yield, roughness,
-    distribution, substrate: each table and number of the joined set is read for the right
-    lane or a square shows it), a coating with a checkerboard radius (not joinable: its own
-    call), fluo_jung (its own class, joined beside) and diffuse. llvm_ad_spectral equals
-    scalar_spectral (no joining there) square by square, by a pooled z over seeds; then a
+    the uniform coatings without gradients are joined (Bispectral::jit_join): in spectral
+    variants one of them makes the choice and evaluates the direction-dependent reradiation
+    of every coating's lanes from their tables joined as one set; in RGB the reduced
+    transport reads each coating's node weights and terms' matrices from one table and asks
+    the class for the lobe at the lane's roughness (fluo_reduced.h, joined_products); the
+    lane's coating is read by its BSDF's registry id, instead of a callable traced per
+    coating. A wall of twelve squares, each its own material: nine distinct coatings
+    (radius, density, quantum yield, roughness, Beckmann/GGX, gold or the default substrate:
+    each table and number of the joined set is read for the right lane or a square shows
+    it), a coating with a checkerboard radius (not joinable: its own call), fluo_jung with
+    its default reflectance (its own class) and diffuse. llvm equals the scalar variant (no
+    joining there) square by square, by a pooled z over seeds, in both llvm variants; then a
     coating with a gradient on its quantum yield among joined ones: AD equals central
     differences."""
-    def coating(i: int, extra: str = "") -> str:
+    def coating(i: int) -> str:
         substrate = '<string name="material" value="Au"/>' if i % 3 == 2 else ""
-        return (f'<bsdf type="fluo_qd"{extra}><float name="radius" value="{2.0 + 0.22 * i}"/>'
+        return (f'<bsdf type="fluo_qd"><float name="radius" value="{2.0 + 0.22 * i}"/>'
                 f'<float name="density" value="{0.35 + 0.07 * i}"/><float name="quantum_yield" value="{0.4 + 0.06 * i}"/>'
                 f'<float name="alpha" value="{0.12 + 0.04 * i}"/>'
                 f'<string name="distribution" value="{"ggx" if i % 2 else "beckmann"}"/>{substrate}</bsdf>')
@@ -1276,34 +1279,37 @@ def test24_many_coatings_joined_equal_scalar(tmp_path):
                '<float name="color1" value="3.3"/></texture></bsdf>')
     jung = '<bsdf type="fluo_jung"><float name="concentration" value="0.5"/></bsdf>'
     diffuse = '<bsdf type="diffuse"><rgb name="reflectance" value="0.4, 0.5, 0.6"/></bsdf>'
-    xml = tiles_xml(coatings + [checker, jung, diffuse], D65)
-    job = {"variant": "llvm_ad_spectral", "xml": xml, "spp": 64, "image": True}
     llvm_seeds, scalar_seeds = 4, 6
-    runs = run_llvm([{**job, "seed": 11 + s} for s in range(llvm_seeds)])
-    assert all("error" not in r for r in runs), runs[0].get("error")
-    a = np.stack([tile_means(np.array(r["image"])) for r in runs])
-    mi.set_variant("scalar_spectral")
-    scene = mi.load_string(xml)
-    b = np.stack([tile_means(np.array(mi.render(scene, spp=64, seed=s), dtype=np.float64))
-                  for s in range(scalar_seeds)])
-    assert np.all(b.mean(axis=(0, 2)) > 1e-3), "a black square: the comparison would be empty"
-    pooled = (np.var(a, axis=0, ddof=1) * (llvm_seeds - 1) + np.var(b, axis=0, ddof=1) * (scalar_seeds - 1)) / (
-        llvm_seeds + scalar_seeds - 2)
-    z = (a.mean(axis=0) - b.mean(axis=0)) / np.sqrt(pooled * (1 / llvm_seeds + 1 / scalar_seeds) + 1e-20)
-    rel = np.abs(a.mean(axis=0) - b.mean(axis=0)) / np.abs(b.mean(axis=(0, 2)))[:, None]
-    print(f"max |z| {np.abs(z).max():.2f}, max rel {rel.max():.4f}")
-    bad = [f"square {i}: llvm {a.mean(axis=0)[i]} scalar {b.mean(axis=0)[i]} z {z[i]}"
-           for i in np.nonzero(np.any((np.abs(z) > Z) & (rel > REL_FLOOR), axis=1))[0]]
+    bad = []
+    for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
+        xml = tiles_xml(coatings + [checker, jung, diffuse], D65, basis)
+        job = {"variant": v, "xml": xml, "spp": 64, "image": True}
+        runs = run_llvm([{**job, "seed": 11 + s} for s in range(llvm_seeds)])
+        assert all("error" not in r for r in runs), runs[0].get("error")
+        a = np.stack([tile_means(np.array(r["image"])) for r in runs])
+        mi.set_variant(v.replace("llvm_ad_", "scalar_"))
+        scene = mi.load_string(xml)
+        b = np.stack([tile_means(np.array(mi.render(scene, spp=64, seed=s), dtype=np.float64))
+                      for s in range(scalar_seeds)])
+        assert np.all(b.mean(axis=(0, 2)) > 1e-3), f"{v}: a black square, the comparison would be empty"
+        pooled = (np.var(a, axis=0, ddof=1) * (llvm_seeds - 1) + np.var(b, axis=0, ddof=1) * (scalar_seeds - 1)) / (
+            llvm_seeds + scalar_seeds - 2)
+        z = (a.mean(axis=0) - b.mean(axis=0)) / np.sqrt(pooled * (1 / llvm_seeds + 1 / scalar_seeds) + 1e-20)
+        rel = np.abs(a.mean(axis=0) - b.mean(axis=0)) / np.abs(b.mean(axis=(0, 2)))[:, None]
+        print(f"{v}: max |z| {np.abs(z).max():.2f}, max rel {rel.max():.4f}")
+        bad += [f"{v} square {i}: llvm {a.mean(axis=0)[i]} scalar {b.mean(axis=0)[i]} z {z[i]}"
+                for i in np.nonzero(np.any((np.abs(z) > Z) & (rel > REL_FLOOR), axis=1))[0]]
+        # the squares differ: a joined set read at one member for every lane would not
+        assert np.ptp(b.mean(axis=0)[:9, 1]) > 0.05 * b.mean(axis=0)[:9, 1].max(), v
     assert not bad, "llvm differs from scalar beyond noise:\n" + "\n".join(bad)
-    # the squares differ: a joined set read at one member for every lane would not
-    assert np.ptp(b.mean(axis=0)[:9, 1]) > 0.05 * b.mean(axis=0)[:9, 1].max()
     # A coating with a gradient keeps its call among joined ones.
-    xml_grad = tiles_xml(['<ref id="qd0"/>'] + coatings[1:] + [checker, jung, diffuse], D65).replace(
-        "<shape", coatings[0].replace('type="fluo_qd"', 'type="fluo_qd" id="qd0"') + "<shape", 1)
     steps = {"qd0.quantum_yield": 0.05}
-    res = run_llvm([{"variant": "llvm_ad_spectral", "xml": xml_grad, "spp": 256, "seed": 3, "gradients": steps}])[0]
-    assert "error" not in res, res
-    for key, (ad, fd) in res["gradients"].items():
-        print(key, "ad", ad, "fd", fd)
-        assert abs(fd) > 1e-5, f"{key}: the image does not depend on it, the check would be empty"
-        assert abs(ad - fd) <= 0.25 * abs(fd), f"{key}: AD {ad} vs finite differences {fd}"
+    for v, basis in (("llvm_ad_spectral", ""), ("llvm_ad_rgb", '<string name="basis" value="x7"/>')):
+        xml_grad = tiles_xml(['<ref id="qd0"/>'] + coatings[1:] + [checker, jung, diffuse], D65, basis).replace(
+            "<shape", coatings[0].replace('type="fluo_qd"', 'type="fluo_qd" id="qd0"') + "<shape", 1)
+        res = run_llvm([{"variant": v, "xml": xml_grad, "spp": 256, "seed": 3, "gradients": steps}])[0]
+        assert "error" not in res, res
+        for key, (ad, fd) in res["gradients"].items():
+            print(v, key, "ad", ad, "fd", fd)
+            assert abs(fd) > 1e-5, f"{v} {key}: the image does not depend on it, the check would be empty"
+            assert abs(ad - fd) <= 0.25 * abs(fd), f"{v} {key}: AD {ad} vs finite differences {fd}"

@@ -276,12 +276,13 @@ public:
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 
-    /// Spectral, many materials (JIT variants): a material whose choice and reradiation lobe
-    /// read data of its own alone (no texture, no gradient) is joinable; one member of its
-    /// class joins the data of every joinable member (jit_join, `members`: the class's, this
-    /// one among them; null: none joined) and then evaluates the lanes of all of them from
-    /// it, with `member` the lane's index in `members` (read per lane by the BSDF's registry
-    /// id). One evaluation per class instead of a callable traced per material.
+    /// Many materials (JIT variants): a material whose choice and reradiation lobe read data
+    /// of its own alone (no texture, no gradient) is joinable; one member of its class joins
+    /// the data of every joinable member (jit_join, `members`: the class's, this one among
+    /// them; null: none joined) and then evaluates the lanes of all of them from it, with
+    /// `member` the lane's index in `members` (read per lane by the BSDF's registry id). One
+    /// evaluation per class instead of a callable traced per material: the spectral choice
+    /// and lobe (FluorescentSet), the RGB transport's direction-dependent lobe (jit_lobe_joined).
     using Joined = std::shared_ptr<const void>;
     virtual bool jit_joinable() const { return false; }
     /// Members of one class join only with those of an equal tag: what differs between
@@ -294,6 +295,14 @@ public:
                                      const Wavelength & /* u2 */, double /* range_lo */, double /* range_hi */,
                                      Mask /* active */) const {
         return elastic_only(si.wavelengths);
+    }
+    /// RGB reduced transport of joined members with a direction-dependent lobe: jit_lobe of
+    /// member `member` (its roughness; the terms' matrices and node weights the transport
+    /// gathers itself, by the same member index).
+    virtual std::pair<Float, Float> jit_lobe_joined(const Joined & /* joined */, const UInt32 & /* member */,
+                                                    const SurfaceInteraction3f &si, const Vector3f &wo,
+                                                    Mask active) const {
+        return jit_lobe(si, wo, active);
     }
     /// jit_reradiation of joined members (`local`: jit_choose_joined's); Lambertian by default.
     virtual std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>

@@ -98,8 +98,11 @@ public:
                             m_plugin, [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
                     }
                 }
-                if (e.n_nodes > 0)
+                if (e.n_nodes > 0) {
                     e.nodes = load(nodes);
+                    if (e.n_models == 0)
+                        e.nodes_host = std::move(nodes); // (gather_operators: a joined lobe's row)
+                }
                 // derivative matrices: K·K each, or per cosine node for a direction-dependent lobe
                 size_t per = (e.n_nodes > 0 && e.n_models == 0 ? e.n_nodes : 1) * m_k * m_k;
                 if (e.n_d != e.d.size() || (e.n_d > 0 && e.n_models > 0) ||
@@ -295,6 +298,29 @@ public:
             return std::make_tuple(Mask((f || g) && active), Mask(false), towards(RA, c, Bispectral::lambert(si, wa)),
                                    Rows<K>(RA * (Bispectral::lambert(si, wb) * inv_pdf)));
         }
+        // joined direction-dependent lobes (gather_operators), per class, outside any call
+        Mask jf = false;
+        Towards va_j = dr::zeros<Towards>();
+        Rows<K> rb_j = dr::zeros<Rows<K>>();
+        if constexpr (dr::is_jit_v<Float>) {
+            UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
+            for (const Lobes &l : m_lobes) {
+                Mask known = rest && id < l.n_slots;
+                UInt32 slot = dr::gather<UInt32>(l.slots, id, known);
+                Mask in = known && slot > 0u;
+                auto [a, b] = joined_products<K, Block>(l, slot - 1u, si, R, c, wa, wb, in);
+                va_j = dr::select(in, a, va_j);
+                rb_j = dr::select(in, b, rb_j);
+                jf |= in;
+                rest &= !in;
+            }
+        }
+        if (!m_dispatch) {
+            Mask is_fl = (jf || g) && active;
+            return std::make_tuple(is_fl, Mask(jf && active),
+                                   dr::select(g, towards(RG, c, Bispectral::lambert(si, wa)), va_j),
+                                   Rows<K>(dr::select(g, RG * Bispectral::lambert(si, wb), rb_j) * inv_pdf));
+        }
         // Block = false: towards the emitter only R·A(ωa)·c leaves the call (3 values, not 3K).
         auto [f, native, va, rb] = dispatch_any(
             bsdf,
@@ -313,8 +339,10 @@ public:
                 return std::make_tuple(Mask(true), Mask(true), va_, rb_);
             },
             si, R, c, wa, wb, u, rest);
-        Mask is_fl = (f || g) && active;
-        return std::make_tuple(is_fl, Mask(native && f && active),
+        Mask is_fl = (f || g || jf) && active;
+        va = dr::select(jf, va_j, va);
+        rb = dr::select(jf, rb_j, rb);
+        return std::make_tuple(is_fl, Mask(((native && f) || jf) && active),
                                dr::select(g, towards(RG, c, Bispectral::lambert(si, wa)), va),
                                Rows<K>(dr::select(g, RG * Bispectral::lambert(si, wb), rb) * inv_pdf));
     }
@@ -346,6 +374,7 @@ private:
         /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
         /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
         DynamicBuffer<Float> nodes;
+        std::vector<double> nodes_host;
         uint32_t n_nodes = 0;
         /// A varying material (Bispectral::jit_reduced_table): its operators M_n, [n][K][K].
         DynamicBuffer<Float> table;
@@ -355,6 +384,17 @@ private:
         /// of which a lane reads the one it picks.
         DynamicBuffer<Float> models;
         uint32_t n_models = 0;
+    };
+
+    /// Many materials: the joinable direction-dependent lobes (Bispectral::jit_join) grouped
+    /// by class and tag, each member's row [w_0, node weights [n_nodes][MaxTerms], terms'
+    /// matrices [MaxTerms][K][K]] read per lane by the BSDF's registry id (joined_products).
+    struct Lobes {
+        const Bispectral *first; ///< evaluates the class's lobes (jit_lobe_joined)
+        typename Bispectral::Joined joined;
+        DynamicBuffer<Float> rows;
+        DynamicBuffer<UInt32> slots; ///< registry id → 1 + member index (0: not a member)
+        uint32_t n_slots, n_nodes, width;
     };
 
     static DynamicBuffer<Float> load(const std::vector<double> &v) {
@@ -576,6 +616,59 @@ private:
         return std::make_pair(out_a, out_b);
     }
 
+    /// directional_products of joined materials (gather_operators): the lane's member's
+    /// weight w_0, node weights and terms' matrices gathered from its class's rows, its lobe
+    /// from the class (Bispectral::jit_lobe_joined); A(ωo) = lobe·w_0·Σ_t s_t(cos θ)·M_t.
+    template <size_t K, bool Block>
+    auto joined_products(const Lobes &l, const UInt32 &member, const SurfaceInteraction3f &si, const Rows<K> &R,
+                         const Coeffs<K> &c, const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
+        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms, KK = (uint32_t) (K * K);
+        using Weights = std::array<Float, Bispectral::MaxTerms>;
+        UInt32 base = member * l.width;
+        Float w0 = dr::gather<Float>(l.rows, base, on);
+        auto weights = [&](const Vector3f &wo) {
+            auto [lobe, cos_h] = l.first->jit_lobe_joined(l.joined, member, si, wo, on);
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (l.n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), l.n_nodes - 2);
+            Float f = x - Float(j);
+            Mask live = on && lobe != 0.f;
+            UInt32 at = base + 1u + j * T;
+            Weights w;
+            for (uint32_t t = 0; t < T; ++t)
+                w[t] = dr::lerp(dr::gather<Float>(l.rows, at + t, live), dr::gather<Float>(l.rows, at + T + t, live), f) *
+                       (lobe * w0);
+            return w;
+        };
+        Weights w_a = weights(wa), w_b = weights(wb);
+        // A(ωa), A(ωb): the terms' matrices weighted (each entry gathered once for both)
+        std::array<Float, K * K> a, b;
+        UInt32 mat = base + 1u + l.n_nodes * T;
+        for (uint32_t i = 0; i < KK; ++i) {
+            a[i] = b[i] = 0.f;
+            for (uint32_t t = 0; t < T; ++t) {
+                Float m = dr::gather<Float>(l.rows, mat + t * KK + i, on);
+                a[i] = dr::fmadd(w_a[t], m, a[i]);
+                b[i] = dr::fmadd(w_b[t], m, b[i]);
+            }
+        }
+        std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
+        Rows<K> out_b = dr::zeros<Rows<K>>();
+        for (size_t r = 0; r < 3; ++r)
+            for (size_t j = 0; j < K; ++j) {
+                Float acc_a = 0.f, acc_b = 0.f;
+                for (size_t k = 0; k < K; ++k) {
+                    acc_a = dr::fmadd(R[r * K + k], a[k * K + j], acc_a);
+                    acc_b = dr::fmadd(R[r * K + k], b[k * K + j], acc_b);
+                }
+                if constexpr (Block)
+                    out_a[r * K + j] = acc_a;
+                else
+                    out_a[r] = dr::fmadd(acc_a, c[j], out_a[r]);
+                out_b[r * K + j] = acc_b;
+            }
+        return std::make_pair(out_a, out_b);
+    }
+
     /// The derivative terms of directional_products (Bispectral::jit_reduced_derivatives of a
     /// direction-dependent lobe): per derivative d, wd_d·lobe·w_0·R·D_d(cos θ) towards wa
     /// (times c unless `Block`) and wb, D_d linear between the nodes as the operator is;
@@ -748,6 +841,9 @@ private:
     void gather_operators() {
         m_n_rows = m_n_slots = 0;
         m_dispatch = !m_entries.empty();
+        m_lobes.clear();
+        for (Entry &e : m_entries)
+            e.gathered = false;
         if constexpr (dr::is_jit_v<Float> && is_rgb_v<Spectrum>) {
             if (!m_opaque)
                 return;
@@ -755,8 +851,10 @@ private:
             std::vector<float> rows;
             std::vector<uint32_t> slots;
             m_dispatch = false;
+            join_lobes();
             for (Entry &e : m_entries) {
-                e.gathered = false;
+                if (e.gathered) // (a joined lobe)
+                    continue;
                 auto w = e.bispectral->jit_reduced_weights();
                 Color3f el(0.f);
                 bool plain = e.bispectral->jit_uniform() && e.n_nodes == 0 && e.n_table == 0 && e.n_d == 0 &&
@@ -791,12 +889,63 @@ private:
                     rows.push_back((float) a);
                 }
             }
-            if (rows.empty())
+            if (rows.empty()) {
+                m_dispatch = std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return !e.gathered; });
                 return;
+            }
             m_n_rows = rows.size() / kk;
             m_n_slots = (uint32_t) slots.size();
             m_rows = dr::load<DynamicBuffer<Float>>(rows.data(), rows.size());
             m_slots = dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size());
+        }
+    }
+    std::vector<Lobes> m_lobes;
+    void join_lobes() {
+        struct Class {
+            std::string name;
+            std::vector<Entry *> entries;
+            std::vector<const Bispectral *> members;
+        };
+        std::vector<Class> classes;
+        for (Entry &e : m_entries) {
+            uint32_t id = jit_registry_id(e.bsdf);
+            if (id == 0 || e.n_nodes < 2 || e.n_models > 0 || e.n_table > 0 || e.n_d > 0 ||
+                e.nodes_host.size() != (size_t) e.n_nodes * Bispectral::MaxTerms || !e.bispectral->jit_joinable() ||
+                dr::grad_enabled(e.bispectral->jit_reduced_weights()[0]))
+                continue;
+            std::string name = std::string(typeid(*e.bispectral).name()) + "/" + e.bispectral->jit_join_tag() + "/" +
+                               std::to_string(e.n_nodes);
+            auto it = std::find_if(classes.begin(), classes.end(), [&](const Class &c) { return c.name == name; });
+            if (it == classes.end())
+                it = classes.insert(classes.end(), Class{ name, {}, {} });
+            it->entries.push_back(&e);
+            it->members.push_back(e.bispectral);
+        }
+        const size_t kk = m_k * m_k, T = Bispectral::MaxTerms;
+        for (Class &c : classes) {
+            typename Bispectral::Joined joined = c.members.front()->jit_join(c.members);
+            if (!joined)
+                continue;
+            uint32_t n_nodes = c.entries.front()->n_nodes, width = (uint32_t) (1 + n_nodes * T + T * kk);
+            std::vector<float> rows;
+            std::vector<uint32_t> slots;
+            for (size_t i = 0; i < c.entries.size(); ++i) {
+                Entry &e = *c.entries[i];
+                uint32_t id = jit_registry_id(e.bsdf);
+                if (slots.size() <= id)
+                    slots.resize(id + 1, 0u);
+                slots[id] = (uint32_t) i + 1u;
+                rows.push_back(dr::slice(dr::detach(e.bispectral->jit_reduced_weights()[0])));
+                rows.insert(rows.end(), e.nodes_host.begin(), e.nodes_host.end());
+                for (size_t t = 0; t < T; ++t)
+                    for (size_t i2 = 0; i2 < kk; ++i2)
+                        rows.push_back(i2 < e.m[t].size() ? (float) e.m[t][i2] : 0.f);
+                e.gathered = true;
+            }
+            m_lobes.push_back(Lobes{ c.members.front(), std::move(joined),
+                                     dr::load<DynamicBuffer<Float>>(rows.data(), rows.size()),
+                                     dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size()),
+                                     (uint32_t) slots.size(), n_nodes, width });
         }
     }
     DynamicBuffer<Float> m_rows;    ///< gathered operators, [row][K][K]

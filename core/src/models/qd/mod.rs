@@ -408,24 +408,32 @@ impl QdModel {
         let n = lambda.len();
         let rows = self.params.cos_nodes;
         let cos = |j: usize| j as f64 / (rows - 1) as f64;
-        let s0_sq = lambda.iter().map(|&l| self.s0_sq(l)).collect();
-        let a_bulk =
-            (0..rows).flat_map(|j| lambda.iter().map(move |&l| (j, l))).map(|(j, l)| self.bulk_absorption(cos(j), l));
-        let a_bulk = a_bulk.collect();
-        let beta = (0..rows).map(|j| self.bulk_absorption(cos(j), self.band.lambda_qd_nm)).collect();
+        // what depends on λ alone, once per node: the dot's index, |S0|², the substrate's η, k
+        let m_l: Vec<Complex> = lambda.iter().map(|&l| self.index.eval(l)).collect();
+        let s0_sq: Vec<f64> = lambda.iter().zip(&m_l).map(|(&l, &m)| self.s0_sq_with(l, m)).collect();
+        let eta_k: Vec<(f64, f64)> = lambda.iter().map(|&l| self.substrate.eta_k(l)).collect();
+        let beta: Vec<f64> = (0..rows).map(|j| self.bulk_absorption(cos(j), self.band.lambda_qd_nm)).collect();
+        let mut a_bulk = Vec::with_capacity(rows * n);
         let mut a_tot = Vec::with_capacity(rows * n);
         let mut cdf = Vec::with_capacity(rows * n);
-        for j in 0..rows {
+        for (j, &beta_j) in beta.iter().enumerate() {
             let c = cos(j);
-            let row: Vec<f64> =
-                lambda.iter().map(|&l| self.coating_exact(c, l).a_tot(self.substrate_reflectance(c, l))).collect();
             let mut acc = 0.0;
-            cdf.push(0.0);
-            for k in 1..n {
-                acc += 0.5 * (lambda[k] - lambda[k - 1]) * (row[k] + row[k - 1]);
+            for k in 0..n {
+                let (l, bulk) = (lambda[k], self.bulk_absorption_with(c, lambda[k], m_l[k]));
+                a_bulk.push(bulk);
+                // coating_exact and substrate_reflectance, from the node's quantities
+                let a = self.coating_with(c, l, s0_sq[k], beta_j, bulk).a_tot(fresnel_conductor(
+                    c.clamp(0.0, 1.0),
+                    eta_k[k].0,
+                    eta_k[k].1,
+                ));
+                if k > 0 {
+                    acc += 0.5 * (lambda[k] - lambda[k - 1]) * (a + a_tot[j * n + k - 1]);
+                }
+                a_tot.push(a);
                 cdf.push(acc);
             }
-            a_tot.extend(row);
         }
         // Support: nodes where any row absorbs, widened to the neighbouring nodes.
         let any = |k: usize| (0..rows).any(|j| a_tot[j * n + k] > 0.0);
@@ -470,6 +478,10 @@ impl QdModel {
     /// Number of λ nodes of the tables.
     pub fn table_nodes(&self) -> usize {
         self.tables.lambda.len()
+    }
+    /// The λ nodes of the tables, nm.
+    pub fn table_lambda(&self) -> &[f64] {
+        &self.tables.lambda
     }
 
     /// m_QD(λ).
@@ -524,19 +536,31 @@ impl QdModel {
 
     /// [`Self::coating`] by the formulas, without the tables.
     pub fn coating_exact(&self, cos_theta: f64, lambda_nm: f64) -> Coating {
+        let c = cos_theta.clamp(0.0, 1.0);
+        let beta = self.bulk_absorption(c, self.band.lambda_qd_nm);
+        let bulk = if lambda_nm <= self.band.lambda_qd_nm { self.bulk_absorption(c, lambda_nm) } else { 0.0 };
+        self.coating_with(c, lambda_nm, self.s0_sq(lambda_nm), beta, bulk)
+    }
+
+    /// [`Self::coating_exact`] from |S0|²(λ), A_bulk(θ, λQD) (`beta`) and A_bulk(θ, λ)
+    /// (`bulk`, read where λ ≤ λQD): the bake's one evaluation per node.
+    fn coating_with(&self, cos_theta: f64, lambda_nm: f64, s0_sq: f64, beta: f64, bulk: f64) -> Coating {
         if !(self.params.density > 0.0) || !lambda_nm.is_finite() {
             return Coating { r_spe: 0.0, t_spe: 1.0, a_tf: 0.0 };
         }
         let c = cos_theta.clamp(0.0, 1.0);
-        let r_spe = self.film_reflectance(c, lambda_nm, self.s0_sq(lambda_nm));
-        let a_tf = self.film_absorption(c, lambda_nm);
+        let r_spe = self.film_reflectance(c, lambda_nm, s0_sq);
+        let a_tf = self.film_absorption_with(lambda_nm, beta, bulk);
         Coating { r_spe, t_spe: 1.0 - r_spe, a_tf }
     }
 
     /// |S0|² = x⁶ |(m² − n²)/(m² + 2n²)|², x = 2πR n_env/λ (eq. 18).
     fn s0_sq(&self, lambda_nm: f64) -> f64 {
+        self.s0_sq_with(lambda_nm, self.index.eval(lambda_nm))
+    }
+    /// [`Self::s0_sq`] given the dot's index m at λ.
+    fn s0_sq_with(&self, lambda_nm: f64, m: Complex) -> f64 {
         let n_env = self.params.ext_ior;
-        let m = self.index.eval(lambda_nm);
         let e = Complex::new(n_env * n_env, 0.0);
         let m2 = m * m;
         let ratio = (m2 - e) / (m2 + e.scale(2.0));
@@ -562,8 +586,11 @@ impl QdModel {
 
     /// 1 − exp(−4πk l/λ) with l = 2Rρ/cos θt (eq. 20, read as an absorbed fraction).
     fn bulk_absorption(&self, cos_theta: f64, lambda_nm: f64) -> f64 {
+        self.bulk_absorption_with(cos_theta, lambda_nm, self.index.eval(lambda_nm))
+    }
+    /// [`Self::bulk_absorption`] given the dot's index m at λ.
+    fn bulk_absorption_with(&self, cos_theta: f64, lambda_nm: f64, m: Complex) -> f64 {
         let p = &self.params;
-        let m = self.index.eval(lambda_nm);
         if !(m.im > 0.0) {
             return 0.0;
         }
@@ -581,14 +608,20 @@ impl QdModel {
         if !(self.params.density > 0.0) {
             return 0.0;
         }
+        let lqd = self.band.lambda_qd_nm;
+        let bulk = if lambda_nm <= lqd { self.bulk_absorption(cos_theta, lambda_nm) } else { 0.0 };
+        self.film_absorption_with(lambda_nm, self.bulk_absorption(cos_theta, lqd), bulk)
+    }
+    /// [`Self::film_absorption`] from A_bulk(θ, λQD) (`beta`) and A_bulk(θ, λ) (`bulk`,
+    /// read where λ ≤ λQD).
+    fn film_absorption_with(&self, lambda_nm: f64, beta: f64, bulk: f64) -> f64 {
+        if !(self.params.density > 0.0) {
+            return 0.0;
+        }
         let b = &self.band;
         let g = cut_gaussian(lambda_nm, b.lambda_qd_nm, b.width_nm);
-        let beta = if g > 0.0 { self.bulk_absorption(cos_theta, b.lambda_qd_nm) } else { 0.0 };
-        let a = if lambda_nm <= b.lambda_qd_nm {
-            self.bulk_absorption(cos_theta, lambda_nm) + beta * g
-        } else {
-            2.0 * beta * g
-        };
+        let beta = if g > 0.0 { beta } else { 0.0 };
+        let a = if lambda_nm <= b.lambda_qd_nm { bulk + beta * g } else { 2.0 * beta * g };
         if a.is_finite() {
             a.clamp(0.0, 1.0)
         } else {
@@ -1080,6 +1113,32 @@ mod tests {
 
     fn model(p: QdParams) -> QdModel {
         QdModel::new(p, QdIndex::CdSe, GOLD).unwrap()
+    }
+
+    #[test]
+    fn baked_tables_equal_the_formulas() {
+        // the bake evaluates what depends on λ once per node: every entry is still the
+        // per-call formula's, to the bit (gold and a dielectric substrate, thin and dense films)
+        for substrate in [GOLD, Substrate::Constant { eta: 1.5, k: 0.0 }] {
+            for (radius, density) in [(1.8, 0.2), (3.1, 0.9)] {
+                let m = QdModel::new(
+                    QdParams { radius_nm: radius, density, ..QdParams::default() },
+                    QdIndex::CdSe,
+                    substrate.clone(),
+                )
+                .unwrap();
+                let t = &m.tables;
+                let (n, rows) = (t.lambda.len(), m.params.cos_nodes);
+                for j in 0..rows {
+                    let c = j as f64 / (rows - 1) as f64;
+                    for (k, &l) in t.lambda.iter().enumerate() {
+                        let a = m.coating_exact(c, l).a_tot(m.substrate_reflectance(c, l));
+                        assert_eq!(t.a_tot[j * n + k].to_bits(), a.to_bits(), "A_tot at ({c}, {l})");
+                        assert_eq!(t.a_bulk[j * n + k].to_bits(), m.bulk_absorption(c, l).to_bits());
+                    }
+                }
+            }
+        }
     }
 
     #[test]
