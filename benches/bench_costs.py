@@ -69,7 +69,9 @@ distinct concentration and emission peak; ``fluo_qd``: a distinct radius) agains
 ``diffuse`` or ``roughconductor`` ones under ``path``, and time the load and first render (tracing
 and compiling every kernel, each side in a fresh process with an empty kernel cache) and its
 peak memory: a JIT variant compiles one callable per distinct instance unless the instances'
-values are kernel inputs rather than literals (issue 32, finding 15: 60 s for 200 dyes).
+values are kernel inputs rather than literals (issue 32, finding 15: 60 s for 200 dyes), and
+traces one per instance unless their data is read per lane (fluo_path's docs: operators
+gathered in RGB, each class's data joined in spectral variants).
 
 The medium rows render ``MEDIA_SPP_FACTOR`` (4) times the samples of the others (a 16-spp
 cuvette render is too short to time on a shared machine), the scalar basis row

@@ -116,8 +116,8 @@ a dispatch once per material, which made 200 distinct dyes compile 2.3× as long
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials' probabilities are detached,
 their values differentiable, so ``mi.render`` with ``params`` gives gradients of dye
 parameters; a sampled direction that moves with a parameter (a roughness) is detached and
-the BSDF's value differentiated there, as Mitsuba's ``path`` does (differentiating the sample's motion gave d/dalpha of the wrong
-sign, for ``roughconductor`` as for ``fluo_qd``).
+the BSDF's value differentiated there, as Mitsuba's ``path`` does (differentiating the
+sample's motion gave d/dalpha of the wrong sign, for ``roughconductor`` as for ``fluo_qd``).
 
 **Polarized variants** (``scalar_spectral_polarized``, ``llvm_ad_spectral_polarized``,
 ``cuda_ad_spectral_polarized``): the throughput is a Mueller matrix as in ``path``; the

@@ -521,7 +521,9 @@ public:
     }
     const std::vector<Group> &groups() const { return m_groups; }
     /// Whether `b`'s lanes are evaluated through its group.
-    bool joined(const BSDF<Float, Spectrum> *b) const { return std::binary_search(m_joined.begin(), m_joined.end(), b); }
+    bool joined(const BSDF<Float, Spectrum> *b) const {
+        return std::binary_search(m_joined.begin(), m_joined.end(), b);
+    }
     /// Whether some material of the set is reached through a call.
     bool dispatched() const { return m_joined.size() < this->size(); }
 

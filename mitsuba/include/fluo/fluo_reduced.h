@@ -635,8 +635,8 @@ private:
             UInt32 at = base + 1u + j * T;
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(dr::gather<Float>(l.rows, at + t, live), dr::gather<Float>(l.rows, at + T + t, live), f) *
-                       (lobe * w0);
+                w[t] = dr::lerp(dr::gather<Float>(l.rows, at + t, live),
+                                dr::gather<Float>(l.rows, at + T + t, live), f) * (lobe * w0);
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
@@ -890,7 +890,8 @@ private:
                 }
             }
             if (rows.empty()) {
-                m_dispatch = std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return !e.gathered; });
+                m_dispatch =
+                    std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return !e.gathered; });
                 return;
             }
             m_n_rows = rows.size() / kk;
