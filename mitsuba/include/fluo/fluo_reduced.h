@@ -617,56 +617,17 @@ private:
     }
 
     /// directional_products of joined materials (gather_operators): the lane's member's
-    /// weight w_0, node weights and terms' matrices gathered from its class's rows, its lobe
-    /// from the class (Bispectral::jit_lobe_joined); A(ωo) = lobe·w_0·Σ_t s_t(cos θ)·M_t.
+    /// weight w_0, node weights and terms' matrices read from its class's rows, its lobe from
+    /// the class (Bispectral::jit_lobe_joined).
     template <size_t K, bool Block>
     auto joined_products(const Lobes &l, const UInt32 &member, const SurfaceInteraction3f &si, const Rows<K> &R,
                          const Coeffs<K> &c, const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
-        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms, KK = (uint32_t) (K * K);
-        using Weights = std::array<Float, Bispectral::MaxTerms>;
         UInt32 base = member * l.width;
-        Float w0 = dr::gather<Float>(l.rows, base, on);
-        auto weights = [&](const Vector3f &wo) {
-            auto [lobe, cos_h] = l.first->jit_lobe_joined(l.joined, member, si, wo, on);
-            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (l.n_nodes - 1);
-            UInt32 j = dr::minimum(UInt32(dr::floor(x)), l.n_nodes - 2);
-            Float f = x - Float(j);
-            Mask live = on && lobe != 0.f;
-            UInt32 at = base + 1u + j * T;
-            Weights w;
-            for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(dr::gather<Float>(l.rows, at + t, live),
-                                dr::gather<Float>(l.rows, at + T + t, live), f) * (lobe * w0);
-            return w;
-        };
-        Weights w_a = weights(wa), w_b = weights(wb);
-        // A(ωa), A(ωb): the terms' matrices weighted (each entry gathered once for both)
-        std::array<Float, K * K> a, b;
-        UInt32 mat = base + 1u + l.n_nodes * T;
-        for (uint32_t i = 0; i < KK; ++i) {
-            a[i] = b[i] = 0.f;
-            for (uint32_t t = 0; t < T; ++t) {
-                Float m = dr::gather<Float>(l.rows, mat + t * KK + i, on);
-                a[i] = dr::fmadd(w_a[t], m, a[i]);
-                b[i] = dr::fmadd(w_b[t], m, b[i]);
-            }
-        }
-        std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
-        Rows<K> out_b = dr::zeros<Rows<K>>();
-        for (size_t r = 0; r < 3; ++r)
-            for (size_t j = 0; j < K; ++j) {
-                Float acc_a = 0.f, acc_b = 0.f;
-                for (size_t k = 0; k < K; ++k) {
-                    acc_a = dr::fmadd(R[r * K + k], a[k * K + j], acc_a);
-                    acc_b = dr::fmadd(R[r * K + k], b[k * K + j], acc_b);
-                }
-                if constexpr (Block)
-                    out_a[r * K + j] = acc_a;
-                else
-                    out_a[r] = dr::fmadd(acc_a, c[j], out_a[r]);
-                out_b[r * K + j] = acc_b;
-            }
-        return std::make_pair(out_a, out_b);
+        return table_products<K, Block>(
+            l.rows, base + 1u, l.rows, base + 1u + l.n_nodes * (uint32_t) Bispectral::MaxTerms, l.n_nodes,
+            dr::gather<Float>(l.rows, base, on),
+            [&](const Vector3f &wo, const Mask &m) { return l.first->jit_lobe_joined(l.joined, member, si, wo, m); },
+            R, c, wa, wb, on);
     }
 
     /// The derivative terms of directional_products (Bispectral::jit_reduced_derivatives of a
@@ -713,27 +674,42 @@ private:
 
     /// directional_products for a lobe that varies over the surface: per lane the model m and
     /// weight w that Bispectral::jit_reduced_pick draws with u, the operator lobe·w·Σ_t
-    /// s_t^m(cos θ)·B_t^m, its columns formed one at a time from the gathered B_t^m (each
-    /// gather serves both directions).
+    /// s_t^m(cos θ)·B_t^m.
     template <size_t K, bool Block>
     auto varying_products(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Coeffs<K> &c,
                           const Vector3f &wa, const Vector3f &wb, const Float &u, const Mask &on) const {
         constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms, KK = (uint32_t) (K * K);
         auto [model, weight] = e.bispectral->jit_reduced_pick(si, u, on);
-        Mask live = on && weight > 0.f;
-        UInt32 base = model * (T * KK);
+        return table_products<K, Block>(
+            e.nodes, model * e.n_nodes * T, e.models, model * (T * KK), e.n_nodes, weight,
+            [&](const Vector3f &wo, const Mask &m) { return e.bispectral->jit_lobe(si, wo, m); }, R, c, wa, wb,
+            on && weight > 0.f);
+    }
+
+    /// lobe·scale·R·Σ_t s_t(cos θ)·B_t towards wa (`Block`: the 3×K block; else times the
+    /// emitter sample's coefficients c) and towards wb, per lane: the terms' weights s_t
+    /// linear between n_nodes cosine nodes ([n_nodes][MaxTerms] in `nodes` from node_base),
+    /// the terms B_t ([MaxTerms][K][K] in `terms` from term_base), the lobe and cos θ from
+    /// lobe_of(ωo, mask). The operator's columns are formed one at a time from the gathered
+    /// B_t (each gather serves both directions).
+    template <size_t K, bool Block, typename LobeOf>
+    auto table_products(const DynamicBuffer<Float> &nodes, const UInt32 &node_base, const DynamicBuffer<Float> &terms,
+                        const UInt32 &term_base, uint32_t n_nodes, const Float &scale, const LobeOf &lobe_of,
+                        const Rows<K> &R, const Coeffs<K> &c, const Vector3f &wa, const Vector3f &wb,
+                        const Mask &live) const {
+        constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms, KK = (uint32_t) (K * K);
         using Weights = std::array<Float, T>;
         auto weights = [&](const Vector3f &wo) {
-            auto [lobe, cos_h] = e.bispectral->jit_lobe(si, wo, live);
-            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
-            UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
+            auto [lobe, cos_h] = lobe_of(wo, live);
+            Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (n_nodes - 1);
+            UInt32 j = dr::minimum(UInt32(dr::floor(x)), n_nodes - 2);
             Float f = x - Float(j);
             Mask m = live && lobe != 0.f;
-            UInt32 row = (model * e.n_nodes + j) * T;
+            UInt32 row = node_base + j * T;
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(dr::gather<Float>(e.nodes, row + t, m), dr::gather<Float>(e.nodes, row + T + t, m), f) *
-                       (lobe * weight);
+                w[t] = dr::lerp(dr::gather<Float>(nodes, row + t, m), dr::gather<Float>(nodes, row + T + t, m), f) *
+                       (lobe * scale);
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
@@ -743,7 +719,7 @@ private:
             Coeffs<K> col_a = dr::zeros<Coeffs<K>>(), col_b = dr::zeros<Coeffs<K>>(); // A[:, j]
             for (size_t k = 0; k < K; ++k)
                 for (uint32_t t = 0; t < T; ++t) {
-                    Float b = dr::gather<Float>(e.models, base + (t * KK + (uint32_t) (k * K + j)), live);
+                    Float b = dr::gather<Float>(terms, term_base + (t * KK + (uint32_t) (k * K + j)), live);
                     col_a[k] = dr::fmadd(w_a[t], b, col_a[k]);
                     col_b[k] = dr::fmadd(w_b[t], b, col_b[k]);
                 }
