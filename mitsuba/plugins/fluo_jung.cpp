@@ -500,7 +500,7 @@ public:
             (void) members;
             return nullptr;
         } else {
-            auto rows = std::make_shared<std::vector<float>>();
+            std::vector<float> rows;
             for (const Bispectral *b : members) {
                 const auto *m = static_cast<const FluoJung *>(b);
                 SurfaceInteraction3f si = dr::zeros<SurfaceInteraction3f>(ChoiceNodes / 4);
@@ -511,17 +511,17 @@ public:
                 dr::eval(r); // (one kernel for the four hero wavelengths' nodes)
                 for (float v : { dr::slice(m->m_peak), dr::slice(m->m_shift), dr::slice(m->m_conc),
                                  dr::slice(m->m_yield) })
-                    rows->push_back(v);
-                size_t at = rows->size();
-                rows->resize(at + ChoiceNodes);
+                    rows.push_back(v);
+                size_t at = rows.size();
+                rows.resize(at + ChoiceNodes);
                 for (size_t w = 0; w < 4; ++w) { // (a reflectance folded to one lane: broadcast)
                     std::vector<float> v = fluo_detail::host_lanes(r[w], ChoiceNodes / 4);
                     for (size_t i = 0; i < ChoiceNodes / 4; ++i)
-                        (*rows)[at + 4 * i + w] = v[i];
+                        rows[at + 4 * i + w] = v[i];
                 }
             }
             return std::make_shared<const DynamicBuffer<Float>>(
-                dr::load<DynamicBuffer<Float>>(rows->data(), rows->size()));
+                dr::load<DynamicBuffer<Float>>(rows.data(), rows.size()));
         }
     }
     Choice jit_choose_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,

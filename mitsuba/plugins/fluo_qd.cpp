@@ -580,9 +580,8 @@ public:
                 return nullptr; // (one table layout per class)
             key.emplace_back(m, m->m_build);
         }
-        if (!is_spectral_v<Spectrum>) { // RGB: the lobe's roughness alone (jit_lobe_joined)
-            m_joined = std::make_shared<JoinedTables>();
-        } else if (!m_joined || m_joined->key != key) {
+        // (RGB: the lobe's roughness alone, jit_lobe_joined; no tables)
+        if (is_spectral_v<Spectrum> && (!m_joined || m_joined->key != key)) {
             auto j = std::make_shared<JoinedTables>();
             std::vector<float> a_tot, cdf, r_tot, emission;
             std::vector<uint32_t> t_off;
@@ -619,7 +618,7 @@ public:
             q.push_back(dr::slice(dr::detach(m->m_q)));
             alpha.push_back(dr::slice(dr::detach(m->m_alpha_v)));
         }
-        auto j = std::make_shared<JoinedTables>(*m_joined);
+        auto j = m_joined ? std::make_shared<JoinedTables>(*m_joined) : std::make_shared<JoinedTables>();
         j->q = dr::load<FloatStorage>(q.data(), q.size());
         j->alpha = dr::load<FloatStorage>(alpha.data(), alpha.size());
         return j;

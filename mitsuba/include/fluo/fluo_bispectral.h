@@ -460,6 +460,47 @@ private:
 /// small.
 inline constexpr size_t ManyMaterials = 8;
 
+/// Joinable materials (Bispectral::jit_joinable; `ids`: their BSDFs' registry ids, `keys`: a
+/// caller's further key each) grouped by class, tag and key, each group joined by its first
+/// member (jit_join; groups it refuses are left out): per group the indices of its members,
+/// the joined data and the registry id → 1 + member index table.
+template <typename Bispectral> struct JoinedGroup {
+    std::vector<size_t> members;
+    typename Bispectral::Joined joined;
+    std::vector<uint32_t> slots;
+};
+template <typename Bispectral>
+std::vector<JoinedGroup<Bispectral>> join_classes(const std::vector<const Bispectral *> &materials,
+                                                  const std::vector<uint32_t> &ids,
+                                                  const std::vector<std::string> &keys) {
+    std::vector<std::pair<std::string, std::vector<size_t>>> classes;
+    for (size_t i = 0; i < materials.size(); ++i) {
+        std::string name =
+            std::string(typeid(*materials[i]).name()) + "/" + materials[i]->jit_join_tag() + "/" + keys[i];
+        auto it = std::find_if(classes.begin(), classes.end(), [&](const auto &c) { return c.first == name; });
+        if (it == classes.end())
+            it = classes.insert(classes.end(), { name, {} });
+        it->second.push_back(i);
+    }
+    std::vector<JoinedGroup<Bispectral>> groups;
+    for (auto &[name, members] : classes) {
+        std::vector<const Bispectral *> ms;
+        uint32_t top = 0;
+        for (size_t i : members) {
+            ms.push_back(materials[i]);
+            top = std::max(top, ids[i]);
+        }
+        typename Bispectral::Joined joined = ms.front()->jit_join(ms);
+        if (!joined)
+            continue;
+        std::vector<uint32_t> slots(top + 1, 0u);
+        for (size_t m = 0; m < members.size(); ++m)
+            slots[ids[members[m]]] = (uint32_t) m + 1u;
+        groups.push_back({ std::move(members), std::move(joined), std::move(slots) });
+    }
+    return groups;
+}
+
 /// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them (more
 /// than ManyMaterials), the joinable ones (Bispectral::jit_join) grouped by class:
 /// SurfaceShift reads a lane's member index by the BSDF's registry id and calls one material
@@ -484,37 +525,24 @@ public:
         if constexpr (dr::is_jit_v<Float> && is_spectral_v<Spectrum>) {
             if (objects.size() <= ManyMaterials)
                 return;
-            struct Class {
-                std::string name;
-                std::vector<const Bispectral *> members;
-                std::vector<const BSDF<Float, Spectrum> *> bases;
-                std::vector<uint32_t> ids;
-            };
-            std::vector<Class> classes;
+            std::vector<const Bispectral *> materials;
+            std::vector<const BSDF<Float, Spectrum> *> bases;
+            std::vector<uint32_t> ids;
             for (B *b : objects) {
                 const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
                 uint32_t id = base ? jit_registry_id(base) : 0u;
                 if (id == 0 || !b->jit_joinable())
                     continue;
-                std::string name = std::string(typeid(*b).name()) + "/" + b->jit_join_tag();
-                auto it = std::find_if(classes.begin(), classes.end(), [&](const Class &c) { return c.name == name; });
-                if (it == classes.end())
-                    it = classes.insert(classes.end(), Class{ name, {}, {}, {} });
-                it->members.push_back(b);
-                it->bases.push_back(base);
-                it->ids.push_back(id);
+                materials.push_back(b);
+                bases.push_back(base);
+                ids.push_back(id);
             }
-            for (Class &c : classes) {
-                typename Bispectral::Joined joined = c.members.front()->jit_join(c.members);
-                if (!joined)
-                    continue;
-                std::vector<uint32_t> slots(*std::max_element(c.ids.begin(), c.ids.end()) + 1, 0u);
-                for (size_t i = 0; i < c.ids.size(); ++i)
-                    slots[c.ids[i]] = (uint32_t) i + 1u;
-                m_groups.push_back(Group{ c.members.front(), std::move(joined),
-                                          dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size()),
-                                          (uint32_t) slots.size() });
-                m_joined.insert(m_joined.end(), c.bases.begin(), c.bases.end());
+            for (auto &g : join_classes(materials, ids, std::vector<std::string>(materials.size()))) {
+                m_groups.push_back(Group{ materials[g.members.front()], std::move(g.joined),
+                                          dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
+                                          (uint32_t) g.slots.size() });
+                for (size_t i : g.members)
+                    m_joined.push_back(bases[i]);
             }
             std::sort(m_joined.begin(), m_joined.end());
         }

@@ -865,11 +865,8 @@ private:
                     rows.push_back((float) a);
                 }
             }
-            if (rows.empty()) {
-                m_dispatch =
-                    std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return !e.gathered; });
+            if (rows.empty())
                 return;
-            }
             m_n_rows = rows.size() / kk;
             m_n_slots = (uint32_t) slots.size();
             m_rows = dr::load<DynamicBuffer<Float>>(rows.data(), rows.size());
@@ -878,51 +875,38 @@ private:
     }
     std::vector<Lobes> m_lobes;
     void join_lobes() {
-        struct Class {
-            std::string name;
-            std::vector<Entry *> entries;
-            std::vector<const Bispectral *> members;
-        };
-        std::vector<Class> classes;
+        std::vector<Entry *> entries;
+        std::vector<const Bispectral *> materials;
+        std::vector<uint32_t> ids;
+        std::vector<std::string> keys; // (one node count per class's rows)
         for (Entry &e : m_entries) {
             uint32_t id = jit_registry_id(e.bsdf);
             if (id == 0 || e.n_nodes < 2 || e.n_models > 0 || e.n_table > 0 || e.n_d > 0 ||
                 e.nodes_host.size() != (size_t) e.n_nodes * Bispectral::MaxTerms || !e.bispectral->jit_joinable() ||
                 dr::grad_enabled(e.bispectral->jit_reduced_weights()[0]))
                 continue;
-            std::string name = std::string(typeid(*e.bispectral).name()) + "/" + e.bispectral->jit_join_tag() + "/" +
-                               std::to_string(e.n_nodes);
-            auto it = std::find_if(classes.begin(), classes.end(), [&](const Class &c) { return c.name == name; });
-            if (it == classes.end())
-                it = classes.insert(classes.end(), Class{ name, {}, {} });
-            it->entries.push_back(&e);
-            it->members.push_back(e.bispectral);
+            entries.push_back(&e);
+            materials.push_back(e.bispectral);
+            ids.push_back(id);
+            keys.push_back(std::to_string(e.n_nodes));
         }
         const size_t kk = m_k * m_k, T = Bispectral::MaxTerms;
-        for (Class &c : classes) {
-            typename Bispectral::Joined joined = c.members.front()->jit_join(c.members);
-            if (!joined)
-                continue;
-            uint32_t n_nodes = c.entries.front()->n_nodes, width = (uint32_t) (1 + n_nodes * T + T * kk);
+        for (auto &g : join_classes(materials, ids, keys)) {
+            uint32_t n_nodes = entries[g.members.front()]->n_nodes, width = (uint32_t) (1 + n_nodes * T + T * kk);
             std::vector<float> rows;
-            std::vector<uint32_t> slots;
-            for (size_t i = 0; i < c.entries.size(); ++i) {
-                Entry &e = *c.entries[i];
-                uint32_t id = jit_registry_id(e.bsdf);
-                if (slots.size() <= id)
-                    slots.resize(id + 1, 0u);
-                slots[id] = (uint32_t) i + 1u;
+            for (size_t i : g.members) {
+                Entry &e = *entries[i];
                 rows.push_back(dr::slice(dr::detach(e.bispectral->jit_reduced_weights()[0])));
                 rows.insert(rows.end(), e.nodes_host.begin(), e.nodes_host.end());
                 for (size_t t = 0; t < T; ++t)
-                    for (size_t i2 = 0; i2 < kk; ++i2)
-                        rows.push_back(i2 < e.m[t].size() ? (float) e.m[t][i2] : 0.f);
+                    for (size_t j = 0; j < kk; ++j)
+                        rows.push_back(j < e.m[t].size() ? (float) e.m[t][j] : 0.f);
                 e.gathered = true;
             }
-            m_lobes.push_back(Lobes{ c.members.front(), std::move(joined),
+            m_lobes.push_back(Lobes{ materials[g.members.front()], std::move(g.joined),
                                      dr::load<DynamicBuffer<Float>>(rows.data(), rows.size()),
-                                     dr::load<DynamicBuffer<UInt32>>(slots.data(), slots.size()),
-                                     (uint32_t) slots.size(), n_nodes, width });
+                                     dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
+                                     (uint32_t) g.slots.size(), n_nodes, width });
         }
     }
     DynamicBuffer<Float> m_rows;    ///< gathered operators, [row][K][K]

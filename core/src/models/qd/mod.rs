@@ -423,7 +423,8 @@ impl QdModel {
                 let (l, bulk) = (lambda[k], self.bulk_absorption_with(c, lambda[k], m_l[k]));
                 a_bulk.push(bulk);
                 // coating_exact and substrate_reflectance, from the node's quantities
-                let a = self.coating_with(c, l, s0_sq[k], beta_j, bulk).a_tot(fresnel_conductor(
+                let a_tf = || self.film_absorption_with(l, || beta_j, bulk);
+                let a = self.coating_with(c, l, || s0_sq[k], a_tf).a_tot(fresnel_conductor(
                     c.clamp(0.0, 1.0),
                     eta_k[k].0,
                     eta_k[k].1,
@@ -537,20 +538,24 @@ impl QdModel {
     /// [`Self::coating`] by the formulas, without the tables.
     pub fn coating_exact(&self, cos_theta: f64, lambda_nm: f64) -> Coating {
         let c = cos_theta.clamp(0.0, 1.0);
-        let beta = self.bulk_absorption(c, self.band.lambda_qd_nm);
-        let bulk = if lambda_nm <= self.band.lambda_qd_nm { self.bulk_absorption(c, lambda_nm) } else { 0.0 };
-        self.coating_with(c, lambda_nm, self.s0_sq(lambda_nm), beta, bulk)
+        self.coating_with(c, lambda_nm, || self.s0_sq(lambda_nm), || self.film_absorption(c, lambda_nm))
     }
 
-    /// [`Self::coating_exact`] from |S0|²(λ), A_bulk(θ, λQD) (`beta`) and A_bulk(θ, λ)
-    /// (`bulk`, read where λ ≤ λQD): the bake's one evaluation per node.
-    fn coating_with(&self, cos_theta: f64, lambda_nm: f64, s0_sq: f64, beta: f64, bulk: f64) -> Coating {
+    /// [`Self::coating_exact`] from |S0|²(λ) and A_tf(θ, λ), evaluated only where the film
+    /// is there: the bake's one evaluation per node, from its per-λ quantities.
+    fn coating_with(
+        &self,
+        cos_theta: f64,
+        lambda_nm: f64,
+        s0_sq: impl FnOnce() -> f64,
+        a_tf: impl FnOnce() -> f64,
+    ) -> Coating {
         if !(self.params.density > 0.0) || !lambda_nm.is_finite() {
             return Coating { r_spe: 0.0, t_spe: 1.0, a_tf: 0.0 };
         }
         let c = cos_theta.clamp(0.0, 1.0);
-        let r_spe = self.film_reflectance(c, lambda_nm, s0_sq);
-        let a_tf = self.film_absorption_with(lambda_nm, beta, bulk);
+        let r_spe = self.film_reflectance(c, lambda_nm, s0_sq());
+        let a_tf = a_tf();
         Coating { r_spe, t_spe: 1.0 - r_spe, a_tf }
     }
 
@@ -610,17 +615,17 @@ impl QdModel {
         }
         let lqd = self.band.lambda_qd_nm;
         let bulk = if lambda_nm <= lqd { self.bulk_absorption(cos_theta, lambda_nm) } else { 0.0 };
-        self.film_absorption_with(lambda_nm, self.bulk_absorption(cos_theta, lqd), bulk)
+        self.film_absorption_with(lambda_nm, || self.bulk_absorption(cos_theta, lqd), bulk)
     }
-    /// [`Self::film_absorption`] from A_bulk(θ, λQD) (`beta`) and A_bulk(θ, λ) (`bulk`,
-    /// read where λ ≤ λQD).
-    fn film_absorption_with(&self, lambda_nm: f64, beta: f64, bulk: f64) -> f64 {
+    /// [`Self::film_absorption`] from A_bulk(θ, λQD) (`beta`, evaluated where the band's
+    /// Gaussian reaches λ) and A_bulk(θ, λ) (`bulk`, read where λ ≤ λQD).
+    fn film_absorption_with(&self, lambda_nm: f64, beta: impl FnOnce() -> f64, bulk: f64) -> f64 {
         if !(self.params.density > 0.0) {
             return 0.0;
         }
         let b = &self.band;
         let g = cut_gaussian(lambda_nm, b.lambda_qd_nm, b.width_nm);
-        let beta = if g > 0.0 { beta } else { 0.0 };
+        let beta = if g > 0.0 { beta() } else { 0.0 };
         let a = if lambda_nm <= b.lambda_qd_nm { bulk + beta * g } else { 2.0 * beta * g };
         if a.is_finite() {
             a.clamp(0.0, 1.0)
