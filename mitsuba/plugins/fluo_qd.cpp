@@ -189,7 +189,8 @@ and bakes, at load and after every ``mi.traverse`` update, A_tot(θ, λ) with it
 integral along λ and the coating's R_spe and (T_spe(1 − A_tf))² on the model's λ grid at
 65 cosines; the plugin interpolates them bilinearly per lane (within 7e-4 of A_tot's
 peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``; 0.69 MB of
-float tables per coating), evaluates
+float tables per coating, every coating's in one array of the process, so that many
+coatings read theirs per lane from it), evaluates
 the substrate's Fresnel factor, the microfacet lobe and the logistic emission in closed
 form, samples λi | λo from the A_tot row nearest cos θi (exact inverse CDF) and forms the
 reradiation towards each direction from the half vector. No variant calls Rust per
@@ -566,7 +567,7 @@ public:
     /// and distribution as one model of a joined table set (as a textured material's
     /// models), with its own Q and roughness.
     bool jit_joinable() const override {
-        return dr::is_jit_v<Float> && !textured() && (!is_spectral_v<Spectrum> || dr::width(m_a_tot) > 0) &&
+        return dr::is_jit_v<Float> && !textured() && (!is_spectral_v<Spectrum> || m_tables.size() > 0) &&
                !dr::grad_enabled(m_q) && !dr::grad_enabled(m_radius) && !dr::grad_enabled(m_density) &&
                !dr::grad_enabled(m_alpha) && !dr::grad_enabled(m_alpha_v);
     }
@@ -583,31 +584,20 @@ public:
         // (RGB: the lobe's roughness alone, jit_lobe_joined; no tables)
         if (is_spectral_v<Spectrum> && (!m_joined || m_joined->key != key)) {
             auto j = std::make_shared<JoinedTables>();
-            std::vector<float> a_tot, cdf, r_tot, emission;
-            std::vector<uint32_t> t_off;
-            // (the members' tables read back: no second copy is kept per material)
-            auto append = [](std::vector<float> &to, const FloatStorage &t) {
-                size_t at = to.size();
-                to.resize(at + dr::width(t));
-                dr::store(to.data() + at, t);
-            };
+            std::vector<float> emission;
+            std::vector<uint32_t> t_off, t_len; // (the members' blocks, read where they are)
             for (const Bispectral *b : members) {
                 const auto *m = static_cast<const FluoQd *>(b);
-                t_off.push_back((uint32_t) a_tot.size());
-                append(a_tot, m->m_a_tot);
-                append(cdf, m->m_cdf);
-                append(r_tot, m->m_r_tot);
+                t_off.push_back(m->m_tables.at());
+                t_len.push_back(m->m_len);
                 for (const Float &v : m->m_em)
                     emission.push_back(dr::slice(dr::detach(v)));
                 j->grids.add(m->m_grid.host, true);
             }
             j->grids.upload();
-            auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
-            j->a_tot = load(a_tot);
-            j->cdf = load(cdf);
-            j->r_tot = load(r_tot);
-            j->emission = load(emission);
+            j->emission = dr::load<FloatStorage>(emission.data(), emission.size());
             j->t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
+            j->t_len = dr::load<UInt32Storage>(t_len.data(), t_len.size());
             j->key = std::move(key);
             m_joined = std::move(j);
         }
@@ -693,38 +683,40 @@ private:
     /// material's models (one per member), with each member's Q and roughness.
     struct JoinedTables {
         fluo_detail::LaneGridSet<Float> grids;
-        FloatStorage a_tot, cdf, r_tot, emission, q, alpha;
-        UInt32Storage t_off;
+        FloatStorage emission, q, alpha;
+        UInt32Storage t_off, t_len; ///< each member's block in the table store and its table length
         std::vector<std::pair<const void *, uint64_t>> key; ///< the members and their builds
     };
 
-    /// One baked model as a lane reads it: its tables at offset `off` ([rows][n] row major)
-    /// and its λ grid (textured; a uniform material's is m_grid, with its bucket index).
+    /// One baked model as a lane reads it: its tables in the table store ([rows][n] row
+    /// major, table k at off + k·len) and its λ grid (textured; a uniform material's is
+    /// m_grid, with its bucket index).
     struct ModelAt {
-        UInt32 index, off, n;
+        UInt32 index, off, len, n;
         GridAt grid;
-        const JoinedTables *joined = nullptr; ///< the tables read (null: the material's own)
+        const JoinedTables *joined = nullptr; ///< the grids and emission read (null: the material's own)
     };
     ModelAt joined_model(const JoinedTables &j, const UInt32 &m, const Mask &active) const {
         GridAt g = j.grids.at(m, active);
-        return { m, dr::gather<UInt32>(j.t_off, m, active), g.n, g, &j };
+        return { m, dr::gather<UInt32>(j.t_off, m, active), dr::gather<UInt32>(j.t_len, m, active), g.n, g, &j };
     }
-    /// One of the tables (m_a_tot, m_cdf, m_r_tot) as model mo reads it.
-    const FloatStorage &tab(const ModelAt &mo, const FloatStorage &own) const {
-        if (!mo.joined)
-            return own;
-        return &own == &m_a_tot ? mo.joined->a_tot : &own == &m_cdf ? mo.joined->cdf : mo.joined->r_tot;
-    }
+    /// The tables of a block, each [rows][n] per model: A_tot, its running integral along λ,
+    /// R_spe, pass and the smooth surface's R_tot (Rust's QdJitTables).
+    enum Table : uint32_t { ATot, Cdf, RSpe, Pass, RTot, Tables };
+    /// Where table k of model mo starts in the table store.
+    static UInt32 start(const ModelAt &mo, Table k) { return mo.off + (uint32_t) k * mo.len; }
+    const FloatStorage &store() const { return m_tables.data(); }
     uint32_t grid_max(const ModelAt &mo) const { return mo.joined ? mo.joined->grids.n_max : grid_max(); }
     ModelAt model_at(const UInt32 &m, const Mask &active) const {
         if (!textured())
-            return { UInt32(0), UInt32(0), m_grid.v_n, GridAt{} };
+            return { UInt32(0), m_tables.offset(), m_len_v, m_grid.v_n, GridAt{} };
         GridAt g = m_grids.at(m, active);
-        return { m, dr::gather<UInt32>(m_t_off, m, active), g.n, g };
+        return { m, m_tables.offset() + dr::gather<UInt32>(m_t_off, m, active), m_len_v, g.n, g };
     }
     static ModelAt select_model(const Mask &m, const ModelAt &a, const ModelAt &b) {
         const GridAt &g = a.grid, &h = b.grid;
-        return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.n, b.n),
+        return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.len, b.len),
+                 dr::select(m, a.n, b.n),
                  GridAt{ dr::select(m, g.off, h.off), dr::select(m, g.n, h.n), dr::select(m, g.b_off, h.b_off),
                          dr::select(m, g.b_n, h.b_n), dr::select(m, g.lo, h.lo), dr::select(m, g.hi, h.hi),
                          dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) },
@@ -816,7 +808,8 @@ private:
             // spares the substrate's eta/k lookups).
             UnpolarizedSpectrum we;
             for (size_t w = 0; w < cells.size(); ++w)
-                we[w] = dr::maximum(bilinear(tab(mo, m_r_tot), dr::maximum(cos_i, 0.f), cells[w], mo, active), 0.f);
+                we[w] = dr::maximum(bilinear(store(), start(mo, RTot), dr::maximum(cos_i, 0.f), cells[w], mo, active),
+                                    0.f);
             // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
             // within the model's excitation range.
             Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
@@ -825,7 +818,7 @@ private:
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
             // The A_tot row nearest cos θi (as the Rust model's sampling).
-            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n + mo.off;
+            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n;
             UInt32 last = mo.n - 1;
             // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
             // drawn and dQ of the reradiation Q·e would be lost).
@@ -853,15 +846,16 @@ private:
                 // then the cell's quadratic root (cancellation-free form); the search runs
                 // over the longest grid, each lane's row clamped to its own.
                 Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
-                const FloatStorage &cdf = tab(mo, m_cdf), &a_tot = tab(mo, m_a_tot);
+                const FloatStorage &t = store();
+                UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
                 UInt32 k = dr::binary_search<UInt32>(1, grid_max(mo) - 1, [&](const UInt32 &i) {
-                               return dr::gather<Float>(cdf, row + dr::minimum(i, last), ok) <= target;
+                               return dr::gather<Float>(t, cdf + dr::minimum(i, last), ok) <= target;
                            }) - 1;
                 k = dr::clip(k, ca.k, cb.k);
                 Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
-                Float f0 = dr::gather<Float>(a_tot, row + k, ok), f1 = dr::gather<Float>(a_tot, row + k + 1, ok);
+                Float f0 = dr::gather<Float>(t, a_tot + k, ok), f1 = dr::gather<Float>(t, a_tot + k + 1, ok);
                 Float h_ = x1 - x0;
-                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(cdf, row + k, ok));
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(t, cdf + k, ok));
                 Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
                 Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
                 scale[w] = choice.weight(pdf, u1[w]);
@@ -887,8 +881,8 @@ private:
                 // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
                 Mask on = active && (dr::grad_enabled(rerad[w]) ? Mask(true) : Mask(rerad[w] != 0.f));
                 Cell c = cell(mo, si.wavelengths[w], on);
-                out_a[w] = rerad[w] * lobe_a * bilinear_ad(tab(mo, m_a_tot), &Tangents::a_tot, c_a, c, mo, on);
-                out_b[w] = rerad[w] * lobe_b * bilinear_ad(tab(mo, m_a_tot), &Tangents::a_tot, c_b, c, mo, on);
+                out_a[w] = rerad[w] * lobe_a * bilinear_ad(ATot, &Tangents::a_tot, c_a, c, mo, on);
+                out_b[w] = rerad[w] * lobe_b * bilinear_ad(ATot, &Tangents::a_tot, c_b, c, mo, on);
             }
         } else {
             (void) mo, (void) alpha, (void) si, (void) rerad, (void) wo_a, (void) wo_b, (void) active;
@@ -1034,12 +1028,13 @@ private:
     Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {
         return dr::lerp(dr::gather<Float>(t, row + c.k, active), dr::gather<Float>(t, row + c.k + 1, active), c.f);
     }
-    /// The running integral of row `row` (offset) of A_tot up to the cell's λ.
+    /// The running integral of row `row` (its offset in a table) of A_tot up to the cell's λ.
     Float running(const ModelAt &mo, const UInt32 &row, const Cell &c, const Mask &active) const {
-        const FloatStorage &a_tot = tab(mo, m_a_tot);
-        Float f0 = dr::gather<Float>(a_tot, row + c.k, active), f1 = dr::gather<Float>(a_tot, row + c.k + 1, active);
+        const FloatStorage &t = store();
+        UInt32 a_tot = start(mo, ATot) + row + c.k;
+        Float f0 = dr::gather<Float>(t, a_tot, active), f1 = dr::gather<Float>(t, a_tot + 1, active);
         Float half = .5f * c.f * (c.x1 - c.x0);
-        return dr::gather<Float>(tab(mo, m_cdf), row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
+        return dr::gather<Float>(t, start(mo, Cdf) + row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
     }
     /// Rows j, j + 1 around cos θ and the fraction between them.
     std::pair<UInt32, Float> rows_at(const Float &cos_theta) const {
@@ -1047,11 +1042,11 @@ private:
         UInt32 j = dr::minimum(UInt32(dr::floor(x)), m_rows - 2);
         return { j, x - Float(j) };
     }
-    /// A model's [rows][λ] table, bilinear in (cos θ, λ).
-    Float bilinear(const FloatStorage &t, const Float &cos_theta, const Cell &c, const ModelAt &mo,
+    /// A model's [rows][λ] table (in `t` at `base`), bilinear in (cos θ, λ).
+    Float bilinear(const FloatStorage &t, const UInt32 &base, const Float &cos_theta, const Cell &c, const ModelAt &mo,
                    const Mask &active) const {
         auto [j, fc] = rows_at(cos_theta);
-        UInt32 r0 = mo.off + j * mo.n;
+        UInt32 r0 = base + j * mo.n;
         return dr::lerp(along(t, r0, c, active), along(t, r0 + mo.n, c, active), fc);
     }
     /// Spectral, uniform material: the tables' derivatives in radius (p = 0) and density
@@ -1143,15 +1138,15 @@ private:
         m_tangents = std::move(t);
     }
 
-    /// bilinear() of a table, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
-    /// carry gradients (`table`: which of Tangents' arrays).
-    Float bilinear_ad(const FloatStorage &t, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
-                      const Cell &c, const ModelAt &mo, const Mask &active) const {
-        Float v = bilinear(t, cos_theta, c, mo, active);
+    /// bilinear() of table k, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
+    /// carry gradients (`table`: which of Tangents' arrays, [rows][n] each).
+    Float bilinear_ad(Table k, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta, const Cell &c,
+                      const ModelAt &mo, const Mask &active) const {
+        Float v = bilinear(store(), start(mo, k), cos_theta, c, mo, active);
         if (const Tangents *tg = mo.joined ? nullptr : tangents())
             for (size_t p = 0; p < 2; ++p)
                 if (wants(p))
-                    v = dr::fmadd(delta(p), bilinear((tg->*table)[p], cos_theta, c, mo, active), v);
+                    v = dr::fmadd(delta(p), bilinear((tg->*table)[p], UInt32(0), cos_theta, c, mo, active), v);
         return v;
     }
 
@@ -1218,8 +1213,8 @@ private:
             if constexpr (is_spectral_v<Spectrum>) {
                 for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                     const Cell &c = h.cells[i / h.per_radius][w];
-                    r_spe[w] = bilinear_ad(m_r_spe, &Tangents::r_spe, cos_m, c, h.model[i], on);
-                    pass[w] = bilinear_ad(m_pass, &Tangents::pass, cos_m, c, h.model[i], on);
+                    r_spe[w] = bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], on);
+                    pass[w] = bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], on);
                 }
             } else {
                 r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
@@ -1285,8 +1280,8 @@ private:
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
-        bool fluorescent = textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(*model);
-        if (fluorescent && !m_setup.uniform_substrate())
+        // (a uniform substrate asks nothing: Rust then bakes the tables below alone)
+        if (!m_setup.uniform_substrate() && (textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(*model)))
             Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
                   "with a fluorescent coating: the coating's absorption tables are baked for one "
                   "substrate (the elastic part alone is evaluated per hit); give constant "
@@ -1308,7 +1303,8 @@ private:
                 models.push_back(&*m);
         else
             models.push_back(m_unit ? &**m_unit : &*model);
-        std::vector<float> a_tot, cdf, r_spe, pass, r_tot, rgb_r_spe, rgb_pass, emission;
+        std::array<std::vector<float>, Tables> tables; // (spectral)
+        std::vector<float> rgb_r_spe, rgb_pass, emission;
         std::vector<uint32_t> t_off;
         m_grids = fluo_detail::LaneGridSet<Float>();
         for (const fluo::QdModel *m : models) {
@@ -1319,10 +1315,10 @@ private:
                 Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
                       Plugin, t.lambda.size(), t.rows);
             m_rows = (uint32_t) t.rows;
-            t_off.push_back((uint32_t) a_tot.size());
-            for (auto [dst, src] : { std::pair{ &a_tot, &t.a_tot }, std::pair{ &cdf, &t.cdf },
-                                     std::pair{ &r_spe, &t.r_spe }, std::pair{ &pass, &t.pass },
-                                     std::pair{ &r_tot, &t.r_tot }, std::pair{ &rgb_r_spe, &t.extra_r_spe },
+            t_off.push_back((uint32_t) tables[ATot].size());
+            for (auto [dst, src] : { std::pair{ &tables[ATot], &t.a_tot }, std::pair{ &tables[Cdf], &t.cdf },
+                                     std::pair{ &tables[RSpe], &t.r_spe }, std::pair{ &tables[Pass], &t.pass },
+                                     std::pair{ &tables[RTot], &t.r_tot }, std::pair{ &rgb_r_spe, &t.extra_r_spe },
                                      std::pair{ &rgb_pass, &t.extra_pass } })
                 dst->insert(dst->end(), src->begin(), src->end());
             for (double v : { t.emission_peak_nm, t.emission_scale_nm,
@@ -1352,13 +1348,16 @@ private:
         m_model = std::move(model);
         auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
         // only the tables this variant reads (the RGB ones evaluate R_spe and pass at the
-        // channels' wavelengths; 1.4 MB of spectral tables per material spared there)
+        // channels' wavelengths; 1.4 MB of spectral tables per material spared there), the
+        // spectral ones in the table store, one after the other
         if constexpr (is_spectral_v<Spectrum>) {
-            m_a_tot = load(a_tot);
-            m_cdf = load(cdf);
-            m_r_spe = load(r_spe);
-            m_pass = load(pass);
-            m_r_tot = load(r_tot);
+            m_len = (uint32_t) tables[ATot].size();
+            std::vector<float> block;
+            block.reserve(Tables * m_len);
+            for (const std::vector<float> &t : tables)
+                block.insert(block.end(), t.begin(), t.end());
+            m_tables.assign(block);
+            m_len_v = dr::opaque<UInt32>(m_len);
         } else {
             m_rgb_r_spe = load(rgb_r_spe);
             m_rgb_pass = load(rgb_pass);
@@ -1397,7 +1396,10 @@ private:
     bool m_coated = false;
     /// the tables ([rows][λ] row major per model, the models' blocks concatenated at m_t_off;
     /// RGB ones [model][rows][3]) and their grids (uniform: m_grid; textured: m_grids)
-    FloatStorage m_a_tot, m_cdf, m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass;
+    typename fluo_detail::TableStore<Float>::Block m_tables; ///< spectral: the Tables, each m_len long
+    uint32_t m_len = 0;
+    UInt32 m_len_v = 0; ///< m_len, opaque
+    FloatStorage m_rgb_r_spe, m_rgb_pass;
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
@@ -1424,8 +1426,7 @@ private:
     ScalarFloat m_width = 0.f;
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
-                   m_a_tot, m_cdf,
-                   m_r_spe, m_pass, m_r_tot, m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q)
+                   m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q)
 };
 
 static const bool fluo_qd_jit_registered =

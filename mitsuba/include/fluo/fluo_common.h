@@ -20,6 +20,8 @@
 #include <atomic>
 #include <deque>
 #include <functional>
+#include <map>
+#include <mutex>
 #include <string>
 #include <string_view>
 #include <unordered_set>
@@ -166,6 +168,130 @@ template <typename Float> std::vector<float> host_lanes(const Float &value, size
     dr::store(out.data(), v);
     return out;
 }
+
+/// Many materials' tables in one array per Float type: Dr.Jit rounds every allocation up to
+/// a power of two (a coating's 139 KB table took 256 KB of a process's memory), and a
+/// class's joined evaluation (jit_join) reads its members' blocks where they are, with no
+/// copy. A Block is one material's tables back to back; it keeps its place for its life
+/// (freed space is reused first fit, the array grows by doubling from 1 GiB of untouched
+/// host memory in llvm, and is released with the last block) and lanes read it at an opaque offset, so that instances share their code.
+template <typename Float> class TableStore {
+    using Storage = DynamicBuffer<Float>;
+    using Index = DynamicBuffer<dr::uint32_array_t<Float>>;
+
+public:
+    class Block {
+    public:
+        Block() = default;
+        Block(const Block &) = delete;
+        Block &operator=(const Block &) = delete;
+        ~Block() { release(); }
+        /// Store `values` in place of the block's previous ones.
+        void assign(const std::vector<float> &values) {
+            release();
+            if (values.empty())
+                return;
+            m_at = store().put(values);
+            m_size = (uint32_t) values.size();
+            m_offset = dr::opaque<dr::uint32_array_t<Float>>(m_at);
+        }
+        uint32_t at() const { return m_at; }
+        uint32_t size() const { return m_size; }
+        /// Where the block starts in data(), as a lane reads it.
+        const dr::uint32_array_t<Float> &offset() const { return m_offset; }
+        const Storage &data() const { return store().m_data; }
+
+    private:
+        void release() {
+            if (m_size)
+                store().free(m_at, m_size);
+            m_size = 0;
+        }
+        uint32_t m_at = 0, m_size = 0;
+        dr::uint32_array_t<Float> m_offset = 0;
+    };
+
+private:
+    static TableStore &store() {
+        static TableStore *s = new TableStore(); // (emptied with its last block, never destroyed)
+        return *s;
+    }
+    uint32_t put(const std::vector<float> &values) {
+        std::lock_guard<std::mutex> guard(m_mutex);
+        uint32_t n = (uint32_t) values.size(), at = m_end;
+        auto fit = std::find_if(m_free.begin(), m_free.end(), [&](const auto &f) { return f.second >= n; });
+        if (fit != m_free.end()) {
+            at = fit->first;
+            if (fit->second > n)
+                m_free[at + n] = fit->second - n;
+            m_free.erase(fit);
+        } else {
+            if ((size_t) m_end + n > dr::width(m_data)) {
+                // (host memory is reserved generously at once: the pages no block has written
+                // stay out of the process's memory, and no copy of the tables is made as they grow)
+                size_t first = dr::backend_v<Float> == JitBackend::LLVM ? (size_t) 1 << 28 : (size_t) 1 << 16;
+                size_t cap = std::max({ (size_t) m_end + n, 2 * dr::width(m_data), first });
+                Storage grown = dr::empty<Storage>(cap);
+                if (m_end) {
+                    Index i = dr::arange<Index>(m_end);
+                    dr::scatter(grown, dr::gather<Storage>(m_data, i), i);
+                }
+                dr::eval(grown);
+                m_data = std::move(grown);
+                if constexpr (dr::is_jit_v<Float>) { // (the old array is not kept for reuse)
+                    dr::sync_thread();
+                    jit_flush_malloc_cache();
+                }
+            }
+            m_end += n;
+        }
+        // written in place (a scatter from a copy of the values kept that copy's memory in
+        // Dr.Jit's cache, a load's blocks each their own)
+        if constexpr (dr::is_jit_v<Float>) {
+            dr::eval(m_data);
+            dr::sync_thread();
+            auto plain = dr::detach(m_data);
+            float *p = plain.data(); // (an array not yet written becomes memory here: kept)
+            m_data = plain;
+            jit_memcpy(dr::backend_v<Float>, p + at, values.data(), n * sizeof(float));
+        } else {
+            std::copy(values.begin(), values.end(), m_data.data() + at);
+        }
+        m_live += n;
+        return at;
+    }
+    void free(uint32_t at, uint32_t n) {
+        std::lock_guard<std::mutex> guard(m_mutex);
+        m_live -= n;
+        if (m_live == 0) {
+            m_data = Storage();
+            m_free.clear();
+            m_end = 0;
+            return;
+        }
+        auto next = m_free.find(at + n);
+        if (next != m_free.end()) {
+            n += next->second;
+            m_free.erase(next);
+        }
+        auto prev = m_free.lower_bound(at);
+        if (prev != m_free.begin() && std::prev(prev)->first + std::prev(prev)->second == at) {
+            --prev;
+            at = prev->first;
+            n += prev->second;
+            m_free.erase(prev);
+        }
+        if (at + n == m_end)
+            m_end = at; // (the end is not a hole)
+        else
+            m_free[at] = n;
+    }
+    std::mutex m_mutex;
+    Storage m_data;
+    uint32_t m_end = 0;
+    size_t m_live = 0;
+    std::map<uint32_t, uint32_t> m_free; ///< offset → size
+};
 
 /// Every entry of the data tensors that `obj`'s traverse() shows, its children's included
 /// (bitmap texels, grid voxels, in any precision): `f(values, channels)` per tensor, the

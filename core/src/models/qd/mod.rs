@@ -149,6 +149,7 @@ mod volume;
 
 use std::f64::consts::PI;
 use std::fmt;
+use std::sync::OnceLock;
 
 use crate::error::check_range;
 use crate::Result;
@@ -265,22 +266,6 @@ struct Tables {
     beta: Vec<f64>,
 }
 
-impl Tables {
-    fn empty() -> Self {
-        let lambda = vec![0.0, 1.0];
-        let index = LambdaIndex::new(&lambda);
-        Self {
-            lambda,
-            index,
-            a_tot: Vec::new(),
-            cdf: Vec::new(),
-            s0_sq: Vec::new(),
-            a_bulk: Vec::new(),
-            beta: Vec::new(),
-        }
-    }
-}
-
 /// A QD-coated microfacet material (validated, with its tables baked).
 #[derive(Debug, Clone, PartialEq)]
 pub struct QdModel {
@@ -293,9 +278,14 @@ pub struct QdModel {
     scale: f64,
     /// I = Λ(λmax) − Λ(λmin).
     norm: f64,
-    tables: Tables,
-    /// Excitation support, or `None` if the coating never re-emits.
-    excitation: Option<(f64, f64)>,
+    /// The tables' λ nodes, nm.
+    lambda: Vec<f64>,
+    /// The tables of the Rust evaluation, baked when first read: a renderer that reads
+    /// [`Self::jit_tables`] alone never needs them (0.4 MB a coating; 200 coatings' load).
+    tables: OnceLock<Tables>,
+    /// Excitation support, or `None` if the coating never re-emits: from the tables, or
+    /// from [`Self::jit_tables`] where its rows hold the tables' ones.
+    excitation: OnceLock<Option<(f64, f64)>>,
 }
 
 /// The tables the vectorised variants interpolate ([`QdModel::jit_tables`]).
@@ -379,6 +369,15 @@ pub fn check_param_value(name: &str, value: f64) -> Result<()> {
     }
 }
 
+/// The running integral along λ (trapezoids) at node `k` of the table row being pushed into
+/// `values` (row major, earlier rows complete) and `cdf`, whose value there is `v`.
+fn running(lambda: &[f64], k: usize, values: &[f64], cdf: &[f64], v: f64) -> f64 {
+    match (k, values.last(), cdf.last()) {
+        (1.., Some(&prev), Some(&acc)) => acc + 0.5 * (lambda[k] - lambda[k - 1]) * (v + prev),
+        _ => 0.0,
+    }
+}
+
 impl QdModel {
     /// Validate and bake.
     pub fn new(params: QdParams, index: QdIndex, substrate: Substrate) -> Result<Self> {
@@ -396,58 +395,91 @@ impl QdModel {
         let scale = 0.5 * params.width_nm;
         let norm = logistic_cdf(params.lambda_max_nm, band.emission_peak_nm, scale)
             - logistic_cdf(params.lambda_min_nm, band.emission_peak_nm, scale);
-        let mut m =
-            Self { params, band, index, substrate, microfacet, scale, norm, tables: Tables::empty(), excitation: None };
-        m.bake();
-        Ok(m)
+        let lambda = lambda_grid((params.lambda_min_nm, params.lambda_max_nm), &band, params.table_step_nm);
+        Ok(Self {
+            params,
+            band,
+            index,
+            substrate,
+            microfacet,
+            scale,
+            norm,
+            lambda,
+            tables: OnceLock::new(),
+            excitation: OnceLock::new(),
+        })
     }
 
-    fn bake(&mut self) {
-        let lambda =
-            lambda_grid((self.params.lambda_min_nm, self.params.lambda_max_nm), &self.band, self.params.table_step_nm);
-        let n = lambda.len();
-        let rows = self.params.cos_nodes;
+    /// Every node (cos θ_j = j/(rows − 1), λ_k) of a table, row by row: `node(j, k, coating,
+    /// substrate reflectance, A_bulk)` by the formulas ([`Self::coating_exact`],
+    /// [`Self::substrate_reflectance`], [`Self::bulk_absorption`]), what depends on λ alone
+    /// (the dot's index, |S0|², the substrate's η, k) evaluated once per node; returns |S0|²
+    /// at the nodes and β(θ_j) = A_bulk(θ_j, λQD).
+    fn for_nodes(
+        &self,
+        rows: usize,
+        lambda: &[f64],
+        mut node: impl FnMut(usize, usize, &Coating, f64, f64),
+    ) -> (Vec<f64>, Vec<f64>) {
         let cos = |j: usize| j as f64 / (rows - 1) as f64;
-        // what depends on λ alone, once per node: the dot's index, |S0|², the substrate's η, k
         let m_l: Vec<Complex> = lambda.iter().map(|&l| self.index.eval(l)).collect();
         let s0_sq: Vec<f64> = lambda.iter().zip(&m_l).map(|(&l, &m)| self.s0_sq_with(l, m)).collect();
         let eta_k: Vec<(f64, f64)> = lambda.iter().map(|&l| self.substrate.eta_k(l)).collect();
         let beta: Vec<f64> = (0..rows).map(|j| self.bulk_absorption(cos(j), self.band.lambda_qd_nm)).collect();
-        let mut a_bulk = Vec::with_capacity(rows * n);
-        let mut a_tot = Vec::with_capacity(rows * n);
-        let mut cdf = Vec::with_capacity(rows * n);
         for (j, &beta_j) in beta.iter().enumerate() {
             let c = cos(j);
-            let mut acc = 0.0;
-            for k in 0..n {
-                let (l, bulk) = (lambda[k], self.bulk_absorption_with(c, lambda[k], m_l[k]));
-                a_bulk.push(bulk);
-                // coating_exact and substrate_reflectance, from the node's quantities
-                let a_tf = || self.film_absorption_with(l, || beta_j, bulk);
-                let a = self.coating_with(c, l, || s0_sq[k], a_tf).a_tot(fresnel_conductor(
-                    c.clamp(0.0, 1.0),
-                    eta_k[k].0,
-                    eta_k[k].1,
-                ));
-                if k > 0 {
-                    acc += 0.5 * (lambda[k] - lambda[k - 1]) * (a + a_tot[j * n + k - 1]);
-                }
-                a_tot.push(a);
-                cdf.push(acc);
+            for (k, &l) in lambda.iter().enumerate() {
+                let bulk = self.bulk_absorption_with(c, l, m_l[k]);
+                let co = self.coating_with(c, l, || s0_sq[k], || self.film_absorption_with(l, || beta_j, bulk));
+                node(j, k, &co, fresnel_conductor(c.clamp(0.0, 1.0), eta_k[k].0, eta_k[k].1), bulk);
             }
         }
-        // Support: nodes where any row absorbs, widened to the neighbouring nodes.
-        let any = |k: usize| (0..rows).any(|j| a_tot[j * n + k] > 0.0);
+        (s0_sq, beta)
+    }
+
+    /// The excitation support from A_tot tables ([rows][λ] on the model's grid) whose rows
+    /// `step`·j are the tables' rows j: the nodes where any row absorbs, widened to the
+    /// neighbouring nodes.
+    fn support(&self, a_tot: &[f64], step: usize) -> Option<(f64, f64)> {
+        let (n, lambda) = (self.lambda.len(), &self.lambda);
+        let any = |k: usize| (0..self.params.cos_nodes).any(|j| a_tot[j * step * n + k] > 0.0);
         let first = (0..n).find(|&k| any(k));
         let last = (0..n).rev().find(|&k| any(k));
-        self.excitation = match (first, last) {
+        match (first, last) {
             (Some(f), Some(l)) if self.is_fluorescent_params() && self.norm > 0.0 => {
                 Some((lambda[f.saturating_sub(1)], lambda[(l + 1).min(n - 1)]))
             }
             _ => None,
-        };
+        }
+    }
+
+    /// The tables, baked at the first call.
+    fn tables(&self) -> &Tables {
+        self.tables.get_or_init(|| self.bake())
+    }
+
+    /// Excitation support, or `None` if the coating never re-emits.
+    fn excitation(&self) -> Option<(f64, f64)> {
+        *self.excitation.get_or_init(|| {
+            (self.is_fluorescent_params() && self.norm > 0.0).then(|| self.support(&self.tables().a_tot, 1)).flatten()
+        })
+    }
+
+    fn bake(&self) -> Tables {
+        let lambda = self.lambda.clone();
+        let n = lambda.len();
+        let rows = self.params.cos_nodes;
+        let mut a_bulk = Vec::with_capacity(rows * n);
+        let mut a_tot: Vec<f64> = Vec::with_capacity(rows * n);
+        let mut cdf = Vec::with_capacity(rows * n);
+        let (s0_sq, beta) = self.for_nodes(rows, &lambda, |_, k, co, r, bulk| {
+            a_bulk.push(bulk);
+            let a = co.a_tot(r);
+            cdf.push(running(&lambda, k, &a_tot, &cdf, a));
+            a_tot.push(a);
+        });
         let index = LambdaIndex::new(&lambda);
-        self.tables = Tables { lambda, index, a_tot, cdf, s0_sq, a_bulk, beta };
+        Tables { lambda, index, a_tot, cdf, s0_sq, a_bulk, beta }
     }
 
     fn is_fluorescent_params(&self) -> bool {
@@ -468,21 +500,21 @@ impl QdModel {
     }
     /// Whether the coating re-emits at all.
     pub fn is_fluorescent(&self) -> bool {
-        self.excitation.is_some()
+        self.excitation().is_some()
     }
     /// Memory held by the precomputed tables, bytes.
     pub fn table_bytes(&self) -> usize {
-        let t = &self.tables;
+        let t = self.tables();
         8 * (t.lambda.len() + t.a_tot.len() + t.cdf.len() + t.s0_sq.len() + t.a_bulk.len() + t.beta.len())
             + 4 * t.index.len()
     }
     /// Number of λ nodes of the tables.
     pub fn table_nodes(&self) -> usize {
-        self.tables.lambda.len()
+        self.lambda.len()
     }
     /// The λ nodes of the tables, nm.
     pub fn table_lambda(&self) -> &[f64] {
-        &self.tables.lambda
+        &self.lambda
     }
 
     /// m_QD(λ).
@@ -504,7 +536,7 @@ impl QdModel {
         if !(p.density > 0.0) || !lambda_nm.is_finite() {
             return Coating { r_spe: 0.0, t_spe: 1.0, a_tf: 0.0 };
         }
-        let t = &self.tables;
+        let t = self.tables();
         let n = t.lambda.len();
         if !(lambda_nm >= t.lambda[0] && lambda_nm <= t.lambda[n - 1]) || t.s0_sq.len() != n {
             return self.coating_exact(cos_theta, lambda_nm);
@@ -669,12 +701,12 @@ impl QdModel {
         if !(self.norm > 0.0) {
             return 0.0;
         }
-        let n = self.tables.lambda.len();
+        let n = self.lambda.len();
         let rows = self.params.cos_nodes;
         let x = cos_theta.clamp(0.0, 1.0) * (rows - 1) as f64;
         let j = (x.floor() as usize).min(rows - 2);
         let f = x - j as f64;
-        let total = |j: usize| self.tables.cdf.get(j * n + n - 1).copied().unwrap_or(0.0);
+        let total = |j: usize| self.tables().cdf.get(j * n + n - 1).copied().unwrap_or(0.0);
         self.params.quantum_yield / self.norm * ((1.0 - f) * total(j) + f * total(j + 1))
     }
 
@@ -696,17 +728,18 @@ impl QdModel {
         }
     }
 
-    /// What the vectorised variants evaluate per lane instead of calling the model
-    /// (`fluo_qd` in llvm/cuda; Dr.Jit cannot trace calls into Rust). On the model's λ grid
-    /// and at `rows` cosines uniform over [0, 1]: A_tot ([`Self::a_tot`], the reradiation's
-    /// absorption) and its running integral along λ (trapezoids: exact for the bilinear
+    /// What the renderer evaluates per lane instead of calling the model (`fluo_qd` in every
+    /// variant; Dr.Jit cannot trace calls into Rust). On the model's λ grid and at `rows`
+    /// cosines uniform over [0, 1], by the formulas at every node ([`Self::coating_exact`]:
+    /// not from the Rust evaluation's own tables, which are then never baked): A_tot (the
+    /// reradiation's absorption) and its running integral along λ (trapezoids: exact for the bilinear
     /// interpolant), and the coating's R_spe and pass = (T_spe (1 − A_tf))², from which the
     /// renderer forms the elastic R_tot = R_spe + pass·R/(1 − R·R_spe) over its own
     /// substrate Fresnel factor R; and R_spe, pass at the wavelengths `extra_nm` (the RGB
     /// channels'), row major [rows][extra]. Bilinear interpolation in (cos θ, λ) is the
     /// vectorised model: test `jit_tables_interpolate_the_model` measures its error.
     pub fn jit_tables(&self, rows: usize, extra_nm: &[f64]) -> JitTables {
-        self.jit_tables_on(rows, &self.tables.lambda, extra_nm)
+        self.jit_tables_on(rows, &self.lambda, extra_nm)
     }
 
     /// [`Self::jit_tables`] on the λ grid `lambda` (strictly increasing) instead of the
@@ -728,38 +761,35 @@ impl QdModel {
             emission_peak_nm: self.band.emission_peak_nm,
             emission_scale_nm: self.scale,
             emission_norm: self.norm,
-            excitation: self.excitation,
+            excitation: None,
             lambda: Vec::new(),
         };
-        // R_spe and pass = (T_spe (1 − A_tf))² of the coating at (c, λ).
+        // R_spe and pass = (T_spe (1 − A_tf))² of the coating.
         let elastic = |co: &Coating| (co.r_spe, (co.t_spe * (1.0 - co.a_tf)).powi(2));
-        // the substrate's η, k once per λ (a tabulated metal's lookups were a third of a
-        // coating's bake)
-        let eta_k: Vec<(f64, f64)> = lambda.iter().map(|&l| self.substrate.eta_k(l)).collect();
+        self.for_nodes(rows, &lambda, |_, k, co, r, _| {
+            let a = co.a_tot(r);
+            t.cdf.push(running(&lambda, k, &t.a_tot, &t.cdf, a));
+            t.a_tot.push(a);
+            let (rs, p) = elastic(co);
+            t.r_spe.push(rs);
+            t.pass.push(p);
+            t.r_tot.push(co.r_tot(r));
+        });
         for j in 0..rows {
             let c = j as f64 / (rows - 1) as f64;
-            let mut acc = 0.0;
-            for k in 0..n {
-                // one coating and substrate evaluation per node ([`Self::a_tot`], [`Self::r_tot`])
-                let co = self.coating(c, lambda[k]);
-                let r = fresnel_conductor(c, eta_k[k].0, eta_k[k].1); // (substrate_reflectance)
-                let a = co.a_tot(r);
-                if k > 0 {
-                    acc += 0.5 * (lambda[k] - lambda[k - 1]) * (a + t.a_tot[j * n + k - 1]);
-                }
-                t.a_tot.push(a);
-                t.cdf.push(acc);
-                let (rs, p) = elastic(&co);
-                t.r_spe.push(rs);
-                t.pass.push(p);
-                t.r_tot.push(co.r_tot(r));
-            }
             for &l in extra_nm {
-                let (rs, p) = elastic(&self.coating(c, l));
+                let (rs, p) = elastic(&self.coating_exact(c, l));
                 t.extra_r_spe.push(rs);
                 t.extra_pass.push(p);
             }
         }
+        // The support from these rows where they hold the tables' ones (the same nodes by
+        // the same formulas): the tables are then never baked for it.
+        let tables_rows = self.params.cos_nodes - 1;
+        if lambda == self.lambda && (rows - 1) % tables_rows == 0 && self.excitation.get().is_none() {
+            let _ = self.excitation.set(self.support(&t.a_tot, (rows - 1) / tables_rows));
+        }
+        t.excitation = self.excitation();
         t.lambda = lambda;
         t
     }
@@ -773,7 +803,7 @@ impl QdModel {
 
     /// Interpolated table value and running integral at λ on row j.
     fn table_at(&self, j: usize, lambda: f64) -> (f64, f64) {
-        let t = &self.tables;
+        let t = self.tables();
         let n = t.lambda.len();
         let (Some(&l0), Some(&l1)) = (t.lambda.first(), t.lambda.last()) else { return (0.0, 0.0) };
         if !(lambda > l0) {
@@ -795,7 +825,7 @@ impl QdModel {
 
     /// The λi interval [lo, hi] of excitations that can reach λo inside `range`.
     fn excitation_interval(&self, lambda_o: f64, range: (f64, f64)) -> Option<(f64, f64)> {
-        let (slo, shi) = self.excitation?;
+        let (slo, shi) = self.excitation()?;
         let lo = range.0.max(slo);
         let hi = range.1.min(shi).min(lambda_o);
         (hi > lo).then_some((lo, hi))
@@ -810,7 +840,7 @@ impl QdModel {
             return None;
         }
         let target = c_lo + xi.clamp(0.0, 1.0) * mass;
-        let t = &self.tables;
+        let t = self.tables();
         let n = t.lambda.len();
         let cdf = &t.cdf[j * n..(j + 1) * n];
         // Bin k with cdf[k] ≤ target < cdf[k+1].
@@ -884,7 +914,7 @@ impl fmt::Display for QdModel {
             p.lambda_min_nm,
             p.lambda_max_nm,
             self.params.cos_nodes,
-            self.tables.lambda.len(),
+            self.lambda.len(),
             self.table_bytes()
         )
     }
@@ -895,10 +925,10 @@ impl fmt::Display for QdModel {
 /// (eqs. 23, 27); reduced tables are built from it per cosine.
 impl crate::interface::Bispectral for QdModel {
     fn excitation_range(&self) -> Option<(f64, f64)> {
-        self.excitation
+        self.excitation()
     }
     fn emission_range(&self) -> Option<(f64, f64)> {
-        self.excitation.map(|_| (self.params.lambda_min_nm, self.params.lambda_max_nm))
+        self.excitation().map(|_| (self.params.lambda_min_nm, self.params.lambda_max_nm))
     }
     fn elastic_albedo(&self, cos_i: f64, lambda: f64) -> f64 {
         self.r_tot(cos_i, lambda)
@@ -915,7 +945,7 @@ impl crate::interface::Bispectral for QdModel {
         Some((a, b))
     }
     fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        if self.excitation.is_none() {
+        if self.excitation().is_none() {
             return 0.0;
         }
         let e = self.emission_given(lambda_i, lambda_o);
@@ -959,7 +989,7 @@ impl crate::interface::Bispectral for QdModel {
         self.row_pdf(self.row(wi[2]), lo, hi, lambda_i)
     }
     fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
-        if !(wi[2] > 0.0) || self.excitation.is_none() || !self.absorbs(wi[2], lambda_i) {
+        if !(wi[2] > 0.0) || self.excitation().is_none() || !self.absorbs(wi[2], lambda_i) {
             return None;
         }
         let (a, b, mass) = self.emission_interval(lambda_i)?;
@@ -979,7 +1009,7 @@ impl crate::interface::Bispectral for QdModel {
         (pdf > 0.0 && pdf.is_finite() && x > lambda_i).then_some((x, pdf))
     }
     fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        if !(wi[2] > 0.0) || self.excitation.is_none() || !self.absorbs(wi[2], lambda_i) {
+        if !(wi[2] > 0.0) || self.excitation().is_none() || !self.absorbs(wi[2], lambda_i) {
             return 0.0;
         }
         match self.emission_interval(lambda_i) {
@@ -1032,6 +1062,27 @@ mod tests {
         let peak = own.a_tot.iter().fold(0.0f64, |m, v| m.max(*v));
         let step = own.a_tot.iter().zip(&next.a_tot).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
         assert!(peak > 0.0 && step > 0.0 && step < 0.05 * peak, "{step} of {peak}");
+    }
+
+    #[test]
+    fn jit_tables_leave_the_tables_unbaked() {
+        // the support read from the vectorised tables' rows is the tables' own (gold and a
+        // dielectric, thin and dense films, a coating that never re-emits)
+        for substrate in [GOLD, Substrate::Constant { eta: 1.5, k: 0.0 }] {
+            for (radius, density, q) in [(1.8, 0.2, 0.5), (3.1, 0.9, 1.0), (2.5, 0.5, 0.0)] {
+                let p = QdParams { radius_nm: radius, density, quantum_yield: q, ..QdParams::default() };
+                let a = QdModel::new(p.clone(), QdIndex::CdSe, substrate.clone()).unwrap();
+                let b = QdModel::new(p, QdIndex::CdSe, substrate.clone()).unwrap();
+                let t = a.jit_tables(65, &[611.0]);
+                assert!(a.tables.get().is_none(), "jit_tables baked the tables");
+                assert_eq!(t.excitation, b.excitation());
+                assert!(b.tables.get().is_some());
+                assert_eq!(t.excitation.is_some(), q > 0.0);
+                // rows that do not hold the tables' ones: the tables' support
+                let c = QdModel::new(a.params.clone(), QdIndex::CdSe, substrate.clone()).unwrap();
+                assert_eq!(c.jit_tables(50, &[]).excitation, t.excitation);
+            }
+        }
     }
 
     #[test]
@@ -1132,7 +1183,7 @@ mod tests {
                     substrate.clone(),
                 )
                 .unwrap();
-                let t = &m.tables;
+                let t = m.tables();
                 let (n, rows) = (t.lambda.len(), m.params.cos_nodes);
                 for j in 0..rows {
                     let c = j as f64 / (rows - 1) as f64;
