@@ -1071,7 +1071,7 @@ mod tests {
         for substrate in [GOLD, Substrate::Constant { eta: 1.5, k: 0.0 }] {
             for (radius, density, q) in [(1.8, 0.2, 0.5), (3.1, 0.9, 1.0), (2.5, 0.5, 0.0)] {
                 let p = QdParams { radius_nm: radius, density, quantum_yield: q, ..QdParams::default() };
-                let a = QdModel::new(p.clone(), QdIndex::CdSe, substrate.clone()).unwrap();
+                let a = QdModel::new(p, QdIndex::CdSe, substrate.clone()).unwrap();
                 let b = QdModel::new(p, QdIndex::CdSe, substrate.clone()).unwrap();
                 let t = a.jit_tables(65, &[611.0]);
                 assert!(a.tables.get().is_none(), "jit_tables baked the tables");
@@ -1079,7 +1079,7 @@ mod tests {
                 assert!(b.tables.get().is_some());
                 assert_eq!(t.excitation.is_some(), q > 0.0);
                 // rows that do not hold the tables' ones: the tables' support
-                let c = QdModel::new(a.params.clone(), QdIndex::CdSe, substrate.clone()).unwrap();
+                let c = QdModel::new(a.params, QdIndex::CdSe, substrate.clone()).unwrap();
                 assert_eq!(c.jit_tables(50, &[]).excitation, t.excitation);
             }
         }
