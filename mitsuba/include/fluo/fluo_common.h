@@ -174,7 +174,8 @@ template <typename Float> std::vector<float> host_lanes(const Float &value, size
 /// class's joined evaluation (jit_join) reads its members' blocks where they are, with no
 /// copy. A Block is one material's tables back to back; it keeps its place for its life
 /// (freed space is reused first fit, the array grows by doubling from 1 GiB of untouched
-/// host memory in llvm, and is released with the last block) and lanes read it at an opaque offset, so that instances share their code.
+/// host memory in llvm, and is released with the last block); lanes read it at an opaque
+/// offset, so that instances share their code.
 template <typename Float> class TableStore {
     using Storage = DynamicBuffer<Float>;
     using Index = DynamicBuffer<dr::uint32_array_t<Float>>;
@@ -226,6 +227,8 @@ private:
                 m_free[at + n] = fit->second - n;
             m_free.erase(fit);
         } else {
+            if ((size_t) m_end + n > UINT32_MAX)
+                Throw("the tables of this scene's materials exceed 2^32 floats");
             if ((size_t) m_end + n > dr::width(m_data)) {
                 // (host memory is reserved generously at once: the pages no block has written
                 // stay out of the process's memory, and no copy of the tables is made as they grow)
