@@ -112,7 +112,8 @@ the class); in spectral variants each class's data joined (``fluo_jung``'s dye n
 ``fluo_qd``'s coating tables), one choice and one reradiation lobe per class. Dr.Jit traces
 a dispatch once per material, which made 200 distinct dyes compile 2.3× as long as 200
 ``diffuse`` (1.2–1.6× so), and 200 coatings load and first-render 4.3× as long as 200
-``roughconductor`` (spectral 3.0×, the rest being their tables' bake at load; RGB 2.3–2.5×).
+``roughconductor`` (spectral 2.6×, in 2.0× the memory: every coating's tables are one block
+of one array, which the joined class reads in place; RGB 2.3×).
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials' probabilities are detached,
 their values differentiable, so ``mi.render`` with ``params`` gives gradients of dye
 parameters; a sampled direction that moves with a parameter (a roughness) is detached and
