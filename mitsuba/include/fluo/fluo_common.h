@@ -187,12 +187,15 @@ public:
         Block(const Block &) = delete;
         Block &operator=(const Block &) = delete;
         ~Block() { release(); }
-        /// Store `values` in place of the block's previous ones.
+        /// Store `values` in place of the block's previous ones (placed before those are
+        /// freed: an update of a store's only block does not empty and re-create the store,
+        /// and a refused one leaves the block as it was).
         void assign(const std::vector<float> &values) {
+            uint32_t at = values.empty() ? 0 : store().put(values);
             release();
             if (values.empty())
                 return;
-            m_at = store().put(values);
+            m_at = at;
             m_size = (uint32_t) values.size();
             m_offset = dr::opaque<dr::uint32_array_t<Float>>(m_at);
         }
@@ -217,8 +220,20 @@ private:
         static TableStore *s = new TableStore(); // (emptied with its last block, never destroyed)
         return *s;
     }
+    /// The used part of the array in a new one of `cap` entries.
+    Storage copy(size_t cap) const {
+        Storage out = dr::empty<Storage>(cap);
+        if (m_end) {
+            Index i = dr::arange<Index>(m_end);
+            dr::scatter(out, dr::gather<Storage>(m_data, i), i);
+        }
+        dr::eval(out);
+        return out;
+    }
     uint32_t put(const std::vector<float> &values) {
         std::lock_guard<std::mutex> guard(m_mutex);
+        if (values.size() > UINT32_MAX - (size_t) m_end)
+            Throw("the tables of this scene's materials exceed 2^32 floats");
         uint32_t n = (uint32_t) values.size(), at = m_end;
         auto fit = std::find_if(m_free.begin(), m_free.end(), [&](const auto &f) { return f.second >= n; });
         if (fit != m_free.end()) {
@@ -227,24 +242,19 @@ private:
                 m_free[at + n] = fit->second - n;
             m_free.erase(fit);
         } else {
-            if ((size_t) m_end + n > UINT32_MAX)
-                Throw("the tables of this scene's materials exceed 2^32 floats");
             if ((size_t) m_end + n > dr::width(m_data)) {
                 // (host memory is reserved generously at once: the pages no block has written
                 // stay out of the process's memory, and no copy of the tables is made as they grow)
                 size_t first = dr::backend_v<Float> == JitBackend::LLVM ? (size_t) 1 << 28 : (size_t) 1 << 16;
-                size_t cap = std::max({ (size_t) m_end + n, 2 * dr::width(m_data), first });
-                Storage grown = dr::empty<Storage>(cap);
-                if (m_end) {
-                    Index i = dr::arange<Index>(m_end);
-                    dr::scatter(grown, dr::gather<Storage>(m_data, i), i);
-                }
-                dr::eval(grown);
-                m_data = std::move(grown);
-                if constexpr (dr::is_jit_v<Float>) { // (the old array is not kept for reuse)
-                    dr::sync_thread();
-                    jit_flush_malloc_cache();
-                }
+                size_t cap = std::min<size_t>(std::max({ (size_t) m_end + n, 2 * dr::width(m_data), first }),
+                                              UINT32_MAX);
+                bool had = dr::width(m_data) > 0;
+                m_data = copy(cap);
+                if constexpr (dr::is_jit_v<Float>)
+                    if (had) { // (the old array is not kept for reuse)
+                        dr::sync_thread();
+                        jit_flush_malloc_cache();
+                    }
             }
             m_end += n;
         }
@@ -253,6 +263,10 @@ private:
         if constexpr (dr::is_jit_v<Float>) {
             dr::eval(m_data);
             dr::sync_thread();
+            // (copy on write, as Dr.Jit's scatter: an expression that still reads the array,
+            // traced before an update and not yet evaluated, keeps the values it was traced with)
+            if (jit_var_ref(m_data.index()) > 1)
+                m_data = copy(dr::width(m_data));
             auto plain = dr::detach(m_data);
             float *p = plain.data(); // (an array not yet written becomes memory here: kept)
             m_data = plain;
