@@ -1280,7 +1280,8 @@ private:
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
-        // (a uniform substrate asks nothing: Rust then bakes the tables below alone)
+        // (asked of a varying substrate alone: the question bakes the Rust model's own tables,
+        // which the renderer's tables below do without)
         if (!m_setup.uniform_substrate() && (textured() ? m_tex.fluoresces : fluo::qd_is_fluorescent(*model)))
             Throw("%s: a spatially varying substrate (textured \"eta\"/\"k\") cannot be combined "
                   "with a fluorescent coating: the coating's absorption tables are baked for one "

@@ -252,8 +252,7 @@ impl Coating {
 /// on the same grid.
 #[derive(Debug, Clone, PartialEq)]
 struct Tables {
-    lambda: Vec<f64>,
-    /// Cell lookup on `lambda`.
+    /// Cell lookup on the model's λ nodes.
     index: LambdaIndex,
     /// Row-major [COS_NODES][lambda.len()].
     a_tot: Vec<f64>,
@@ -266,7 +265,7 @@ struct Tables {
     beta: Vec<f64>,
 }
 
-/// A QD-coated microfacet material (validated, with its tables baked).
+/// A QD-coated microfacet material (validated; its tables baked when first read).
 #[derive(Debug, Clone, PartialEq)]
 pub struct QdModel {
     params: QdParams,
@@ -437,20 +436,18 @@ impl QdModel {
         (s0_sq, beta)
     }
 
-    /// The excitation support from A_tot tables ([rows][λ] on the model's grid) whose rows
-    /// `step`·j are the tables' rows j: the nodes where any row absorbs, widened to the
-    /// neighbouring nodes.
-    fn support(&self, a_tot: &[f64], step: usize) -> Option<(f64, f64)> {
-        let (n, lambda) = (self.lambda.len(), &self.lambda);
-        let any = |k: usize| (0..self.params.cos_nodes).any(|j| a_tot[j * step * n + k] > 0.0);
-        let first = (0..n).find(|&k| any(k));
-        let last = (0..n).rev().find(|&k| any(k));
-        match (first, last) {
-            (Some(f), Some(l)) if self.is_fluorescent_params() && self.norm > 0.0 => {
-                Some((lambda[f.saturating_sub(1)], lambda[(l + 1).min(n - 1)]))
-            }
-            _ => None,
+    /// The excitation support, `None` for a coating that never re-emits, else from A_tot
+    /// tables ([rows][λ] on the model's grid, read only then) whose rows `step`·j are the
+    /// tables' rows j: the nodes where any row absorbs, widened to the neighbouring nodes.
+    fn support<'a>(&'a self, a_tot: impl FnOnce() -> &'a [f64], step: usize) -> Option<(f64, f64)> {
+        if !(self.is_fluorescent_params() && self.norm > 0.0) {
+            return None;
         }
+        let (a_tot, n, lambda) = (a_tot(), self.lambda.len(), &self.lambda);
+        let any = |k: usize| (0..self.params.cos_nodes).any(|j| a_tot[j * step * n + k] > 0.0);
+        let first = (0..n).find(|&k| any(k))?;
+        let last = (0..n).rev().find(|&k| any(k))?;
+        Some((lambda[first.saturating_sub(1)], lambda[(last + 1).min(n - 1)]))
     }
 
     /// The tables, baked at the first call.
@@ -460,26 +457,23 @@ impl QdModel {
 
     /// Excitation support, or `None` if the coating never re-emits.
     fn excitation(&self) -> Option<(f64, f64)> {
-        *self.excitation.get_or_init(|| {
-            (self.is_fluorescent_params() && self.norm > 0.0).then(|| self.support(&self.tables().a_tot, 1)).flatten()
-        })
+        *self.excitation.get_or_init(|| self.support(|| &self.tables().a_tot, 1))
     }
 
     fn bake(&self) -> Tables {
-        let lambda = self.lambda.clone();
+        let lambda = &self.lambda;
         let n = lambda.len();
         let rows = self.params.cos_nodes;
         let mut a_bulk = Vec::with_capacity(rows * n);
         let mut a_tot: Vec<f64> = Vec::with_capacity(rows * n);
         let mut cdf = Vec::with_capacity(rows * n);
-        let (s0_sq, beta) = self.for_nodes(rows, &lambda, |_, k, co, r, bulk| {
+        let (s0_sq, beta) = self.for_nodes(rows, lambda, |_, k, co, r, bulk| {
             a_bulk.push(bulk);
             let a = co.a_tot(r);
-            cdf.push(running(&lambda, k, &a_tot, &cdf, a));
+            cdf.push(running(lambda, k, &a_tot, &cdf, a));
             a_tot.push(a);
         });
-        let index = LambdaIndex::new(&lambda);
-        Tables { lambda, index, a_tot, cdf, s0_sq, a_bulk, beta }
+        Tables { index: LambdaIndex::new(lambda), a_tot, cdf, s0_sq, a_bulk, beta }
     }
 
     fn is_fluorescent_params(&self) -> bool {
@@ -505,7 +499,7 @@ impl QdModel {
     /// Memory held by the precomputed tables, bytes.
     pub fn table_bytes(&self) -> usize {
         let t = self.tables();
-        8 * (t.lambda.len() + t.a_tot.len() + t.cdf.len() + t.s0_sq.len() + t.a_bulk.len() + t.beta.len())
+        8 * (self.lambda.len() + t.a_tot.len() + t.cdf.len() + t.s0_sq.len() + t.a_bulk.len() + t.beta.len())
             + 4 * t.index.len()
     }
     /// Number of λ nodes of the tables.
@@ -537,13 +531,13 @@ impl QdModel {
             return Coating { r_spe: 0.0, t_spe: 1.0, a_tf: 0.0 };
         }
         let t = self.tables();
-        let n = t.lambda.len();
-        if !(lambda_nm >= t.lambda[0] && lambda_nm <= t.lambda[n - 1]) || t.s0_sq.len() != n {
+        let n = self.lambda.len();
+        if !(lambda_nm >= self.lambda[0] && lambda_nm <= self.lambda[n - 1]) || t.s0_sq.len() != n {
             return self.coating_exact(cos_theta, lambda_nm);
         }
         let c = cos_theta.clamp(0.0, 1.0);
-        let k = t.index.cell(&t.lambda, lambda_nm);
-        let fl = (lambda_nm - t.lambda[k]) / (t.lambda[k + 1] - t.lambda[k]);
+        let k = t.index.cell(&self.lambda, lambda_nm);
+        let fl = (lambda_nm - self.lambda[k]) / (self.lambda[k + 1] - self.lambda[k]);
         let s0_sq = t.s0_sq[k] + fl * (t.s0_sq[k + 1] - t.s0_sq[k]);
         let r_spe = self.film_reflectance(c, lambda_nm, s0_sq);
         let b = &self.band;
@@ -732,8 +726,8 @@ impl QdModel {
     /// variant; Dr.Jit cannot trace calls into Rust). On the model's λ grid and at `rows`
     /// cosines uniform over [0, 1], by the formulas at every node ([`Self::coating_exact`]:
     /// not from the Rust evaluation's own tables, which are then never baked): A_tot (the
-    /// reradiation's absorption) and its running integral along λ (trapezoids: exact for the bilinear
-    /// interpolant), and the coating's R_spe and pass = (T_spe (1 − A_tf))², from which the
+    /// reradiation's absorption) and its running integral along λ (trapezoids: exact for the
+    /// bilinear interpolant), and the coating's R_spe and pass = (T_spe (1 − A_tf))², from which the
     /// renderer forms the elastic R_tot = R_spe + pass·R/(1 − R·R_spe) over its own
     /// substrate Fresnel factor R; and R_spe, pass at the wavelengths `extra_nm` (the RGB
     /// channels'), row major [rows][extra]. Bilinear interpolation in (cos θ, λ) is the
@@ -787,7 +781,7 @@ impl QdModel {
         // the same formulas): the tables are then never baked for it.
         let tables_rows = self.params.cos_nodes - 1;
         if lambda == self.lambda && (rows - 1) % tables_rows == 0 && self.excitation.get().is_none() {
-            let _ = self.excitation.set(self.support(&t.a_tot, (rows - 1) / tables_rows));
+            let _ = self.excitation.set(self.support(|| &t.a_tot, (rows - 1) / tables_rows));
         }
         t.excitation = self.excitation();
         t.lambda = lambda;
@@ -804,8 +798,8 @@ impl QdModel {
     /// Interpolated table value and running integral at λ on row j.
     fn table_at(&self, j: usize, lambda: f64) -> (f64, f64) {
         let t = self.tables();
-        let n = t.lambda.len();
-        let (Some(&l0), Some(&l1)) = (t.lambda.first(), t.lambda.last()) else { return (0.0, 0.0) };
+        let n = self.lambda.len();
+        let (Some(&l0), Some(&l1)) = (self.lambda.first(), self.lambda.last()) else { return (0.0, 0.0) };
         if !(lambda > l0) {
             return (t.a_tot.get(j * n).copied().unwrap_or(0.0), 0.0);
         }
@@ -815,8 +809,8 @@ impl QdModel {
                 t.cdf.get(j * n + n - 1).copied().unwrap_or(0.0),
             );
         }
-        let k = t.index.cell(&t.lambda, lambda);
-        let (xa, xb) = (t.lambda[k], t.lambda[k + 1]);
+        let k = t.index.cell(&self.lambda, lambda);
+        let (xa, xb) = (self.lambda[k], self.lambda[k + 1]);
         let (a, b) = (t.a_tot[j * n + k], t.a_tot[j * n + k + 1]);
         let f = (lambda - xa) / (xb - xa);
         let v = a + f * (b - a);
@@ -841,11 +835,11 @@ impl QdModel {
         }
         let target = c_lo + xi.clamp(0.0, 1.0) * mass;
         let t = self.tables();
-        let n = t.lambda.len();
+        let n = self.lambda.len();
         let cdf = &t.cdf[j * n..(j + 1) * n];
         // Bin k with cdf[k] ≤ target < cdf[k+1].
         let k = cdf.partition_point(|&c| c <= target).clamp(1, n - 1) - 1;
-        let (xa, xb) = (t.lambda[k], t.lambda[k + 1]);
+        let (xa, xb) = (self.lambda[k], self.lambda[k + 1]);
         let (a, b) = (t.a_tot[j * n + k], t.a_tot[j * n + k + 1]);
         let bin = cdf[k + 1] - cdf[k];
         let u = if bin > 0.0 { ((target - cdf[k]) / bin).clamp(0.0, 1.0) } else { 0.5 };
@@ -1185,10 +1179,10 @@ mod tests {
                 )
                 .unwrap();
                 let t = m.tables();
-                let (n, rows) = (t.lambda.len(), m.params.cos_nodes);
+                let (n, rows) = (m.lambda.len(), m.params.cos_nodes);
                 for j in 0..rows {
                     let c = j as f64 / (rows - 1) as f64;
-                    for (k, &l) in t.lambda.iter().enumerate() {
+                    for (k, &l) in m.lambda.iter().enumerate() {
                         let a = m.coating_exact(c, l).a_tot(m.substrate_reflectance(c, l));
                         assert_eq!(t.a_tot[j * n + k].to_bits(), a.to_bits(), "A_tot at ({c}, {l})");
                         assert_eq!(t.a_bulk[j * n + k].to_bits(), m.bulk_absorption(c, l).to_bits());
