@@ -151,13 +151,21 @@ reduced matrix carries it spectrally.
 
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``mi.traverse`` exposes ``concentration``,
 ``quantum_yield``, ``emission_peak``, ``stokes_shift`` and the ``reflectance`` texture as
-differentiable parameters: in the spectral variants gradients reach all of them; in the RGB
-ones the reduced operator is M_r − c·M_ra + c·Q·M_fl (exact in c and Q, so their gradients
-and the reflectance's are exact), while the dye's shape (λe, s) is baked into the reduced
-matrices per render and gets no gradient there. A ``color`` texture's texels (each texel's
-dye, sigmoid and RGB albedo gathered per lane; its excitation wavelength sampled from the
-texel's absorption band) and a textured parameter are not differentiable (``mi.traverse``
-lists the texture; the floats stay differentiable). Textured numeric parameters: per lane
+differentiable parameters: in the spectral variants gradients reach all of them through the
+closed forms; in the RGB ones the reduced operator is M_r − c·M_ra + c·Q·M_fl (exact in c
+and Q, so their gradients and the reflectance's are exact) and the dye's shape (λe, s)
+reaches it through the derivatives of the reduced matrices and RGB parts
+(jit_reduced_derivatives: central differences of the reductions). Textured parameters are
+differentiable per texel where the texture's own values are (a ``bitmap``'s ``data``): c
+and Q in every AD variant (they scale the hit's dye shape), λe and s in the spectral
+variants, where each hit's shape is its nearest level and carries the texture's derivative
+at that level (the closed forms' derivative in λe or s times the texture's in its texels:
+with ``filter_type=nearest`` that is the derivative of the image; a filtered lookup between
+texels of different levels gives the derivative of the unquantised material). In the RGB
+variants a λe or s texture selects shapes whose reduced matrices are baked per render and is
+flagged non-differentiable. A ``color`` texture's texels (each texel's dye, sigmoid and RGB
+albedo gathered per lane; its excitation wavelength sampled from the texel's absorption
+band) are not differentiable. Textured numeric parameters: per lane
 λe and s take the nearest of the texture's validated levels (binary search over them), c
 and Q the texture's value clamped to [0, 1]; in the RGB variants each dye shape's reduced
 reradiation matrix (at c = Q = 1, reduced once per render) is gathered per lane and scaled
@@ -267,9 +275,14 @@ public:
             cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
         Float *values[fluo_detail::JungParams] = { &m_peak, &m_shift, &m_conc, &m_yield };
         for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
-            if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load
-                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::NonDifferentiable);
-            else
+            if (m_param_tex[i]) { // a texture: its values select the dye shapes baked at load;
+                // per texel, c and Q scale the hit's shape (every variant), λe and s enter the
+                // spectral variants' closed forms (the RGB ones gather the shapes' baked matrices)
+                bool shape = i == fluo_detail::JungPeak || i == fluo_detail::JungShift;
+                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i],
+                        shape && !is_spectral_v<Spectrum> ? ParamFlags::NonDifferentiable
+                                                          : ParamFlags::Differentiable);
+            } else
                 cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
         }
     }
@@ -722,7 +735,14 @@ private:
                 Float a = dr::gather<Float>(levels, i, active), b = dr::gather<Float>(levels, i + 1, active);
                 i = dr::select(dr::isnan(x), 0u, dr::select(x - a <= b - x, i, i + 1));
             }
-            return std::make_pair(i, Float(dr::gather<Float>(levels, i, active)));
+            Float v = dr::gather<Float>(levels, i, active);
+            // a texture with gradients (its texels): the level carries the hit's value's
+            // derivative (x − detach(x) is 0 in value), i.e. the closed forms' derivative in λe
+            // or s at the level times the texture's in its texels (spectral variants; the RGB
+            // ones read the level's baked reduced matrix, and flag these textures so)
+            if (dr::grad_enabled(x))
+                v += dr::select(dr::isfinite(x), x - dr::detach(x), 0.f);
+            return std::make_pair(i, v);
         };
         auto unit = [&](JungParam p, const Float &uniform) {
             if (!m_param_tex[p])

@@ -568,14 +568,20 @@ def test22_differentiable_flags_say_where_gradients_flow(variant):
     """Issue 32 finding 14, issue 35: the four dye parameters of a uniform fluo_jung are
     differentiable in every variant: in RGB, λe and s, baked into the reduced matrices,
     carry gradients through the matrices' derivatives (jit_reduced_derivatives; test_fluo_prb
-    test05 compares them with central differences); a textured parameter selects baked
-    dye shapes and is flagged non-differentiable."""
+    test05 compares them with central differences). Textured, c and Q are differentiable per
+    texel in every variant, λe and s in the spectral ones (test_fluo_prb test04), and a λe
+    or s texture is flagged non-differentiable in RGB, where it selects baked dye shapes."""
     mi.set_variant(variant)
     params = mi.traverse(mi.load_dict({"type": "fluo_jung"}))
     for key in ("emission_peak", "stokes_shift", "concentration", "quantum_yield"):
         flags = params.flags(key)
         assert not flags & mi.ParamFlags.NonDifferentiable, (variant, key, flags)
-    textured = mi.traverse(mi.load_dict({"type": "fluo_jung", "emission_peak": {
-        "type": "checkerboard", "color0": 520.0, "color1": 560.0}}))
-    key = next(k for k in textured.keys() if k.startswith("emission_peak"))
-    assert textured.flags(key) & mi.ParamFlags.NonDifferentiable, (variant, key)
+    for name, values in (("emission_peak", (520.0, 560.0)), ("stokes_shift", (60.0, 80.0)),
+                         ("concentration", (0.2, 0.6)), ("quantum_yield", (0.5, 0.9))):
+        textured = mi.traverse(mi.load_dict({"type": "fluo_jung", name: {
+            "type": "checkerboard", "color0": values[0], "color1": values[1]}}))
+        keys = [k for k in textured.keys() if k.startswith(name) and k.endswith(".value")]  # (not to_uv)
+        assert keys, (variant, name, list(textured.keys()))
+        baked = name in ("emission_peak", "stokes_shift") and not mi.is_spectral
+        for key in keys:
+            assert bool(textured.flags(key) & mi.ParamFlags.NonDifferentiable) == baked, (variant, key)

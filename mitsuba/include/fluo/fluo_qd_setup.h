@@ -195,6 +195,7 @@ template <typename Float, typename Spectrum> struct QdSetup {
                 si.wavelengths[j] = dr::load<Float>(w.data(), m);
             }
             UnpolarizedSpectrum v = tex->eval(si, true);
+            dr::eval(v); // (one kernel for the four wavelengths)
             for (size_t j = 0; j < W; ++j) {
                 std::vector<float> w = host_lanes(v[j], m); // (a uniform texture returns one value)
                 for (size_t i = 0; i * W + j < n; ++i)
