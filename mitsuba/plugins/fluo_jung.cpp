@@ -157,16 +157,17 @@ and Q, so their gradients and the reflectance's are exact) and the dye's shape (
 reaches it through the derivatives of the reduced matrices and RGB parts
 (jit_reduced_derivatives: central differences of the reductions). Textured parameters are
 differentiable per texel where the texture's own values are (a ``bitmap``'s ``data``): c
-and Q in every AD variant (they scale the hit's dye shape), λe and s in the spectral
-variants, where each hit's shape is its nearest level and carries the texture's derivative
-at that level (the closed forms' derivative in λe or s times the texture's in its texels:
-with ``filter_type=nearest`` that is the derivative of the image; a filtered lookup between
-texels of different levels gives the derivative of the unquantised material). In the RGB
-variants a λe or s texture selects shapes whose reduced matrices are baked per render and is
-flagged non-differentiable. A ``color`` texture's texels (each texel's dye, sigmoid and RGB
-albedo gathered per lane; its excitation wavelength sampled from the texel's absorption
-band) are not differentiable. Textured numeric parameters: per lane
-λe and s take the nearest of the texture's validated levels (binary search over them), c
+and Q scale the hit's dye shape; for λe and s each hit's shape is its nearest level, which
+carries the texture's derivative at that level: in the spectral variants the closed forms'
+derivative in λe or s, in the RGB ones (``fluo_path``, ``fluo_prb``) each shape's ∂M/∂λe and
+∂M/∂s and its RGB parts' derivatives, central differences of its reductions, computed when a
+render begins only where such a texture's values carry gradients (Mitsuba's own RGB
+integrators, which see the albedo alone, get no dye-shape derivative of a texture). With
+``filter_type=nearest`` that is the derivative of the image; a filtered lookup between
+texels of different levels gives the derivative of the unquantised material. A ``color``
+texture's texels (each texel's dye, sigmoid and RGB albedo gathered per lane; its
+excitation wavelength sampled from the texel's absorption band) are not differentiable.
+Textured numeric parameters: per lane λe and s take the nearest of the texture's validated levels (binary search over them), c
 and Q the texture's value clamped to [0, 1]; in the RGB variants each dye shape's reduced
 reradiation matrix (at c = Q = 1, reduced once per render) is gathered per lane and scaled
 by c·Q, the elastic part being the hit's RGB albedo. ``texel_interpolation = bilinear``
@@ -275,14 +276,10 @@ public:
             cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
         Float *values[fluo_detail::JungParams] = { &m_peak, &m_shift, &m_conc, &m_yield };
         for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
-            if (m_param_tex[i]) { // a texture: its values select the dye shapes baked at load;
-                // per texel, c and Q scale the hit's shape (every variant), λe and s enter the
-                // spectral variants' closed forms (the RGB ones gather the shapes' baked matrices)
-                bool shape = i == fluo_detail::JungPeak || i == fluo_detail::JungShift;
-                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i],
-                        shape && !is_spectral_v<Spectrum> ? ParamFlags::NonDifferentiable
-                                                          : ParamFlags::Differentiable);
-            } else
+            if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load and,
+                // per texel, carry gradients (docs: "Gradients")
+                cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::Differentiable);
+            else
                 cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
         }
     }
@@ -461,6 +458,98 @@ public:
     std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
         Hit h = hit(si, active);
         return { h.shape, h.t.conc * h.t.yield };
+    }
+    /// RGB, a λe or s texture whose values carry gradients: each dye shape's ∂M/∂λe and
+    /// ∂M/∂s (central differences of its reductions, shape_derivative's step) and the
+    /// derivatives of its RGB parts (textured_elastic); a hit adds them times its
+    /// level's θ − detach(θ) (hit(): the texture's derivative there) and c·Q.
+    size_t jit_reduced_table_derivatives(const fluo::TransportBasis &transport,
+                                         std::vector<double> &d) const override {
+        m_shape_d = 0;
+        if (!textured_shape_gradients())
+            return 0;
+        size_t n = fluo::jung_shapes_len(**m_shapes->shapes), kk = fluo::transport_size(transport);
+        kk *= kk;
+        constexpr size_t NP = ShapeFields - SReflectanceAbsorbed;
+        d.assign(2 * n * kk, 0.0);
+        std::vector<float> dparts[2][NP];
+        for (size_t p = 0; p < 2; ++p)
+            for (auto &f : dparts[p])
+                f.assign(n, 0.f);
+        for (size_t i = 0; i < n; ++i) {
+            size_t ns = m_shapes->shifts.size(); // (peak-major)
+            double pk = m_shapes->peaks[i / ns], sh = m_shapes->shifts[i % ns];
+            for (size_t p = 0; p < 2; ++p) {
+                auto at = [&](double delta) -> std::optional<std::vector<double>> {
+                    double x[2] = { pk, sh };
+                    x[p] += delta;
+                    try {
+                        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&x[0], 1),
+                                                       rust::Slice<const double>(&x[1], 1));
+                        const fluo::JungModel &mu = fluo::jung_shapes_model(*u, 0);
+                        std::vector<double> out(kk + NP);
+                        auto r = fluo::reduced_new(fluo::jung_fluorescence(mu), transport);
+                        if (!fluo::reduced_lambertian(*r, rust::Slice<double>(out.data(), kk)))
+                            return std::nullopt;
+                        fluo::JungRgbParts q = fluo::jung_rgb_parts(mu, **m_model);
+                        const fluo::Rgb *rgb[3] = { &q.reflectance_absorbed, &q.absorbed_scale, &q.fluorescence };
+                        for (size_t c = 0; c < 3; ++c) {
+                            out[kk + 3 * c] = rgb[c]->r;
+                            out[kk + 3 * c + 1] = rgb[c]->g;
+                            out[kk + 3 * c + 2] = rgb[c]->b;
+                        }
+                        return out;
+                    } catch (const std::exception &) {
+                        return std::nullopt; // outside the parameter's range
+                    }
+                };
+                std::optional<std::vector<double>> g = fluo_detail::central_difference(0.25, at);
+                if (!g)
+                    continue; // (no step fits the range: no derivative there)
+                std::copy(g->begin(), g->begin() + kk, d.begin() + (p * n + i) * kk);
+                for (size_t f = 0; f < NP; ++f)
+                    dparts[p][f][i] = (float) (*g)[kk + f];
+            }
+        }
+        for (size_t p = 0; p < 2; ++p)
+            for (size_t f = 0; f < NP; ++f)
+                m_shape_dparts[p][f] = dr::load<FloatStorage>(dparts[p][f].data(), n);
+        m_shape_d = 2;
+        return 2;
+    }
+    std::vector<Float> jit_reduced_select_derivatives(const SurfaceInteraction3f &si, Mask active) const override {
+        if (m_shape_d == 0)
+            return {};
+        Hit h = hit(si, active);
+        Float cq = h.t.conc * h.t.yield;
+        return { (h.t.peak - dr::detach(h.t.peak)) * cq, (h.t.shift - dr::detach(h.t.shift)) * cq };
+    }
+    /// RGB AD variants: whether a λe or s texture's own values carry gradients (a bitmap's
+    /// data, a checkerboard's colours).
+    bool textured_shape_gradients() const {
+        if constexpr (!dr::is_diff_v<Float> || is_spectral_v<Spectrum>) {
+            return false;
+        } else {
+            if (!m_shapes || m_texels)
+                return false;
+            struct Probe : TraversalCallback {
+                bool any = false;
+                void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
+                    if (type == typeid(Float))
+                        any |= dr::grad_enabled(*(const Float *) ptr);
+                    else if (type == typeid(TensorXf))
+                        any |= dr::grad_enabled(*(const TensorXf *) ptr);
+                }
+                void put_object(std::string_view, Object *o, uint32_t) override {
+                    if (o)
+                        o->traverse(this);
+                }
+            } probe;
+            for (auto p : { fluo_detail::JungPeak, fluo_detail::JungShift })
+                if (m_param_tex[p])
+                    const_cast<Texture *>(m_param_tex[p].get())->traverse(&probe); // (reads only)
+            return probe.any;
+        }
     }
 
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
@@ -762,9 +851,19 @@ private:
     UnpolarizedSpectrum textured_elastic(const SurfaceInteraction3f &si, const Hit &h, Mask active) const {
         if constexpr (is_rgb_v<Spectrum>) {
             auto part = [&](size_t f) {
-                return Color3f(dr::gather<Float>(m_shape_parts[f], h.shape, active),
-                               dr::gather<Float>(m_shape_parts[f + 1], h.shape, active),
-                               dr::gather<Float>(m_shape_parts[f + 2], h.shape, active));
+                Color3f v(dr::gather<Float>(m_shape_parts[f], h.shape, active),
+                          dr::gather<Float>(m_shape_parts[f + 1], h.shape, active),
+                          dr::gather<Float>(m_shape_parts[f + 2], h.shape, active));
+                if (m_shape_d > 0 && f >= SReflectanceAbsorbed) { // + δλe·∂/∂λe + δs·∂/∂s (0 in value)
+                    Float delta[2] = { h.t.peak - dr::detach(h.t.peak), h.t.shift - dr::detach(h.t.shift) };
+                    for (size_t d = 0; d < 2; ++d)
+                        for (size_t c = 0; c < 3; ++c)
+                            v[c] = dr::fmadd(delta[d],
+                                             dr::gather<Float>(m_shape_dparts[d][f - SReflectanceAbsorbed + c],
+                                                               h.shape, active),
+                                             v[c]);
+                }
+                return v;
             };
             if (m_reflectance)
                 return m_reflectance->eval(si, active) * absorbed_factor(h.t.conc, part(SAbsorbedScale));
@@ -1031,6 +1130,12 @@ private:
         ShapeFields = 12
     };
     FloatStorage m_shape_parts[ShapeFields];
+    /// RGB with gradients on a λe or s texture: per dye shape the derivatives of its parts
+    /// from SReflectanceAbsorbed on (rgb_parts_at's order) along λe and s, and how many
+    /// derivative tables its reduced operators have (jit_reduced_table_derivatives, set when
+    /// a render begins: 0 or 2)
+    mutable FloatStorage m_shape_dparts[2][ShapeFields - SReflectanceAbsorbed];
+    mutable uint32_t m_shape_d = 0;
 
     MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,
                    m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)

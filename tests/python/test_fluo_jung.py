@@ -568,9 +568,9 @@ def test22_differentiable_flags_say_where_gradients_flow(variant):
     """Issue 32 finding 14, issue 35: the four dye parameters of a uniform fluo_jung are
     differentiable in every variant: in RGB, λe and s, baked into the reduced matrices,
     carry gradients through the matrices' derivatives (jit_reduced_derivatives; test_fluo_prb
-    test05 compares them with central differences). Textured, c and Q are differentiable per
-    texel in every variant, λe and s in the spectral ones (test_fluo_prb test04), and a λe
-    or s texture is flagged non-differentiable in RGB, where it selects baked dye shapes."""
+    test05 compares them with central differences). Textured, all four are differentiable
+    per texel (test_fluo_prb test04 and test04b): c and Q scale the hit's dye shape, and the
+    shape's closed forms (spectral) or reduced matrices and RGB parts (RGB) carry λe and s."""
     mi.set_variant(variant)
     params = mi.traverse(mi.load_dict({"type": "fluo_jung"}))
     for key in ("emission_peak", "stokes_shift", "concentration", "quantum_yield"):
@@ -582,6 +582,5 @@ def test22_differentiable_flags_say_where_gradients_flow(variant):
             "type": "checkerboard", "color0": values[0], "color1": values[1]}}))
         keys = [k for k in textured.keys() if k.startswith(name) and k.endswith(".value")]  # (not to_uv)
         assert keys, (variant, name, list(textured.keys()))
-        baked = name in ("emission_peak", "stokes_shift") and not mi.is_spectral
         for key in keys:
-            assert bool(textured.flags(key) & mi.ParamFlags.NonDifferentiable) == baked, (variant, key)
+            assert not textured.flags(key) & mi.ParamFlags.NonDifferentiable, (variant, key)

@@ -150,10 +150,12 @@ def test04_textured_concentration_gradient(tmp_path):
 
 def test04b_textured_dye_shape_gradients(tmp_path):
     """Issue 35: bitmaps of emission peaks (500–540 nm) and Stokes shifts (90–120 nm), 4×4
-    texels each, nearest lookups: d(mean image) along all texels of each, llvm_ad_spectral,
-    within 10 % of central differences (measured at 4096 spp: AD −6.30e-5 against −6.24e-5
-    for λe, 7.17e-5 against 7.14e-5 for s). The levels are the texels' values, so the
-    differences move the hits' dye shapes as AD's derivative of the closed forms does."""
+    texels each, nearest lookups: d(mean image) along all texels of each within 10 % of
+    central differences, in llvm_ad_spectral (the closed forms' derivative at each hit's
+    level; measured at 4096 spp: AD −6.30e-5 against −6.24e-5 for λe, 7.17e-5 against
+    7.14e-5 for s) and in llvm_ad_rgb (each dye shape's reduced matrix and RGB parts
+    differentiated along λe and s; roulette off as test05). The levels are the texels'
+    values, so the differences move the hits' dye shapes as the derivatives do."""
     mi.set_variant("scalar_rgb")
     paths = {}
     for name, (lo, hi) in (("emission_peak", (500.0, 540.0)), ("stokes_shift", (90.0, 120.0))):
@@ -164,8 +166,10 @@ def test04b_textured_dye_shape_gradients(tmp_path):
                        for name, path in paths.items())
     dye = f'''<bsdf type="fluo_jung" id="dye"><float name="reflectance" value="0.5"/>
         <float name="concentration" value="0.6"/><float name="quantum_yield" value="0.9"/>{textures}</bsdf>'''
-    jobs = [{"variant": "llvm_ad_spectral", "spp": 8192, "seed": 3, "xml": box("fluo_prb", dye),
-             "gradients": {"dye.emission_peak.data": 4.0, "dye.stokes_shift.data": 4.0}}]
+    steps = {"dye.emission_peak.data": 4.0, "dye.stokes_shift.data": 4.0}
+    jobs = [{"variant": "llvm_ad_spectral", "spp": 8192, "seed": 3, "xml": box("fluo_prb", dye), "gradients": steps},
+            {"variant": "llvm_ad_rgb", "spp": 512, "seed": 3, "xml": box("fluo_prb", dye).replace(*NO_RR),
+             "gradients": steps}]
     check(run_worker(jobs)[0], jobs)
 
 

@@ -325,6 +325,19 @@ public:
                                                         Mask /* active */) const {
         return { UInt32(0), Float(0.f) };
     }
+    /// Derivatives of jit_reduced_table's operators along d parameters that vary per hit (a
+    /// textured dye shape's λe and s): d more tables of its layout, [d][n][K][K], asked when
+    /// a render begins (0: none, the default); a lane adds Σ_d w_d·D_{d,n} with the weights
+    /// of jit_reduced_select_derivatives (one per table, zero in value: θ − detach(θ) times
+    /// the hit's w), n being jit_reduced_select's.
+    virtual size_t jit_reduced_table_derivatives(const fluo::TransportBasis & /* transport */,
+                                                 std::vector<double> & /* d */) const {
+        return 0;
+    }
+    virtual std::vector<Float> jit_reduced_select_derivatives(const SurfaceInteraction3f & /* si */,
+                                                              Mask /* active */) const {
+        return {};
+    }
 
     // A reradiation lobe that depends on the directions (fluo_qd's microfacet lobe)
     // overrides the three methods below; fluo_path then calls them per vertex (and only

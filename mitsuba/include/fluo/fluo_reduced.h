@@ -117,8 +117,17 @@ public:
                 }
                 std::vector<double> table;
                 e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
-                if (e.n_table > 0)
+                if (e.n_table > 0) {
                     e.table = load(table);
+                    std::vector<double> td;
+                    e.n_table_d = (uint32_t) rust_call(
+                        m_plugin, [&] { return b->jit_reduced_table_derivatives(**m_transport, td); });
+                    if (td.size() != (size_t) e.n_table_d * e.n_table * m_k * m_k)
+                        Throw("%s: %s returned %zu derivative table entries, %u tables of %u operators expected",
+                              m_plugin, e.bsdf->class_name(), td.size(), e.n_table_d, e.n_table);
+                    if (e.n_table_d > 0)
+                        e.table_d = load(td);
+                }
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t) // (`m` as final: jit_reduced_nodes rewrites it)
                     for (size_t i = 0; i < e.m[t].size() && i < m_k * m_k; ++i)
                         e.mf[t][i] = (float) e.m[t][i];
@@ -379,6 +388,9 @@ private:
         /// A varying material (Bispectral::jit_reduced_table): its operators M_n, [n][K][K].
         DynamicBuffer<Float> table;
         uint32_t n_table = 0;
+        /// Their derivatives (Bispectral::jit_reduced_table_derivatives): [d][n][K][K].
+        DynamicBuffer<Float> table_d;
+        uint32_t n_table_d = 0;
         /// A varying direction-dependent lobe (Bispectral::jit_reduced_nodes_table): every
         /// model's terms B_t ([model][MaxTerms][K][K]; `nodes` then [model][n_nodes][MaxTerms]),
         /// of which a lane reads the one it picks.
@@ -525,16 +537,27 @@ private:
         std::vector<Float> wd = derivative_weights(e, si, on);
         UInt32 base(0);
         Float wn(0.f);
+        std::vector<Float> wt; // (the table's derivatives: their weights)
         if (e.n_table > 0) {
             auto [n, weight] = e.bispectral->jit_reduced_select(si, on);
             base = n * (uint32_t) (K * K);
             wn = weight;
+            if (e.n_table_d > 0) {
+                wt = e.bispectral->jit_reduced_select_derivatives(si, on);
+                if (wt.size() != e.n_table_d)
+                    Throw("%s: %zu derivative weights for %u derivative tables", m_plugin, wt.size(), e.n_table_d);
+            }
         }
         for (size_t j = 0; j < K; ++j) {
             Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
             for (size_t k = 0; k < K; ++k) {
                 if (e.n_table > 0)
                     col[k] = wn * dr::gather<Float>(e.table, base + (uint32_t) (k * K + j), on);
+                for (uint32_t t = 0; t < (uint32_t) wt.size(); ++t)
+                    col[k] = dr::fmadd(wt[t],
+                                       dr::gather<Float>(e.table_d, base + t * e.n_table * (uint32_t) (K * K) +
+                                                                       (uint32_t) (k * K + j), on),
+                                       col[k]);
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
                     if (nonzero(e, t, k * K + j))
                         col[k] = dr::fmadd(w[t], entry(e, t, k * K + j), col[k]);
