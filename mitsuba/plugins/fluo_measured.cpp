@@ -213,7 +213,10 @@ an error naming it, and the previous mixture stays). Several files selected by a
 ``index`` texture: every file's components are read per lane from arrays padded to the
 largest mixture (weight 0), the lane's file chosen by the index rounded per hit, and in
 the RGB variants each file's reduced matrix is gathered per lane; ``mi.traverse`` then
-exposes the ``index`` texture only, not the mixtures.
+exposes the ``index`` texture and the mixtures' arrays, [file][component] with each
+file's padded to the largest mixture: an update keeps the padding (weight and means 0; a
+padded entry set to anything else is refused, naming the file) and Rust validates each
+file's components as one file's.
 
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``). ``weights``, ``means_excitation`` and
 ``means_emission`` are differentiable: in the spectral variants gradients reach them
@@ -223,7 +226,9 @@ mixture is baked into the reduced matrix per render, through that matrix's deriv
 0.1 % step of it (exact: the reduced operator is linear in the weights), along each mean
 central differences (0.25 nm) of the reductions, computed at a render's start
 only while the arrays carry gradients (3 × components K×K matrices; the operator then
-becomes a kernel input, not literals).
+becomes a kernel input, not literals). With several files, per file: each derivative a
+table of the files' K×K matrices along their component k (jit_reduced_table_derivatives),
+a lane adding its file's times its own θ − detach(θ).
 
 A malformed fit file (bad JSON, weights not summing to 1, a covariance that is not
 symmetric positive definite, non-finite numbers) raises an error naming the field.
@@ -270,9 +275,10 @@ public:
         Base::traverse(cb);
         if (m_index)
             cb->put("index", m_index, ParamFlags::NonDifferentiable);
-        if (m_gmm && !m_index) { // one file: its mixture's weights and means
+        if (m_gmm) { // the mixtures' weights and means ([file][component], padded)
             // (RGB: baked into the reduced matrices, updated by re-baking; gradients through
-            // the operator's derivative matrices, jit_reduced_derivatives)
+            // the operator's derivative matrices: jit_reduced_derivatives, several files
+            // jit_reduced_table_derivatives)
             cb->put("weights", m_weights, ParamFlags::Differentiable);
             cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
             cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
@@ -314,18 +320,27 @@ public:
                 update_rgb();
                 return;
             }
-            if (m_index)
-                return;
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
-            if (w.size() != m_n_comps || mi.size() != m_n_comps || mo.size() != m_n_comps)
-                Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries",
-                      m_plugin, m_n_comps);
-            auto updated = fluo_detail::rust_call(m_plugin, [&] {
-                return fluo::gmm_updated(*m_models[0], rust::Slice<const double>(w.data(), w.size()),
-                                         rust::Slice<const double>(mi.data(), mi.size()),
-                                         rust::Slice<const double>(mo.data(), mo.size()));
-            });
-            m_models[0] = std::move(updated);
+            size_t total = m_n_comps * m_models.size();
+            if (w.size() != total || mi.size() != total || mo.size() != total)
+                Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries%s",
+                      m_plugin, total,
+                      m_models.size() > 1 ? " ([file][component], each file's padded to the largest mixture)" : "");
+            std::vector<rust::Box<fluo::MeasuredModel>> models; // (all validated before any is kept)
+            for (size_t f = 0; f < m_models.size(); ++f) {
+                size_t o = f * m_n_comps, k = m_file_comps[f];
+                for (size_t c = k; c < m_n_comps; ++c)
+                    if (w[o + c] != 0.0 || mi[o + c] != 0.0 || mo[o + c] != 0.0)
+                        Throw("%s: \"weights\"/\"means_excitation\"/\"means_emission\" entry %zu pads \"%s\" "
+                              "(%zu components of %zu) and must stay 0",
+                              m_plugin, o + c, m_keys[f], k, m_n_comps);
+                auto slice = [&](const std::vector<double> &v) { return rust::Slice<const double>(v.data() + o, k); };
+                models.push_back(fluo_detail::rust_call(
+                    m_plugin, [&] { return fluo::gmm_updated(*m_models[f], slice(w), slice(mi), slice(mo)); }));
+            }
+            for (size_t f = 0; f < m_models.size(); ++f)
+                m_models[f] = std::move(models[f]);
+            m_table_key.clear(); // (several files' reduced operators: reduced again)
             update_rgb();
         });
         Base::parameters_changed(keys);
@@ -401,14 +416,22 @@ public:
         }
         if (!mixture_gradients())
             return 0;
-        size_t n = m_n_comps, kk = fluo::transport_size(transport) * fluo::transport_size(transport);
-        std::array<std::vector<double>, 3> x = { host(m_weights), host(m_means_i), host(m_means_o) };
+        file_derivatives(*m_models[0], { host(m_weights), host(m_means_i), host(m_means_o) }, transport, d);
+        return d.size();
+    }
+    /// The mixture's arrays, in the derivatives' order.
+    std::array<const FloatStorage *, 3> mixture_arrays() const { return { &m_weights, &m_means_i, &m_means_o }; }
+    /// One file's reduced operator's derivatives along its mixture `x` (weights, μi, μo, its
+    /// own components), appended to `d`: per array that carries gradients, per component.
+    void file_derivatives(const fluo::MeasuredModel &model, const std::array<std::vector<double>, 3> &x,
+                          const fluo::TransportBasis &transport, std::vector<std::vector<double>> &d) const {
+        size_t n = x[0].size(), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
         auto reduce = [&](const std::array<std::vector<double>, 3> &y) -> std::optional<std::vector<double>> {
             auto slice = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
             std::vector<double> out(kk);
             try {
-                auto model = fluo::gmm_updated(*m_models[0], slice(y[0]), slice(y[1]), slice(y[2]));
-                auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*model), transport);
+                auto updated = fluo::gmm_updated(model, slice(y[0]), slice(y[1]), slice(y[2]));
+                auto reduced = fluo::reduced_new(fluo::measured_fluorescence(*updated), transport);
                 if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk)))
                     return std::nullopt;
             } catch (const std::exception &) {
@@ -416,14 +439,13 @@ public:
             }
             return out;
         };
-        const FloatStorage *arrays[3] = { &m_weights, &m_means_i, &m_means_o };
         std::optional<std::vector<double>> at_x; // A at the current mixture (the weights' differences)
         double total = 0.0; // W, and the weights' step ε
         for (double v : x[0])
             total += v;
         const double eps = 1e-3 * total;
         for (size_t a = 0; a < 3; ++a) {
-            if (!dr::grad_enabled(*arrays[a]))
+            if (!dr::grad_enabled(*mixture_arrays()[a]))
                 continue;
             for (size_t c = 0; c < n; ++c) {
                 std::optional<std::vector<double>> dc;
@@ -450,7 +472,6 @@ public:
                 d.push_back(std::move(*dc));
             }
         }
-        return d.size();
     }
     /// θ − detach(θ) per derivative matrix: the renormalised weights π̂_k, the means
     /// (fluo_gmm); the entries' δA (fluo_matrix).
@@ -464,16 +485,22 @@ public:
         }
         if (!m_gmm)
             return m_delta;
+        return mixture_deltas(UInt32(0), active);
+    }
+    /// θ − detach(θ) of file `mat`'s mixture (its renormalised weights π̂_k, its means), per
+    /// array that carries gradients, per component slot.
+    std::vector<Float> mixture_deltas(const UInt32 &mat, const Mask &active) const {
         std::vector<Float> w;
+        UInt32 base = mat * (uint32_t) m_n_comps;
         if (dr::grad_enabled(m_weights)) {
-            fluo_detail::Scratch<Float> p = weights(UInt32(0), active);
+            fluo_detail::Scratch<Float> p = weights(mat, active);
             for (size_t c = 0; c < m_n_comps; ++c)
                 w.push_back(p[c] - dr::detach(p[c]));
         }
         for (const FloatStorage *means : { &m_means_i, &m_means_o })
             if (dr::grad_enabled(*means))
                 for (size_t c = 0; c < m_n_comps; ++c) {
-                    Float m = dr::gather<Float>(*means, UInt32((uint32_t) c), active);
+                    Float m = dr::gather<Float>(*means, base + (uint32_t) c, active);
                     w.push_back(m - dr::detach(m));
                 }
         return w;
@@ -487,6 +514,39 @@ public:
     }
     std::pair<UInt32, Float> jit_reduced_select(const SurfaceInteraction3f &si, Mask active) const override {
         return { material(si, active), Float(1.f) };
+    }
+    /// fluo_gmm, several files, in RGB with gradients on the mixtures: per array that carries
+    /// them and component slot k a table of every file's ∂A/∂θ_k, as one file's
+    /// (jit_reduced_derivatives: the weights' exact difference, the means' central ones),
+    /// zero for a file with fewer components.
+    size_t jit_reduced_table_derivatives(const fluo::TransportBasis &transport,
+                                         std::vector<double> &d) const override {
+        if (!m_gmm || !m_index || !mixture_gradients())
+            return 0;
+        size_t n = m_n_comps, nf = m_models.size(), kk = fluo::transport_size(transport);
+        kk *= kk;
+        std::array<std::vector<double>, 3> x = { host(m_weights), host(m_means_i), host(m_means_o) };
+        size_t arrays = 0; // those that carry gradients
+        for (const FloatStorage *a : mixture_arrays())
+            arrays += dr::grad_enabled(*a) ? 1 : 0;
+        d.assign(arrays * n * nf * kk, 0.0); // [array][slot][file][K][K]
+        for (size_t f = 0; f < nf; ++f) {
+            size_t k = m_file_comps[f];
+            std::array<std::vector<double>, 3> own;
+            for (size_t a = 0; a < 3; ++a)
+                own[a].assign(x[a].begin() + (std::ptrdiff_t) (f * n), x[a].begin() + (std::ptrdiff_t) (f * n + k));
+            std::vector<std::vector<double>> df; // [array][own component]
+            file_derivatives(*m_models[f], own, transport, df);
+            for (size_t g = 0; g < arrays; ++g)
+                for (size_t c = 0; c < k; ++c)
+                    std::copy(df[g * k + c].begin(), df[g * k + c].end(), d.begin() + ((g * n + c) * nf + f) * kk);
+        }
+        return arrays * n;
+    }
+    std::vector<Float> jit_reduced_select_derivatives(const SurfaceInteraction3f &si, Mask active) const override {
+        if (!m_gmm || !m_index || !mixture_gradients())
+            return {};
+        return mixture_deltas(material(si, active), active);
     }
 
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
@@ -660,8 +720,11 @@ protected:
         } else {
             // [file][component], padded: weight 0 (never drawn, no value), σ = 1
             m_n_comps = 0;
-            for (const auto &c : comps)
+            m_file_comps.clear();
+            for (const auto &c : comps) {
                 m_n_comps = std::max(m_n_comps, c.size());
+                m_file_comps.push_back(c.size());
+            }
             m_comps.assign(m_n_comps * m_models.size(), Comp{ -0.5f, 0.f, 0.f, 1.f });
             for (size_t f = 0; f < comps.size(); ++f)
                 std::copy(comps[f].begin(), comps[f].end(), m_comps.begin() + (std::ptrdiff_t) (f * m_n_comps));
@@ -1131,6 +1194,7 @@ protected:
     std::vector<float> m_scale;
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
+    std::vector<size_t> m_file_comps; ///< each file's own number of components
     mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)
     /// Several matrices: δA per file and entry ([file][kk]), the entries it holds, kk
     mutable FloatStorage m_delta_table;
