@@ -162,7 +162,10 @@ carries the texture's derivative at that level: in the spectral variants the clo
 derivative in λe or s, in the RGB ones (``fluo_path``, ``fluo_prb``) each shape's ∂M/∂λe and
 ∂M/∂s and its RGB parts' derivatives, central differences of its reductions, computed when a
 render begins only where such a texture's values carry gradients (Mitsuba's own RGB
-integrators, which see the albedo alone, get no dye-shape derivative of a texture). With
+integrators, which see the albedo alone, get no dye-shape derivative of a texture). The
+shapes are the textures' distinct (λe, s) pairs, at most 4096: an optimisation that makes
+every texel of a λe texture distinct works up to 4096 texels (64 × 64; fewer with a
+varying s), each shape reduced again at every render. With
 ``filter_type=nearest`` that is the derivative of the image; a filtered lookup between
 texels of different levels gives the derivative of the unquantised material. A ``color``
 texture's texels (each texel's dye, sigmoid and RGB albedo gathered per lane; its
@@ -524,14 +527,20 @@ public:
         Float cq = h.t.conc * h.t.yield;
         return { (h.t.peak - dr::detach(h.t.peak)) * cq, (h.t.shift - dr::detach(h.t.shift)) * cq };
     }
-    /// RGB AD variants: whether a λe or s texture's own values carry gradients (a bitmap's
-    /// data, a checkerboard's colours).
+    /// RGB AD variants with a λe or s texture: whether the dye shapes' derivatives are
+    /// needed, i.e. a texture's own values carry gradients (a bitmap's data, a
+    /// checkerboard's colours) or the other parameter, a float, does (shape_gradients()
+    /// serves one shape only).
     bool textured_shape_gradients() const {
         if constexpr (!dr::is_diff_v<Float> || is_spectral_v<Spectrum>) {
             return false;
         } else {
-            if (!m_shapes || m_texels)
+            if (!m_shapes || m_texels ||
+                (!m_param_tex[fluo_detail::JungPeak] && !m_param_tex[fluo_detail::JungShift]))
                 return false;
+            if ((!m_param_tex[fluo_detail::JungPeak] && dr::grad_enabled(m_peak)) ||
+                (!m_param_tex[fluo_detail::JungShift] && dr::grad_enabled(m_shift)))
+                return true;
             struct Probe : TraversalCallback {
                 bool any = false;
                 void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
@@ -539,6 +548,8 @@ public:
                         any |= dr::grad_enabled(*(const Float *) ptr);
                     else if (type == typeid(TensorXf))
                         any |= dr::grad_enabled(*(const TensorXf *) ptr);
+                    else if (type == typeid(Color3f))
+                        any |= dr::grad_enabled(*(const Color3f *) ptr);
                 }
                 void put_object(std::string_view, Object *o, uint32_t) override {
                     if (o)
@@ -733,6 +744,7 @@ private:
     /// Validate in Rust and bake what the lanes read.
     void rebuild() {
         using namespace fluo_detail;
+        m_shape_d = 0; // (the shapes may change: their derivatives are made again when a render begins)
         init_param_textures();
         m_model = rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
         double peak = m_config.emission_peak, shift = m_config.stokes_shift;
@@ -826,9 +838,9 @@ private:
             }
             Float v = dr::gather<Float>(levels, i, active);
             // a texture with gradients (its texels): the level carries the hit's value's
-            // derivative (x − detach(x) is 0 in value), i.e. the closed forms' derivative in λe
-            // or s at the level times the texture's in its texels (spectral variants; the RGB
-            // ones read the level's baked reduced matrix, and flag these textures so)
+            // derivative (x − detach(x) is 0 in value), i.e. the derivative in λe or s at the
+            // level (spectral: the closed forms'; RGB: the shape's derivative tables,
+            // jit_reduced_table_derivatives) times the texture's in its texels
             if (dr::grad_enabled(x))
                 v += dr::select(dr::isfinite(x), x - dr::detach(x), 0.f);
             return std::make_pair(i, v);

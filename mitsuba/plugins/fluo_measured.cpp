@@ -320,6 +320,11 @@ public:
                 update_rgb();
                 return;
             }
+            bool mixture = keys.empty() || std::any_of(keys.begin(), keys.end(), [](const std::string &k) {
+                               return k == "weights" || k == "means_excitation" || k == "means_emission";
+                           });
+            if (!mixture) // (an index update alone: the mixtures stay as Rust holds them)
+                return;
             std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
             size_t total = m_n_comps * m_models.size();
             if (w.size() != total || mi.size() != total || mo.size() != total)
@@ -416,7 +421,8 @@ public:
         }
         if (!mixture_gradients())
             return 0;
-        file_derivatives(*m_models[0], { host(m_weights), host(m_means_i), host(m_means_o) }, transport, d);
+        file_derivatives(*m_models[0], { host(m_weights), host(m_means_i), host(m_means_o) }, transport, d,
+                         m_keys[0]);
         return d.size();
     }
     /// The mixture's arrays, in the derivatives' order.
@@ -424,7 +430,8 @@ public:
     /// One file's reduced operator's derivatives along its mixture `x` (weights, μi, μo, its
     /// own components), appended to `d`: per array that carries gradients, per component.
     void file_derivatives(const fluo::MeasuredModel &model, const std::array<std::vector<double>, 3> &x,
-                          const fluo::TransportBasis &transport, std::vector<std::vector<double>> &d) const {
+                          const fluo::TransportBasis &transport, std::vector<std::vector<double>> &d,
+                          const std::string &file) const {
         size_t n = x[0].size(), kk = fluo::transport_size(transport) * fluo::transport_size(transport);
         auto reduce = [&](const std::array<std::vector<double>, 3> &y) -> std::optional<std::vector<double>> {
             auto slice = [](const std::vector<double> &v) { return rust::Slice<const double>(v.data(), v.size()); };
@@ -467,8 +474,8 @@ public:
                     });
                 }
                 if (!dc)
-                    Throw("%s: no derivative of the reduced operator along component %zu's %s", m_plugin, c,
-                          a == 0 ? "weight" : a == 1 ? "excitation mean" : "emission mean");
+                    Throw("%s: no derivative of \"%s\"'s reduced operator along component %zu's %s", m_plugin,
+                          file, c, a == 0 ? "weight" : a == 1 ? "excitation mean" : "emission mean");
                 d.push_back(std::move(*dc));
             }
         }
@@ -521,6 +528,7 @@ public:
     /// zero for a file with fewer components.
     size_t jit_reduced_table_derivatives(const fluo::TransportBasis &transport,
                                          std::vector<double> &d) const override {
+        m_mix_d = 0;
         if (!m_gmm || !m_index || !mixture_gradients())
             return 0;
         size_t n = m_n_comps, nf = m_models.size(), kk = fluo::transport_size(transport);
@@ -536,15 +544,16 @@ public:
             for (size_t a = 0; a < 3; ++a)
                 own[a].assign(x[a].begin() + (std::ptrdiff_t) (f * n), x[a].begin() + (std::ptrdiff_t) (f * n + k));
             std::vector<std::vector<double>> df; // [array][own component]
-            file_derivatives(*m_models[f], own, transport, df);
+            file_derivatives(*m_models[f], own, transport, df, m_keys[f]);
             for (size_t g = 0; g < arrays; ++g)
                 for (size_t c = 0; c < k; ++c)
                     std::copy(df[g * k + c].begin(), df[g * k + c].end(), d.begin() + ((g * n + c) * nf + f) * kk);
         }
-        return arrays * n;
+        m_mix_d = (uint32_t) (arrays * n);
+        return m_mix_d;
     }
     std::vector<Float> jit_reduced_select_derivatives(const SurfaceInteraction3f &si, Mask active) const override {
-        if (!m_gmm || !m_index || !mixture_gradients())
+        if (m_mix_d == 0) // (as counted when the render began)
             return {};
         return mixture_deltas(material(si, active), active);
     }
@@ -1020,7 +1029,12 @@ protected:
         UInt32 base = mat * (uint32_t) n;
         Float wmax = 0.f, wsum = 0.f;
         for (size_t k = 0; k < n; ++k) {
-            w[k] = dr::gather<Float>(m_weights, m_index ? base + (uint32_t) k : UInt32((uint32_t) k), active);
+            UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
+            w[k] = dr::gather<Float>(m_weights, index, active);
+            // a file's padding (several files: its norm is 0) takes no part in the gradient,
+            // so an optimiser keeps it at 0 (which an update requires)
+            if (m_index && dr::grad_enabled(w[k]))
+                w[k] = dr::select(dr::gather<Float>(m_d_comp[1], index, active) > 0.f, w[k], dr::detach(w[k]));
             wmax = dr::maximum(wmax, dr::detach(w[k]));
         }
         Float rel = dr::select(wmax > 0.f, dr::rcp(wmax), 0.f);
@@ -1195,6 +1209,7 @@ protected:
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
     std::vector<size_t> m_file_comps; ///< each file's own number of components
+    mutable uint32_t m_mix_d = 0;     ///< several files, RGB: the derivative tables of this render
     mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)
     /// Several matrices: δA per file and entry ([file][kk]), the entries it holds, kk
     mutable FloatStorage m_delta_table;

@@ -167,9 +167,14 @@ def test04b_textured_dye_shape_gradients(tmp_path):
     dye = f'''<bsdf type="fluo_jung" id="dye"><float name="reflectance" value="0.5"/>
         <float name="concentration" value="0.6"/><float name="quantum_yield" value="0.9"/>{textures}</bsdf>'''
     steps = {"dye.emission_peak.data": 4.0, "dye.stokes_shift.data": 4.0}
+    # and a float λe beside the s texture (RGB: the shapes' derivative tables serve it too)
+    mixed = dye.replace(textures, textures[textures.index('<texture type="bitmap" name="stokes_shift"'):]).replace(
+        '<float name="concentration"', '<float name="emission_peak" value="520"/><float name="concentration"')
     jobs = [{"variant": "llvm_ad_spectral", "spp": 8192, "seed": 3, "xml": box("fluo_prb", dye), "gradients": steps},
             {"variant": "llvm_ad_rgb", "spp": 512, "seed": 3, "xml": box("fluo_prb", dye).replace(*NO_RR),
-             "gradients": steps}]
+             "gradients": steps},
+            {"variant": "llvm_ad_rgb", "spp": 512, "seed": 3, "xml": box("fluo_prb", mixed).replace(*NO_RR),
+             "gradients": {"dye.emission_peak": 4.0, "dye.stokes_shift.data": 4.0}}]
     check(run_worker(jobs)[0], jobs)
 
 

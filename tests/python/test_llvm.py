@@ -681,7 +681,7 @@ def test12d_gmm_mixture_gradients_with_several_files(tmp_path):
     a 0.004 step) and, in RGB, of each file (its own derivative tables, within 10 %;
     measured within 1.5 %). An
     update setting a padded entry, or one Rust refuses in the second file, names it and
-    leaves both."""
+    leaves both; the padding has no gradient."""
     mi.set_variant("scalar_rgb")
     fit = tmp_path / "orange4.gmm.json"
     fluo.run_tool(["fit-gmm", str(MATRICES / "jung_orange.csv"), "--components", "4", "-o", str(fit)])
@@ -709,6 +709,12 @@ def test12d_gmm_mixture_gradients_with_several_files(tmp_path):
             assert abs(fd) > 1e-5, f"{v} {span} {key}: the image does not depend on it, the check would be empty"
             tol = 0.12 if v == "llvm_ad_spectral" else 0.10
             assert abs(ad - fd) <= tol * abs(fd), f"{v} {span} {key}: AD {ad} vs finite differences {fd}"
+    # the second file's padding (entries 12-15) has no gradient, so an optimiser's step keeps
+    # it at 0, which an update requires
+    pads = run_llvm([{"variant": v, "xml": xml, "spp": 64, "seed": 3, "gradients": {"gmm.weights": 0.01},
+                      "span": [12, 16], "ad_only": True} for v in ("llvm_ad_spectral", "llvm_ad_rgb")])
+    for r in pads:
+        assert "error" not in r and r["gradients"]["gmm.weights"][0] == 0.0, r
     out = rejected_update(xml, "gmm.weights", "w = np.array(value); w[13] = 0.2; value = mi.Float(w)")
     assert out["error"] is not None and "entry 13 pads" in out["error"], out
     assert out["after"] == pytest.approx(out["before"], rel=1e-6)

@@ -506,7 +506,8 @@ private:
     }
 
     /// R·A for a Lambertian fluorescent vertex, A = Σ w_t·M_t (+ the elastic band albedos
-    /// when A lacks them; + w·M_n of a varying material's table, gathered per lane).
+    /// when A lacks them; + w·M_n of a varying material's table, gathered per lane, and its
+    /// derivative tables' Σ_d w_d·D_{d,n}; the scalar variants, without AD, have none).
     template <size_t K>
     Rows<K> lambertian_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Mask &on) const {
         Rows<K> ra;
