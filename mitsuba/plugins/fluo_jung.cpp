@@ -170,8 +170,9 @@ varying s), each shape reduced again at every render. With
 texels of different levels gives the derivative of the unquantised material. A ``color``
 texture's texels (each texel's dye, sigmoid and RGB albedo gathered per lane; its
 excitation wavelength sampled from the texel's absorption band) are not differentiable.
-Textured numeric parameters: per lane λe and s take the nearest of the texture's validated levels (binary search over them), c
-and Q the texture's value clamped to [0, 1]; in the RGB variants each dye shape's reduced
+Textured numeric parameters: per lane λe and s take the nearest of the texture's validated
+levels (binary search over them), c and Q the texture's value clamped to [0, 1]; in the RGB
+variants each dye shape's reduced
 reradiation matrix (at c = Q = 1, reduced once per render) is gathered per lane and scaled
 by c·Q, the elastic part being the hit's RGB albedo. ``texel_interpolation = bilinear``
 mixes the four texels' elastic albedos with their weights and, in the spectral variants,
@@ -343,11 +344,24 @@ public:
                  q.absorbed_scale.r,       q.absorbed_scale.g,       q.absorbed_scale.b,
                  q.fluorescence.r,         q.fluorescence.g,         q.fluorescence.b };
     }
-    /// ∂f/∂λe (i = 0) or ∂f/∂s (i = 1) of a host computation f(config) by central differences
-    /// with a 0.25 nm step (one-sided at a range end, where Rust refuses the step).
-    template <typename F> std::vector<double> shape_derivative(size_t i, F &&f) const {
+    /// A dye shape's unit reradiation at `cfg`'s (λe, s), reduced (K×K, Lambertian).
+    static std::vector<double> shape_operator(const fluo::JungConfig &cfg, const fluo::TransportBasis &transport) {
+        size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
+        std::vector<double> out(kk);
+        double pk = cfg.emission_peak, sh = cfg.stokes_shift;
+        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
+        auto reduced = fluo::reduced_new(fluo::jung_fluorescence(fluo::jung_shapes_model(*u, 0)), transport);
+        if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk)))
+            Throw("%s: a dye shape has no Lambertian reduced operator", Plugin);
+        return out;
+    }
+    /// ∂f/∂λe (i = 0) or ∂f/∂s (i = 1) of a host computation f(config) at `base` (default:
+    /// the material's) by central differences with a 0.25 nm step (one-sided at a range end,
+    /// where Rust refuses the step; zeros where neither side is valid).
+    template <typename F>
+    std::vector<double> shape_derivative(size_t i, F &&f, const fluo::JungConfig *base = nullptr) const {
         auto at = [&](double delta) -> std::optional<std::vector<double>> {
-            fluo::JungConfig cfg = m_config;
+            fluo::JungConfig cfg = base ? *base : m_config;
             (i == 0 ? cfg.emission_peak : cfg.stokes_shift) += delta;
             try {
                 return f(cfg);
@@ -417,14 +431,9 @@ public:
         double c = m_config.concentration, q = m_config.quantum_yield;
         for (size_t i = 0; i < 2; ++i)
             d[i] = shape_derivative(i, [&](const fluo::JungConfig &cfg) {
+                if (m_shapes)
+                    return shape_operator(cfg, transport);
                 std::vector<double> r(kk), a(kk), e(kk), out(kk);
-                if (m_shapes) {
-                    double pk = cfg.emission_peak, sh = cfg.stokes_shift;
-                    auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
-                    auto reduced = fluo::reduced_new(fluo::jung_fluorescence(fluo::jung_shapes_model(*u, 0)), transport);
-                    fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk));
-                    return out;
-                }
                 auto model = fluo::jung_new(cfg);
                 fluo::jung_reduced_parts(*model, transport, rust::Slice<double>(r.data(), kk),
                                          rust::Slice<double>(a.data(), kk), rust::Slice<double>(e.data(), kk));
@@ -476,42 +485,18 @@ public:
         constexpr size_t NP = ShapeFields - SReflectanceAbsorbed;
         d.assign(2 * n * kk, 0.0);
         std::vector<float> dparts[2][NP];
-        for (size_t p = 0; p < 2; ++p)
-            for (auto &f : dparts[p])
-                f.assign(n, 0.f);
-        for (size_t i = 0; i < n; ++i) {
-            size_t ns = m_shapes->shifts.size(); // (peak-major)
-            double pk = m_shapes->peaks[i / ns], sh = m_shapes->shifts[i % ns];
+        for (size_t i = 0, ns = m_shapes->shifts.size(); i < n; ++i) {
+            fluo::JungConfig cfg = m_config; // shape i's (λe, s), peak-major
+            cfg.emission_peak = m_shapes->peaks[i / ns];
+            cfg.stokes_shift = m_shapes->shifts[i % ns];
             for (size_t p = 0; p < 2; ++p) {
-                auto at = [&](double delta) -> std::optional<std::vector<double>> {
-                    double x[2] = { pk, sh };
-                    x[p] += delta;
-                    try {
-                        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&x[0], 1),
-                                                       rust::Slice<const double>(&x[1], 1));
-                        const fluo::JungModel &mu = fluo::jung_shapes_model(*u, 0);
-                        std::vector<double> out(kk + NP);
-                        auto r = fluo::reduced_new(fluo::jung_fluorescence(mu), transport);
-                        if (!fluo::reduced_lambertian(*r, rust::Slice<double>(out.data(), kk)))
-                            return std::nullopt;
-                        fluo::JungRgbParts q = fluo::jung_rgb_parts(mu, **m_model);
-                        const fluo::Rgb *rgb[3] = { &q.reflectance_absorbed, &q.absorbed_scale, &q.fluorescence };
-                        for (size_t c = 0; c < 3; ++c) {
-                            out[kk + 3 * c] = rgb[c]->r;
-                            out[kk + 3 * c + 1] = rgb[c]->g;
-                            out[kk + 3 * c + 2] = rgb[c]->b;
-                        }
-                        return out;
-                    } catch (const std::exception &) {
-                        return std::nullopt; // outside the parameter's range
-                    }
-                };
-                std::optional<std::vector<double>> g = fluo_detail::central_difference(0.25, at);
-                if (!g)
-                    continue; // (no step fits the range: no derivative there)
-                std::copy(g->begin(), g->begin() + kk, d.begin() + (p * n + i) * kk);
+                auto op = [&](const fluo::JungConfig &c) { return shape_operator(c, transport); };
+                auto parts = [&](const fluo::JungConfig &c) { return rgb_parts_at(c); };
+                std::vector<double> dm = shape_derivative(p, op, &cfg), dq = shape_derivative(p, parts, &cfg);
+                if (dm.size() == kk)
+                    std::copy(dm.begin(), dm.end(), d.begin() + (p * n + i) * kk);
                 for (size_t f = 0; f < NP; ++f)
-                    dparts[p][f][i] = (float) (*g)[kk + f];
+                    dparts[p][f].push_back(dq.size() == NP ? (float) dq[f] : 0.f);
             }
         }
         for (size_t p = 0; p < 2; ++p)
