@@ -37,15 +37,15 @@ Quantum-dot medium (:monosp:`fluo_qd_medium`)
      in 1/m with σ_abs in nm²; μa's peak × ``scale`` × the largest density is at most 1e5
      per scene unit (refused at load beyond: delta tracking would not finish). Traversed: an
      update through ``mi.traverse`` is validated as the load is and scales the tables
-     baked at load (μa and the re-emission are linear in it), recompiling nothing; not
-     differentiable yet (AD through fluo_volpath matches its image's derivative in a pure
-     absorber, not with re-emission or in RGB). (Default: 1)
+     baked at load (μa and the re-emission are linear in it), recompiling nothing;
+     differentiable (below). (Default: 1)
  * - density
-   - |volume|
+   - |volume| or |float|
    - Optional spatially varying multiplier of the concentration (a ``gridvolume``, as
      ``heterogeneous``'s ``sigma_t``): the medium is then bounded by the grid's box and
-     rendered by delta tracking against the grid's maximum. Without it the medium is
-     homogeneous and unbounded (bounded by its shape, as ``homogeneous``).
+     rendered by delta tracking against the grid's maximum. Without it (or with a float,
+     a constant multiplier) the medium is homogeneous and unbounded (bounded by its shape,
+     as ``homogeneous``).
  * - sigma_s
    - |spectrum| or |volume|
    - Elastic scattering coefficient of the host in 1/m, ≥ 0 (the dots' own Rayleigh
@@ -98,6 +98,15 @@ the RGB variants the absorption other integrators see is μa's linear sRGB as Mi
 converts any spectrum (CIE 1931, white = 1; negative channels clipped to 0);
 ``fluo_volpath`` in the RGB variants carries the medium's reduced operators instead (its
 docs).
+
+**Gradients.** ``concentration``, ``density`` (a float's value or a grid's voxels) and
+``sigma_s`` are differentiable through ``fluo_volpath`` in ``llvm_ad_spectral`` and
+``llvm_ad_rgb`` (and the cuda ones): its tracking weighs each null or real event by the
+medium's rate there over a detached probability under a detached majorant, so AD
+differentiates the integrand and not the sampling (the fluorescent events as their
+chosen branch's rate; in RGB the reduced operators scale with the density). A scene whose
+media do not fluoresce renders with ``volpath`` and differentiates with this loop. The
+radius, width and yield set the baked tables and are not traversed.
 
 .. tabs::
     .. code-tab:: xml

@@ -158,7 +158,13 @@ a 300-380 nm lamp came out within 16 % of the spectral render here, but a narrow
 transport; the media interpolate Rust's tables of μa and the emission
 (``fluo_medium.h``), the fluorescent BSDFs' matrices are fluo_path's
 (``fluo_reduced.h``). Gradients (``llvm_ad_*``, ``cuda_ad_*``) reach the
-surfaces' differentiable parameters through this loop; the media's parameters have none.
+surfaces' differentiable parameters and the media's (``fluo_qd_medium``'s concentration,
+``fluo_dye_medium``'s sigma_a, a density, σs) through this loop, recorded as Mitsuba's
+default ``render_backward`` does (memory grows with depth; there is no volumetric path
+replay yet): every event's weight is its rate over a detached probability, under a
+detached majorant. Where nothing fluoresces the primal render is ``volpath``'s and the
+derivatives are still this loop's (volpath's tracking differentiates its own choice
+probabilities, which gave a pure absorber's derivative the wrong sign).
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.
@@ -204,16 +210,31 @@ public:
                     bool evaluate) override {
         prepare(scene);
         m_prepared.mark(scene);
-        if (!m_fluorescent)
+        if (!m_fluorescent && !m_differentiating)
             return m_volpath->render(scene, sensor, seed, spp, develop, evaluate);
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
+    }
+
+    // Derivatives (Mitsuba's recorded AD of the render) always run this loop: volpath's
+    // tracking draws null or real with the attached σn/μ̄, whose derivative is not the
+    // integrand's (a pure absorber's d/dc came out +0.04 against −2.4 by differences).
+    using Base::render_forward;
+    TensorXf render_forward(Scene *scene, void *params, Sensor *sensor, UInt32 seed, uint32_t spp) override {
+        Differentiating on{ this };
+        return Base::render_forward(scene, params, sensor, seed, spp);
+    }
+    using Base::render_backward;
+    void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
+                         uint32_t spp) override {
+        Differentiating on{ this };
+        Base::render_backward(scene, params, grad_in, sensor, seed, spp);
     }
 
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium *medium, Float *aovs, Bool active) const override {
         m_prepared.ensure(scene, [&] { const_cast<FluoVolpath *>(this)->prepare(const_cast<Scene *>(scene)); });
         if constexpr (!is_spectral_v<Spectrum>) {
-            if (!m_fluorescent)
+            if (!m_fluorescent && !m_differentiating)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
             if (m_reduced.bands() == 3)
                 return trace<3>(scene, sampler, ray, medium, active);
@@ -223,7 +244,7 @@ public:
                 return trace<7>(scene, sampler, ray, medium, active);
             return trace<Reduced::KMax>(scene, sampler, ray, medium, active); // auto with two light bands
         } else {
-            if (!m_fluorescent)
+            if (!m_fluorescent && !m_differentiating)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
             return trace<0>(scene, sampler, ray, medium, active);
         }
@@ -1236,6 +1257,12 @@ private:
     std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
     double m_range_lo = 0.0, m_range_hi = 0.0;
     bool m_fluorescent = false, m_directional = false;
+    bool m_differentiating = false; ///< in render_forward/backward: this loop, volpath's never
+    struct Differentiating {
+        FluoVolpath *self;
+        Differentiating(FluoVolpath *s) : self(s) { self->m_differentiating = true; }
+        ~Differentiating() { self->m_differentiating = false; }
+    };
     bool m_varying = false; ///< RGB: a direction-dependent lobe varies over the surface (a model picked per vertex)
     Wrappers m_wrappers;    ///< around fluorescent BSDFs, this render
 };

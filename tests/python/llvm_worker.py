@@ -88,13 +88,19 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
     out = {}
     for key, h in steps.items():
         x0 = type(params[key])(params[key])
-        direction = x0 if relative else 1.0
+        tensor = dr.is_tensor_v(x0)  # (a grid's voxels: moved through its flat array)
+        flat = x0.array if tensor else x0
+
+        def moved(d, flat=flat, x0=x0, tensor=tensor):
+            return type(x0)(flat + direction * d, x0.shape) if tensor else flat + direction * d
+
+        direction = flat if relative else 1.0
         if span is not None:
-            at = dr.arange(mi.UInt32, dr.width(x0))
+            at = dr.arange(mi.UInt32, dr.width(flat))
             direction = dr.select((at >= span[0]) & (at < span[1]), direction, 0.0)
         t = mi.Float(0.0)
         dr.enable_grad(t)
-        params[key] = x0 + direction * t
+        params[key] = moved(t)
         params.update()
         loss = dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None)
         try:
@@ -109,7 +115,7 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
             continue
         values = []
         for d in ((0.0, h) if forward else (-h, h)):
-            params[key] = x0 + direction * d
+            params[key] = moved(d)
             params.update()
             values.append(float(dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None).array[0]))
         params[key] = x0

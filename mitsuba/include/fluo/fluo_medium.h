@@ -82,8 +82,10 @@ template <typename Float, typename Spectrum> struct MediumCommon {
         if (!(scale > 0.0) || !std::isfinite(scale))
             Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)", plugin,
                   scale);
-        bounded = props.has_property("density");
         density = props.get_volume<Volume>("density", 1.f);
+        // a grid bounds the medium; a constant (<float name="density">, Mitsuba's constvolume,
+        // whose box is the unit cube) scales it everywhere, as the default 1 does
+        bounded = props.has_property("density") && std::string_view(density->class_name()) != "ConstVolume";
         sigma_s = props.get_volume<Volume>("sigma_s", 0.f);
         // a density scales the dye's concentration: one channel (a 3-channel grid rendered
         // in RGB variants and failed at render time in spectral ones), asked once here
@@ -232,11 +234,12 @@ public:
 
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
-        // not differentiable yet: in a pure absorber AD now matches the derivative of the
-        // (analytically checked) image, with re-emission and in RGB it does not (issue 35)
-        cb->put(m_amount_name, m_amount, ParamFlags::NonDifferentiable);
-        cb->put("density", m_common.density, ParamFlags::NonDifferentiable);
-        cb->put("sigma_s", m_common.sigma_s, ParamFlags::NonDifferentiable);
+        // differentiable through fluo_volpath (its tracking weighs each event by its rate over
+        // a detached probability, under a detached majorant) where the plugin says so
+        auto flags = m_differentiable ? +ParamFlags::Differentiable : +ParamFlags::NonDifferentiable;
+        cb->put(m_amount_name, m_amount, flags);
+        cb->put("density", m_common.density, flags);
+        cb->put("sigma_s", m_common.sigma_s, flags);
         Base::traverse(cb);
     }
 
@@ -351,6 +354,7 @@ public:
     }
 
 protected:
+    bool m_differentiable = true; ///< the traversed parameters' flag (the plugin's to set)
     FluoMediumBase(const Properties &props, const char *plugin)
         : Base(props), m_plugin(plugin), m_common(props, plugin) {
         m_is_homogeneous = false; // MediumCommon says why
@@ -442,9 +446,7 @@ private:
     /// The density times the amount over the baked one.
     Float density(const Interaction3f &mi, const Mask &active) const {
         Float ratio = m_amount * (float) (1.0 / m_amount_baked);
-        if (!m_common.bounded)
-            return ratio;
-        return m_common.density->eval_1(mi, active) * ratio;
+        return m_common.density->eval_1(mi, active) * ratio; // (a constant too: traversed, updated)
     }
 
     Float mu_a_in(const Cell &c, const Mask &active) const {
