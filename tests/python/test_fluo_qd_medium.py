@@ -25,9 +25,14 @@ def test01_create(variant):
     m = mi.load_dict({"type": "fluo_qd_medium", "radius": 2.7, "concentration": 0.5, "scale": 0.01})
     text = str(m)
     assert "FluoQdMedium" in text and "radius = 2.7 nm" in text and "concentration = 0.5" in text
-    # A density grid bounds the medium.
-    grid = mi.load_dict({"type": "fluo_qd_medium", "density": {"type": "constvolume", "value": 0.5}})
+    # A density grid bounds the medium; a constant one (constvolume, whose box is the unit
+    # cube) scales it everywhere (test_fluo_volpath test09 renders it).
+    grid = mi.load_dict({"type": "fluo_qd_medium",
+                         "density": {"type": "gridvolume", "grid": mi.VolumeGrid(np.full((2, 2, 2, 1), 0.5,
+                                                                                          dtype=np.float32))}})
     assert "density_grid = 1" in str(grid)
+    constant = mi.load_dict({"type": "fluo_qd_medium", "density": {"type": "constvolume", "value": 0.5}})
+    assert "density_grid = 0" in str(constant)
 
 
 @pytest.mark.parametrize("name, value, needle", [
