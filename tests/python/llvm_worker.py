@@ -44,7 +44,7 @@ def run(job: dict) -> dict:
     if "gradients" in job:
         return {"gradients": gradients(mi.load_string(job["xml"]), job["gradients"], job["spp"], job.get("seed", 0),
                                        job.get("forward", False), job.get("ad_only", False),
-                                       job.get("relative", False), job.get("span"))}
+                                       job.get("relative", False), job.get("span"), job.get("fd_spp"))}
     params = job.get("params", {})
     if "xml" in job:
         scene = mi.load_string(job["xml"], **params)
@@ -75,13 +75,15 @@ def eval_bsdf(bsdf, points) -> list:
 
 
 def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad_only: bool = False,
-              relative: bool = False, span: list | None = None) -> dict:
+              relative: bool = False, span: list | None = None, fd_spp: int | None = None) -> dict:
     """{key: [AD derivative, central difference]} of the mean image for each parameter, along
     the parameter's all-ones direction (every channel of a colour moves together; with
     `relative`, along its own values: x·(1 + t), so zero entries stay zero; `span` [i, j):
     only entries i to j − 1 move); with
     `forward`, the forward difference (a parameter at the lower end of its range); with
-    `ad_only`, [AD derivative, None]."""
+    `ad_only`, [AD derivative, None]; `fd_spp`: the differences' sample count (primal renders
+    cost no AD memory: where the two renders decorrelate, as media's moving majorants make
+    them, more samples there rather than in the AD pass)."""
     import drjit as dr
 
     params = mi.traverse(scene)
@@ -117,7 +119,8 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
         for d in ((0.0, h) if forward else (-h, h)):
             params[key] = moved(d)
             params.update()
-            values.append(float(dr.mean(mi.render(scene, params=params, spp=spp, seed=seed), axis=None).array[0]))
+            values.append(float(dr.mean(mi.render(scene, params=params, spp=fd_spp or spp, seed=seed),
+                                        axis=None).array[0]))
         params[key] = x0
         params.update()
         out[key] = [ad, (values[1] - values[0]) / (h if forward else 2 * h)]

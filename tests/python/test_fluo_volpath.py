@@ -536,13 +536,14 @@ def test08_media_gradients_match_central_differences(tmp_path):
     (Q = 0.8: spectral tracking's weights in llvm_ad_spectral, the reduced operators' in
     llvm_ad_rgb) and without (Q = 0: the primal is volpath's, the derivative this loop's),
     and a density grid's voxels. A 2 cm cube against a D65 panel (σs moves light off the
-    panel's direct view). Measured (512 spp at 16², the grid 2048 at 8²), AD vs differences:
-    spectral concentration −0.805 vs −0.819, density −0.0403 vs −0.0410, σs −0.00441 vs
-    −0.00465, Q = 0 concentration −1.780 vs −1.875, grid −0.0455 vs −0.0458; RGB
-    concentration −0.881 vs −0.959, density −0.0440 vs −0.0480, σs −0.00444 vs −0.00439,
-    Q = 0 −1.806 vs −1.806, grid −0.0468 vs −0.0476. Before: Q = 0's AD was +0.04 against
-    −2.4 (volpath's
-    tracking differentiated its own choice probabilities)."""
+    panel's direct view). Measured (AD 512 spp at 16², the grid 2048 at 8²; differences at 4×
+    those: their two renders decorrelate, each side's majorant following the parameter), AD
+    vs differences: spectral concentration −0.805 vs −0.843, density −0.0403 vs −0.0422, σs
+    −0.00441 vs −0.00437, Q = 0 concentration −1.780 vs −1.799, grid −0.0455 vs −0.0434; RGB
+    concentration −0.881 vs −0.911 (over 4 seeds each: −0.890 vs −0.884), density −0.0440 vs
+    −0.0455, σs −0.00444 vs −0.00449, Q = 0 −1.806 vs −1.855, grid −0.0468 vs −0.0509.
+    Before: Q = 0's AD was +0.04 against −2.4 (volpath's tracking differentiated its own
+    choice probabilities)."""
     from test_fluo_prb import check, run_worker
 
     # a density grid whose largest voxel (the majorant's) stands apart: the differences move
@@ -567,7 +568,9 @@ def test08_media_gradients_match_central_differences(tmp_path):
                                       (_qd_medium_xml(0.0), {medium + "concentration": 0.0025,
                                                              medium + "sigma_s.value.value": 1.0}, None, 16),
                                       (_qd_medium_xml(0.8, grid), {medium + "density.data": 0.05}, [0, 511], 8)):
-            job = {"variant": variant, "spp": 512 * 256 // res**2, "seed": 1, "gradients": steps,
+            # (the differences decorrelate: each side's majorant follows the parameter)
+            job = {"variant": variant, "spp": 512 * 256 // res**2, "fd_spp": 2048 * 256 // res**2, "seed": 1,
+                   "gradients": steps,
                    "xml": _MEDIA_GRADIENT_SCENE.format(basis=basis, medium=xml, res=res)}
             if span:
                 job["span"] = span
