@@ -164,9 +164,10 @@ default ``render_backward`` does (memory grows with depth; there is no volumetri
 replay yet): every event's weight is its rate over a detached probability, under a
 detached majorant, 1.5× the render's in fluorescent media (clear of σt, so that every
 wavelength's null collisions keep a probability; the derivative pass traces more
-tentative collisions than the render). Where nothing fluoresces the primal render is ``volpath``'s and the
-derivatives are still this loop's (volpath's tracking differentiates its own choice
-probabilities, which gave a pure absorber's derivative the wrong sign).
+tentative collisions than the render). Where nothing fluoresces the primal render is
+``volpath``'s and the derivatives are still this loop's (volpath's tracking
+differentiates its own choice probabilities, which gave a pure absorber's derivative
+the wrong sign).
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.

@@ -92,14 +92,14 @@ def gradients(scene, steps: dict, spp: int, seed: int, forward: bool = False, ad
         x0 = type(params[key])(params[key])
         tensor = dr.is_tensor_v(x0)  # (a grid's voxels: moved through its flat array)
         flat = x0.array if tensor else x0
-
-        def moved(d, flat=flat, x0=x0, tensor=tensor):
-            return type(x0)(flat + direction * d, x0.shape) if tensor else flat + direction * d
-
         direction = flat if relative else 1.0
         if span is not None:
             at = dr.arange(mi.UInt32, dr.width(flat))
             direction = dr.select((at >= span[0]) & (at < span[1]), direction, 0.0)
+
+        def moved(d):  # x0 + direction·d, as the parameter's own type
+            value = flat + direction * d
+            return type(x0)(value, x0.shape) if tensor else value
         t = mi.Float(0.0)
         dr.enable_grad(t)
         params[key] = moved(t)
