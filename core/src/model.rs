@@ -454,8 +454,6 @@ impl MediumModel {
             lambda.push(d1);
         }
         lambda.dedup_by(|a, b| *a <= *b);
-        let mu_a: Vec<f64> = lambda.iter().map(|&l| self.absorption_per_m(l)).collect();
-        let cum = crate::spectrum::running_trapezoid(&lambda, &mu_a);
         let (lo, hi) = self.lambda_range();
         let e = |l: f64| dispatch!(self, m => m.emission_per_nm(l));
         let peak = match self {
@@ -472,7 +470,16 @@ impl MediumModel {
         base.dedup();
         let tol = MEDIUM_JIT_EMISSION_TOL * base.iter().map(|&l| e(l)).fold(0.0, f64::max);
         let emission_lambda = refine_linear(&e, &base, tol);
-        let emission = emission_lambda.iter().map(|&l| e(l)).collect();
+        self.jit_tables_on(lambda, emission_lambda)
+    }
+
+    /// The tables of [`MediumJitTables`] on given nodes (`lambda` increasing over
+    /// [`MEDIUM_JIT_DOMAIN_NM`], `emission_lambda` increasing): a parameter's derivative
+    /// tables are differences of tables on one model's nodes.
+    pub fn jit_tables_on(&self, lambda: Vec<f64>, emission_lambda: Vec<f64>) -> MediumJitTables {
+        let mu_a: Vec<f64> = lambda.iter().map(|&l| self.absorption_per_m(l)).collect();
+        let cum = crate::spectrum::running_trapezoid(&lambda, &mu_a);
+        let emission = emission_lambda.iter().map(|&l| dispatch!(self, m => m.emission_per_nm(l))).collect();
         MediumJitTables { lambda, mu_a, cum, emission_lambda, emission }
     }
 }

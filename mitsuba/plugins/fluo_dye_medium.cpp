@@ -40,6 +40,10 @@ Fluorescent dye medium (:monosp:`fluo_dye_medium`)
    - As for ``fluo_qd_medium``: an optional density grid multiplying the dye, the host's
      elastic scattering (1/m) and its phase function, metres per scene unit.
 
+``emission_peak``, ``stokes_shift`` and ``quantum_yield`` are traversed (an update bakes the
+tables again) and differentiable through ``fluo_volpath`` in both AD variants, with the
+tangent tables ``fluo_qd_medium`` describes (h: 1e-4·λe, 1e-3·s, 1e-3).
+
 A dye in solution, with the spectra of Jung et al. (2018, 2019; eqs. 3-6 of the 2019
 paper): a cubic b-spline emission e(λ) of unit integral around λe and its mirrored
 absorption a(λ) ∈ [0, 1] peaking at λe − s. μa(λ) = σa a(λ); an absorbed photon is
@@ -78,9 +82,12 @@ public:
                  { "emission_peak", &c.emission_peak }, { "stokes_shift", &c.stokes_shift },
                  { "quantum_yield", &c.quantum_yield }, { "sigma_a", &c.sigma_a } })
             *field = fluo_detail::medium_double(props, Plugin, name, *field);
-        init(fluo_detail::amount_builder(Plugin, c, &fluo::DyeMediumConfig::sigma_a,
-                                         [](const fluo::DyeMediumConfig &at) { return fluo::dye_medium_new(at); }),
-             "sigma_a", c.sigma_a, "sigma_a");
+        using C = fluo::DyeMediumConfig;
+        init({ { "sigma_a", c.sigma_a, 0.0 }, { "emission_peak", c.emission_peak, 1e-4 },
+               { "stokes_shift", c.stokes_shift, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
+             fluo_detail::medium_builder(Plugin, c, { &C::sigma_a, &C::emission_peak, &C::stokes_shift, &C::quantum_yield },
+                                         [](const C &at) { return fluo::dye_medium_new(at); }),
+             "sigma_a");
     }
 
     std::string to_string() const override { return describe("FluoDyeMedium"); }

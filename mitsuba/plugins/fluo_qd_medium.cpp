@@ -23,7 +23,8 @@ Quantum-dot medium (:monosp:`fluo_qd_medium`)
  * - radius
    - |float|
    - Dot radius R in nm, [1, 5]. Sets the band edge λQD (Brus equation, eqs. 1-3) and
-     the emission peak λQD + Sλ (eq. 6). (Default: 2.2)
+     the emission peak λQD + Sλ (eq. 6). Traversed and differentiable, as ``width`` and
+     ``quantum_yield`` (below). (Default: 2.2)
  * - width
    - |float|
    - Width δλ of the absorption and emission bands in nm, [0.01, 100]. (Default: 15)
@@ -99,14 +100,23 @@ converts any spectrum (CIE 1931, white = 1; negative channels clipped to 0);
 ``fluo_volpath`` in the RGB variants carries the medium's reduced operators instead (its
 docs).
 
-**Gradients.** ``concentration``, ``density`` (a float's value or a grid's voxels) and
-``sigma_s`` are differentiable through ``fluo_volpath`` in ``llvm_ad_spectral`` and
-``llvm_ad_rgb`` (and the cuda ones): its tracking weighs each null or real event by the
-medium's rate there over a detached probability under a detached majorant, so AD
-differentiates the integrand and not the sampling (the fluorescent events as their
-chosen branch's rate; in RGB the reduced operators scale with the density). A scene whose
-media do not fluoresce renders with ``volpath`` and differentiates with this loop. The
-radius, width and yield set the baked tables and are not traversed.
+**Updates and gradients.** ``radius``, ``width`` and ``quantum_yield`` are traversed: an
+update is validated as the load is and bakes the tables again, into the same kernels (the
+tables and what they fix are kernel inputs; a node count crossing a power of two alone
+changes a kernel). Every traversed parameter (those three, ``concentration``,
+``density`` as a float's value or a grid's voxels, and ``sigma_s``) is differentiable
+through ``fluo_volpath`` in ``llvm_ad_spectral`` and ``llvm_ad_rgb`` (and the cuda ones):
+its tracking weighs each null or real event by the medium's rate there over a detached
+probability under a detached majorant, so AD differentiates the integrand and not the
+sampling (the fluorescent events as their chosen branch's rate, a shift also by the
+excitation density at its λi; in RGB the reduced operators scale with the density). For
+the radius, width and yield, when a render finds them carrying gradients the medium
+bakes Rust's tables at θ ± h on its own nodes (h = 1e-3·max(θ, 1), one-sided at the ends
+of the range) and reads value + (θ − detach(θ))·∂/∂θ from those differences (the same
+values); in RGB the reduced operators carry the differences of Rust's reductions the same
+way. The derivative in the yield at Q = 0 is refused with an error (nothing re-emits, so
+no re-emission is sampled to carry it): differentiate from Q > 0. A scene whose media do
+not fluoresce renders with ``volpath`` and differentiates with this loop.
 
 .. tabs::
     .. code-tab:: xml
@@ -153,9 +163,12 @@ public:
 
     FluoQdMedium(const Properties &props) : Base(props, Plugin) {
         fluo::QdMediumConfig c = qd_medium_config(props, Plugin);
-        init(fluo_detail::amount_builder(Plugin, c, &fluo::QdMediumConfig::concentration,
-                                         [](const fluo::QdMediumConfig &at) { return fluo::qd_medium_new(at); }),
-             "concentration", c.concentration, "the dots' concentration and radius");
+        using C = fluo::QdMediumConfig;
+        init({ { "concentration", c.concentration, 0.0 }, { "radius", c.radius, 1e-3 },
+               { "width", c.width, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
+             fluo_detail::medium_builder(Plugin, c, { &C::concentration, &C::radius, &C::width, &C::quantum_yield },
+                                         [](const C &at) { return fluo::qd_medium_new(at); }),
+             "the dots' concentration and radius");
     }
 
     std::string to_string() const override { return describe("FluoQdMedium"); }

@@ -293,6 +293,11 @@ private:
         bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
         m_range_lo = lo;
         m_range_hi = hi;
+        for (const BMedium *b : media)
+            fluo_detail::rust_call(Plugin, [&] { // the parameters carrying gradients
+                b->jit_prepare(lo, hi);
+                return 0;
+            });
         if (scene->emitters().empty())
             bsdfs.clear();
         else
@@ -320,6 +325,11 @@ private:
                         r.f_rows[i] += std::abs(r.f[i * k + j]) * InvFourPi;
                     r.f_max[0] = std::max(r.f_max[0], r.f_rows[i]);
                     r.a_max[0] = std::max(r.a_max[0], r.a[i * k + i]);
+                }
+                // the operators with the derivatives of the medium's parameters carrying gradients
+                for (auto &t : fluo_detail::rust_call(Plugin, [&] { return b->jit_reduced_tangents(m_reduced.basis()); })) {
+                    r.a_t.emplace_back(t.delta, std::move(t.a));
+                    r.f_t.emplace_back(t.delta, std::move(t.f));
                 }
                 m_rmedia.push_back(std::move(r));
             }
@@ -939,13 +949,13 @@ private:
         uy[0] = u.y();
         fluo_detail::rotate_hero(ux);
         fluo_detail::rotate_hero(uy);
-        auto [li, ok] = fluo_detail::dispatch_any(
+        auto [li, ok, rel] = fluo_detail::dispatch_any(
             ls.medium,
             [this, range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_, const Wavelength &u_,
                                        const Mask &on) {
                 if (const BMedium *f = m_media_set.find(m))
                     return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
-                return std::make_pair(mei_.wavelengths, WMask(false));
+                return std::make_tuple(mei_.wavelengths, WMask(false), UnpolarizedSpectrum(1.f));
             },
             ls.mei, uy, active);
         WMask shifted = false;
@@ -957,7 +967,7 @@ private:
             Mask shift = active && valid && !elastic && ok[j];
             // the chosen branch's rate over its detached probability: σs + μf in value, and
             // the derivative of that branch's rate alone (a chosen branch's rate is > 0)
-            Float w = dr::detach(total) * fluo_detail::relative(dr::select(elastic, ss, sf));
+            Float w = dr::detach(total) * fluo_detail::relative(dr::select(elastic, ss, sf * rel[j]));
             sigma_s[j] = dr::select(active, dr::select(valid && (elastic || shift), w, 0.f), sigma_s[j]);
             shifted[j] = shift;
         }
@@ -1162,6 +1172,9 @@ private:
         std::vector<double> f_rows; ///< Σ_j |F_kj|/(4π) per band k: its re-emission into band k
         std::vector<double> f_max;  ///< { the largest of f_rows }
         std::vector<double> a_max;  ///< { the largest diagonal entry of A }: the majorant's bound
+        /// Per parameter of the medium carrying a gradient: θ − detach(θ) and ∂A/∂θ, ∂F/∂θ
+        /// (K×K; none without)
+        std::vector<std::pair<Float, std::vector<double>>> a_t, f_t;
     };
 
     /// What a fluorescent medium's majorant must cover, 1/m at density 1: μa at the
@@ -1222,6 +1235,22 @@ private:
             if (any)
                 for (size_t r = 0; r < 3; ++r)
                     out[r * K + j] = dr::fmadd(s, acc[r], out[r * K + j]);
+        }
+        // a medium's parameters carrying gradients: + δ·s·R·∂M/∂θ with δ = θ − detach(θ) (0 in
+        // value: R and s detached in it, one attached factor per product, not K² attached entries)
+        for (size_t m = 0; m < m_rmedia.size(); ++m) {
+            const ReducedMedium &rm = m_rmedia[m];
+            for (const auto &[delta, dm] : field == &ReducedMedium::a ? rm.a_t : rm.f_t) {
+                Float f = dr::select(which[m], dr::detach(s) * delta, 0.f);
+                for (size_t j = 0; j < K; ++j)
+                    for (size_t r = 0; r < 3; ++r) {
+                        Float acc = 0.f;
+                        for (size_t k = 0; k < K; ++k)
+                            if (dm[k * K + j] != 0.0)
+                                acc = dr::fmadd(dr::detach(R[r * K + k]), (float) dm[k * K + j], acc);
+                        out[r * K + j] = dr::fmadd(f, acc, out[r * K + j]);
+                    }
+            }
         }
         return out;
     }

@@ -367,6 +367,9 @@ mod bridge {
         fn medium_to_string(model: &FluoMedium) -> String;
         /// The tables of [`MediumJitTables`] (vectorised variants).
         fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables;
+        /// The same tables on given nodes (a parameter's derivative: differences of
+        /// tables on one model's nodes).
+        fn medium_jit_tables_on(model: &FluoMedium, lambda: &[f64], emission_lambda: &[f64]) -> MediumJitTables;
     }
 
     // ----------------------------------------------------- fluo_matrix, fluo_gmm

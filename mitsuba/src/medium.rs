@@ -78,7 +78,14 @@ pub(crate) fn medium_lambda_range(model: &FluoMedium) -> Range {
 }
 
 pub(crate) fn medium_jit_tables(model: &FluoMedium) -> MediumJitTables {
-    let t = model.model.jit_tables();
+    bridged(model.model.jit_tables())
+}
+
+pub(crate) fn medium_jit_tables_on(model: &FluoMedium, lambda: &[f64], emission_lambda: &[f64]) -> MediumJitTables {
+    bridged(model.model.jit_tables_on(lambda.to_vec(), emission_lambda.to_vec()))
+}
+
+fn bridged(t: fluo::model::MediumJitTables) -> MediumJitTables {
     MediumJitTables {
         lambda: t.lambda,
         mu_a: t.mu_a,

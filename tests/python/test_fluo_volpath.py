@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -532,18 +533,23 @@ def _qd_medium_xml(q: float, density: str = "") -> str:
 def test08_media_gradients_match_central_differences(tmp_path):
     """Issue 35: the media's traversed parameters are differentiable through fluo_volpath in
     both AD variants: d(mean image)/dθ by AD within 10 % of central differences (same seed)
-    for fluo_qd_medium's concentration, a constant density and the host's σs with
-    re-emission (Q = 0.8: spectral tracking's weights in llvm_ad_spectral, the reduced
-    operators' in llvm_ad_rgb) and without (Q = 0: the primal is volpath's, the derivative
-    this loop's), a density grid's voxels, and fluo_dye_medium's sigma_a (Q = 0.5, the
-    luminance's mean). A 2 cm cube against a D65 panel (σs moves light off the panel's
-    direct view). Measured (AD 512 spp at 16², the grid 2048 at 8²; differences at 4× those,
-    8× for the grid and the dye: the two renders decorrelate, each side's majorant following
-    the parameter), AD vs differences: spectral concentration −0.811 vs −0.843, density
-    −0.0405 vs −0.0422, σs −0.00443 vs −0.00437, Q = 0 −1.780 vs −1.799, grid −0.0441 vs
-    −0.0444, dye −4.05e-4 vs −3.89e-4; RGB concentration −0.861 vs −0.911, density −0.0431 vs
-    −0.0455, σs −0.00439 vs −0.00449, Q = 0 −1.806 vs −1.855, grid −0.0461 vs −0.0485, dye
-    −4.37e-4 vs −4.28e-4. Before: Q = 0's AD was +0.04 against −2.4 (volpath's tracking
+    for fluo_qd_medium's concentration, a constant density, the host's σs, and the radius,
+    width and yield (tangent tables) with re-emission (Q = 0.8: spectral tracking's weights
+    in llvm_ad_spectral, the reduced operators' in llvm_ad_rgb) and without (Q = 0: the
+    primal is volpath's, the derivative this loop's), a density grid's voxels, and
+    fluo_dye_medium's sigma_a, emission_peak, stokes_shift and quantum_yield (Q = 0.5, the
+    luminance's mean; AD at 1024 spp, differences at 16384). The spectra's parameters,
+    AD vs differences: spectral radius −0.198 vs −0.192, width −0.00694 vs −0.00668, Q 0.0783
+    vs 0.0771, dye λe −1.018e-3 vs −0.973e-3, s 7.20e-4 vs 6.82e-4, Q 0.0189 vs 0.0190; RGB
+    −0.205 vs −0.203, −0.00660 vs −0.00645, 0.0769 vs 0.0759, −1.107e-3 vs −1.116e-3, 8.13e-4
+    vs 8.13e-4, 0.0196 vs 0.0199. The scene: a 2 cm cube against a D65 panel (σs moves
+    light off the panel's direct view). The rest (AD 512 spp at 16², the grid 2048 at 8²;
+    differences at 4× those, 8× for the grid: the two renders decorrelate, each side's
+    majorant following the parameter), AD vs differences: spectral concentration −0.811 vs
+    −0.843, density −0.0405 vs −0.0422, σs −0.00443 vs −0.00437, Q = 0 −1.780 vs −1.799,
+    grid −0.0441 vs −0.0444, dye σa −3.91e-4 vs −3.89e-4; RGB concentration −0.861 vs
+    −0.911, density −0.0431 vs −0.0455, σs −0.00439 vs −0.00449, Q = 0 −1.806 vs −1.855,
+    grid −0.0461 vs −0.0485, dye σa −4.22e-4 vs −4.41e-4. Before: Q = 0's AD was +0.04 against −2.4 (volpath's tracking
     differentiated its own choice probabilities), and the dye's 6 % under the differences
     (4 seeds each; a path whose only live wavelength set the majorant drew no null
     collision and lost its transmittance's derivative: fluo_volpath's DerivativeMargin)."""
@@ -569,7 +575,12 @@ def test08_media_gradients_match_central_differences(tmp_path):
     luminance = '<string name="pixel_format" value="luminance"/>'
     medium = "box.interior_medium."
     fluorescent = {medium + "concentration": 0.0025, medium + "density.value.value": 0.05,
-                   medium + "sigma_s.value.value": 1.0}
+                   medium + "sigma_s.value.value": 1.0,
+                   # the spectra's shape: tangent tables (RGB: the reduced operators' differences)
+                   medium + "radius": 0.02, medium + "width": 0.5, medium + "quantum_yield": 0.05}
+    # the dye's: sigma_a, and the shape (the image is nearly linear in Q: a wide step)
+    dye_steps = {medium + "sigma_a": 6.0, medium + "emission_peak": 4.0, medium + "stokes_shift": 4.0,
+                 medium + "quantum_yield": 0.15}
     jobs = []
     for variant in ("llvm_ad_spectral", "llvm_ad_rgb"):
         basis = '<string name="basis" value="x7"/>' if "rgb" in variant else ""
@@ -577,11 +588,12 @@ def test08_media_gradients_match_central_differences(tmp_path):
                                       (_qd_medium_xml(0.0), {medium + "concentration": 0.0025,
                                                              medium + "sigma_s.value.value": 1.0}, None, 16),
                                       (_qd_medium_xml(0.8, grid), {medium + "density.data": 0.05}, [0, 511], 8),
-                                      (dye, {medium + "sigma_a": 6.0}, None, 16)):
+                                      (dye, dye_steps, None, 16)):
             # (the differences decorrelate: each side's majorant follows the parameter)
-            # (the dye's derivative is small beside the image's noise, the grid's part of it: 8x)
-            fd = 2048 if span is None and xml is not dye else 4096
-            job = {"variant": variant, "spp": 512 * 256 // res**2, "fd_spp": fd * 256 // res**2, "seed": 1,
+            # (the grid's part of the derivative is small beside the image's noise: 8x; the
+            # dye's derivatives too: 2x the samples, 16x for the differences)
+            spp, fd = (512, 2048) if span is None and xml is not dye else (512, 4096) if span else (1024, 16384)
+            job = {"variant": variant, "spp": spp * 256 // res**2, "fd_spp": fd * 256 // res**2, "seed": 1,
                    "gradients": steps,
                    "xml": _MEDIA_GRADIENT_SCENE.format(basis=basis, medium=xml, res=res,
                                                        film=luminance if xml is dye else "")}
@@ -599,7 +611,28 @@ def test08b_media_parameters_are_flagged_differentiable():
             for v in ("llvm_ad_spectral", "llvm_ad_rgb") for t in ("fluo_qd_medium", "fluo_dye_medium")]
     for job, res in zip(jobs, run_worker(jobs)[0]):
         amount = "concentration" if job["traverse"]["type"] == "fluo_qd_medium" else "sigma_a"
-        assert {amount, "density.value.value", "sigma_s.value.value"} <= set(res["differentiable"]), res
+        shape = ({"radius", "width", "quantum_yield"} if job["traverse"]["type"] == "fluo_qd_medium"
+                 else {"emission_peak", "stokes_shift", "quantum_yield"})
+        assert {amount, "density.value.value", "sigma_s.value.value"} | shape <= set(res["differentiable"]), res
+
+
+def test08c_a_yield_gradient_at_zero_is_refused():
+    """At quantum_yield 0 nothing re-emits, so fluo_volpath samples no re-emission to carry
+    the derivative in the yield: a render asking for it is refused with an error naming the
+    parameter (rather than a gradient of 0), in both AD variants and for both media; the
+    other parameters' gradients at Q = 0 are test08's."""
+    from test_fluo_prb import run_worker
+
+    medium = "box.interior_medium."
+    dye = ('<medium type="fluo_dye_medium" name="interior"><float name="sigma_a" value="30"/>'
+           '<float name="quantum_yield" value="0"/><float name="scale" value="0.01"/></medium>')
+    jobs = [{"variant": v, "spp": 4, "seed": 1, "gradients": {medium + "quantum_yield": 0.05},
+             "xml": _MEDIA_GRADIENT_SCENE.format(basis="", medium=xml, res=4, film="")}
+            for v in ("llvm_ad_spectral", "llvm_ad_rgb") for xml in (_qd_medium_xml(0.0), dye)]
+    for job, res in zip(jobs, run_worker(jobs)[0]):
+        assert "error" in res, (job["variant"], res)
+        assert re.search(r'derivative in "quantum_yield".*differentiate from a value where', res["error"],
+                         re.S), res["error"]
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -625,3 +658,45 @@ def test09_a_constant_density_scales_the_medium_everywhere(variant):
     plain = np.array(mi.render(scene(concentration=0.1), seed=1)).mean()
     assert abs(plain - doubled) > 0.02, (plain, doubled)  # the check sees the density
     np.testing.assert_allclose([dense, again], doubled, rtol=1e-5)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("plugin, loaded, updated, refused", [
+    ("fluo_qd_medium", {"radius": 2.7, "width": 15.0, "quantum_yield": 0.8},
+     {"radius": 3.1, "width": 9.0, "quantum_yield": 0.5}, ("radius", 7.0)),
+    ("fluo_dye_medium", {"emission_peak": 560.0, "stokes_shift": 60.0, "quantum_yield": 0.5},
+     {"emission_peak": 600.0, "stokes_shift": 40.0, "quantum_yield": 0.9}, ("stokes_shift", -5.0))])
+def test09b_updates_of_the_spectra_bake_the_tables_again(variant, plugin, loaded, updated, refused):
+    """Issue 35/32: the parameters that shape a medium's spectra are traversed; an update
+    renders as a fresh load with the new values (the tables baked again), each parameter on
+    its own and all together, and a refused one (out of range) names the parameter and
+    leaves the medium rendering as before."""
+    mi.set_variant(variant)
+    amount = {"concentration": 0.1} if plugin == "fluo_qd_medium" else {"sigma_a": 30.0}
+
+    def scene(values):
+        return mi.load_dict(d65_cube_scene(variant, {"type": plugin, "scale": 0.01, **amount, **values},
+                                           res=8, spp=16))
+
+    def render(s):
+        return np.array(mi.render(s, seed=1))
+
+    key = "box.interior_medium."
+    before = render(scene(loaded))
+    for changes in [{k: v} for k, v in updated.items()] + [updated]:
+        s = scene(loaded)
+        params = mi.traverse(s)
+        for k, v in changes.items():
+            params[key + k] = v
+        params.update()
+        fresh = render(scene({**loaded, **changes}))
+        assert np.abs(fresh - before).max() > 1e-3, changes  # the change is visible
+        # (an updated value reaches Rust through single precision, a loaded one in double)
+        np.testing.assert_allclose(render(s), fresh, rtol=1e-4, atol=1e-6, err_msg=str(changes))
+    s = scene(loaded)
+    params = mi.traverse(s)
+    params[key + refused[0]] = refused[1]
+    with pytest.raises(Exception, match=refused[0]):
+        params.update()
+    assert float(np.array(params[key + refused[0]]).ravel()[0]) == pytest.approx(loaded[refused[0]])
+    np.testing.assert_allclose(render(s), before, rtol=1e-5, atol=1e-7)

@@ -46,11 +46,17 @@ CASES = {
     }),
     "fluo_dye_medium": ({"type": "fluo_dye_medium", "scale": 0.01, "sigma_s": 5.0}, {
         "sigma_a": ([50.0, 150.0, 400.0], [-1.0, NAN, 2e9]),
+        "emission_peak": ([520.0, 600.0], [NAN, 100.0]),
+        "stokes_shift": ([30.0, 60.0], [-5.0, NAN]),
+        "quantum_yield": ([0.3, 0.9], [1.5, NAN]),
         "density.value.value": ([0.5, 1.0, 2.0], [NAN, -1.0]),
         "sigma_s.value.value": ([1.0, 5.0, 20.0], [NAN, -3.0]),
     }),
     "fluo_qd_medium": ({"type": "fluo_qd_medium", "concentration": 0.3, "scale": 0.01, "sigma_s": 5.0}, {
         "concentration": ([0.1, 0.5, 0.9], [-0.5, NAN, 2e6]),
+        "radius": ([2.0, 3.1], [7.0, NAN]),
+        "width": ([10.0, 20.0], [0.001, NAN]),
+        "quantum_yield": ([0.3, 0.9], [2.0, NAN]),
         "density.value.value": ([0.5, 1.5], [NAN, -1.0]),
         "sigma_s.value.value": ([2.0, 8.0], [NAN, -2.0]),
     }),

@@ -39,14 +39,25 @@ inline double medium_double(const Properties &props, const char *plugin, const c
     }
 }
 
-/// A medium plugin's Rust model for any amount of its absorber (FluoMediumBase::init's
-/// `build`): its parsed configuration `c` with the field `amount` set, made by `make`.
+/// A traversed parameter of a medium's model (FluoMediumBase::init): its name, its value
+/// as loaded, and the step h of its derivative's central differences (h·max(|value|, 1);
+/// the first parameter is the absorber's amount, linear, whose step is unused).
+struct MediumParam {
+    const char *name;
+    double value, step;
+};
+
+/// A medium's Rust model for its parameters' values (in MediumParam order).
+using MediumBuild = std::function<rust::Box<fluo::FluoMedium>(const std::vector<double> &)>;
+
+/// A medium plugin's MediumBuild: its parsed configuration `c` with the fields `fields`
+/// set, made by `make`.
 template <typename Config, typename Make>
-std::function<rust::Box<fluo::FluoMedium>(double)> amount_builder(const char *plugin, const Config &c,
-                                                                  double Config::*amount, Make make) {
-    return [plugin, c, amount, make](double x) {
+MediumBuild medium_builder(const char *plugin, const Config &c, std::vector<double Config::*> fields, Make make) {
+    return [plugin, c, fields, make](const std::vector<double> &v) {
         Config at = c;
-        at.*amount = x;
+        for (size_t i = 0; i < fields.size() && i < v.size(); ++i)
+            at.*fields[i] = v[i];
         return rust_call(plugin, [&] { return make(at); });
     };
 }
@@ -202,9 +213,12 @@ public:
                            const UnpolarizedSpectrum &mu_f, float margin, Mask active) const = 0;
 
     /// Per wavelength λo of mei: an excitation wavelength λi ∝ μa(λi) f(λi → λo) over
-    /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), and where one exists.
-    virtual std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u,
-                                                        double lo, double hi, Mask active) const = 0;
+    /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), where one exists, and the
+    /// relative derivative of that density at λi (1 in value; its derivative where a
+    /// parameter reshapes μa: a shift's weight is μf times it).
+    virtual std::tuple<Wavelength, WMask, UnpolarizedSpectrum>
+    jit_excitation(const MediumInteraction3f &mei, const Wavelength &u, double lo, double hi,
+                   Mask active) const = 0;
 
     /// Host, RGB variants: the absorption A and reradiation F reduced for the transport
     /// basis `t` (fluo::medium_reduced), K×K row major each, 1/m at density 1: at a point,
@@ -212,6 +226,21 @@ public:
     /// (d from jit_sample_interaction).
     virtual void jit_reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
                                        rust::Slice<double> f) const = 0;
+
+    /// Host, at a render's start with the lights' range [lo, hi] (as jit_rates gets it): the
+    /// model's parameters that carry gradients (a shape of μa or of the emission: its tables
+    /// then carry value + (θ − detach(θ))·∂/∂θ), and what the range fixes, as kernel inputs.
+    virtual void jit_prepare(double lo, double hi) const = 0;
+
+    /// A parameter carrying a gradient, RGB variants: θ − detach(θ) and the derivatives of
+    /// jit_reduced_operators' A and F in θ (K×K each).
+    struct ReducedTangent {
+        Float delta;
+        std::vector<double> a, f;
+    };
+    /// Host, RGB variants, after jit_prepare: one ReducedTangent per parameter carrying a
+    /// gradient (none without).
+    virtual std::vector<ReducedTangent> jit_reduced_tangents(const fluo::TransportBasis &t) const = 0;
 };
 
 NAMESPACE_END(fluo_detail)
@@ -237,7 +266,8 @@ public:
         m_record.arm(this);
         // differentiable through fluo_volpath (its tracking weighs each event by its rate over
         // a detached probability, under a detached majorant)
-        cb->put(m_amount_name, m_amount, ParamFlags::Differentiable);
+        for (size_t i = 0; i < m_params.size(); ++i)
+            cb->put(m_params[i].name, m_values[i], ParamFlags::Differentiable);
         cb->put("density", m_common.density, ParamFlags::Differentiable);
         cb->put("sigma_s", m_common.sigma_s, ParamFlags::Differentiable);
         Base::traverse(cb);
@@ -318,39 +348,103 @@ public:
         return { mi, dr::select(valid, mu_f * d, 0.f), dr::select(valid, d, 0.f) };
     }
 
-    std::pair<Wavelength, WMask> jit_excitation(const MediumInteraction3f &mei, const Wavelength &u, double lo,
-                                                double hi, Mask active) const override {
+    std::tuple<Wavelength, WMask, UnpolarizedSpectrum> jit_excitation(const MediumInteraction3f &mei,
+                                                                      const Wavelength &u, double lo, double hi,
+                                                                      Mask active) const override {
         Wavelength li = mei.wavelengths;
         WMask ok = false;
+        UnpolarizedSpectrum rel(1.f);
         if constexpr (is_spectral_v<Spectrum>) {
             auto [a, b] = excitation_interval(lo, hi);
             if (!(a < b))
-                return { li, ok };
-            Float ca = (Float) host_cumulative(a);
+                return { li, ok, rel };
+            Float ca = dr::detach(cum_at(a));
+            uint32_t search_bound = 1;
+            while (search_bound < m_grid.n - 1)
+                search_bound <<= 1;
             for (size_t j = 0; j < NW; ++j) {
                 Float top = dr::minimum(mei.wavelengths[j], (float) b);
                 Mask live = active && top > (float) a;
-                Float cb = cumulative(top, m_grid.cell(top, live), live);
+                Float cb = dr::detach(cumulative(top, m_grid.cell(top, live), live)); // (sampling)
                 Float target = dr::fmadd(u[j], cb - ca, ca);
-                // the cell holding `target`: the last k with cum[k] <= target
-                UInt32 k = dr::binary_search<UInt32>(1, m_grid.n - 1, [&](const UInt32 &i) {
-                               return dr::gather<Float>(m_cum, i, live) <= target;
+                // the cell holding `target`: the last k with cum[k] <= target (over a power of
+                // two of nodes: an update that bakes another node count keeps the kernel)
+                UInt32 k = dr::binary_search<UInt32>(1, search_bound, [&](const UInt32 &i) {
+                               return i < m_grid.v_n - 1 &&
+                                      dr::gather<Float>(m_cum, dr::minimum(i, m_grid.v_n - 1), live) <= target;
                            }) - 1;
                 Float x0 = dr::gather<Float>(m_grid.nodes, k, live), x1 = dr::gather<Float>(m_grid.nodes, k + 1, live);
                 Float f0 = dr::gather<Float>(m_mu_a, k, live), f1 = dr::gather<Float>(m_mu_a, k + 1, live);
                 Float off = fluo_detail::linear_cell_inverse(f0, f1, x1 - x0, target - dr::gather<Float>(m_cum, k, live));
                 li[j] = dr::clip(x0 + off, (float) a, top);
                 ok[j] = live && cb > ca && dr::isfinite(cb);
+                if (m_ad.on) // μa(λi)/(C(top) − C(a)) with the parameters' derivatives
+                    rel[j] = fluo_detail::relative(
+                        mu_a_in(m_grid.cell(li[j], live), live) /
+                        dr::select(ok[j], cumulative(top, m_grid.cell(top, live), live) - cum_at(a), 1.f));
             }
         } else {
             (void) u, (void) lo, (void) hi, (void) active;
         }
-        return { li, ok };
+        return { li, ok, rel };
     }
 
     void jit_reduced_operators(const fluo::TransportBasis &t, rust::Slice<double> a,
                                rust::Slice<double> f) const override {
         fluo::medium_reduced(**m_model, t, a, f);
+    }
+
+    void jit_prepare(double lo, double hi) const override {
+        m_ad = {};
+        prepare_range(lo, hi);
+        if constexpr (dr::is_diff_v<Float>) {
+            for (size_t p = 1; p < m_params.size(); ++p) {
+                if (!dr::grad_enabled(m_values[p]))
+                    continue;
+                const Tangent &t = tangent(p);
+                if (!m_fluorescent && t.emits)
+                    Throw("%s: the derivative in \"%s\" (= %g) would make a medium that re-emits nothing "
+                          "re-emit, and fluo_volpath samples no re-emission where none happens (the "
+                          "derivative would come out without it): differentiate from a value where the "
+                          "medium fluoresces (e.g. quantum_yield 1e-3 instead of 0)",
+                          m_plugin, m_params[p].name, m_hosts[p]);
+                Float delta = m_values[p] - dr::detach(m_values[p]);
+                if (!m_ad.on) {
+                    m_ad = { true, m_mu_a, m_cum, m_emission, {} };
+                    for (size_t j = 0; j < 3; ++j)
+                        m_ad.rgb[j] = Float((float) m_mu_a_rgb[j]);
+                }
+                m_ad.mu_a = dr::fmadd(t.mu_a, delta, m_ad.mu_a);
+                m_ad.cum = dr::fmadd(t.cum, delta, m_ad.cum);
+                m_ad.emission = dr::fmadd(t.emission, delta, m_ad.emission);
+                for (size_t j = 0; j < 3; ++j)
+                    m_ad.rgb[j] = dr::fmadd(Float((float) t.rgb[j]), delta, m_ad.rgb[j]);
+            }
+            if (m_ad.on)
+                prepare_range(lo, hi);
+        }
+    }
+
+    std::vector<typename fluo_detail::BispectralMedium<Float, Spectrum>::ReducedTangent>
+    jit_reduced_tangents(const fluo::TransportBasis &t) const override {
+        std::vector<typename fluo_detail::BispectralMedium<Float, Spectrum>::ReducedTangent> out;
+        if constexpr (dr::is_diff_v<Float>) {
+            size_t k2 = (size_t) fluo::transport_size(t);
+            k2 *= k2;
+            for (size_t p = 1; p < m_params.size(); ++p) {
+                if (!dr::grad_enabled(m_values[p]))
+                    continue;
+                auto d = derivative(p, [&](const fluo::FluoMedium &m) {
+                    std::vector<double> af(2 * k2);
+                    fluo::medium_reduced(m, t, rust::Slice<double>(af.data(), k2),
+                                         rust::Slice<double>(af.data() + k2, k2));
+                    return af;
+                });
+                out.push_back({ m_values[p] - dr::detach(m_values[p]), std::vector<double>(d.begin(), d.begin() + k2),
+                                std::vector<double>(d.begin() + k2, d.end()) });
+            }
+        }
+        return out;
     }
 
 protected:
@@ -360,23 +454,36 @@ protected:
         m_has_spectral_extinction = true;
     }
 
-    /// Adopt the plugin's Rust model and bake its tables. `build(x)`: the model with the
-    /// absorber's amount `amount_name` (μa and the re-emission are linear in it) set to x,
-    /// validated by Rust; `amount`: its value; `what`: the parameters that set μa, for the
-    /// absorption check's message. The tables are baked at the amount (at 1 where it is 0)
-    /// and the density carries the ratio (m_amount), so an update of it through mi.traverse
-    /// re-bakes nothing and recompiles nothing.
-    void init(std::function<rust::Box<fluo::FluoMedium>(double)> build, const char *amount_name, double amount,
-              const std::string &what) {
+    /// Adopt the plugin's Rust model and bake its tables. `params`: the model's traversed
+    /// parameters, the absorber's amount first (μa and the re-emission are linear in it);
+    /// `build(values)`: the model at those values, validated by Rust; `what`: the parameters
+    /// that set μa, for the absorption check's message. The tables are baked at the amount
+    /// (at 1 where it is 0) and the density carries the ratio, so an update of the amount
+    /// through mi.traverse re-bakes nothing and recompiles nothing; an update of another
+    /// parameter bakes the tables again.
+    void init(std::vector<fluo_detail::MediumParam> params, fluo_detail::MediumBuild build, const std::string &what) {
+        m_params = std::move(params);
         m_build = std::move(build);
-        m_amount_name = amount_name;
-        rust::Box<fluo::FluoMedium> model = m_build(amount);
-        m_amount_host = amount;
-        m_amount_baked = amount > 0.0 ? amount : 1.0;
-        m_amount = dr::opaque<Float>((float) amount);
-        if (!(amount > 0.0))
-            model = m_build(m_amount_baked);
-        m_model = std::move(model);
+        m_what = what;
+        m_values.clear();
+        m_hosts.clear();
+        for (const fluo_detail::MediumParam &p : m_params) {
+            m_values.push_back(dr::opaque<Float>((float) p.value));
+            m_hosts.push_back(p.value);
+        }
+        if (!(m_hosts[0] > 0.0))
+            (void) m_build(m_hosts); // validated as given (the tables are baked at 1)
+        bake();
+        refresh_majorant();
+    }
+
+    /// The tables at the host values (the amount at m_amount_baked).
+    void bake() {
+        m_amount_baked = m_hosts[0] > 0.0 ? m_hosts[0] : 1.0;
+        m_inv_amount_baked = dr::opaque<Float>((float) (1.0 / m_amount_baked));
+        m_baked = m_hosts;
+        m_baked[0] = m_amount_baked;
+        m_model = m_build(m_baked);
         m_fluorescent = fluo::medium_is_fluorescent(**m_model);
         m_range = fluo::medium_lambda_range(**m_model);
         fluo::Rgb rgb = fluo::medium_absorption_rgb(**m_model);
@@ -394,17 +501,18 @@ protected:
         m_emission = load(t.emission);
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
         m_mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
-        m_what = what;
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
                                   m_mu_a_rgb[2] });
-        refresh_majorant();
+        m_tangents.assign(m_params.size(), std::nullopt);
+        m_ad = {};
+        m_range_at = {};
     }
 
     /// After a change of the amount, the density or σs: the absorption check and the
     /// majorant's parts (kernel inputs, so that an update recompiles nothing), from the
     /// host values. μa's tables are per baked amount: their maxima scale by the ratio.
     void refresh_majorant() {
-        const double ratio = m_amount_host / m_amount_baked, d = m_common.max_density * ratio;
+        const double ratio = m_hosts[0] / m_amount_baked, d = m_common.max_density * ratio;
         m_common.check_absorption(m_plugin, m_mu_max * ratio, m_what);
         m_maj_density = dr::opaque<Float>((float) d);
         m_maj_sigma_s = dr::opaque<Float>((float) m_common.max_sigma_s);
@@ -413,25 +521,33 @@ protected:
         m_inv_rate_unit = dr::opaque<Float>((float) (1.0 / std::max(d * m_common.scale, 1e-300)));
     }
 
-    /// An update of the amount, the density or σs (mi.traverse): the amount validated by Rust
-    /// (the model rebuilt with it, its tables unused), the majorant's maxima, the absorption
-    /// check and the majorant's floor follow it (a stale majorant biases tracking). A refused
-    /// update puts the values back (fluo_detail::UpdateRecord).
+    /// An update (mi.traverse) of the model's parameters, the density or σs: the values
+    /// validated by Rust (the model rebuilt with them), the tables baked again where a
+    /// parameter other than the amount changed, the majorant's maxima, the absorption check
+    /// and the majorant's floor following (a stale majorant biases tracking). A refused
+    /// update puts the values back (fluo_detail::UpdateRecord), the tables with them.
     void parameters_changed(const std::vector<std::string> &keys) override {
-        m_record.update(this, m_amount_host, [&] {
-            double amount = fluo_detail::updated_param(m_plugin, m_amount_name, m_amount, m_amount_host);
-            if (amount != m_amount_host)
-                (void) m_build(amount);
-            m_amount_host = amount;
+        m_record.update(this, m_hosts, [&] {
+            std::vector<double> v(m_hosts.size());
+            for (size_t i = 0; i < v.size(); ++i)
+                v[i] = fluo_detail::updated_param(m_plugin, m_params[i].name, m_values[i], m_hosts[i]);
+            if (v != m_hosts)
+                (void) m_build(v);
+            m_hosts = v;
+            if (!std::equal(v.begin() + 1, v.end(), m_baked.begin() + 1))
+                bake();
             m_common.refresh(m_plugin);
             refresh_majorant();
         });
+        for (Float &v : m_values) // kernel inputs, not literals: the next value reuses the kernel
+            if (!dr::grad_enabled(v))
+                dr::make_opaque(v);
         Base::parameters_changed(keys);
     }
 
     std::string describe(const char *name) const {
         std::ostringstream extra;
-        extra << m_amount_name << " = " << m_amount_host << " (tables at " << m_amount_baked << "), tables = "
+        extra << m_params[0].name << " = " << m_hosts[0] << " (tables at " << m_amount_baked << "), tables = "
               << m_grid.n << " absorption nodes, " << m_egrid.n << " emission nodes";
         return m_common.describe(name, **m_model, m_phase_function.get(), extra.str());
     }
@@ -442,14 +558,99 @@ private:
         return dr::load<FloatStorage>(f.data(), f.size());
     }
 
+    /// A parameter's derivative tables (on this bake's nodes) and μa's sRGB's derivative.
+    struct Tangent {
+        FloatStorage mu_a, cum, emission;
+        std::array<double, 3> rgb{};
+        bool emits = false; ///< the emission's derivative is not 0 everywhere
+    };
+
+    /// ∂f/∂θ of a host computation f(model) for the parameter p: central differences of
+    /// the models at its baked value ± h (one-sided at the ends of its valid range).
+    template <typename F> std::vector<double> derivative(size_t p, F &&f) const {
+        double h = m_params[p].step * std::max(std::abs(m_baked[p]), 1.0);
+        std::optional<std::vector<double>> d = fluo_detail::central_difference(h, [&](double delta) {
+            std::vector<double> v = m_baked;
+            v[p] += delta;
+            try {
+                rust::Box<fluo::FluoMedium> m = m_build(v);
+                return std::optional<std::vector<double>>(f(*m));
+            } catch (const std::exception &) {
+                return std::optional<std::vector<double>>();
+            }
+        });
+        if (!d)
+            Throw("%s: no derivative of the medium in \"%s\" at %g", m_plugin, m_params[p].name, m_baked[p]);
+        return *d;
+    }
+
+    /// Parameter p's tangent tables, made once per bake.
+    const Tangent &tangent(size_t p) const {
+        if (!m_tangents[p]) {
+            size_t n = m_grid.host.size(), ne = m_egrid.host.size();
+            std::vector<double> d = derivative(p, [&](const fluo::FluoMedium &m) {
+                fluo::MediumJitTables t = fluo::medium_jit_tables_on(
+                    m, rust::Slice<const double>(m_grid.host.data(), n),
+                    rust::Slice<const double>(m_egrid.host.data(), ne));
+                fluo::Rgb rgb = fluo::medium_absorption_rgb(m);
+                std::vector<double> v(t.mu_a.begin(), t.mu_a.end());
+                v.insert(v.end(), t.cum.begin(), t.cum.end());
+                v.insert(v.end(), t.emission.begin(), t.emission.end());
+                v.insert(v.end(), { rgb.r, rgb.g, rgb.b });
+                return v;
+            });
+            auto part = [&](size_t from, size_t count) {
+                std::vector<float> f(d.begin() + from, d.begin() + from + count);
+                return dr::load<FloatStorage>(f.data(), f.size());
+            };
+            bool emits = std::any_of(d.begin() + 2 * n, d.begin() + 2 * n + ne, [](double x) { return x != 0.0; });
+            m_tangents[p] = Tangent{ part(0, n), part(n, n), part(2 * n, ne),
+                                     { d[2 * n + ne], d[2 * n + ne + 1], d[2 * n + ne + 2] }, emits };
+        }
+        return *m_tangents[p];
+    }
+
+    /// The tables a lane reads: the baked ones, or with the parameters' derivatives.
+    const FloatStorage &mu_a_table() const { return m_ad.on ? m_ad.mu_a : m_mu_a; }
+    const FloatStorage &cum_table() const { return m_ad.on ? m_ad.cum : m_cum; }
+    const FloatStorage &emission_table() const { return m_ad.on ? m_ad.emission : m_emission; }
+    /// C(x) at a host wavelength: the ends of the excitation interval jit_prepare saw as
+    /// kernel inputs (an update that bakes other tables keeps the kernel), with the
+    /// derivatives where the tables carry them (from the tables).
+    Float cum_at(double x) const {
+        if (x == m_range_at.a)
+            return m_range_at.ca;
+        if (x == m_range_at.b)
+            return m_range_at.cb;
+        if (!m_ad.on)
+            return Float((float) host_cumulative(x));
+        Float xf = (float) x;
+        return cumulative(xf, m_grid.cell(xf, true), true);
+    }
+    /// The excitation interval of the lights' range [lo, hi] and C at its ends.
+    void prepare_range(double lo, double hi) const {
+        auto [a, b] = excitation_interval(lo, hi);
+        m_range_at = { std::nan(""), std::nan(""), Float(0.f), Float(0.f) };
+        if (!(a < b))
+            return;
+        auto at = [&](double x) {
+            if (!m_ad.on)
+                return dr::opaque<Float>((float) host_cumulative(x));
+            Float xf = (float) x;
+            return cumulative(xf, m_grid.cell(xf, true), true);
+        };
+        m_range_at = { a, b, at(a), at(b) };
+    }
+
     /// The density times the amount over the baked one.
     Float density(const Interaction3f &mi, const Mask &active) const {
-        Float ratio = m_amount * (float) (1.0 / m_amount_baked);
+        Float ratio = m_values[0] * m_inv_amount_baked;
         return m_common.density->eval_1(mi, active) * ratio; // (a constant too: traversed, updated)
     }
 
     Float mu_a_in(const Cell &c, const Mask &active) const {
-        return dr::lerp(dr::gather<Float>(m_mu_a, c.k, active), dr::gather<Float>(m_mu_a, c.k + 1, active), c.f);
+        const FloatStorage &t = mu_a_table();
+        return dr::lerp(dr::gather<Float>(t, c.k, active), dr::gather<Float>(t, c.k + 1, active), c.f);
     }
 
     /// μa at the wavelengths (spectral) or its sRGB (RGB), 1/m at density 1.
@@ -461,7 +662,7 @@ private:
         } else {
             (void) lambda, (void) active;
             for (size_t j = 0; j < NW && j < 3; ++j)
-                out[j] = (float) m_mu_a_rgb[j];
+                out[j] = m_ad.on ? m_ad.rgb[j] : Float((float) m_mu_a_rgb[j]);
         }
         return out;
     }
@@ -506,8 +707,8 @@ private:
     /// ∫ μa from the grid's start to λ in cell c, nm/m.
     Float cumulative(const Float &lambda, const Cell &c, const Mask &active) const {
         Float x = dr::clip(lambda, c.x0, c.x1);
-        Float f0 = dr::gather<Float>(m_mu_a, c.k, active);
-        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), dr::gather<Float>(m_cum, c.k, active));
+        Float f0 = dr::gather<Float>(mu_a_table(), c.k, active);
+        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), dr::gather<Float>(cum_table(), c.k, active));
     }
     double host_cumulative(double lambda) const {
         auto [k, f] = m_grid.host_cell(lambda);
@@ -522,11 +723,11 @@ private:
             return Float(0.f);
         Mask inside = active && lambda_o >= m_egrid.v_l0 && lambda_o <= m_egrid.v_l1;
         Cell ce = m_egrid.cell(lambda_o, inside);
-        Float e = dr::lerp(dr::gather<Float>(m_emission, ce.k, inside),
-                           dr::gather<Float>(m_emission, ce.k + 1, inside), ce.f);
+        const FloatStorage &et = emission_table();
+        Float e = dr::lerp(dr::gather<Float>(et, ce.k, inside), dr::gather<Float>(et, ce.k + 1, inside), ce.f);
         // C(min(λo, b)) from λo's own cell where λo < b
-        Float c_top = dr::select(lambda_o < (float) b, cumulative(lambda_o, c, inside), (float) host_cumulative(b));
-        Float mass = c_top - (float) host_cumulative(a);
+        Float c_top = dr::select(lambda_o < (float) b, cumulative(lambda_o, c, inside), cum_at(b));
+        Float mass = c_top - cum_at(a);
         return dr::select(inside && e > 0.f, e * dr::maximum(mass, 0.f), 0.f);
     }
 
@@ -538,12 +739,30 @@ private:
     std::array<double, 3> m_mu_a_rgb{};
     double m_rgb_mu_max = 0.0;
     double m_mu_max = 0.0; ///< μa's peak, 1/m at density 1 and the baked amount
-    /// The absorber's amount (traversed), its value on the host, the value the
-    /// tables were baked at, its parameter's name and the Rust model for another amount.
-    Float m_amount;
-    double m_amount_host = 0.0, m_amount_baked = 1.0;
-    const char *m_amount_name = "";
-    std::function<rust::Box<fluo::FluoMedium>(double)> m_build;
+    /// The model's traversed parameters (the absorber's amount first), their values, on the
+    /// host, as the tables were baked (the amount at m_amount_baked), and the Rust model for
+    /// other values.
+    std::vector<fluo_detail::MediumParam> m_params;
+    std::vector<Float> m_values;
+    std::vector<double> m_hosts, m_baked;
+    double m_amount_baked = 1.0;
+    fluo_detail::MediumBuild m_build;
+    /// Per parameter, its tangent tables (this bake's, made when a render first wants them).
+    mutable std::vector<std::optional<Tangent>> m_tangents;
+    /// The tables with the derivatives of the parameters carrying gradients (jit_prepare).
+    struct Attached {
+        bool on = false;
+        FloatStorage mu_a, cum, emission;
+        std::array<Float, 3> rgb;
+    };
+    mutable Attached m_ad;
+    /// jit_prepare's excitation interval [a, b] and C at its ends (kernel inputs).
+    struct RangeAt {
+        double a = std::nan(""), b = std::nan("");
+        Float ca, cb;
+    };
+    mutable RangeAt m_range_at;
+    Float m_inv_amount_baked; ///< 1 / m_amount_baked (a kernel input)
     /// The majorant's parts (refresh_majorant): largest density × amount ratio, largest σs
     /// (1/m), floor and RGB bound (inverse scene units), 1/(largest density × ratio × scale).
     Float m_maj_density, m_maj_sigma_s, m_maj_floor, m_maj_rgb, m_inv_rate_unit;
