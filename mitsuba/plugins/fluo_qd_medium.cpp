@@ -101,9 +101,10 @@ converts any spectrum (CIE 1931, white = 1; negative channels clipped to 0);
 docs).
 
 **Updates and gradients.** ``radius``, ``width`` and ``quantum_yield`` are traversed: an
-update is validated as the load is and bakes the tables again, into the same kernels (the
-tables and what they fix are kernel inputs; a node count crossing a power of two alone
-changes a kernel). Every traversed parameter (those three, ``concentration``,
+update is validated as the load is and bakes the tables again, as a rule into the same
+kernels (the tables and what they fix are kernel inputs; measured: radius updates from 2.2
+to 3.1 compile nothing; a node count crossing a power of two, or a grid whose narrowest
+cell changes its lookup, compiles another). Every traversed parameter (those three, ``concentration``,
 ``density`` as a float's value or a grid's voxels, and ``sigma_s``) is differentiable
 through ``fluo_volpath`` in ``llvm_ad_spectral`` and ``llvm_ad_rgb`` (and the cuda ones):
 its tracking weighs each null or real event by the medium's rate there over a detached

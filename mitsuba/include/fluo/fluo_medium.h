@@ -420,8 +420,12 @@ public:
                 for (size_t j = 0; j < 3; ++j)
                     m_ad.rgb[j] = dr::fmadd(Float((float) t.rgb[j]), delta, m_ad.rgb[j]);
             }
-            if (m_ad.on)
+            if (m_ad.on) {
                 prepare_range(lo, hi);
+                // evaluated here, not where a traced loop first gathers from them
+                dr::eval(m_ad.mu_a, m_ad.cum, m_ad.emission, m_ad.rgb[0], m_ad.rgb[1], m_ad.rgb[2], m_range_at.ca,
+                         m_range_at.cb);
+            }
         }
     }
 
@@ -473,13 +477,14 @@ protected:
         }
         if (!(m_hosts[0] > 0.0))
             (void) m_build(m_hosts); // validated as given (the tables are baked at 1)
-        bake();
+        bake(m_hosts[0]);
         refresh_majorant();
     }
 
-    /// The tables at the host values (the amount at m_amount_baked).
-    void bake() {
-        m_amount_baked = m_hosts[0] > 0.0 ? m_hosts[0] : 1.0;
+    /// The tables at the host values with the absorber's amount `amount` (1 where it is 0;
+    /// the density carries the ratio to the actual amount).
+    void bake(double amount) {
+        m_amount_baked = amount > 0.0 ? amount : 1.0;
         m_inv_amount_baked = dr::opaque<Float>((float) (1.0 / m_amount_baked));
         m_baked = m_hosts;
         m_baked[0] = m_amount_baked;
@@ -528,20 +533,23 @@ protected:
     /// update puts the values back (fluo_detail::UpdateRecord), the tables with them.
     void parameters_changed(const std::vector<std::string> &keys) override {
         m_record.update(this, m_hosts, [&] {
+            m_ad = {}; // (jit_prepare attaches them again at the next render)
+            m_range_at = {};
             std::vector<double> v(m_hosts.size());
             for (size_t i = 0; i < v.size(); ++i)
                 v[i] = fluo_detail::updated_param(m_plugin, m_params[i].name, m_values[i], m_hosts[i]);
             if (v != m_hosts)
                 (void) m_build(v);
             m_hosts = v;
+            // (at the amount baked before: a refused update's restore bakes the same tables)
             if (!std::equal(v.begin() + 1, v.end(), m_baked.begin() + 1))
-                bake();
+                bake(m_amount_baked);
             m_common.refresh(m_plugin);
             refresh_majorant();
+            for (Float &x : m_values) // kernel inputs, not literals: the next value reuses the kernel
+                if (!dr::grad_enabled(x))
+                    dr::make_opaque(x);
         });
-        for (Float &v : m_values) // kernel inputs, not literals: the next value reuses the kernel
-            if (!dr::grad_enabled(v))
-                dr::make_opaque(v);
         Base::parameters_changed(keys);
     }
 
