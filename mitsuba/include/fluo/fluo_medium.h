@@ -365,7 +365,8 @@ public:
             for (size_t j = 0; j < NW; ++j) {
                 Float top = dr::minimum(mei.wavelengths[j], (float) b);
                 Mask live = active && top > (float) a;
-                Float cb = dr::detach(cumulative(top, m_grid.cell(top, live), live)); // (sampling)
+                Float cb_ad = cumulative(top, m_grid.cell(top, live), live);
+                Float cb = dr::detach(cb_ad); // (sampling)
                 Float target = dr::fmadd(u[j], cb - ca, ca);
                 // the cell holding `target`: the last k with cum[k] <= target (over a power of
                 // two of nodes: an update that bakes another node count keeps the kernel)
@@ -381,7 +382,7 @@ public:
                 if (m_ad.on) // μa(λi)/(C(top) − C(a)) with the parameters' derivatives
                     rel[j] = fluo_detail::relative(
                         mu_a_in(m_grid.cell(li[j], live), live) /
-                        dr::select(ok[j], cumulative(top, m_grid.cell(top, live), live) - cum_at(a), 1.f));
+                        dr::select(ok[j], cb_ad - cum_at(a), 1.f));
             }
         } else {
             (void) u, (void) lo, (void) hi, (void) active;
@@ -396,7 +397,6 @@ public:
 
     void jit_prepare(double lo, double hi) const override {
         m_ad = {};
-        prepare_range(lo, hi);
         if constexpr (dr::is_diff_v<Float>) {
             for (size_t p = 1; p < m_params.size(); ++p) {
                 if (!dr::grad_enabled(m_values[p]))
@@ -420,13 +420,12 @@ public:
                 for (size_t j = 0; j < 3; ++j)
                     m_ad.rgb[j] = dr::fmadd(Float((float) t.rgb[j]), delta, m_ad.rgb[j]);
             }
-            if (m_ad.on) {
-                prepare_range(lo, hi);
-                // evaluated here, not where a traced loop first gathers from them
+        }
+        prepare_range(lo, hi); // (from the tables with their derivatives, where attached)
+        if constexpr (dr::is_diff_v<Float>)
+            if (m_ad.on) // evaluated here, not where a traced loop first gathers from them
                 dr::eval(m_ad.mu_a, m_ad.cum, m_ad.emission, m_ad.rgb[0], m_ad.rgb[1], m_ad.rgb[2], m_range_at.ca,
                          m_range_at.cb);
-            }
-        }
     }
 
     std::vector<typename fluo_detail::BispectralMedium<Float, Spectrum>::ReducedTangent>
@@ -630,8 +629,12 @@ private:
             return m_range_at.ca;
         if (x == m_range_at.b)
             return m_range_at.cb;
+        return cumulative_at(x, false);
+    }
+    /// C(x) from the host table (`opaque`: as a kernel input), or from the attached tables.
+    Float cumulative_at(double x, bool opaque) const {
         if (!m_ad.on)
-            return Float((float) host_cumulative(x));
+            return opaque ? dr::opaque<Float>((float) host_cumulative(x)) : Float((float) host_cumulative(x));
         Float xf = (float) x;
         return cumulative(xf, m_grid.cell(xf, true), true);
     }
@@ -641,13 +644,7 @@ private:
         m_range_at = { std::nan(""), std::nan(""), Float(0.f), Float(0.f) };
         if (!(a < b))
             return;
-        auto at = [&](double x) {
-            if (!m_ad.on)
-                return dr::opaque<Float>((float) host_cumulative(x));
-            Float xf = (float) x;
-            return cumulative(xf, m_grid.cell(xf, true), true);
-        };
-        m_range_at = { a, b, at(a), at(b) };
+        m_range_at = { a, b, cumulative_at(a, true), cumulative_at(b, true) };
     }
 
     /// The density times the amount over the baked one.
