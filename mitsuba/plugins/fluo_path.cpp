@@ -109,11 +109,16 @@ that do not vary over the surface and carry no gradient are read from one table 
 (by the BSDF's registry id) instead: in RGB their operators, formed once per render, and a
 direction-dependent lobe's node weights and matrices (the lobe itself from one member of
 the class); in spectral variants each class's data joined (``fluo_jung``'s dye numbers,
-``fluo_qd``'s coating tables), one choice and one reradiation lobe per class. Dr.Jit traces
-a dispatch once per material, which made 200 distinct dyes compile 2.3× as long as 200
-``diffuse`` (1.2–1.6× so), and 200 coatings load and first-render 4.3× as long as 200
-``roughconductor`` (spectral 2.6×, in 2.0× the memory: every coating's tables are one block
-of one array, which the joined class reads in place; RGB 2.3×).
+``fluo_qd``'s coating tables), one choice and one reradiation lobe per class; and in both,
+a coating's own BSDF (its microfacet lobe over its coating and substrate, which Mitsuba's
+call over the scene's BSDFs would trace once per coating) is evaluated per class from the
+joined tables, one class per distribution and substrate, the call then tracing nothing for
+those coatings (``fluo_volpath`` alike). Dr.Jit traces a dispatch once per material, which
+made 200 distinct dyes compile 2.3× as long as 200 ``diffuse`` (1.3–1.5× so), and 200
+coatings load and first-render 4.3× as long as 200 ``roughconductor`` (with their choice and
+lobe joined: spectral 2.5×, RGB 2.2×; with their own BSDF joined too: spectral 1.4× in 1.5×
+the memory, every coating's tables being one block of one array which the joined class reads
+in place; RGB 1.7×).
 **Gradients** (``llvm_ad_*``, ``cuda_ad_*``): the materials' probabilities are detached,
 their values differentiable, so ``mi.render`` with ``params`` gives gradients of dye
 parameters; a sampled direction that moves with a parameter (a roughness) is detached and
@@ -630,7 +635,9 @@ private:
                     Float sample_1 = ls.sampler->next_1d();
                     Point2f sample_2 = ls.sampler->next_2d();
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
-                        detached([&] { return bsdf->eval_pdf_sample(bsdf_ctx, si, wo, sample_1, sample_2); });
+                        detached([&] {
+                            return shift.eval_pdf_sample(m_bsdfs, bsdf, bsdf_ctx, si, wo, sample_1, sample_2, true);
+                        });
                     if (!adjoint) // (the replay's samples carry no gradients)
                         fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next);
                     Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));

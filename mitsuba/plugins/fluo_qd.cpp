@@ -571,7 +571,22 @@ public:
                !dr::grad_enabled(m_q) && !dr::grad_enabled(m_radius) && !dr::grad_enabled(m_density) &&
                !dr::grad_enabled(m_alpha) && !dr::grad_enabled(m_alpha_v);
     }
-    std::string jit_join_tag() const override { return m_type == MicrofacetType::GGX ? "ggx" : "beckmann"; }
+    /// The distribution, and what the joined elastic lobe (jit_eval_pdf_sample_joined) reads
+    /// of the first member for all: whether it is coated and its substrate (eta and k as Rust
+    /// got them; one varying over the surface joins none).
+    std::string jit_join_tag() const override {
+        std::ostringstream tag;
+        tag << (m_type == MicrofacetType::GGX ? "ggx" : "beckmann") << (m_coated ? "/coated/" : "/bare/");
+        if (!m_setup.uniform_substrate())
+            return tag.str() + std::to_string(m_build);
+        for (const fluo_detail::QdSamples *q : { &m_samples[0], &m_samples[1] })
+            for (const std::vector<double> *v : { &q->wavelengths, &q->values }) {
+                tag << v->size() << ':';
+                tag.write(reinterpret_cast<const char *>(v->data()), (std::streamsize) (v->size() * sizeof(double)));
+            }
+        return tag.str();
+    }
+    bool jit_elastic_joined() const override { return dr::is_jit_v<Float>; }
     Joined jit_join(const std::vector<const Bispectral *> &members) const override {
         // the tables are joined again only where a member was rebuilt (or the members changed)
         std::vector<std::pair<const void *, uint64_t>> key;
@@ -581,23 +596,33 @@ public:
                 return nullptr; // (one table layout per class)
             key.emplace_back(m, m->m_build);
         }
-        // (RGB: the lobe's roughness alone, jit_lobe_joined; no tables)
-        if (is_spectral_v<Spectrum> && (!m_joined || m_joined->key != key)) {
+        if (!m_joined || m_joined->key != key) {
             auto j = std::make_shared<JoinedTables>();
-            std::vector<float> emission;
-            std::vector<uint32_t> t_off, t_len; // (the members' blocks, read where they are)
-            for (const Bispectral *b : members) {
-                const auto *m = static_cast<const FluoQd *>(b);
-                t_off.push_back(m->m_tables.at());
-                t_len.push_back(m->m_len);
-                for (const Float &v : m->m_em)
-                    emission.push_back(dr::slice(dr::detach(v)));
-                j->grids.add(m->m_grid.host, true);
+            if constexpr (is_spectral_v<Spectrum>) {
+                std::vector<float> emission;
+                std::vector<uint32_t> t_off, t_len; // (the members' blocks, read where they are)
+                for (const Bispectral *b : members) {
+                    const auto *m = static_cast<const FluoQd *>(b);
+                    t_off.push_back(m->m_tables.at());
+                    t_len.push_back(m->m_len);
+                    for (const Float &v : m->m_em)
+                        emission.push_back(dr::slice(dr::detach(v)));
+                    j->grids.add(m->m_grid.host, true);
+                }
+                j->grids.upload();
+                j->emission = dr::load<FloatStorage>(emission.data(), emission.size());
+                j->t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
+                j->t_len = dr::load<UInt32Storage>(t_len.data(), t_len.size());
+            } else { // the members' channel rows, [member][rows][3] (the elastic lobe's)
+                std::vector<float> r_spe, pass;
+                for (const Bispectral *b : members) {
+                    const auto *m = static_cast<const FluoQd *>(b);
+                    append_host(r_spe, m->m_rgb_r_spe);
+                    append_host(pass, m->m_rgb_pass);
+                }
+                j->rgb_r_spe = dr::load<FloatStorage>(r_spe.data(), r_spe.size());
+                j->rgb_pass = dr::load<FloatStorage>(pass.data(), pass.size());
             }
-            j->grids.upload();
-            j->emission = dr::load<FloatStorage>(emission.data(), emission.size());
-            j->t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
-            j->t_len = dr::load<UInt32Storage>(t_len.data(), t_len.size());
             j->key = std::move(key);
             m_joined = std::move(j);
         }
@@ -620,14 +645,19 @@ public:
             (void) joined, (void) member, (void) u1, (void) u2, (void) range_lo, (void) range_hi, (void) active;
             return this->elastic_only(si.wavelengths);
         } else {
-            const auto &j = *static_cast<const JoinedTables *>(joined.get());
-            Hit h;
-            h.model[0] = joined_model(j, member, active);
-            h.weight[0] = Float(1.f);
-            h.q = dr::gather<Float>(j.q, member, active);
-            h.alpha = dr::gather<Float>(j.alpha, member, active);
-            return choose_at(h, si, u1, u2, range_lo, range_hi, active);
+            return choose_at(joined_hit(*static_cast<const JoinedTables *>(joined.get()), member, si, active, false),
+                             si, u1, u2, range_lo, range_hi, active);
         }
+    }
+    typename Bispectral::EvalPdfSample jit_eval_pdf_sample_joined(const Joined &joined, const UInt32 &member,
+                                                                  const BSDFContext &ctx,
+                                                                  const SurfaceInteraction3f &si, const Vector3f &wo,
+                                                                  const Float & /* sample1 */,
+                                                                  const Point2f &sample2, Mask active) const override {
+        Hit h = joined_hit(*static_cast<const JoinedTables *>(joined.get()), member, si, active, true);
+        auto [value, pdf] = eval_pdf_with(ctx, si, wo, active, h);
+        auto [bs, weight] = sample_with(ctx, si, sample2, active, h);
+        return { value, pdf, bs, weight };
     }
     std::pair<Float, Float> jit_lobe_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,
                                             const Vector3f &wo, Mask active) const override {
@@ -685,6 +715,7 @@ private:
         fluo_detail::LaneGridSet<Float> grids;
         FloatStorage emission, q, alpha;
         UInt32Storage t_off, t_len; ///< each member's block in the table store and its table length
+        FloatStorage rgb_r_spe, rgb_pass; ///< RGB: each member's channel rows, [member][rows][3]
         std::vector<std::pair<const void *, uint64_t>> key; ///< the members and their builds
     };
 
@@ -907,6 +938,28 @@ private:
     /// alpha (clamped as roughconductor clamps it), else the uniform one.
     Float elastic_alpha(const Float &alpha) const {
         return m_tex.tex[Tex::Alpha] ? dr::maximum(alpha, 1e-4f) : m_alpha_v;
+    }
+
+    /// A hit on member `member` of a joined class (its model, Q and roughness; RGB: its rows).
+    Hit joined_hit(const JoinedTables &j, const UInt32 &member, const SurfaceInteraction3f &si, const Mask &active,
+                   bool with_cells) const {
+        Hit h;
+        if constexpr (is_spectral_v<Spectrum>)
+            h.model[0] = joined_model(j, member, active);
+        else
+            h.model[0] = { member, UInt32(0), UInt32(0), UInt32(0), GridAt{}, &j };
+        h.weight[0] = Float(1.f);
+        h.q = dr::gather<Float>(j.q, member, active);
+        h.alpha = dr::gather<Float>(j.alpha, member, active);
+        if constexpr (is_spectral_v<Spectrum>) {
+            h.has_cells = m_coated && with_cells;
+            if (h.has_cells)
+                for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
+                    h.cells[0][w] = cell(h.model[0], si.wavelengths[w], active);
+        } else {
+            (void) si, (void) with_cells;
+        }
+        return h;
     }
 
     Hit hit(const SurfaceInteraction3f &si, const Mask &active, bool with_cells) const {
@@ -1217,8 +1270,9 @@ private:
                     pass[w] = bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], on);
                 }
             } else {
-                r_spe = rgb_rows(m_rgb_r_spe, cos_m, h.model[i], on);
-                pass = rgb_rows(m_rgb_pass, cos_m, h.model[i], on);
+                const JoinedTables *j = h.model[i].joined;
+                r_spe = rgb_rows(j ? j->rgb_r_spe : m_rgb_r_spe, cos_m, h.model[i], on);
+                pass = rgb_rows(j ? j->rgb_pass : m_rgb_pass, cos_m, h.model[i], on);
                 if (const Tangents *tg = tangents())
                     for (size_t p = 0; p < 2; ++p)
                         if (wants(p)) {
@@ -1233,6 +1287,14 @@ private:
     }
 
     static std::vector<float> floats(const rust::Vec<double> &v) { return std::vector<float>(v.begin(), v.end()); }
+    /// A table's values appended to `out` (host).
+    static void append_host(std::vector<float> &out, const FloatStorage &v) {
+        FloatStorage d = dr::detach(v);
+        dr::eval(d);
+        size_t at = out.size();
+        out.resize(at + dr::width(d));
+        dr::store(out.data() + at, d);
+    }
 
     /// A model's reduced reradiation at the microfacet cosines as MaxTerms terms per unit Q:
     /// B_t into `basis` ([MaxTerms][kk]) and their weights at the nodes into `nodes`

@@ -898,7 +898,7 @@ private:
                     Float sample_1 = sampler->next_1d(active_surface);
                     Point2f sample_2 = sampler->next_2d(active_surface);
                     auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
-                        bsdf->eval_pdf_sample(ctx, si, wo, sample_1, sample_2, active_surface);
+                        shift.eval_pdf_sample(m_bsdfs, bsdf, ctx, si, wo, sample_1, sample_2, active_surface);
                     fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface);
                     Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
                     if constexpr (K == 0) {

@@ -296,6 +296,20 @@ public:
                                      Mask /* active */) const {
         return elastic_only(si.wavelengths);
     }
+    /// Joined members' own BSDF (their elastic lobe) read per lane from the joined data: where
+    /// a class says so (jit_elastic_joined), fluo_path and fluo_volpath evaluate its members'
+    /// eval_pdf_sample here and the call over the scene's BSDFs traces nothing for them (a
+    /// coating's callable was most of 200 coatings' first render). Its tag then holds what the
+    /// lobe reads of the first member alone (fluo_qd: distribution and substrate).
+    using EvalPdfSample = std::tuple<Spectrum, Float, BSDFSample3f, Spectrum>;
+    virtual bool jit_elastic_joined() const { return false; }
+    virtual EvalPdfSample jit_eval_pdf_sample_joined(const Joined & /* joined */, const UInt32 & /* member */,
+                                                     const BSDFContext & /* ctx */,
+                                                     const SurfaceInteraction3f & /* si */,
+                                                     const Vector3f & /* wo */, const Float & /* sample1 */,
+                                                     const Point2f & /* sample2 */, Mask /* active */) const {
+        return { dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
+    }
     /// RGB reduced transport of joined members with a direction-dependent lobe: jit_lobe of
     /// member `member` (its roughness; the terms' matrices and node weights the transport
     /// gathers itself, by the same member index).
@@ -514,11 +528,12 @@ std::vector<JoinedGroup<Bispectral>> join_classes(const std::vector<const Bispec
     return groups;
 }
 
-/// The fluorescent BSDFs of a render; in the spectral JIT variants with many of them (more
-/// than ManyMaterials), the joinable ones (Bispectral::jit_join) grouped by class:
-/// SurfaceShift reads a lane's member index by the BSDF's registry id and calls one material
-/// per class, where a dispatch would trace a callable per material (200 distinct dyes or
-/// coatings: most of their first render).
+/// The fluorescent BSDFs of a render; in the JIT variants with many of them (more than
+/// ManyMaterials), the joinable ones (Bispectral::jit_join) grouped by class (RGB: those
+/// classes whose own BSDF is evaluated joined, the rest of RGB's per-material data being the
+/// reduced transport's): SurfaceShift reads a lane's member index by the BSDF's registry id
+/// and calls one material per class, where a dispatch would trace a callable per material
+/// (200 distinct dyes or coatings: most of their first render).
 template <typename Float, typename Spectrum>
 class FluorescentSet : public InterfaceSet<BSDF<Float, Spectrum>, BispectralBSDF<Float, Spectrum>> {
 public:
@@ -529,13 +544,15 @@ public:
         typename Bispectral::Joined joined;
         DynamicBuffer<UInt32> slots; ///< registry id → 1 + member index (0: not in the group)
         uint32_t n_slots;
+        bool elastic; ///< the members' own BSDF too (Bispectral::jit_elastic_joined)
     };
 
     template <typename B> void assign(const std::vector<B *> &objects) {
         InterfaceSet<BSDF<Float, Spectrum>, Bispectral>::assign(objects);
         m_groups.clear();
         m_joined.clear();
-        if constexpr (dr::is_jit_v<Float> && is_spectral_v<Spectrum>) {
+        m_elastic.clear();
+        if constexpr (dr::is_jit_v<Float>) {
             if (objects.size() <= ManyMaterials)
                 return;
             std::vector<const Bispectral *> materials;
@@ -544,20 +561,26 @@ public:
             for (B *b : objects) {
                 const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
                 uint32_t id = base ? jit_registry_id(base) : 0u;
-                if (id == 0 || !b->jit_joinable())
+                if (id == 0 || !b->jit_joinable() || (!is_spectral_v<Spectrum> && !b->jit_elastic_joined()))
                     continue;
                 materials.push_back(b);
                 bases.push_back(base);
                 ids.push_back(id);
             }
             for (auto &g : join_classes(materials, ids, std::vector<std::string>(materials.size()))) {
-                m_groups.push_back(Group{ materials[g.members.front()], std::move(g.joined),
+                const Bispectral *first = materials[g.members.front()];
+                bool elastic = first->jit_elastic_joined();
+                m_groups.push_back(Group{ first, std::move(g.joined),
                                           dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
-                                          (uint32_t) g.slots.size() });
-                for (size_t i : g.members)
+                                          (uint32_t) g.slots.size(), elastic });
+                for (size_t i : g.members) {
                     m_joined.push_back(bases[i]);
+                    if (elastic)
+                        m_elastic.push_back(bases[i]);
+                }
             }
             std::sort(m_joined.begin(), m_joined.end());
+            std::sort(m_elastic.begin(), m_elastic.end());
         }
     }
     const std::vector<Group> &groups() const { return m_groups; }
@@ -565,12 +588,16 @@ public:
     bool joined(const BSDF<Float, Spectrum> *b) const {
         return std::binary_search(m_joined.begin(), m_joined.end(), b);
     }
+    /// Whether `b`'s own BSDF is evaluated through its group (any such member: `b` null).
+    bool elastic_joined(const BSDF<Float, Spectrum> *b = nullptr) const {
+        return b ? std::binary_search(m_elastic.begin(), m_elastic.end(), b) : !m_elastic.empty();
+    }
     /// Whether some material of the set is reached through a call.
     bool dispatched() const { return m_joined.size() < this->size(); }
 
 private:
     std::vector<Group> m_groups;
-    std::vector<const BSDF<Float, Spectrum> *> m_joined;
+    std::vector<const BSDF<Float, Spectrum> *> m_joined, m_elastic;
 };
 
 /// A fluorescent surface vertex of the spectral integrators (fluo_path,
@@ -584,8 +611,67 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
 
     UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
     WMask shifted = false;
-    UInt32 local = 0; ///< the model a varying material picked (jit_choose)
-    UInt32 group = 0; ///< 1 + the lane's group in FluorescentSet (0: none)
+    UInt32 local = 0;  ///< the model a varying material picked (jit_choose)
+    UInt32 group = 0;  ///< 1 + the lane's group in FluorescentSet (0: none)
+    UInt32 member = 0; ///< the lane's index in its group
+    bool located = false;
+
+    /// Each lane's group and member index, by its BSDF's registry id (JIT variants).
+    void locate(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf, const Mask &active) {
+        located = true;
+        if constexpr (dr::is_jit_v<Float>) {
+            if (set.groups().empty())
+                return;
+            UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
+            for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
+                const auto &g = set.groups()[gi];
+                Mask known = active && id < g.n_slots;
+                UInt32 slot = dr::gather<UInt32>(g.slots, id, known);
+                Mask in = known && slot > 0u;
+                group = dr::select(in, gi + 1u, group);
+                member = dr::select(in, slot - 1u, member);
+            }
+        } else {
+            (void) set, (void) bsdf, (void) active;
+        }
+    }
+
+    /// The BSDF's eval_pdf_sample at the vertex: the lanes of members evaluated joined
+    /// (FluorescentSet::elastic_joined) from their group, the others through the call, in
+    /// which those members trace nothing.
+    typename Bispectral::EvalPdfSample eval_pdf_sample(const FluorescentSet<Float, Spectrum> &set,
+                                                       const BSDFPtr &bsdf, const BSDFContext &ctx,
+                                                       const SurfaceInteraction3f &si, const Vector3f &wo,
+                                                       const Float &sample1, const Point2f &sample2,
+                                                       const Mask &active) {
+        if (!set.elastic_joined())
+            return bsdf->eval_pdf_sample(ctx, si, wo, sample1, sample2, active);
+        if (!located)
+            locate(set, bsdf, active);
+        using Result = typename Bispectral::EvalPdfSample;
+        Result out{ dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
+        Mask rest = active;
+        for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
+            const auto &g = set.groups()[gi];
+            if (!g.elastic)
+                continue;
+            Mask in = active && group == gi + 1u;
+            out = select_tuple(
+                in, g.first->jit_eval_pdf_sample_joined(g.joined, member, ctx, si, wo, sample1, sample2, in), out);
+            rest &= !in;
+        }
+        Result r = dispatch_any(
+            bsdf,
+            [&set, &ctx](const BSDF *b, const SurfaceInteraction3f &si_, const Vector3f &wo_, const Float &s1,
+                         const Point2f &s2, const Mask &on) -> Result {
+                if (set.elastic_joined(b))
+                    return { dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(),
+                             dr::zeros<Spectrum>() };
+                return b->eval_pdf_sample(ctx, si_, wo_, s1, s2, on);
+            },
+            si, wo, sample1, sample2, rest);
+        return select_tuple(rest, r, out);
+    }
 
     /// Choose per hero wavelength for the materials in `set`; si.wavelengths become the
     /// wavelengths to continue with (λi where shifted). [lo, hi]: the lights' range. One 2D
@@ -602,20 +688,12 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         rotate_hero(u2);
         typename Bispectral::Choice c = Bispectral::elastic_only(si.wavelengths);
         Mask rest = active;
-        if constexpr (dr::is_jit_v<Float>) {
-            if (!set.groups().empty()) {
-                UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
-                for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
-                    const auto &g = set.groups()[gi];
-                    Mask known = active && id < g.n_slots;
-                    UInt32 slot = dr::gather<UInt32>(g.slots, id, known);
-                    Mask in = known && slot > 0u;
-                    auto cg = g.first->jit_choose_joined(g.joined, slot - 1u, si, u1, u2, lo, hi, in);
-                    c = select_tuple(in, cg, c);
-                    group = dr::select(in, gi + 1u, group);
-                    rest &= !in;
-                }
-            }
+        locate(set, bsdf, active);
+        for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
+            const auto &g = set.groups()[gi];
+            Mask in = active && group == gi + 1u;
+            c = select_tuple(in, g.first->jit_choose_joined(g.joined, member, si, u1, u2, lo, hi, in), c);
+            rest &= !in;
         }
         if (set.dispatched())
             c = select_tuple(rest, dispatch_any(
