@@ -711,6 +711,10 @@ private:
                 cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
             UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
+            if constexpr (!dr::is_jit_v<Float>) // (scalar variants draw λi only where a shift is taken)
+                if (dr::none(choice.shifted))
+                    return { lambda_o, choice.weight(UnpolarizedSpectrum(0.f), u1), choice.shifted,
+                             UnpolarizedSpectrum(0.f), UInt32(0) };
             WMask &shifted = choice.shifted;
             // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
             // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.

@@ -572,13 +572,15 @@ public:
                !dr::grad_enabled(m_alpha) && !dr::grad_enabled(m_alpha_v);
     }
     /// The distribution, and what the joined elastic lobe (jit_eval_pdf_sample_joined) reads
-    /// of the first member for all: whether it is coated and its substrate (eta and k as Rust
-    /// got them; one varying over the surface joins none).
+    /// of the first member for all: whether it is coated and its substrate (eta and k: their
+    /// textures' descriptions and their values as Rust got them, at every nm of the
+    /// material's range; one varying over the surface joins none).
     std::string jit_join_tag() const override {
         std::ostringstream tag;
         tag << (m_type == MicrofacetType::GGX ? "ggx" : "beckmann") << (m_coated ? "/coated/" : "/bare/");
         if (!m_setup.uniform_substrate())
             return tag.str() + std::to_string(m_build);
+        tag << m_setup.eta->to_string() << '/' << m_setup.k->to_string() << '/';
         for (const fluo_detail::QdSamples *q : { &m_samples[0], &m_samples[1] })
             for (const std::vector<double> *v : { &q->wavelengths, &q->values }) {
                 tag << v->size() << ':';

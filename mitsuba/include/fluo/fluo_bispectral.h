@@ -616,8 +616,10 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
     UInt32 member = 0; ///< the lane's index in its group
     bool located = false;
 
-    /// Each lane's group and member index, by its BSDF's registry id (JIT variants).
-    void locate(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf, const Mask &active) {
+    /// Each lane's group and member index, by its BSDF's registry id (JIT variants; every
+    /// lane's, whatever the mask of the call that first asks: eval_pdf_sample may be asked
+    /// for lanes choose() was not).
+    void locate(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf) {
         located = true;
         if constexpr (dr::is_jit_v<Float>) {
             if (set.groups().empty())
@@ -625,14 +627,14 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
             UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
             for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
                 const auto &g = set.groups()[gi];
-                Mask known = active && id < g.n_slots;
+                Mask known = id < g.n_slots;
                 UInt32 slot = dr::gather<UInt32>(g.slots, id, known);
                 Mask in = known && slot > 0u;
                 group = dr::select(in, gi + 1u, group);
                 member = dr::select(in, slot - 1u, member);
             }
         } else {
-            (void) set, (void) bsdf, (void) active;
+            (void) set, (void) bsdf;
         }
     }
 
@@ -647,7 +649,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         if (!set.elastic_joined())
             return bsdf->eval_pdf_sample(ctx, si, wo, sample1, sample2, active);
         if (!located)
-            locate(set, bsdf, active);
+            locate(set, bsdf);
         using Result = typename Bispectral::EvalPdfSample;
         Result out{ dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
         Mask rest = active;
@@ -688,7 +690,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         rotate_hero(u2);
         typename Bispectral::Choice c = Bispectral::elastic_only(si.wavelengths);
         Mask rest = active;
-        locate(set, bsdf, active);
+        locate(set, bsdf);
         for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
             const auto &g = set.groups()[gi];
             Mask in = active && group == gi + 1u;

@@ -69,6 +69,13 @@ inline std::string get_string(const Properties &props, const char *name, const c
 /// refused update leaves the object and `mi.traverse` exactly as they were, and never blocks
 /// a later unrelated one (a refused child value, such as fluo_qd's `eta`, is undone too).
 /// After an accepted update the record is taken again.
+/// Counts the updates of fluo's plugins (UpdateRecord::update, accepted or refused: either
+/// rebuilds): a render prepared before one (PreparedScene) prepares again.
+inline std::atomic<uint64_t> &update_generation() {
+    static std::atomic<uint64_t> generation{ 0 };
+    return generation;
+}
+
 template <typename Float> class UpdateRecord {
     using T = CoreAliases<Float>;
     using S = CoreAliases<dr::scalar_t<Float>>;
@@ -134,6 +141,7 @@ public:
     /// with the traversed values.
     template <typename State, typename Commit> void update(Object *self, State &state, Commit &&commit) {
         const State previous = state;
+        update_generation().fetch_add(1, std::memory_order_acq_rel);
         try {
             commit();
         } catch (...) {

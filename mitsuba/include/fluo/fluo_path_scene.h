@@ -81,23 +81,36 @@ template <typename Scene> Collector shape_objects(const Scene *scene) {
 /// fluo_path and fluo_volpath prepare a render in render(); nested in another integrator
 /// (`stokes`, `aov`, `moment`, whose render() calls only their sample()) the first sample
 /// of a scene prepares it instead: once, under a lock (the scalar variants sample from
-/// many threads). A scene updated between such nested renders keeps its first
-/// preparation; render with fluo_path itself (or call it again on a new scene) for that.
+/// many threads), and again after an update of one of fluo's plugins (update_generation:
+/// the joined tables, ranges and reduced operators follow it; before, the scene kept its
+/// first preparation, and a joined coating updated between two nested renders was read
+/// from its freed tables). An update of Mitsuba's own plugins needs no new preparation
+/// (they are read live), except an emitter's spectral range: render with fluo_path itself
+/// for that.
 class PreparedScene {
 public:
     template <typename Prepare> void ensure(const void *scene, Prepare &&prepare) {
-        if (m_scene.load(std::memory_order_acquire) == scene)
+        uint64_t generation = update_generation().load(std::memory_order_acquire);
+        if (m_scene.load(std::memory_order_acquire) == scene &&
+            m_generation.load(std::memory_order_acquire) == generation)
             return;
         std::lock_guard<std::mutex> guard(m_mutex);
-        if (m_scene.load(std::memory_order_relaxed) != scene) {
+        if (m_scene.load(std::memory_order_relaxed) != scene ||
+            m_generation.load(std::memory_order_relaxed) != generation) {
             prepare();
+            m_generation.store(generation, std::memory_order_release);
             m_scene.store(scene, std::memory_order_release);
         }
     }
-    void mark(const void *scene) { m_scene.store(scene, std::memory_order_release); }
+    /// A render prepared `scene` itself (render()), as of the updates so far.
+    void mark(const void *scene) {
+        m_generation.store(update_generation().load(std::memory_order_acquire), std::memory_order_release);
+        m_scene.store(scene, std::memory_order_release);
+    }
 
 private:
     std::atomic<const void *> m_scene{ nullptr };
+    std::atomic<uint64_t> m_generation{ 0 };
     std::mutex m_mutex;
 };
 
