@@ -617,11 +617,12 @@ public:
                 j->t_len = dr::load<UInt32Storage>(t_len.data(), t_len.size());
             } else { // the members' channel rows, [member][rows][3] (the elastic lobe's)
                 std::vector<float> r_spe, pass;
-                for (const Bispectral *b : members) {
-                    const auto *m = static_cast<const FluoQd *>(b);
-                    append_host(r_spe, m->m_rgb_r_spe);
-                    append_host(pass, m->m_rgb_pass);
-                }
+                for (const Bispectral *b : members)
+                    for (auto [out, rows] : { std::pair{ &r_spe, &static_cast<const FluoQd *>(b)->m_rgb_r_spe },
+                                              std::pair{ &pass, &static_cast<const FluoQd *>(b)->m_rgb_pass } }) {
+                        std::vector<float> v = fluo_detail::host_lanes(*rows, dr::width(*rows));
+                        out->insert(out->end(), v.begin(), v.end());
+                    }
                 j->rgb_r_spe = dr::load<FloatStorage>(r_spe.data(), r_spe.size());
                 j->rgb_pass = dr::load<FloatStorage>(pass.data(), pass.size());
             }
@@ -1289,14 +1290,6 @@ private:
     }
 
     static std::vector<float> floats(const rust::Vec<double> &v) { return std::vector<float>(v.begin(), v.end()); }
-    /// A table's values appended to `out` (host).
-    static void append_host(std::vector<float> &out, const FloatStorage &v) {
-        FloatStorage d = dr::detach(v);
-        dr::eval(d);
-        size_t at = out.size();
-        out.resize(at + dr::width(d));
-        dr::store(out.data() + at, d);
-    }
 
     /// A model's reduced reradiation at the microfacet cosines as MaxTerms terms per unit Q:
     /// B_t into `basis` ([MaxTerms][kk]) and their weights at the nodes into `nodes`

@@ -302,13 +302,16 @@ public:
     /// coating's callable was most of 200 coatings' first render). Its tag then holds what the
     /// lobe reads of the first member alone (fluo_qd: distribution and substrate).
     using EvalPdfSample = std::tuple<Spectrum, Float, BSDFSample3f, Spectrum>;
+    static EvalPdfSample no_eval_pdf_sample() {
+        return { dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
+    }
     virtual bool jit_elastic_joined() const { return false; }
     virtual EvalPdfSample jit_eval_pdf_sample_joined(const Joined & /* joined */, const UInt32 & /* member */,
                                                      const BSDFContext & /* ctx */,
                                                      const SurfaceInteraction3f & /* si */,
                                                      const Vector3f & /* wo */, const Float & /* sample1 */,
                                                      const Point2f & /* sample2 */, Mask /* active */) const {
-        return { dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
+        return no_eval_pdf_sample();
     }
     /// RGB reduced transport of joined members with a direction-dependent lobe: jit_lobe of
     /// member `member` (its roughness; the terms' matrices and node weights the transport
@@ -651,7 +654,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         if (!located)
             locate(set, bsdf);
         using Result = typename Bispectral::EvalPdfSample;
-        Result out{ dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(), dr::zeros<Spectrum>() };
+        Result out = Bispectral::no_eval_pdf_sample();
         Mask rest = active;
         for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
             const auto &g = set.groups()[gi];
@@ -667,8 +670,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
             [&set, &ctx](const BSDF *b, const SurfaceInteraction3f &si_, const Vector3f &wo_, const Float &s1,
                          const Point2f &s2, const Mask &on) -> Result {
                 if (set.elastic_joined(b))
-                    return { dr::zeros<Spectrum>(), dr::zeros<Float>(), dr::zeros<BSDFSample3f>(),
-                             dr::zeros<Spectrum>() };
+                    return Bispectral::no_eval_pdf_sample();
                 return b->eval_pdf_sample(ctx, si_, wo_, s1, s2, on);
             },
             si, wo, sample1, sample2, rest);

@@ -60,6 +60,13 @@ inline std::string get_string(const Properties &props, const char *name, const c
     return props.has_property(name) ? std::string(props.get<std::string_view>(name)) : def;
 }
 
+/// Counts the updates of fluo's plugins (UpdateRecord::update, accepted or refused: either
+/// rebuilds): a render prepared before one (PreparedScene) prepares again.
+inline std::atomic<uint64_t> &update_generation() {
+    static std::atomic<uint64_t> generation{ 0 };
+    return generation;
+}
+
 /// Every value mi.traverse shows of an object, its children's included (recursively), as
 /// last accepted: a plugin's update is a transaction over them. `arm()` (from the plugin's
 /// traverse(), before anyone can change a value) records them once; `update(self, commit)`
@@ -69,13 +76,6 @@ inline std::string get_string(const Properties &props, const char *name, const c
 /// refused update leaves the object and `mi.traverse` exactly as they were, and never blocks
 /// a later unrelated one (a refused child value, such as fluo_qd's `eta`, is undone too).
 /// After an accepted update the record is taken again.
-/// Counts the updates of fluo's plugins (UpdateRecord::update, accepted or refused: either
-/// rebuilds): a render prepared before one (PreparedScene) prepares again.
-inline std::atomic<uint64_t> &update_generation() {
-    static std::atomic<uint64_t> generation{ 0 };
-    return generation;
-}
-
 template <typename Float> class UpdateRecord {
     using T = CoreAliases<Float>;
     using S = CoreAliases<dr::scalar_t<Float>>;

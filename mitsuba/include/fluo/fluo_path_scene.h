@@ -79,14 +79,12 @@ template <typename Scene> Collector shape_objects(const Scene *scene) {
 }
 
 /// fluo_path and fluo_volpath prepare a render in render(); nested in another integrator
-/// (`stokes`, `aov`, `moment`, whose render() calls only their sample()) the first sample
-/// of a scene prepares it instead: once, under a lock (the scalar variants sample from
-/// many threads), and again after an update of one of fluo's plugins (update_generation:
-/// the joined tables, ranges and reduced operators follow it; before, the scene kept its
-/// first preparation, and a joined coating updated between two nested renders was read
-/// from its freed tables). An update of Mitsuba's own plugins needs no new preparation
-/// (they are read live), except an emitter's spectral range: render with fluo_path itself
-/// for that.
+/// whose render() calls only their sample() (`stokes`, `moment`; `aov` calls render()) the
+/// first sample of a scene prepares it instead, under a lock (the scalar variants sample
+/// from many threads), and again after any update of one of fluo's plugins
+/// (update_generation), so that the joined tables, ranges and reduced operators follow it.
+/// Mitsuba's own plugins are read live, except an emitter's spectral range: after updating
+/// that, render with fluo_path itself.
 class PreparedScene {
 public:
     template <typename Prepare> void ensure(const void *scene, Prepare &&prepare) {

@@ -133,6 +133,8 @@ public:
                         e.mf[t][i] = (float) e.m[t][i];
                 m_entries.push_back(std::move(e));
             }
+            // (gradients on baked parameters: their values change every optimisation step, and
+            // literals would compile a kernel per step)
             m_opaque = m_entries.size() > LiteralEntries ||
                        std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return e.n_d > 0; });
             gather_operators();
@@ -801,9 +803,8 @@ private:
     bool m_opaque = false; ///< see LiteralEntries
     std::array<std::vector<bool>, Bispectral::MaxTerms> m_any; ///< per term: entries non-zero in some material
 
+    /// The entries' kernel inputs (m_opaque), for the materials gather_operators left to a call.
     void opaque_operators() {
-        // (gradients on baked parameters: their values change every optimisation step, and
-        // literals would compile a kernel per step)
         for (Entry &e : m_entries) {
             e.dv.resize(e.n_nodes > 0 ? 0 : e.n_d);
             for (size_t t = 0; t < e.dv.size(); ++t) {
