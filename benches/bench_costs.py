@@ -37,6 +37,7 @@ llvm speed-up, same fluorescent box (both)        scalar ``fluo_path`` / llvm ``
 per vertex, closed box (4 models × 4 variants)    fluorescent walls / native walls             1.25
 llvm: 200 distinct materials (jung, qd; both)     first render, peak memory / native ones      2.0
 llvm: one backward pass, peak memory (spectral)   ``fluo_prb`` / AD through ``fluo_path``      0.5
+llvm: one backward pass, peak memory (RGB)        ``fluo_prb`` / AD through ``fluo_path``      0.5
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -558,7 +559,7 @@ def backward_row(a, variant: str) -> dict:
 #: Rows measured in a fresh process (llvm), by name: what the worker runs.
 WORKER_ROWS = {
     **{f"backward_{v}_{side}": (lambda a, v=v, side=side: backward_pass(v, side))
-       for v in ("llvm_ad_spectral",) for side in ("fluo_prb", "fluo_path", "prb")},
+       for v in ("llvm_ad_spectral", "llvm_ad_rgb") for side in ("fluo_prb", "fluo_path", "prb")},
     "llvm_plain": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=diffuse, light=None),
                                             box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds),
     "llvm_plain_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=diffuse, light=None),
@@ -752,6 +753,9 @@ ROWS = {
     "llvm_backward_memory": ("llvm: backward pass peak memory, fluo_prb / AD through fluo_path (fluo_jung box, "
                              "256², 64 spp, max_depth 8), llvm_ad_spectral", 0.5,
                              lambda a: backward_row(a, "llvm_ad_spectral")),
+    "llvm_backward_memory_rgb": ("llvm: backward pass peak memory, fluo_prb / AD through fluo_path (fluo_jung box, "
+                                 "256², 64 spp, max_depth 8), llvm_ad_rgb (reduced transport)", 0.5,
+                                 lambda a: backward_row(a, "llvm_ad_rgb")),
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,

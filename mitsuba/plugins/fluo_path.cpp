@@ -231,11 +231,17 @@ memory independent of depth (one backward pass of the fluorescent Cornell box at
 differentiates the BSDF's and the emitter's values at the sampled directions, as ``prb``
 does); the surface interactions are detached, so shapes get no gradient (geometry needs
 reparameterisation, which neither ``fluo_path`` nor this replay does). A render in several
-passes (``samples_per_pass``, or more than 2^32 samples) is refused. Spectral AD variants (``llvm_ad_spectral``,
-``cuda_ad_spectral``) and RGB scenes without fluorescent materials replay; in an RGB
-variant with fluorescent materials the reduced transport carries a 3×K matrix throughput
-whose per-vertex factor path replay cannot divide out, and ``fluo_prb`` differentiates the
-recorded loop there as ``fluo_path`` does (one warning). Polarized variants refuse it.
+passes (``samples_per_pass``, or more than 2^32 samples) is refused. Every AD variant
+replays (``llvm_ad_spectral``, ``llvm_ad_rgb``, their cuda twins). In an RGB variant with
+fluorescent materials the reduced transport carries a 3×K matrix throughput R, and the
+radiance still to come after a vertex is R·r for K basis coefficients r that the
+primal's 3 RGB values do not determine (nor can a vertex's K×K factor be divided out of
+them stably); there each vertex continues its path to the end with the same random
+numbers, without gradients, carrying the identity's rows in place of R (⌈K/3⌉
+continuations of 3 rows) to get r. Memory stays independent of depth; time grows with
+its square (the RGB row ``llvm_backward_memory_rgb``). The continuations' roulette
+decides on their own throughput (unbiased; with roulette off the replay's derivatives
+equal the recorded loop's to 1e-6). Polarized variants refuse it.
 
 .. tabs::
     .. code-tab:: xml
@@ -288,14 +294,7 @@ public:
             if (m_replay) {
                 prepare(scene);
                 m_prepared.mark(scene);
-                if (m_reduced.size() == 0)
-                    return replay_backward(scene, grad_in, sensor, seed, spp);
-                if (!m_matrix_warned.exchange(true))
-                    Log(Warn, "fluo_prb: the reduced RGB transport of fluorescent materials carries a 3xK "
-                              "matrix throughput, which path replay cannot invert per vertex; this scene's "
-                              "gradients differentiate the recorded loop instead (exact, but their memory "
-                              "grows with path depth, as fluo_path's). Render in a spectral variant for "
-                              "replay. (Printed once per integrator.)");
+                return replay_backward(scene, grad_in, sensor, seed, spp);
             }
         }
         Base::render_backward(scene, params, grad_in, sensor, seed, spp);
@@ -316,25 +315,13 @@ public:
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
         if (m_pass != Pass::Render) { // replay_backward: the film receives nothing of these passes
-            if (m_pass == Pass::Adjoint) {
-                trace<0>(scene, sampler, ray, active, true);
-            } else {
-                std::tie(m_primal, m_valid) = trace<0>(scene, sampler, ray, active);
-            }
+            if (m_pass == Pass::Adjoint)
+                trace_bands(scene, sampler, ray, active, true, true);
+            else // (unclipped: the replay differentiates where a colour was not clipped)
+                std::tie(m_primal, m_valid) = trace_bands(scene, sampler, ray, active, false, false);
             return { 0.f, false };
         }
-        if constexpr (is_rgb_v<Spectrum>) {
-            if (m_reduced.size() > 0) {
-                if (m_reduced.bands() == 3)
-                    return trace<3>(scene, sampler, ray, active);
-                if (m_reduced.bands() == 4)
-                    return trace<4>(scene, sampler, ray, active);
-                if (m_reduced.bands() == 7)
-                    return trace<7>(scene, sampler, ray, active);
-                return trace<Reduced::KMax>(scene, sampler, ray, active); // auto with two light bands
-            }
-        }
-        return trace<0>(scene, sampler, ray, active);
+        return trace_bands(scene, sampler, ray, active, false, true);
     }
 
     std::string to_string() const override {
@@ -426,6 +413,8 @@ private:
         m_pass = Pass::Primal;
         Base::render(scene, sensor, seed, spp, false, false);
         m_adjoint = dr::select(m_valid, m_adjoint, 0.f);
+        if (m_reduced.size() > 0) // the reduced transport's clipped colours have no derivative
+            m_adjoint = dr::select(m_primal >= 0.f, m_adjoint, 0.f);
         m_pass = Pass::Adjoint;
         Base::render(scene, sensor, seed, spp, false, false);
         dr::eval();
@@ -537,12 +526,42 @@ private:
                      active, sampler)
     };
 
+    /// trace() with the carried throughput of this render: the reduced transport's K bands
+    /// in RGB variants with fluorescent materials, else Mitsuba's throughput.
+    std::pair<Spectrum, Bool> trace_bands(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                          Bool active, bool adjoint, bool clip) const {
+        if constexpr (is_rgb_v<Spectrum>) {
+            if (m_reduced.size() > 0) {
+                if (m_reduced.bands() == 3)
+                    return trace<3>(scene, sampler, ray, active, adjoint, clip);
+                if (m_reduced.bands() == 4)
+                    return trace<4>(scene, sampler, ray, active, adjoint, clip);
+                if (m_reduced.bands() == 7)
+                    return trace<7>(scene, sampler, ray, active, adjoint, clip);
+                // auto with two light bands
+                return trace<Reduced::KMax>(scene, sampler, ray, active, adjoint, clip);
+            }
+        }
+        return trace<0>(scene, sampler, ray, active, adjoint, clip);
+    }
+
+    /// What the vertices of one trace() share.
+    struct Walk {
+        bool shifting = false;    ///< K == 0 with fluorescence: elastic or shift per lane
+        bool directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
+        bool adjoint = false;     ///< fluo_prb's third pass (replay_backward)
+        double range_lo = 0.0, range_hi = 0.0;
+        Spectrum delta_L; ///< the replay's adjoint radiance δL
+    };
+
     /// path.cpp's loop; what differs between the carried throughputs is marked K == 0 / K > 0.
-    /// `adjoint` (fluo_prb's third pass, K = 0): the replay of replay_backward, `result`
-    /// holding the radiance still to come (the primal's, less what the vertices passed gave).
+    /// `adjoint` (fluo_prb's third pass): the replay of replay_backward. K = 0: `result` holds
+    /// the radiance still to come (the primal's, less what the vertices passed gave); K > 0:
+    /// each vertex's radiance still to come is estimated by future(). `clip`: K > 0 clips
+    /// out-of-gamut colours per sample (the replay's primal pass keeps them: their sign masks δL).
     template <size_t K>
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                    Bool active, bool adjoint = false) const {
+                                    Bool active, bool adjoint = false, bool clip = true) const {
         if constexpr (K > 0 && !is_rgb_v<Spectrum>) {
             return { 0.f, false };
         } else {
@@ -555,176 +574,245 @@ private:
                                 Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                                 dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
             ls.pi = camera_intersection(scene, ls.ray, ls.active);
-            const bool shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty(), directional = m_directional;
-            const double range_lo = m_range_lo, range_hi = m_range_hi;
-            Spectrum delta_L; // fluo_prb's adjoint radiance (replay_backward)
-            if constexpr (K == 0 && dr::is_diff_v<Float>) {
+            Walk w;
+            w.shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty();
+            w.directional = m_directional;
+            w.adjoint = adjoint;
+            w.range_lo = m_range_lo;
+            w.range_hi = m_range_hi;
+            if constexpr (dr::is_diff_v<Float>) {
                 if (adjoint) {
-                    ls.result = m_primal;
-                    delta_L = m_adjoint;
+                    if constexpr (K == 0)
+                        ls.result = m_primal;
+                    w.delta_L = m_adjoint;
                 }
             }
-
             dr::tie(ls) = dr::while_loop(
                 dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
-                [this, scene, shifting, directional, range_lo, range_hi, adjoint, delta_L](LoopState<K> &ls) {
-                    BSDFContext bsdf_ctx;
-                    Carried<K> &c = ls.c;
-                    // the replay: this vertex's values with gradients, what it gives (Lo) backpropagated
-                    dr::resume_grad<Float> attached(adjoint);
-                    Spectrum Lo = 0.f;
-                    auto backpropagate = [&] {
-                        if constexpr (dr::is_diff_v<Float>) {
-                            if (dr::grad_enabled(Lo)) {
-                                Spectrum weighted = delta_L * Lo;
-                                dr::backward_from(weighted);
-                            }
-                        }
-                    };
-                    SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
-                    if (adjoint) // the replay differentiates materials and emitters, not geometry
-                        si = dr::detach(si);
-
-                    // ---------------------- Direct emission ----------------------
-                    if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
-                        auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
-                        if constexpr (K == 0) {
-                            if (adjoint) {
-                                Lo = c.throughput * le * mis_bsdf;
-                                ls.result -= dr::detach(Lo);
-                            } else {
-                                ls.result = dr::fmadd(c.throughput, le * mis_bsdf, ls.result);
-                            }
-                        } else
-                            ls.result = dr::fmadd(
-                                m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, le, emitter != nullptr),
-                                mis_bsdf, ls.result);
-                    }
-
-                    Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
-                    // a directly seen emitter is a valid sample even where the path ends here
-                    ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
-                    if (dr::none_or<false>(active_next)) {
-                        backpropagate();
-                        ls.active = active_next;
-                        return;
-                    }
-                    BSDFPtr bsdf = si.bsdf(ls.ray);
-                    typename Wrappers::Perturbations perturbed;
-                    if (!m_wrappers.empty())
-                        bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
-
-                    // K == 0 with fluorescence: per lane and hero wavelength, elastic or shift
-                    fluo_detail::SurfaceShift<Float, Spectrum> shift;
-                    if (shifting)
-                        shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, range_lo, range_hi);
-
-                    // the replay samples as the primal did, without gradients (as prb: detached
-                    // sampling), and differentiates the values at those samples below
-                    auto detached = [adjoint](auto &&f) {
-                        dr::suspend_grad<Float> off(adjoint);
-                        return f();
-                    };
-
-                    // ---------------------- Emitter sampling ----------------------
-                    auto [ds, em_weight, wo, active_em] =
-                        detached([&] { return sample_emitter(scene, si, ls.sampler, bsdf, active_next); });
-                    active_em &= perturbed.keeps_side(ds.d);
-
-                    // ------ Evaluate BSDF * cos(theta) and sample direction -------
-                    Float sample_1 = ls.sampler->next_1d();
-                    Point2f sample_2 = ls.sampler->next_2d();
-                    auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
-                        detached([&] {
-                            return shift.eval_pdf_sample(m_bsdfs, bsdf, bsdf_ctx, si, wo, sample_1, sample_2, true);
-                        });
-                    if (!adjoint) // (the replay's samples carry no gradients)
-                        fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next);
-                    Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
-                    if constexpr (K == 0 && dr::is_diff_v<Float>) {
-                        if (adjoint) { // values with gradients at the detached samples
-                            Spectrum em_value = scene->eval_emitter_direction(si, ds, active_em);
-                            em_weight = dr::replace_grad(
-                                em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
-                            bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
-                            bsdf_weight *= fluo_detail::relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
-                        }
-                    }
-
-                    if constexpr (K == 0) {
-                        if (shifting)
-                            shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_next, bsdf_val, bsdf_weight);
-                        if (adjoint) {
-                            // next-event estimate, then the rest of the path through this weight
-                            Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
-                            ls.result -= dr::detach(direct);
-                            Lo += direct + ls.result * fluo_detail::relative(bsdf_weight);
-                            backpropagate();
-                            c.throughput *= dr::detach(bsdf_weight);
-                        } else {
-                            if (dr::any_or<true>(active_em))
-                                ls.result[active_em] =
-                                    dr::fmadd(c.throughput, bsdf_val * em_weight * mis_em, ls.result);
-                            c.throughput *= bsdf_weight;
-                        }
-                    } else {
-                        // the matrix throughput, diag(t)·O on first entering it
-                        Rows<K> R = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
-
-                        // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
-                        // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian), or a
-                        // direction-dependent lobe's R·A(ωo)·cos θo per direction (only in scenes that
-                        // hold one), its elastic part being the BSDF's own value. Towards the emitter
-                        // sample only R·A(ωo)·c (3 values) leaves the call.
-                        const bool any_em = dr::any_or<true>(active_em);
-                        Coeffs<K> cl = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
-                        if (any_em)
-                            cl = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
-                        Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
-                        auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
-                            bsdf, si, R, cl, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
-                        if (any_em) {
-                            Color3f v_red = Reduced::template apply<K>(
-                                Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)),
-                                cl);
-                            v_fl += dr::select(native_elastic, v_red, 0.f);
-                            Color3f v =
-                                dr::select(is_fl, v_fl, dr::select(c.reduced, v_red, c.t * bsdf_val * em_weight));
-                            ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
-                        }
-                        m_reduced.template scatter<K>(c.R, c.t, c.reduced, R, R_fl, is_fl, native_elastic,
-                                                      bsdf_weight, Mask(true));
-                    }
-
-                    // ---------------------- BSDF sampling ----------------------
-                    advance(ls, si, bs);
-                    active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
-
-                    // -------------------- Stopping criterion ---------------------
-                    if constexpr (K == 0) {
-                        auto [rr_active, rr_scale] =
-                            roulette(ls, dr::max(unpolarized_spectrum(c.throughput)), active_next);
-                        c.throughput[rr_active] *= rr_scale;
-                    } else {
-                        Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
-                        auto [rr_active, rr_scale] = roulette(ls, t_max, active_next);
-                        c.R[rr_active] *= rr_scale;
-                        c.t[rr_active] *= rr_scale;
-                    }
-                    ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
-                    if (adjoint) { // the path itself carries no gradients
-                        ls.ray = dr::detach(ls.ray);
-                        ls.pi = dr::detach(ls.pi);
-                        ls.eta = dr::detach(ls.eta);
-                        ls.prev_si = dr::detach(ls.prev_si);
-                        ls.prev_bsdf_pdf = dr::detach(ls.prev_bsdf_pdf);
-                    }
-                });
+                [this, scene, w](LoopState<K> &ls) { step<K>(scene, ls, w); });
             // K > 0: out-of-gamut colours are clipped per sample (the docs' reduced transport)
             if constexpr (K > 0)
-                ls.result = dr::maximum(ls.result, 0.f);
+                if (clip)
+                    ls.result = dr::maximum(ls.result, 0.f);
             return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
         }
+    }
+
+    /// One vertex of trace()'s loop.
+    template <size_t K> void step(const Scene *scene, LoopState<K> &ls, const Walk &w) const {
+        BSDFContext bsdf_ctx;
+        Carried<K> &c = ls.c;
+        Carried<K> next; // K > 0, the replay: the throughput after this vertex, with gradients
+        // the replay: this vertex's values with gradients, what it gives (Lo) backpropagated
+        dr::resume_grad<Float> attached(w.adjoint);
+        Spectrum Lo = 0.f;
+        auto backpropagate = [&] {
+            if constexpr (dr::is_diff_v<Float>) {
+                if (dr::grad_enabled(Lo)) {
+                    Spectrum weighted = w.delta_L * Lo;
+                    dr::backward_from(weighted);
+                }
+            }
+        };
+        SurfaceInteraction3f si = ls.pi.compute_surface_interaction(ls.ray, +RayFlags::All);
+        if (w.adjoint) // the replay differentiates materials and emitters, not geometry
+            si = dr::detach(si);
+
+        // ---------------------- Direct emission ----------------------
+        if (dr::any_or<true>(si.emitter(scene) != nullptr)) {
+            auto [emitter, le, mis_bsdf] = hit_emission(scene, si, ls);
+            if constexpr (K == 0) {
+                if (w.adjoint) {
+                    Lo = c.throughput * le * mis_bsdf;
+                    ls.result -= dr::detach(Lo);
+                } else {
+                    ls.result = dr::fmadd(c.throughput, le * mis_bsdf, ls.result);
+                }
+            } else {
+                Color3f e = m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, le, emitter != nullptr);
+                if (w.adjoint)
+                    Lo = e * mis_bsdf;
+                else
+                    ls.result = dr::fmadd(e, mis_bsdf, ls.result);
+            }
+        }
+
+        Bool active_next = (ls.depth + 1 < m_max_depth) && si.is_valid();
+        // a directly seen emitter is a valid sample even where the path ends here
+        ls.valid_ray |= ls.active && !active_next && !m_hide_emitters && si.emitter(scene) != nullptr;
+        if (dr::none_or<false>(active_next)) {
+            backpropagate();
+            ls.active = active_next;
+            return;
+        }
+        BSDFPtr bsdf = si.bsdf(ls.ray);
+        typename Wrappers::Perturbations perturbed;
+        if (!m_wrappers.empty())
+            bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
+
+        // K == 0 with fluorescence: per lane and hero wavelength, elastic or shift
+        fluo_detail::SurfaceShift<Float, Spectrum> shift;
+        if (w.shifting)
+            shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, w.range_lo, w.range_hi);
+
+        // the replay samples as the primal did, without gradients (as prb: detached
+        // sampling), and differentiates the values at those samples below
+        auto detached = [adjoint = w.adjoint](auto &&f) {
+            dr::suspend_grad<Float> off(adjoint);
+            return f();
+        };
+
+        // ---------------------- Emitter sampling ----------------------
+        auto [ds, em_weight, wo, active_em] =
+            detached([&] { return sample_emitter(scene, si, ls.sampler, bsdf, active_next); });
+        active_em &= perturbed.keeps_side(ds.d);
+
+        // ------ Evaluate BSDF * cos(theta) and sample direction -------
+        Float sample_1 = ls.sampler->next_1d();
+        Point2f sample_2 = ls.sampler->next_2d();
+        auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] =
+            detached([&] {
+                return shift.eval_pdf_sample(m_bsdfs, bsdf, bsdf_ctx, si, wo, sample_1, sample_2, true);
+            });
+        if (!w.adjoint) // (the replay's samples carry no gradients)
+            fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next);
+        Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
+        if constexpr (dr::is_diff_v<Float>) {
+            if (w.adjoint) { // values with gradients at the detached samples
+                Spectrum em_value = scene->eval_emitter_direction(si, ds, active_em);
+                em_weight = dr::replace_grad(
+                    em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
+                bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
+                bsdf_weight *= fluo_detail::relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
+            }
+        }
+
+        if constexpr (K == 0) {
+            if (w.shifting)
+                shift.apply(m_bsdfs, bsdf, si, w.directional, wo, bs, active_next, bsdf_val, bsdf_weight);
+            if (w.adjoint) {
+                // next-event estimate, then the rest of the path through this weight
+                Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
+                ls.result -= dr::detach(direct);
+                Lo += direct + ls.result * fluo_detail::relative(bsdf_weight);
+                backpropagate();
+                c.throughput *= dr::detach(bsdf_weight);
+            } else {
+                if (dr::any_or<true>(active_em))
+                    ls.result[active_em] =
+                        dr::fmadd(c.throughput, bsdf_val * em_weight * mis_em, ls.result);
+                c.throughput *= bsdf_weight;
+            }
+        } else {
+            // the matrix throughput, diag(t)·O on first entering it
+            Rows<K> R = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
+
+            // A fluorescent vertex's operator A = Σ w_i·M_i (+ its elastic RGB albedo as
+            // band albedos when A lacks it); f·cos = A·cos θo/π (Lambertian), or a
+            // direction-dependent lobe's R·A(ωo)·cos θo per direction (only in scenes that
+            // hold one), its elastic part being the BSDF's own value. Towards the emitter
+            // sample only R·A(ωo)·c (3 values) leaves the call.
+            const bool any_em = dr::any_or<true>(active_em);
+            Coeffs<K> cl = dr::zeros<Coeffs<K>>(); // the emitter sample's coefficients
+            if (any_em)
+                cl = m_reduced.template emitter_coefficients<K>(ds.emitter, em_weight, active_em);
+            Float u_pick = m_varying ? ls.sampler->next_1d(active_next) : Float(0.f);
+            auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
+                bsdf, si, R, cl, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
+            if (any_em) {
+                Color3f v_red = Reduced::template apply<K>(
+                    Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)),
+                    cl);
+                v_fl += dr::select(native_elastic, v_red, 0.f);
+                Color3f v =
+                    dr::select(is_fl, v_fl, dr::select(c.reduced, v_red, c.t * bsdf_val * em_weight));
+                if (w.adjoint)
+                    Lo += dr::select(active_em, v * mis_em, 0.f);
+                else
+                    ls.result[active_em] = dr::fmadd(v, mis_em, ls.result);
+            }
+            m_reduced.template scatter<K>(c.R, c.t, c.reduced, R, R_fl, is_fl, native_elastic,
+                                          bsdf_weight, Mask(true));
+            if (w.adjoint) { // the replay carries the throughput detached, `next` keeps its gradients
+                next = c;
+                c.R = dr::detach(c.R);
+                c.t = dr::detach(c.t);
+            }
+        }
+
+        // ---------------------- BSDF sampling ----------------------
+        advance(ls, si, bs);
+        active_next &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
+
+        // -------------------- Stopping criterion ---------------------
+        if constexpr (K == 0) {
+            auto [rr_active, rr_scale] =
+                roulette(ls, dr::max(unpolarized_spectrum(c.throughput)), active_next);
+            c.throughput[rr_active] *= rr_scale;
+        } else {
+            Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
+            auto [rr_active, rr_scale] = roulette(ls, t_max, active_next);
+            c.R[rr_active] *= rr_scale;
+            c.t[rr_active] *= rr_scale;
+            if (w.adjoint) {
+                next.R[rr_active] *= rr_scale;
+                next.t[rr_active] *= rr_scale;
+            }
+        }
+        ls.pi = scene->ray_intersect_preliminary(ls.ray, false, false, 0, 0, ls.active);
+        if (w.adjoint) { // the path itself carries no gradients
+            ls.ray = dr::detach(ls.ray);
+            ls.pi = dr::detach(ls.pi);
+            ls.eta = dr::detach(ls.eta);
+            ls.prev_si = dr::detach(ls.prev_si);
+            ls.prev_bsdf_pdf = dr::detach(ls.prev_bsdf_pdf);
+        }
+        if constexpr (K > 0) {
+            if (w.adjoint) { // the rest of the path through this vertex's matrix throughput
+                auto [coeffs, rgb] = future<K>(scene, ls, w);
+                Lo += dr::select(ls.active,
+                                 dr::select(c.reduced, Reduced::template apply<K>(next.R, coeffs), next.t * rgb), 0.f);
+                backpropagate();
+            }
+        }
+    }
+
+    /// K > 0, fluo_prb's replay: the radiance still to come from the vertex that `from`
+    /// starts, per unit of throughput. A matrix throughput's is K basis coefficients r (the
+    /// path's rest R'·r), which its 3 RGB values do not determine; so continuations of the
+    /// path carry the identity's rows in place of R' (3 each, ⌈K/3⌉ of them) and give r; an
+    /// RGB throughput's is the 3 values of the first one (t = 1). Each replays the path's
+    /// random numbers (a clone of its sampler) without gradients; its roulette decides on
+    /// its own throughput (unbiased, not the primal's decisions). Memory does not grow with
+    /// depth; time does, quadratically (each vertex continues the path to its end).
+    template <size_t K>
+    std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
+        dr::suspend_grad<Float> detached;
+        Walk primal = w;
+        primal.adjoint = false;
+        primal.delta_L = Spectrum();
+        Coeffs<K> coeffs = dr::zeros<Coeffs<K>>();
+        Color3f rgb = 0.f;
+        for (size_t b = 0; 3 * b < K; ++b) {
+            ref<Sampler> clone = from.sampler->clone();
+            LoopState<K> cs = from;
+            cs.sampler = clone.get();
+            cs.result = dr::zeros<Spectrum>();
+            cs.c.t = Color3f(1.f);
+            cs.c.R = dr::zeros<Rows<K>>();
+            for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+                cs.c.R[r * K + 3 * b + r] = 1.f;
+            if (b > 0) // RGB throughputs need the first only
+                cs.active &= from.c.reduced;
+            dr::tie(cs) = dr::while_loop(
+                dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
+                [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
+            for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+                coeffs[3 * b + r] = cs.result[r];
+            if (b == 0)
+                rgb = cs.result;
+        }
+        return { coeffs, rgb };
     }
 
     double m_lambda_min = 300.0;
@@ -740,7 +828,6 @@ private:
     // fluo_prb (replay_backward): which pass Mitsuba's render runs, and what passes between them
     enum class Pass { Render, Seed, Primal, Adjoint };
     bool m_replay = false; ///< registered as fluo_prb
-    std::atomic<bool> m_matrix_warned{ false };
     mutable Pass m_pass = Pass::Render;
     mutable Spectrum m_seed, m_primal, m_adjoint; ///< unit radiance (pass 1), L (2), δL
     mutable Bool m_valid;
