@@ -63,8 +63,8 @@ GRADIENT_SPP_FACTOR = 16
 
 def gradients(variant: str, res: int, spp: int) -> list:
     """d(image mean)/d(concentration) of the Jung box's first sphere by AD through fluo_path
-    (the recorded loop) and fluo_prb (path replay; in RGB with fluorescence the recorded
-    loop, one warning), against central differences on the same seed."""
+    (the recorded loop) and fluo_prb (path replay; in RGB with fluorescence each vertex's
+    future from continuations of its path), against central differences on the same seed."""
     import drjit as dr
     import mitsuba as mi
 

@@ -232,7 +232,7 @@ differentiates the BSDF's and the emitter's values at the sampled directions, as
 does); the surface interactions are detached, so shapes get no gradient (geometry needs
 reparameterisation, which neither ``fluo_path`` nor this replay does). A render in several
 passes (``samples_per_pass``, or more than 2^32 samples) is refused. Every AD variant
-replays (``llvm_ad_spectral``, ``llvm_ad_rgb``, their cuda twins). In an RGB variant with
+replays (``llvm_ad_spectral``, ``llvm_ad_rgb``, their cuda twins; not the polarized ones, below). In an RGB variant with
 fluorescent materials the reduced transport carries a 3×K matrix throughput R, and the
 radiance still to come after a vertex is R·r for K basis coefficients r that the
 primal's 3 RGB values do not determine (nor can a vertex's K×K factor be divided out of
@@ -315,8 +315,8 @@ public:
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
         if (m_pass != Pass::Render) { // replay_backward: the film receives nothing of these passes
-            if (m_pass == Pass::Adjoint)
-                trace_bands(scene, sampler, ray, active, true, true);
+            if (m_pass == Pass::Adjoint) // (its result is not read)
+                trace_bands(scene, sampler, ray, active, true, false);
             else // (unclipped: the replay differentiates where a colour was not clipped)
                 std::tie(m_primal, m_valid) = trace_bands(scene, sampler, ray, active, false, false);
             return { 0.f, false };
@@ -371,7 +371,9 @@ private:
     /// (same random numbers, so the same vertices, choices and wavelengths) carrying the
     /// radiance still to come; each vertex backpropagates δL times what it contributes
     /// (emission, next-event estimate, and the rest of the path through its weight's
-    /// relative derivative) at once, inside the loop: memory does not grow with depth.
+    /// relative derivative) at once, inside the loop: memory does not grow with depth. The
+    /// reduced RGB transport (K > 0) takes the rest of the path from future() instead, and
+    /// its clipped colours (a primal ≤ 0) get no derivative.
     void replay_backward(Scene *scene, const TensorXf &grad_in, Sensor *sensor, UInt32 seed, uint32_t spp) {
         struct Reset { // the passes end with the integrator rendering again
             const FluoPath *self;
@@ -414,7 +416,7 @@ private:
         Base::render(scene, sensor, seed, spp, false, false);
         m_adjoint = dr::select(m_valid, m_adjoint, 0.f);
         if (m_reduced.size() > 0) // the reduced transport's clipped colours have no derivative
-            m_adjoint = dr::select(m_primal >= 0.f, m_adjoint, 0.f);
+            m_adjoint = dr::select(m_primal > 0.f, m_adjoint, 0.f); // (as dr::maximum's: none at 0)
         m_pass = Pass::Adjoint;
         Base::render(scene, sensor, seed, spp, false, false);
         dr::eval();
@@ -804,6 +806,7 @@ private:
                 cs.c.R[r * K + 3 * b + r] = 1.f;
             if (b > 0) // RGB throughputs need the first only
                 cs.active &= from.c.reduced;
+            cs.active &= dr::any(w.delta_L != 0.f); // (invalid or clipped samples: nothing to weigh)
             dr::tie(cs) = dr::while_loop(
                 dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
                 [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });

@@ -112,10 +112,19 @@ template <typename At> std::optional<std::vector<double>> central_difference(dou
     return hi;
 }
 
-/// x / detach(x): value 1 (also where x is 0), derivative ∂x/x.
+/// x / detach(x): value exactly 1 (also where x is 0), derivative ∂x/x. A constant where x
+/// carries no gradient (every primal kernel: no division traced), and 1 rather than the
+/// quotient's own value where it does (CUDA's approximate division is not exactly 1, and
+/// path replay must reproduce the primal's throughput, roulette included).
 template <typename Value> Value relative(const Value &x) {
-    Value d = dr::detach(x);
-    return dr::select(d != 0.f, x / dr::select(d != 0.f, d, 1.f), 1.f);
+    if constexpr (dr::is_diff_v<Value>) {
+        if (dr::grad_enabled(x)) {
+            Value d = dr::detach(x);
+            Value q = x / dr::select(d != 0.f, d, 1.f);
+            return dr::select(d != 0.f, q - dr::detach(q) + 1.f, 1.f);
+        }
+    }
+    return Value(1.f);
 }
 
 /// A BSDF sample (`bs`, its weight, and `pdf`, the BSDF's pdf towards the emitter sample)
