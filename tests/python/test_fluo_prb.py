@@ -203,6 +203,19 @@ def test05_rgb_with_fluorescence_replays():
     assert "fluo_prb" not in log and "recorded loop" not in log, log[-3000:]
 
 
+def compare_replay(jobs: list[dict], rel: float, differ: bool = False) -> None:
+    """Run jobs in (fluo_prb, fluo_path) pairs: each replayed derivative within `rel` of the
+    recorded loop's (`differ`: and not equal to the last bit)."""
+    results, _ = run_worker(jobs)
+    for replay, recorded in zip(results[0::2], results[1::2]):
+        assert "error" not in replay and "error" not in recorded, (replay, recorded)
+        for key, (ad, _) in replay["gradients"].items():
+            ref = recorded["gradients"][key][0]
+            print(key, "replay", ad, "recorded loop", ref)
+            assert abs(ref) > 1e-6 and ad == pytest.approx(ref, rel=rel), (key, ad, ref)
+            assert not differ or ad != ref, (key, ad, ref)
+
+
 def test06_replay_equals_the_recorded_loop():
     """The same derivatives two ways, in llvm_ad_spectral and (roulette off) llvm_ad_rgb: path
     replay (fluo_prb) and AD through fluo_path's recorded loop, for a parameter of the dye's
@@ -224,13 +237,7 @@ def test06_replay_equals_the_recorded_loop():
     jobs += [{"variant": "llvm_ad_rgb", "xml": box(integrator, dye).replace(*NO_RR), "spp": 64, "seed": 9,
               "gradients": steps, "ad_only": True}
              for dye, steps in rgb.items() for integrator in ("fluo_prb", "fluo_path")]
-    results, _ = run_worker(jobs)
-    for replay, recorded in zip(results[0::2], results[1::2]):
-        assert "error" not in replay and "error" not in recorded, (replay, recorded)
-        for key, (ad, _) in replay["gradients"].items():
-            ref = recorded["gradients"][key][0]
-            print(key, "replay", ad, "recorded loop", ref)
-            assert abs(ref) > 1e-6 and ad == pytest.approx(ref, rel=1e-4), (key, ad, ref)
+    compare_replay(jobs, rel=1e-4)
 
 
 def test06b_rgb_replay_with_roulette():
@@ -243,13 +250,7 @@ def test06b_rgb_replay_with_roulette():
     jobs = [{"variant": "llvm_ad_rgb", "xml": box(integrator, dye), "spp": 1024, "seed": 9,
              "gradients": steps, "ad_only": True}
             for dye, steps in keys.items() for integrator in ("fluo_prb", "fluo_path")]
-    results, _ = run_worker(jobs)
-    for replay, recorded in zip(results[0::2], results[1::2]):
-        assert "error" not in replay and "error" not in recorded, (replay, recorded)
-        for key, (ad, _) in replay["gradients"].items():
-            ref = recorded["gradients"][key][0]
-            print(key, "replay", ad, "recorded loop", ref)
-            assert abs(ref) > 1e-6 and ad == pytest.approx(ref, rel=0.05) and ad != ref, (key, ad, ref)
+    compare_replay(jobs, rel=0.05, differ=True)
 
 
 @pytest.mark.parametrize("variant", ["llvm_ad_spectral", "llvm_ad_rgb"], ids=["spectral", "rgb"])
