@@ -859,6 +859,8 @@ private:
             Float q_choice = dr::detach(h.q);
             if (dr::grad_enabled(h.q))
                 q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
+            // the row's running integral at a: one row and one a for every hero wavelength
+            Float c_a = running(mo, row, ca, active && cos_i > 0.f);
             for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
                 // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
                 Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
@@ -867,7 +869,7 @@ private:
                 ok &= e > 0.f;
                 Mask below = lo < hi_r;
                 Cell cb = select_cell(below, cells[w], c_hi);
-                Float c_a = running(mo, row, ca, ok), c_b = running(mo, row, cb, ok);
+                Float c_b = running(mo, row, cb, ok);
                 Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
                 ok &= mass > 0.f;
                 fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
