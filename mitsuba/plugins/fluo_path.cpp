@@ -12,7 +12,6 @@
 #include <mitsuba/render/scene.h>
 
 #include <array>
-#include <atomic>
 #include <optional>
 #include <sstream>
 #include <string>
@@ -547,13 +546,11 @@ private:
         return trace<0>(scene, sampler, ray, active, adjoint, clip);
     }
 
-    /// What the vertices of one trace() share.
+    /// What the vertices of one trace() share: whether it is fluo_prb's third pass
+    /// (replay_backward), and that pass's adjoint radiance δL.
     struct Walk {
-        bool shifting = false;    ///< K == 0 with fluorescence: elastic or shift per lane
-        bool directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
-        bool adjoint = false;     ///< fluo_prb's third pass (replay_backward)
-        double range_lo = 0.0, range_hi = 0.0;
-        Spectrum delta_L; ///< the replay's adjoint radiance δL
+        bool adjoint = false;
+        Spectrum delta_L;
     };
 
     /// path.cpp's loop; what differs between the carried throughputs is marked K == 0 / K > 0.
@@ -576,12 +573,7 @@ private:
                                 Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                                 dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
             ls.pi = camera_intersection(scene, ls.ray, ls.active);
-            Walk w;
-            w.shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty();
-            w.directional = m_directional;
-            w.adjoint = adjoint;
-            w.range_lo = m_range_lo;
-            w.range_hi = m_range_hi;
+            Walk w{ adjoint, Spectrum() };
             if constexpr (dr::is_diff_v<Float>) {
                 if (adjoint) {
                     if constexpr (K == 0)
@@ -653,9 +645,10 @@ private:
             bsdf = m_wrappers.resolve(bsdf, si, ls.sampler, perturbed, active_next);
 
         // K == 0 with fluorescence: per lane and hero wavelength, elastic or shift
+        const bool shifting = K == 0 && is_spectral_v<Spectrum> && !m_bsdfs.empty();
         fluo_detail::SurfaceShift<Float, Spectrum> shift;
-        if (w.shifting)
-            shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, w.range_lo, w.range_hi);
+        if (shifting)
+            shift.choose(m_bsdfs, bsdf, si, ls.sampler, active_next, m_range_lo, m_range_hi);
 
         // the replay samples as the primal did, without gradients (as prb: detached
         // sampling), and differentiates the values at those samples below
@@ -690,8 +683,8 @@ private:
         }
 
         if constexpr (K == 0) {
-            if (w.shifting)
-                shift.apply(m_bsdfs, bsdf, si, w.directional, wo, bs, active_next, bsdf_val, bsdf_weight);
+            if (shifting)
+                shift.apply(m_bsdfs, bsdf, si, m_directional, wo, bs, active_next, bsdf_val, bsdf_weight);
             if (w.adjoint) {
                 // next-event estimate, then the rest of the path through this weight
                 Spectrum direct = dr::select(active_em, c.throughput * bsdf_val * em_weight * mis_em, 0.f);
@@ -790,9 +783,8 @@ private:
     template <size_t K>
     std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
         dr::suspend_grad<Float> detached;
-        Walk primal = w;
-        primal.adjoint = false;
-        primal.delta_L = Spectrum();
+        const Walk primal{ false, Spectrum() };
+        Mask weighed = dr::any(w.delta_L != 0.f); // (invalid or clipped samples: nothing to weigh)
         Coeffs<K> coeffs = dr::zeros<Coeffs<K>>();
         Color3f rgb = 0.f;
         for (size_t b = 0; 3 * b < K; ++b) {
@@ -806,7 +798,7 @@ private:
                 cs.c.R[r * K + 3 * b + r] = 1.f;
             if (b > 0) // RGB throughputs need the first only
                 cs.active &= from.c.reduced;
-            cs.active &= dr::any(w.delta_L != 0.f); // (invalid or clipped samples: nothing to weigh)
+            cs.active &= weighed;
             dr::tie(cs) = dr::while_loop(
                 dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
                 [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
