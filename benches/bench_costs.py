@@ -38,6 +38,7 @@ per vertex, closed box (4 models × 4 variants)    fluorescent walls / native wa
 llvm: 200 distinct materials (jung, qd; both)     first render, peak memory / native ones      2.0
 llvm: one backward pass, peak memory (spectral)   ``fluo_prb`` / AD through ``fluo_path``      0.5
 llvm: one backward pass, peak memory (RGB)        ``fluo_prb`` / AD through ``fluo_path``      0.5
+llvm: one backward pass, QD cuvette (spectral)    ``fluo_prbvolpath`` / AD, ``fluo_volpath``   0.5
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -508,27 +509,40 @@ def many_row(a, variant: str, model: str) -> dict:
 
 #: The backward rows' setting (issue: one backward pass at 256², 64 spp, max_depth 8).
 BACKWARD_RES, BACKWARD_SPP = 256, 64
+#: ... the volumetric row's: AD through fluo_volpath's recorded loop holds 11.5 GB at 32², 32
+#: spp on the cuvette (its null collisions are recorded steps) and exceeds 24 GB at 64², 64 spp.
+VOLUME_BACKWARD_RES, VOLUME_BACKWARD_SPP = 32, 32
 
 
 def backward_pass(variant: str, integrator: str) -> dict:
     """Load the fluorescent Cornell box (its fluo_jung walls' concentration with gradients;
-    Mitsuba's `prb`: diffuse walls, their reflectance) and run one reverse-mode pass of
-    mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process: its
-    peak memory (peak_mb), and what the process held before the pass."""
+    Mitsuba's `prb`: diffuse walls, their reflectance) or, for the volumetric integrators,
+    the quantum-dot cuvette (Q 0.8, its concentration; Mitsuba's `prbvolpath`: a homogeneous
+    medium, its σt; at VOLUME_BACKWARD_RES², VOLUME_BACKWARD_SPP spp) and run one reverse-mode
+    pass of mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process:
+    its peak memory (peak_mb), and what the process held before the pass."""
     import drjit as dr
 
     mi.set_variant(jit_variant(variant))
     import fluo  # noqa: F401
 
-    native = integrator == "prb"
-    scene = mi.load_dict(box(BACKWARD_RES, integrator=integrator, bsdf=diffuse if native else jung))
+    native = integrator in ("prb", "prbvolpath")
+    spp = BACKWARD_SPP
+    if "volpath" in integrator:
+        d = cuvette(VOLUME_BACKWARD_RES, integrator, HOMOGENEOUS if native else qd_medium(0.8))
+        spp = VOLUME_BACKWARD_SPP
+        d["integrator"]["max_depth"] = 8
+        key = "cuvette.interior_medium." + ("sigma_t.value.value" if native else "concentration")
+    else:
+        d = box(BACKWARD_RES, integrator=integrator, bsdf=diffuse if native else jung)
+        key = "white.reflectance.value" if native else "white.concentration"
+    scene = mi.load_dict(d)
     params = mi.traverse(scene)
-    key = "white.reflectance.value" if native else "white.concentration"
     dr.enable_grad(params[key])
     params.update()
     before = peak_mb()
     t0 = time.perf_counter()
-    image = mi.render(scene, params, spp=BACKWARD_SPP, seed=1)
+    image = mi.render(scene, params, spp=spp, seed=1)
     dr.backward(dr.mean(image, axis=None))
     grad = float(np.abs(np.array(dr.ravel(dr.grad(params[key])))).sum())
     dr.sync_thread()
@@ -536,30 +550,33 @@ def backward_pass(variant: str, integrator: str) -> dict:
             "seconds": time.perf_counter() - t0, "grad": grad}
 
 
-def backward_row(a, variant: str) -> dict:
-    """Peak memory of one backward pass: fluo_prb over AD through fluo_path (the recorded
-    loop), and over Mitsuba's prb on the same box with diffuse walls; each in a fresh
-    process, two rounds."""
-    got = {side: [] for side in ("fluo_prb", "fluo_path", "prb")}
+def backward_row(a, variant: str, sides=("fluo_prb", "fluo_path", "prb")) -> dict:
+    """Peak memory of one backward pass: the replay (fluo_prb, or fluo_prbvolpath) over AD
+    through the recorded loop (fluo_path, fluo_volpath), and over Mitsuba's replay (prb,
+    prbvolpath) on the same scene with native materials; each in a fresh process, two rounds."""
+    replay, recorded, native = sides
+    got = {side: [] for side in sides}
     for r in range(2):
-        for side in (("fluo_prb", "fluo_path", "prb") if r == 0 else ("prb", "fluo_path", "fluo_prb")):
+        for side in (sides if r == 0 else sides[::-1]):
             got[side].append(in_worker(f"backward_{variant}_{side}", a))
     mb = {side: statistics.median(x["peak_mb"] for x in runs) for side, runs in got.items()}
-    ratios = [p["peak_mb"] / q["peak_mb"] for p, q in zip(got["fluo_prb"], got["fluo_path"])]
+    ratios = [p["peak_mb"] / q["peak_mb"] for p, q in zip(got[replay], got[recorded])]
     if min(x["grad"] for runs in got.values() for x in runs) <= 0.0:
         raise SystemExit(f"backward row {variant}: a side computed no gradient: {got}")
     return {"ratio": statistics.median(ratios), "min": min(ratios), "max": max(ratios),
-            "a_mb": mb["fluo_prb"], "b_mb": mb["fluo_path"], "native_mb": mb["prb"],
-            "native_ratio": mb["fluo_prb"] / mb["prb"],
-            "a_s": statistics.median(x["seconds"] for x in got["fluo_prb"]),
-            "b_s": statistics.median(x["seconds"] for x in got["fluo_path"]),
-            "native_s": statistics.median(x["seconds"] for x in got["prb"])}
+            "a_mb": mb[replay], "b_mb": mb[recorded], "native_mb": mb[native],
+            "native_ratio": mb[replay] / mb[native],
+            "a_s": statistics.median(x["seconds"] for x in got[replay]),
+            "b_s": statistics.median(x["seconds"] for x in got[recorded]),
+            "native_s": statistics.median(x["seconds"] for x in got[native]),
+            "native_label": "prb with diffuse walls" if native == "prb" else "prbvolpath with a homogeneous medium"}
 
 
 #: Rows measured in a fresh process (llvm), by name: what the worker runs.
 WORKER_ROWS = {
     **{f"backward_{v}_{side}": (lambda a, v=v, side=side: backward_pass(v, side))
-       for v in ("llvm_ad_spectral", "llvm_ad_rgb") for side in ("fluo_prb", "fluo_path", "prb")},
+       for v in ("llvm_ad_spectral", "llvm_ad_rgb")
+       for side in ("fluo_prb", "fluo_path", "prb", "fluo_prbvolpath", "fluo_volpath", "prbvolpath")},
     "llvm_plain": lambda a: render_pair_jit("llvm_ad_spectral", box(a.res, bsdf=diffuse, light=None),
                                             box(a.res, "path", bsdf=diffuse, light=None), a.spp, a.rounds),
     "llvm_plain_rgb": lambda a: render_pair_jit("llvm_ad_rgb", box(a.res, bsdf=diffuse, light=None),
@@ -756,6 +773,11 @@ ROWS = {
     "llvm_backward_memory_rgb": ("llvm: backward pass peak memory, fluo_prb / AD through fluo_path (fluo_jung box, "
                                  "256², 64 spp, max_depth 8), llvm_ad_rgb (reduced transport)", 0.5,
                                  lambda a: backward_row(a, "llvm_ad_rgb")),
+    "llvm_backward_memory_volume": ("llvm: backward pass peak memory, fluo_prbvolpath / AD through fluo_volpath "
+                                    "(QD cuvette, Q 0.8, 32², 32 spp, max_depth 8: recorded, 64² x 64 spp exceeds 24 GB), "
+                                    "llvm_ad_spectral", 0.5,
+                                    lambda a: backward_row(a, "llvm_ad_spectral",
+                                                           ("fluo_prbvolpath", "fluo_volpath", "prbvolpath"))),
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,
@@ -786,7 +808,8 @@ def readme_region(run: dict, source: str) -> str:
                         f"= {r['memory_ratio']:.2f}, target ≤ 2)")
             if "native_ratio" in r:
                 got += (f" ({r['a_mb']:.0f} / {r['b_mb']:.0f} MB, {r['a_s']:.1f} s vs {r['b_s']:.1f} s; over Mitsuba's "
-                        f"prb with diffuse walls {r['native_mb']:.0f} MB: {r['native_ratio']:.2f}, target ≤ 1.5)")
+                        f"{r.get('native_label', 'prb with diffuse walls')} {r['native_mb']:.0f} MB: "
+                        f"{r['native_ratio']:.2f}, target ≤ 1.5)")
         lines.append(f"| {r['label']} | {got} | {target} |")
     return "\n".join(lines + [END]) + "\n"
 
@@ -861,8 +884,8 @@ def main() -> None:
                 if "memory_ratio" in r:
                     extra += f", {r['a_s']:.1f} s vs {r['b_s']:.1f} s, peak memory x{r['memory_ratio']:.2f}"
                 if "native_ratio" in r:
-                    extra += (f", {r['a_mb']:.0f} / {r['b_mb']:.0f} MB; over Mitsuba's prb ({r['native_mb']:.0f} MB) "
-                              f"x{r['native_ratio']:.2f}")
+                    extra += (f", {r['a_mb']:.0f} / {r['b_mb']:.0f} MB; over Mitsuba's "
+                              f"{r.get('native_label', 'prb')} ({r['native_mb']:.0f} MB) x{r['native_ratio']:.2f}")
                 print(f"{label:70s} {r['ratio']:.2f} [{r['min']:.2f}-{r['max']:.2f}] ({goal}{extra})", flush=True)
     if a.merge:
         fresh = {r["row"]: r for r in results}

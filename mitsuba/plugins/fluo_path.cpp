@@ -301,25 +301,14 @@ public:
 
     std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
                                      const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
-        if constexpr (dr::is_diff_v<Float>) {
-            if (m_pass == Pass::Seed) { // replay_backward: the film's derivative per sample
-                if (dr::width(ray) != dr::width(m_seed))
-                    Throw("fluo_prb: the render runs in several passes (%zu samples per pass of %zu: "
-                          "\"samples_per_pass\", or more than 2^32 samples); path replay needs one pass",
-                          dr::width(ray), dr::width(m_seed));
-                return { m_seed, true };
-            }
-        }
+        if (auto seed = m_replayer.seed("fluo_prb", dr::width(ray))) // replay_backward's passes
+            return *seed;
         m_prepared.ensure(scene, [&] { const_cast<FluoPath *>(this)->prepare(const_cast<Scene *>(scene)); });
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
-        if (m_pass != Pass::Render) { // replay_backward: the film receives nothing of these passes
-            if (m_pass == Pass::Adjoint) // (its result is not read)
-                trace_bands(scene, sampler, ray, active, true, false);
-            else // (unclipped: the replay differentiates where a colour was not clipped)
-                std::tie(m_primal, m_valid) = trace_bands(scene, sampler, ray, active, false, false);
+        // (the primal pass unclipped: the replay differentiates where a colour was not clipped)
+        if (m_replayer.replay([&](bool adjoint) { return trace_bands(scene, sampler, ray, active, adjoint, false); }))
             return { 0.f, false };
-        }
         return trace_bands(scene, sampler, ray, active, false, true);
     }
 
@@ -362,63 +351,14 @@ private:
         m_varying = m_directional && m_reduced.varying();
     }
 
-    /// fluo_prb's reverse mode (Vicini et al. 2021, path replay backpropagation, as Mitsuba's
-    /// `prb`): three passes of Mitsuba's render with the same seed. (1) Every sample's
-    /// radiance is a unit value with gradients: backpropagating `grad_in` through the film
-    /// (filter, spectrum to RGB, normalisation; linear in the radiance) gives each sample's
-    /// adjoint radiance δL. (2) The primal path: its radiance L. (3) The same paths replayed
-    /// (same random numbers, so the same vertices, choices and wavelengths) carrying the
-    /// radiance still to come; each vertex backpropagates δL times what it contributes
-    /// (emission, next-event estimate, and the rest of the path through its weight's
-    /// relative derivative) at once, inside the loop: memory does not grow with depth. The
-    /// reduced RGB transport (K > 0) takes the rest of the path from future() instead, and
-    /// its clipped colours (a primal ≤ 0) get no derivative.
+    /// fluo_prb's reverse mode (PathReplay's passes). The reduced RGB transport (K > 0) takes
+    /// the rest of the path from future() instead, and its clipped colours get no derivative.
     void replay_backward(Scene *scene, const TensorXf &grad_in, Sensor *sensor, UInt32 seed, uint32_t spp) {
-        struct Reset { // the passes end with the integrator rendering again
-            const FluoPath *self;
-            ~Reset() {
-                self->m_pass = Pass::Render;
-                self->m_seed = self->m_primal = self->m_adjoint = Spectrum();
-                self->m_valid = Bool();
-            }
-        } reset{ this };
         if (m_max_depth == 0)
             return; // nothing is rendered, nothing depends on the parameters
-        dr::suspend_grad<Float> detached;
-        // one unit radiance per sample of the (single-pass) wavefront; only it carries
-        // gradients through the film (not the sensor's or the film's own parameters)
-        auto *film = sensor->film();
-        ScalarVector2u size = film->crop_size();
-        if (film->sample_border())
-            size += 2 * film->rfilter()->border_size();
-        m_seed = dr::full<Spectrum>(1.f, (size_t) size.x() * size.y() * (spp ? spp : sensor->sampler()->sample_count()));
-        {
-            dr::resume_grad<Float> attached;
-            dr::enable_grad(m_seed);
-        }
-        {
-            dr::resume_grad<Float> attached(true, m_seed);
-            m_pass = Pass::Seed;
-            TensorXf image = Base::render(scene, sensor, seed, spp, true, false);
-            if (image.size() != grad_in.size())
-                Throw("fluo_prb: the gradient image holds %zu values, the film develops %zu", grad_in.size(),
-                      image.size());
-            dr::set_grad(image.array(), grad_in.array());
-            dr::enqueue(dr::ADMode::Backward, image.array());
-            dr::traverse<Float>(dr::ADMode::Backward);
-            m_adjoint = dr::grad(m_seed);
-            m_seed = Spectrum();
-        }
-        // the primal loop stays symbolic: Dr.Jit traces it into the replay's kernel, so no
-        // per-sample radiance is stored between the passes (as Mitsuba's prb)
-        m_pass = Pass::Primal;
-        Base::render(scene, sensor, seed, spp, false, false);
-        m_adjoint = dr::select(m_valid, m_adjoint, 0.f);
-        if (m_reduced.size() > 0) // the reduced transport's clipped colours have no derivative
-            m_adjoint = dr::select(m_primal > 0.f, m_adjoint, 0.f); // (as dr::maximum's: none at 0)
-        m_pass = Pass::Adjoint;
-        Base::render(scene, sensor, seed, spp, false, false);
-        dr::eval();
+        m_replayer.backward(
+            "fluo_prb", [&](bool develop) { return Base::render(scene, sensor, seed, spp, develop, false); },
+            sensor, grad_in, spp, m_reduced.size() > 0);
     }
 
     /// First intersection of a camera ray, skipping area emitters when they are hidden
@@ -577,8 +517,8 @@ private:
             if constexpr (dr::is_diff_v<Float>) {
                 if (adjoint) {
                     if constexpr (K == 0)
-                        ls.result = m_primal;
-                    w.delta_L = m_adjoint;
+                        ls.result = m_replayer.primal();
+                    w.delta_L = m_replayer.adjoint();
                 }
             }
             dr::tie(ls) = dr::while_loop(
@@ -820,12 +760,8 @@ private:
     bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
     bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
 
-    // fluo_prb (replay_backward): which pass Mitsuba's render runs, and what passes between them
-    enum class Pass { Render, Seed, Primal, Adjoint };
     bool m_replay = false; ///< registered as fluo_prb
-    mutable Pass m_pass = Pass::Render;
-    mutable Spectrum m_seed, m_primal, m_adjoint; ///< unit radiance (pass 1), L (2), δL
-    mutable Bool m_valid;
+    fluo_detail::PathReplay<Float, Spectrum> m_replayer; ///< its passes (replay_backward)
 };
 
 static const bool fluo_path_jit_registered =

@@ -205,7 +205,8 @@ def test11_plugin_list_comes_from_the_library(fluo_module):
 
     assert fluo_module.PLUGIN_KINDS == {
         "fluo_gmm": "bsdf", "fluo_illuminant": "texture", "fluo_jung": "bsdf", "fluo_matrix": "bsdf",
-        "fluo_path": "integrator", "fluo_prb": "integrator", "fluo_qd": "bsdf", "fluo_qd_medium": "medium", "fluo_volpath": "integrator",
+        "fluo_path": "integrator", "fluo_prb": "integrator", "fluo_prbvolpath": "integrator", "fluo_qd": "bsdf",
+        "fluo_qd_medium": "medium", "fluo_volpath": "integrator",
         "fluo_dye_medium": "medium"}
     assert fluo_module.PLUGINS == tuple(sorted(fluo_module.PLUGIN_KINDS))
     assert set(FLUORESCENT_BSDFS) == {"fluo_gmm", "fluo_jung", "fluo_matrix", "fluo_qd"}

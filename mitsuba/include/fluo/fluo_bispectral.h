@@ -127,6 +127,14 @@ template <typename Value> Value relative(const Value &x) {
     return Value(1.f);
 }
 
+/// a's value with b's derivative (dr::replace_grad; a itself in variants without gradients).
+template <typename Value> Value with_grad(const Value &a, const Value &b) {
+    if constexpr (dr::is_diff_v<Value>)
+        return dr::replace_grad(a, b);
+    else
+        return (void) b, a;
+}
+
 /// A BSDF sample (`bs`, its weight, and `pdf`, the BSDF's pdf towards the emitter sample)
 /// whose direction carries gradients, i.e. moves with a parameter (a roughness):
 /// differentiating it would differentiate the sample's motion, not the integrand (measured:

@@ -212,6 +212,10 @@ public:
     jit_sample_interaction(const Ray3f &ray, const Float &u, const Float &rate, const UnpolarizedSpectrum &mu_a,
                            const UnpolarizedSpectrum &mu_f, float margin, Mask active) const = 0;
 
+    /// The factor d of jit_sample_interaction at mei's point, with the gradients of the
+    /// density and the amount (fluo_prbvolpath's replay differentiates it at a detached point).
+    virtual Float jit_density(const MediumInteraction3f &mei, Mask active) const = 0;
+
     /// Per wavelength λo of mei: an excitation wavelength λi ∝ μa(λi) f(λi → λo) over
     /// [lo, hi] drawn with u (exactly, so that a shift weighs μf), where one exists, and the
     /// relative derivative of that density at λi (1 in value; its derivative where a
@@ -346,6 +350,10 @@ public:
         mi.sigma_n = null_rate(m_bar, mi.sigma_t);
         mi.combined_extinction = m_bar;
         return { mi, dr::select(valid, mu_f * d, 0.f), dr::select(valid, d, 0.f) };
+    }
+
+    Float jit_density(const MediumInteraction3f &mei, Mask active) const override {
+        return density(mei, active) * (float) m_common.scale;
     }
 
     std::tuple<Wavelength, WMask, UnpolarizedSpectrum> jit_excitation(const MediumInteraction3f &mei,

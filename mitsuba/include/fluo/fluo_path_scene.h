@@ -7,15 +7,19 @@
 #include <mitsuba/core/plugin.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/bsdf.h>
+#include <mitsuba/render/film.h>
 #include <mitsuba/render/interaction.h>
 #include <mitsuba/render/sampler.h>
+#include <mitsuba/render/sensor.h>
 #include <mitsuba/render/texture.h>
 
 #include <algorithm>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <unordered_map>
 #include <unordered_set>
+#include <tuple>
 #include <utility>
 #include <atomic>
 #include <mutex>
@@ -418,6 +422,106 @@ private:
     std::vector<Wrapper> m_wrappers;
     size_t m_depth = 0; ///< the longest chain of wrappers
     ref<BSDF> m_null;   ///< see null_bsdf()
+};
+
+
+/// fluo_prb's and fluo_prbvolpath's reverse mode (Vicini et al. 2021, path replay
+/// backpropagation, as Mitsuba's prb and prbvolpath): three passes of Mitsuba's render with
+/// the same seed. (1) Every sample's radiance is a unit value with gradients:
+/// backpropagating `grad_in` through the film (filter, spectrum to RGB, normalisation;
+/// linear in the radiance) gives each sample's adjoint radiance δL. (2) The primal path: its
+/// radiance L. (3) The same paths replayed (same random numbers, so the same vertices,
+/// choices and wavelengths) carrying the radiance still to come; each vertex
+/// backpropagates δL times what it contributes at once, inside the loop: memory does not
+/// grow with depth. The integrator's sample() asks seed(), then replay().
+template <typename Float, typename Spectrum> class PathReplay {
+public:
+    MI_IMPORT_TYPES(Sensor)
+
+    /// The passes; `render(develop)` runs Mitsuba's SamplingIntegrator::render with the
+    /// backward call's scene, sensor, seed and spp. `clipped`: the radiance is clipped at 0
+    /// per sample (the reduced RGB transport), so a primal ≤ 0 gets no derivative (as
+    /// dr::maximum's: none at 0).
+    template <typename Render>
+    void backward(const char *plugin, Render &&render, Sensor *sensor, const TensorXf &grad_in, uint32_t spp,
+                  bool clipped) const {
+        struct Reset { // the passes end with the integrator rendering again
+            const PathReplay *self;
+            ~Reset() {
+                self->m_pass = Pass::Render;
+                self->m_seed = self->m_primal = self->m_adjoint = Spectrum();
+                self->m_valid = Bool();
+            }
+        } reset{ this };
+        dr::suspend_grad<Float> detached;
+        // one unit radiance per sample of the (single-pass) wavefront; only it carries
+        // gradients through the film (not the sensor's or the film's own parameters)
+        auto *film = sensor->film();
+        ScalarVector2u size = film->crop_size();
+        if (film->sample_border())
+            size += 2 * film->rfilter()->border_size();
+        m_seed = dr::full<Spectrum>(1.f, (size_t) size.x() * size.y() * (spp ? spp : sensor->sampler()->sample_count()));
+        {
+            dr::resume_grad<Float> attached;
+            dr::enable_grad(m_seed);
+        }
+        {
+            dr::resume_grad<Float> attached(true, m_seed);
+            m_pass = Pass::Seed;
+            TensorXf image = render(true);
+            if (image.size() != grad_in.size())
+                Throw("%s: the gradient image holds %zu values, the film develops %zu", plugin, grad_in.size(),
+                      image.size());
+            dr::set_grad(image.array(), grad_in.array());
+            dr::enqueue(dr::ADMode::Backward, image.array());
+            dr::traverse<Float>(dr::ADMode::Backward);
+            m_adjoint = dr::grad(m_seed);
+            m_seed = Spectrum();
+        }
+        // the primal loop stays symbolic: Dr.Jit traces it into the replay's kernel, so no
+        // per-sample radiance is stored between the passes (as Mitsuba's prb)
+        m_pass = Pass::Primal;
+        render(false);
+        m_adjoint = dr::select(m_valid, m_adjoint, 0.f);
+        if (clipped)
+            m_adjoint = dr::select(m_primal > 0.f, m_adjoint, 0.f);
+        m_pass = Pass::Adjoint;
+        render(false);
+        dr::eval();
+    }
+
+    /// In sample(), first: pass 1's unit radiance (nothing in the other passes).
+    std::optional<std::pair<Spectrum, Bool>> seed(const char *plugin, size_t width) const {
+        if (m_pass != Pass::Seed)
+            return std::nullopt;
+        if (width != dr::width(m_seed))
+            Throw("%s: the render runs in several passes (%zu samples per pass of %zu: \"samples_per_pass\", "
+                  "or more than 2^32 samples); path replay needs one pass",
+                  plugin, width, dr::width(m_seed));
+        return std::make_pair(m_seed, Bool(true));
+    }
+
+    /// In sample(), passes 2 and 3: `trace(adjoint)` is the integrator's loop (its radiance
+    /// kept in pass 2, the film receiving nothing of either); false in a render.
+    template <typename Trace> bool replay(Trace &&trace) const {
+        if (m_pass == Pass::Render || m_pass == Pass::Seed)
+            return false;
+        if (m_pass == Pass::Adjoint)
+            trace(true);
+        else
+            std::tie(m_primal, m_valid) = trace(false);
+        return true;
+    }
+
+    /// Pass 3: the primal radiance L and the adjoint radiance δL per sample.
+    const Spectrum &primal() const { return m_primal; }
+    const Spectrum &adjoint() const { return m_adjoint; }
+
+private:
+    enum class Pass { Render, Seed, Primal, Adjoint };
+    mutable Pass m_pass = Pass::Render;
+    mutable Spectrum m_seed, m_primal, m_adjoint; ///< unit radiance (pass 1), L (2), δL
+    mutable Bool m_valid;
 };
 
 NAMESPACE_END(fluo_detail)
