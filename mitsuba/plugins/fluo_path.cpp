@@ -614,9 +614,7 @@ private:
         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
         if constexpr (dr::is_diff_v<Float>) {
             if (w.adjoint) { // values with gradients at the detached samples
-                Spectrum em_value = scene->eval_emitter_direction(si, ds, active_em);
-                em_weight = dr::replace_grad(
-                    em_weight, em_value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
+                em_weight = fluo_detail::emitter_weight(scene, si, ds, em_weight, active_em);
                 bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
                 bsdf_weight *= fluo_detail::relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
             }

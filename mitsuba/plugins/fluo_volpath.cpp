@@ -930,7 +930,7 @@ private:
                         });
                         active_e &= ds.pdf != 0.f;
                         if (adjoint) // the emitter's value with gradients at the detached sample
-                            emitter_val = emitter_value(scene, ls.mei, ds, emitter_val, active_e);
+                            emitter_val = fluo_detail::emitter_weight(scene, ls.mei, ds, emitter_val, active_e);
                         auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
                         Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
                         if constexpr (K == 0) {
@@ -1020,7 +1020,7 @@ private:
                         });
                         active_e &= ds.pdf != 0.f;
                         if (adjoint)
-                            emitter_val = emitter_value(scene, si, ds, emitter_val, active_e);
+                            emitter_val = fluo_detail::emitter_weight(scene, si, ds, emitter_val, active_e);
                         if constexpr (K == 0) // (the transmittance before the BSDF's numbers, as volpath)
                             emitter_val *= transmittance(si, ds, again, active_e);
                     }
@@ -1090,15 +1090,6 @@ private:
             return { ls.result, ls.valid_ray };
         else // out-of-gamut colours are clipped per sample (as fluo_path does)
             return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
-    }
-
-    /// fluo_prbvolpath's replay: an emitter sample's weight (value over pdf, `weight`) with the
-    /// emitter's derivatives at the detached sample ds seen from `at`.
-    template <typename Interaction>
-    Spectrum emitter_value(const Scene *scene, const Interaction &at, const DirectionSample3f &ds,
-                           const Spectrum &weight, const Mask &active) const {
-        Spectrum value = scene->eval_emitter_direction(at, ds, active);
-        return fluo_detail::with_grad(weight, value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
     }
 
     /// fluo_prbvolpath's replay: the majorant at a detached collision mei with gradients, as the

@@ -425,6 +425,15 @@ private:
 };
 
 
+/// Path replay (fluo_prb, fluo_prbvolpath): an emitter sample's weight (value over pdf,
+/// `weight`) with the emitter's derivatives at the detached sample ds seen from `at`.
+template <typename Scene, typename Interaction, typename DirectionSample, typename Spectrum, typename Mask>
+Spectrum emitter_weight(const Scene *scene, const Interaction &at, const DirectionSample &ds, const Spectrum &weight,
+                        const Mask &active) {
+    Spectrum value = scene->eval_emitter_direction(at, ds, active);
+    return with_grad(weight, value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
+}
+
 /// fluo_prb's and fluo_prbvolpath's reverse mode (Vicini et al. 2021, path replay
 /// backpropagation, as Mitsuba's prb and prbvolpath): three passes of Mitsuba's render with
 /// the same seed. (1) Every sample's radiance is a unit value with gradients:
