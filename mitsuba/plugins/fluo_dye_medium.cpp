@@ -81,7 +81,7 @@ public:
         for (auto [name, field] : std::initializer_list<std::pair<const char *, double *>>{
                  { "emission_peak", &c.emission_peak }, { "stokes_shift", &c.stokes_shift },
                  { "quantum_yield", &c.quantum_yield }, { "sigma_a", &c.sigma_a } })
-            *field = fluo_detail::medium_double(props, Plugin, name, *field);
+            *field = fluo_detail::get_float<double>(Plugin, props, name, *field);
         using C = fluo::DyeMediumConfig;
         init({ { "sigma_a", c.sigma_a, 0.0 }, { "emission_peak", c.emission_peak, 1e-4 },
                { "stokes_shift", c.stokes_shift, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },

@@ -631,15 +631,15 @@ public:
         } else {
             const auto &rows = *static_cast<const DynamicBuffer<Float> *>(joined.get());
             UInt32 base = member * (uint32_t) RowWidth;
-            auto at = [&](uint32_t k) { return dr::gather<Float>(rows, base + k, active); };
+            auto at = [&](uint32_t k) { return fluo_detail::fetch<Float>(rows, base + k, active); };
             Texel t{ at(0), at(1), at(2), at(3) };
             UnpolarizedSpectrum r;
             for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w) {
                 Float x = dr::clip((si.wavelengths[w] - MI_CIE_MIN) * ((ChoiceNodes - 1) / (MI_CIE_MAX - MI_CIE_MIN)),
                                    0.f, (float) (ChoiceNodes - 1));
                 UInt32 j = dr::minimum(UInt32(x), (uint32_t) ChoiceNodes - 2);
-                r[w] = dr::lerp(dr::gather<Float>(rows, base + 4u + j, active),
-                                dr::gather<Float>(rows, base + 5u + j, active), x - Float(j));
+                r[w] = dr::lerp(fluo_detail::fetch<Float>(rows, base + 4u + j, active),
+                                fluo_detail::fetch<Float>(rows, base + 5u + j, active), x - Float(j));
             }
             UnpolarizedSpectrum we = dr::maximum(r * (1.f - t.conc * Dye(t.peak, t.shift).absorption(si.wavelengths)), 0.f);
             return choose_dye(t, we, si.wavelengths, u1, u2, range_lo, range_hi, active);
@@ -820,12 +820,12 @@ private:
             UInt32 i(0);
             if (n > 1) {
                 i = dr::binary_search<UInt32>(1, (uint32_t) n - 1, [&](const UInt32 &k) {
-                        return dr::gather<Float>(levels, k, active) <= x;
+                        return fluo_detail::fetch<Float>(levels, k, active) <= x;
                     }) - 1;
-                Float a = dr::gather<Float>(levels, i, active), b = dr::gather<Float>(levels, i + 1, active);
+                Float a = fluo_detail::fetch<Float>(levels, i, active), b = fluo_detail::fetch<Float>(levels, i + 1, active);
                 i = dr::select(dr::isnan(x), 0u, dr::select(x - a <= b - x, i, i + 1));
             }
-            Float v = dr::gather<Float>(levels, i, active);
+            Float v = fluo_detail::fetch<Float>(levels, i, active);
             // a texture with gradients (its texels): the level carries the hit's value's
             // derivative (x − detach(x) is 0 in value), i.e. the derivative in λe or s at the
             // level (spectral: the closed forms'; RGB: the shape's derivative tables,
@@ -852,15 +852,15 @@ private:
     UnpolarizedSpectrum textured_elastic(const SurfaceInteraction3f &si, const Hit &h, Mask active) const {
         if constexpr (is_rgb_v<Spectrum>) {
             auto part = [&](size_t f) {
-                Color3f v(dr::gather<Float>(m_shape_parts[f], h.shape, active),
-                          dr::gather<Float>(m_shape_parts[f + 1], h.shape, active),
-                          dr::gather<Float>(m_shape_parts[f + 2], h.shape, active));
+                Color3f v(fluo_detail::fetch<Float>(m_shape_parts[f], h.shape, active),
+                          fluo_detail::fetch<Float>(m_shape_parts[f + 1], h.shape, active),
+                          fluo_detail::fetch<Float>(m_shape_parts[f + 2], h.shape, active));
                 if (m_shape_d > 0 && f >= SReflectanceAbsorbed) { // + δλe·∂/∂λe + δs·∂/∂s (0 in value)
                     Float delta[2] = { h.t.peak - dr::detach(h.t.peak), h.t.shift - dr::detach(h.t.shift) };
                     for (size_t d = 0; d < 2; ++d)
                         for (size_t c = 0; c < 3; ++c)
                             v[c] = dr::fmadd(delta[d],
-                                             dr::gather<Float>(m_shape_dparts[d][f - SReflectanceAbsorbed + c],
+                                             fluo_detail::fetch<Float>(m_shape_dparts[d][f - SReflectanceAbsorbed + c],
                                                                h.shape, active),
                                              v[c]);
                 }
@@ -905,9 +905,9 @@ private:
             Color3f f = dr::maximum(m_conc * m_yield * m_rgb_fluorescence, 0.f);
             if (m_shapes) { // the hit's dye shape, c and Q
                 Hit h = hit(si, active);
-                Color3f unit(dr::gather<Float>(m_shape_parts[SFluorescence], h.shape, active),
-                             dr::gather<Float>(m_shape_parts[SFluorescence + 1], h.shape, active),
-                             dr::gather<Float>(m_shape_parts[SFluorescence + 2], h.shape, active));
+                Color3f unit(fluo_detail::fetch<Float>(m_shape_parts[SFluorescence], h.shape, active),
+                             fluo_detail::fetch<Float>(m_shape_parts[SFluorescence + 1], h.shape, active),
+                             fluo_detail::fetch<Float>(m_shape_parts[SFluorescence + 2], h.shape, active));
                 f = dr::maximum(h.t.conc * h.t.yield * unit, 0.f);
             }
             Float k = 1.f;
@@ -1052,7 +1052,7 @@ private:
     }
 
     Float texel_field(TexelField k, const UInt32 &index, Mask active) const {
-        return dr::gather<Float>(m_texel_data[k], index, active);
+        return fluo_detail::fetch<Float>(m_texel_data[k], index, active);
     }
 
     Texel texel(const UInt32 &i, Mask active) const {

@@ -348,6 +348,7 @@ public:
             m_table_key.clear(); // (several files' reduced operators: reduced again)
             update_rgb();
         });
+        fix_mixture(); // (the values accepted)
         Base::parameters_changed(keys);
     }
 
@@ -416,7 +417,7 @@ public:
             size_t n = table_derivatives(transport, d);
             if (!m_index) // one file: its entries as values of the kernel, not gathered per lane
                 for (uint32_t e : m_delta_entries)
-                    m_delta.push_back(dr::gather<Float>(m_delta_table, UInt32(e)));
+                    m_delta.push_back(fluo_detail::fetch<Float>(m_delta_table, UInt32(e)));
             return n;
         }
         if (!mixture_gradients())
@@ -487,7 +488,7 @@ public:
             std::vector<Float> w;
             UInt32 base = material(si, active) * (uint32_t) m_delta_kk;
             for (uint32_t e : m_delta_entries)
-                w.push_back(dr::gather<Float>(m_delta_table, base + e, active));
+                w.push_back(fluo_detail::fetch<Float>(m_delta_table, base + e, active));
             return w;
         }
         if (!m_gmm)
@@ -507,7 +508,7 @@ public:
         for (const FloatStorage *means : { &m_means_i, &m_means_o })
             if (dr::grad_enabled(*means))
                 for (size_t c = 0; c < m_n_comps; ++c) {
-                    Float m = dr::gather<Float>(*means, base + (uint32_t) c, active);
+                    Float m = fluo_detail::fetch<Float>(*means, base + (uint32_t) c, active);
                     w.push_back(m - dr::detach(m));
                 }
         return w;
@@ -583,9 +584,8 @@ public:
             Wavelength lambda_i = lambda_o;
             UnpolarizedSpectrum scale(0.f), rerad(0.f);
             WMask shifted(false);
-            Mixture mix;
-            if (m_gmm)
-                mix = mixture(mat, active);
+            Mixture own;
+            const Mixture &mix = m_gmm ? mixture_at(mat, active, own) : own;
             // Per hero wavelength the excitation interval [a, b] (λi ≤ λo) and its mass; the
             // shift's value and pdf once sampled with u2 (fluo_gmm: the four wavelengths at
             // once, its exp/erfc in packets; fluo_matrix: a table search per wavelength).
@@ -650,11 +650,11 @@ protected:
         if (!m_gmm) {
             f.gi = m_gi.at(mat, active);
             f.go = m_go.at(mat, active);
-            f.p_off = m_index ? dr::gather<UInt32>(m_p_off, mat, active) : UInt32(0);
+            f.p_off = m_index ? fluo_detail::fetch<UInt32>(m_p_off, mat, active) : UInt32(0);
         }
         for (size_t i = 0; i < 4; ++i)
-            f.rect[i] = m_index ? dr::gather<Float>(m_d_rect, mat * 4 + (uint32_t) i, active) : Float(m_rect[i]);
-        f.scale = m_index ? dr::gather<Float>(m_d_scale, mat, active) : Float(m_scale[0]);
+            f.rect[i] = m_index ? fluo_detail::fetch<Float>(m_d_rect, mat * 4 + (uint32_t) i, active) : Float(m_rect[i]);
+        f.scale = m_index ? fluo_detail::fetch<Float>(m_d_scale, mat, active) : Float(m_scale[0]);
         return f;
     }
 
@@ -746,6 +746,7 @@ protected:
             for (size_t i = 0; i < 4; ++i)
                 m_d_comp[i] = dr::load<FloatStorage>(cols[i].data(), cols[i].size());
             load_mixture();
+            fix_mixture();
         }
         std::copy(rect.begin(), rect.begin() + 4, m_rect.begin());
         m_lambda_i_min = dr::Infinity<float>;
@@ -860,7 +861,7 @@ protected:
         auto [j, x0, x1] = m_gd.cell(gd, x, active);
         Float t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
         UInt32 i = gd.off + j;
-        Float v = dr::lerp(dr::gather<Float>(m_diag, i, active), dr::gather<Float>(m_diag, i + 1, active), t);
+        Float v = dr::lerp(fluo_detail::fetch<Float>(m_diag, i, active), fluo_detail::fetch<Float>(m_diag, i + 1, active), t);
         return dr::select(active && dr::isfinite(lambda), v, 0.f);
     }
 
@@ -893,11 +894,11 @@ protected:
         // dr::detach of the buffer copied the whole matrix per wavelength and vertex)
         auto p = [&](const UInt32 &r, const UInt32 &k) {
             if constexpr (dr::is_diff_v<Float>)
-                return dr::gather<Float>(dr::detach(m_p), r + k, ok);
+                return fluo_detail::fetch<Float>(dr::detach(m_p), r + k, ok);
             else
-                return dr::gather<Float>(m_p, r + k, ok);
+                return fluo_detail::fetch<Float>(m_p, r + k, ok);
         };
-        auto c = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_rcdf, r + k, ok); };
+        auto c = [&](const UInt32 &r, const UInt32 &k) { return fluo_detail::fetch<Float>(m_rcdf, r + k, ok); };
         // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Float &x) {
             auto [k, x0, x1] = m_gi.cell(gi, x, ok);
@@ -929,8 +930,8 @@ protected:
         k = dr::clip(k, k_lo, k_hi);
         Mask uniform = gi.step > 0.f;
         Float x0 = dr::select(uniform, dr::fmadd(Float(k), gi.step, gi.lo),
-                              dr::gather<Float>(m_gi.nodes, gi.off + k, ok && !uniform));
-        Float x1 = dr::select(uniform, x0 + gi.step, dr::gather<Float>(m_gi.nodes, gi.off + k + 1, ok && !uniform));
+                              fluo_detail::fetch<Float>(m_gi.nodes, gi.off + k, ok && !uniform));
+        Float x1 = dr::select(uniform, x0 + gi.step, fluo_detail::fetch<Float>(m_gi.nodes, gi.off + k + 1, ok && !uniform));
         Float h = x1 - x0;
         Float f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
         Float e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
@@ -939,7 +940,7 @@ protected:
         Float s = dr::clip((x - x0) / h, 0.f, 1.f);
         Float value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
         if (dr::grad_enabled(m_p)) {
-            auto pa = [&](const UInt32 &r, const UInt32 &k) { return dr::gather<Float>(m_p, r + k, ok); };
+            auto pa = [&](const UInt32 &r, const UInt32 &k) { return fluo_detail::fetch<Float>(m_p, r + k, ok); };
             value = dr::lerp(dr::lerp(pa(r0, k), pa(r0, k + 1), s), dr::lerp(pa(r1, k), pa(r1, k + 1), s), t);
         }
         return { mass, x, dr::select(ok, value, 0.f) };
@@ -1020,16 +1021,34 @@ protected:
         m.weight = weights(mat, active);
         for (size_t k = 0; k < n; ++k) {
             UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
-            m.mu_i[k] = dr::gather<Float>(m_means_i, index, active);
-            m.mu_o[k] = dr::gather<Float>(m_means_o, index, active);
+            m.mu_i[k] = fluo_detail::fetch<Float>(m_means_i, index, active);
+            m.mu_o[k] = fluo_detail::fetch<Float>(m_means_o, index, active);
             const Comp &c = m_comps[k];
             Float *fixed[4] = { &m.half_inv_var_o[k], &norm[k], &m.slope[k], &m.cond_sd[k] };
             for (size_t i = 0; i < 4; ++i)
-                *fixed[i] = m_index ? dr::gather<Float>(m_d_comp[i], index, active) : Float((&c.half_inv_var_o)[i]);
+                *fixed[i] = m_index ? fluo_detail::fetch<Float>(m_d_comp[i], index, active) : Float((&c.half_inv_var_o)[i]);
         }
         for (size_t k = 0; k < n; ++k)
             m.weight[k] *= norm[k];
         return m;
+    }
+
+    /// The lane's mixture: in the scalar variants with one file the same at every vertex,
+    /// formed once (fix_mixture: at load and on each accepted update; its reading per vertex
+    /// was 7 % of a scalar fluo_gmm render), else read into `scratch`.
+    const Mixture &mixture_at(const UInt32 &mat, const Mask &active, Mixture &scratch) const {
+        if constexpr (!dr::is_jit_v<Float>)
+            if (m_fixed_mixture)
+                return *m_fixed_mixture;
+        scratch = mixture(mat, active);
+        return scratch;
+    }
+    void fix_mixture() {
+        if constexpr (!dr::is_jit_v<Float>) {
+            m_fixed_mixture.reset();
+            if (m_gmm && !m_index)
+                m_fixed_mixture = mixture(UInt32(0), Mask(true));
+        }
     }
 
     /// The mixture's weights at a lane's file renormalised to sum 1 (differentiable): taken
@@ -1042,11 +1061,11 @@ protected:
         Float wmax = 0.f, wsum = 0.f;
         for (size_t k = 0; k < n; ++k) {
             UInt32 index = m_index ? base + (uint32_t) k : UInt32((uint32_t) k);
-            w[k] = dr::gather<Float>(m_weights, index, active);
+            w[k] = fluo_detail::fetch<Float>(m_weights, index, active);
             // a file's padding (several files: its norm is 0) takes no part in the gradient,
             // so an optimiser keeps it at 0 (which an update requires)
             if (m_index && dr::grad_enabled(w[k]))
-                w[k] = dr::select(dr::gather<Float>(m_d_comp[1], index, active) > 0.f, w[k], dr::detach(w[k]));
+                w[k] = dr::select(fluo_detail::fetch<Float>(m_d_comp[1], index, active) > 0.f, w[k], dr::detach(w[k]));
             wmax = dr::maximum(wmax, dr::detach(w[k]));
         }
         Float rel = dr::select(wmax > 0.f, dr::rcp(wmax), 0.f);
@@ -1221,6 +1240,7 @@ protected:
     std::vector<float> m_scale;
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
+    std::optional<Mixture> m_fixed_mixture; ///< mixture_at's (scalar variants, one file)
     std::vector<size_t> m_file_comps; ///< each file's own number of components
     mutable uint32_t m_mix_d = 0;     ///< several files, RGB: the derivative tables of this render
     mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)

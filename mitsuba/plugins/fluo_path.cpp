@@ -653,9 +653,14 @@ private:
             auto [is_fl, native_elastic, v_fl, R_fl] = m_reduced.template vertex<K, false>(
                 bsdf, si, R, cl, wo, bs.wo, bs.pdf, m_directional, u_pick, active_next);
             if (any_em) {
-                Color3f v_red = Reduced::template apply<K>(
-                    Reduced::template scale_columns<K>(R, m_reduced.template band_albedo<K>(bsdf_val)),
-                    cl);
+                // (the scalar variants form R·diag(albedo)·c only where the lane uses it)
+                bool uses_red = true;
+                if constexpr (!dr::is_jit_v<Float>)
+                    uses_red = is_fl ? native_elastic : c.reduced;
+                Color3f v_red = uses_red ? Reduced::template apply<K>(Reduced::template scale_columns<K>(
+                                                                         R, m_reduced.template band_albedo<K>(bsdf_val)),
+                                                                     cl)
+                                         : Color3f(0.f);
                 v_fl += dr::select(native_elastic, v_red, 0.f);
                 Color3f v =
                     dr::select(is_fl, v_fl, dr::select(c.reduced, v_red, c.t * bsdf_val * em_weight));

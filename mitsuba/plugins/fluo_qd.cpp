@@ -665,14 +665,14 @@ public:
     std::pair<Float, Float> jit_lobe_joined(const Joined &joined, const UInt32 &member, const SurfaceInteraction3f &si,
                                             const Vector3f &wo, Mask active) const override {
         const auto &j = *static_cast<const JoinedTables *>(joined.get());
-        return lobe(si, wo, dr::gather<Float>(j.alpha, member, active), active);
+        return lobe(si, wo, fluo_detail::fetch<Float>(j.alpha, member, active), active);
     }
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum>
     jit_reradiation_joined(const Joined &joined, const SurfaceInteraction3f &si, const UnpolarizedSpectrum &rerad,
                            const UInt32 &local, const Vector3f &wo_a, const Vector3f &wo_b,
                            Mask active) const override {
         const auto &j = *static_cast<const JoinedTables *>(joined.get());
-        return reradiation_at(joined_model(j, local, active), dr::gather<Float>(j.alpha, local, active), si, rerad,
+        return reradiation_at(joined_model(j, local, active), fluo_detail::fetch<Float>(j.alpha, local, active), si, rerad,
                               wo_a, wo_b, active);
     }
 
@@ -732,7 +732,7 @@ private:
     };
     ModelAt joined_model(const JoinedTables &j, const UInt32 &m, const Mask &active) const {
         GridAt g = j.grids.at(m, active);
-        return { m, dr::gather<UInt32>(j.t_off, m, active), dr::gather<UInt32>(j.t_len, m, active), g.n, g, &j };
+        return { m, fluo_detail::fetch<UInt32>(j.t_off, m, active), fluo_detail::fetch<UInt32>(j.t_len, m, active), g.n, g, &j };
     }
     /// The tables of a block, each [rows][n] per model: A_tot, its running integral along λ,
     /// R_spe, pass and the smooth surface's R_tot (Rust's QdJitTables).
@@ -745,7 +745,7 @@ private:
         if (!textured())
             return { UInt32(0), m_tables.offset(), m_len_v, m_grid.v_n, GridAt{} };
         GridAt g = m_grids.at(m, active);
-        return { m, m_tables.offset() + dr::gather<UInt32>(m_t_off, m, active), m_len_v, g.n, g };
+        return { m, m_tables.offset() + fluo_detail::fetch<UInt32>(m_t_off, m, active), m_len_v, g.n, g };
     }
     static ModelAt select_model(const Mask &m, const ModelAt &a, const ModelAt &b) {
         const GridAt &g = a.grid, &h = b.grid;
@@ -772,8 +772,8 @@ private:
     /// Node k of a model's grid.
     Float node(const ModelAt &mo, const UInt32 &k, const Mask &active) const {
         if (!textured() && !mo.joined)
-            return dr::gather<Float>(m_grid.nodes, k, active);
-        return dr::gather<Float>((mo.joined ? mo.joined->grids : m_grids).nodes, mo.grid.off + k, active);
+            return fluo_detail::fetch<Float>(m_grid.nodes, k, active);
+        return fluo_detail::fetch<Float>((mo.joined ? mo.joined->grids : m_grids).nodes, mo.grid.off + k, active);
     }
 
     /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
@@ -885,13 +885,13 @@ private:
                 const FloatStorage &t = store();
                 UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
                 UInt32 k = dr::binary_search<UInt32>(1, grid_max(mo) - 1, [&](const UInt32 &i) {
-                               return dr::gather<Float>(t, cdf + dr::minimum(i, last), ok) <= target;
+                               return fluo_detail::fetch<Float>(t, cdf + dr::minimum(i, last), ok) <= target;
                            }) - 1;
                 k = dr::clip(k, ca.k, cb.k);
                 Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
-                Float f0 = dr::gather<Float>(t, a_tot + k, ok), f1 = dr::gather<Float>(t, a_tot + k + 1, ok);
+                Float f0 = fluo_detail::fetch<Float>(t, a_tot + k, ok), f1 = fluo_detail::fetch<Float>(t, a_tot + k + 1, ok);
                 Float h_ = x1 - x0;
-                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - dr::gather<Float>(t, cdf + k, ok));
+                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - fluo_detail::fetch<Float>(t, cdf + k, ok));
                 Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
                 Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
                 scale[w] = choice.weight(pdf, u1[w]);
@@ -954,8 +954,8 @@ private:
         else
             h.model[0] = { member, UInt32(0), UInt32(0), UInt32(0), GridAt{}, &j };
         h.weight[0] = Float(1.f);
-        h.q = dr::gather<Float>(j.q, member, active);
-        h.alpha = dr::gather<Float>(j.alpha, member, active);
+        h.q = fluo_detail::fetch<Float>(j.q, member, active);
+        h.alpha = fluo_detail::fetch<Float>(j.alpha, member, active);
         if constexpr (is_spectral_v<Spectrum>) {
             h.has_cells = m_coated && with_cells;
             if (h.has_cells)
@@ -1084,15 +1084,15 @@ private:
     }
     /// A table's row (offset `row`) at the cell, linear in λ.
     Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {
-        return dr::lerp(dr::gather<Float>(t, row + c.k, active), dr::gather<Float>(t, row + c.k + 1, active), c.f);
+        return dr::lerp(fluo_detail::fetch<Float>(t, row + c.k, active), fluo_detail::fetch<Float>(t, row + c.k + 1, active), c.f);
     }
     /// The running integral of row `row` (its offset in a table) of A_tot up to the cell's λ.
     Float running(const ModelAt &mo, const UInt32 &row, const Cell &c, const Mask &active) const {
         const FloatStorage &t = store();
         UInt32 a_tot = start(mo, ATot) + row + c.k;
-        Float f0 = dr::gather<Float>(t, a_tot, active), f1 = dr::gather<Float>(t, a_tot + 1, active);
+        Float f0 = fluo_detail::fetch<Float>(t, a_tot, active), f1 = fluo_detail::fetch<Float>(t, a_tot + 1, active);
         Float half = .5f * c.f * (c.x1 - c.x0);
-        return dr::gather<Float>(t, start(mo, Cdf) + row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
+        return fluo_detail::fetch<Float>(t, start(mo, Cdf) + row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
     }
     /// Rows j, j + 1 around cos θ and the fraction between them.
     std::pair<UInt32, Float> rows_at(const Float &cos_theta) const {
@@ -1215,8 +1215,8 @@ private:
         UInt32 base = mo.index * (m_rows * 3) + j * 3;
         UnpolarizedSpectrum out;
         for (size_t ch = 0; ch < 3; ++ch)
-            out[ch] = dr::lerp(dr::gather<Float>(t, base + (uint32_t) ch, active),
-                               dr::gather<Float>(t, base + (uint32_t) (ch + 3), active), fc);
+            out[ch] = dr::lerp(fluo_detail::fetch<Float>(t, base + (uint32_t) ch, active),
+                               fluo_detail::fetch<Float>(t, base + (uint32_t) (ch + 3), active), fc);
         return out;
     }
 
@@ -1242,7 +1242,7 @@ private:
         Emission e;
         Float *fields[EmissionFields] = { &e.peak, &e.scale, &e.inv_norm, &e.lmin, &e.lmax, &e.ex_lo, &e.ex_hi };
         for (uint32_t i = 0; i < EmissionFields; ++i)
-            *fields[i] = dr::gather<Float>(mo.joined ? mo.joined->emission : m_emission, mo.index * EmissionFields + i,
+            *fields[i] = fluo_detail::fetch<Float>(mo.joined ? mo.joined->emission : m_emission, mo.index * EmissionFields + i,
                                            active);
         return e;
     }
@@ -1290,8 +1290,6 @@ private:
         }
         return mixed;
     }
-
-    static std::vector<float> floats(const rust::Vec<double> &v) { return std::vector<float>(v.begin(), v.end()); }
 
     /// A model's reduced reradiation at the microfacet cosines as MaxTerms terms per unit Q:
     /// B_t into `basis` ([MaxTerms][kk]) and their weights at the nodes into `nodes`

@@ -147,7 +147,7 @@ inline fluo::QdMediumConfig qd_medium_config(const Properties &props, const char
              { "electron_mass", &k.electron_mass }, { "hole_mass", &k.hole_mass },
              { "vacuum_permittivity", &k.vacuum_permittivity },
              { "relative_permittivity", &k.relative_permittivity }, { "temperature", &k.temperature } })
-        *field = fluo_detail::medium_double(props, plugin, name, *field);
+        *field = fluo_detail::get_float<double>(plugin, props, name, *field);
     return c;
 }
 

@@ -192,8 +192,6 @@ mod bridge {
         /// (`fluo::models::jung::check_param_value`): `width` > 0 names a failing value by
         /// its texel (x, y), row-major from the top row; 0 by its position in `values`.
         fn jung_check_values(name: &str, values: &[f32], width: usize) -> Result<()>;
-        /// out[j] = r(λ_j), the sigmoid base reflectance (0 without coefficients).
-        fn jung_reflectance(model: &JungModel, lambdas: &[f32], out: &mut [f32]);
         /// RGB variant: the c-linear parts of an albedo (see [`JungRgbParts`]) with the
         /// dye of `dye` and the sigmoid base reflectance of `base`.
         fn jung_rgb_parts(dye: &JungModel, base: &JungModel) -> JungRgbParts;
@@ -506,8 +504,6 @@ mod bridge {
             basis: &mut [f64],
             weights: &mut [f64],
         ) -> f64;
-        /// [`REDUCED_LOW_RANK_TOLERANCE`].
-        fn reduced_low_rank_tolerance() -> f64;
         /// Coefficients of an illuminant in a transport (K), Mitsuba's normalisation.
         fn illuminant_coefficients(s: &Illuminant, t: &TransportBasis, out: &mut [f64]);
         /// Its values at the reduction grid's wavelengths, appended to `out`.

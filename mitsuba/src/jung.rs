@@ -293,12 +293,6 @@ pub(crate) fn check_texture_values(
     })
 }
 
-pub(crate) fn jung_reflectance(model: &JungModel, lambdas: &[f32], out: &mut [f32]) {
-    for (o, &l) in out.iter_mut().zip(lambdas) {
-        *o = model.reflectance(f64::from(l)) as f32;
-    }
-}
-
 pub(crate) fn jung_rgb_parts(dye: &JungModel, base: &JungModel) -> JungRgbParts {
     let a = spectrum_to_srgb(|l| dye.dye.absorption(l));
     let white = spectrum_to_srgb(|_| 1.0);

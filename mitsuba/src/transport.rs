@@ -163,9 +163,6 @@ pub(crate) fn reduced_microfacet_nodes() -> usize {
 /// 1.5-4.5 nm, density 0.1-0.8, on gold, glass and a strong conductor, in every basis
 /// (test `qd_reduced_operators_are_low_rank`). The vectorised `fluo_path` warns beyond it.
 pub(crate) const REDUCED_LOW_RANK_TOLERANCE: f64 = 1e-5;
-pub(crate) fn reduced_low_rank_tolerance() -> f64 {
-    REDUCED_LOW_RANK_TOLERANCE
-}
 pub(crate) fn reduced_microfacet_low_rank(
     r: &ReducedModel,
     max_terms: usize,

@@ -648,7 +648,7 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
             for (uint32_t gi = 0; gi < (uint32_t) set.groups().size(); ++gi) {
                 const auto &g = set.groups()[gi];
                 Mask known = id < g.n_slots;
-                UInt32 slot = dr::gather<UInt32>(g.slots, id, known);
+                UInt32 slot = fluo_detail::fetch<UInt32>(g.slots, id, known);
                 Mask in = known && slot > 0u;
                 group = dr::select(in, gi + 1u, group);
                 member = dr::select(in, slot - 1u, member);

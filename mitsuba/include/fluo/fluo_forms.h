@@ -197,14 +197,14 @@ template <typename Float> struct LaneGrid {
         UInt32 k;
         if (bucketed) {
             UInt32 b = UInt32(dr::minimum(dr::floor((x - v_l0) * v_inv_step), v_last_bucket));
-            k = dr::gather<UInt32>(buckets, b, active);
-            k = dr::select(k + 2 < v_n && dr::gather<Float>(nodes, k + 1, active) <= x, k + 1, k);
+            k = fluo_detail::fetch<UInt32>(buckets, b, active);
+            k = dr::select(k + 2 < v_n && fluo_detail::fetch<Float>(nodes, k + 1, active) <= x, k + 1, k);
         } else {
             k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
-                    return dr::gather<Float>(nodes, i, active) <= x;
+                    return fluo_detail::fetch<Float>(nodes, i, active) <= x;
                 }) - 1;
         }
-        Float x0 = dr::gather<Float>(nodes, k, active), x1 = dr::gather<Float>(nodes, k + 1, active);
+        Float x0 = fluo_detail::fetch<Float>(nodes, k, active), x1 = fluo_detail::fetch<Float>(nodes, k + 1, active);
         return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
     }
 
@@ -301,10 +301,10 @@ template <typename Float> struct LaneGridSet {
             return { UInt32(off[0]), UInt32(n[0]), UInt32(b_off[0]), UInt32(b_n[0]),
                      Float(lo[0]),   Float(hi[0]), Float(step[0]),   Float(b_step[0]) };
         UInt32 i = which * 4;
-        return { dr::gather<UInt32>(d_size, i, active),     dr::gather<UInt32>(d_size, i + 1, active),
-                 dr::gather<UInt32>(d_size, i + 2, active), dr::gather<UInt32>(d_size, i + 3, active),
-                 dr::gather<Float>(d_ends, i, active),      dr::gather<Float>(d_ends, i + 1, active),
-                 dr::gather<Float>(d_ends, i + 2, active),  dr::gather<Float>(d_ends, i + 3, active) };
+        return { fluo_detail::fetch<UInt32>(d_size, i, active),     fluo_detail::fetch<UInt32>(d_size, i + 1, active),
+                 fluo_detail::fetch<UInt32>(d_size, i + 2, active), fluo_detail::fetch<UInt32>(d_size, i + 3, active),
+                 fluo_detail::fetch<Float>(d_ends, i, active),      fluo_detail::fetch<Float>(d_ends, i + 1, active),
+                 fluo_detail::fetch<Float>(d_ends, i + 2, active),  fluo_detail::fetch<Float>(d_ends, i + 3, active) };
     }
 
     /// The cell j ∈ [0, n − 2] (within the lane's grid) holding x ∈ [lo, hi] (the last
@@ -313,20 +313,20 @@ template <typename Float> struct LaneGridSet {
         UInt32 j(0);
         if (!all_uniform && bucketed) {
             UInt32 b = UInt32(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Float(g.b_n - 1)));
-            j = dr::gather<UInt32>(buckets, g.b_off + b, active);
-            j = dr::select(j + 2 < g.n && dr::gather<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
+            j = fluo_detail::fetch<UInt32>(buckets, g.b_off + b, active);
+            j = dr::select(j + 2 < g.n && fluo_detail::fetch<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
         } else if (!all_uniform) {
             // over the longest grid, each lane's nodes clamped to its own last one
             UInt32 last = g.n - 1;
             j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
-                    return dr::gather<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
+                    return fluo_detail::fetch<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
                 }) - 1;
             j = dr::minimum(j, g.n - 2);
         }
         Float x0(0.f), x1(0.f);
         if (!all_uniform) {
-            x0 = dr::gather<Float>(nodes, g.off + j, active);
-            x1 = dr::gather<Float>(nodes, g.off + j + 1, active);
+            x0 = fluo_detail::fetch<Float>(nodes, g.off + j, active);
+            x1 = fluo_detail::fetch<Float>(nodes, g.off + j + 1, active);
         }
         if (any_uniform) {
             Mask uniform = g.step > 0.f;
@@ -378,8 +378,8 @@ template <typename Float> std::pair<dr::uint32_array_t<Float>, Float> lane_brack
     return { i, dr::select(dr::isnan(t), 0.f, dr::clip(t, 0.f, 1.f)) };
 }
 
-/// Per lane, the index of the level nearest x (ties: the lower; NaN: the first), as
-/// nearest_level (fluo_param_texture.h).
+/// Per lane, the index of the level nearest x (levels sorted, non-empty; ties: the lower;
+/// NaN: the first).
 template <typename Float> dr::uint32_array_t<Float> lane_nearest(const std::vector<float> &levels, const Float &x) {
     using UInt32 = dr::uint32_array_t<Float>;
     UInt32 i(0);

@@ -90,6 +90,16 @@ template <typename Float, typename Spectrum> struct Lambertian {
                                         const Vector3f &wo, Mask active) const override {                     \
         return Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return ALBEDO; });            \
     }                                                                                                         \
+    /* (the albedo once for both: Mitsuba's default evaluates it in eval_pdf and in sample) */                \
+    std::tuple<Spectrum, Float, BSDFSample3f, Spectrum> eval_pdf_sample(                                     \
+        const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo, Float /* sample1 */,     \
+        const Point2f &sample2, Mask active) const override {                                                \
+        BEFORE_SAMPLE;                                                                                        \
+        auto a = ALBEDO;                                                                                      \
+        auto [val, pdf] = Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, active, [&] { return a; });       \
+        auto [bs, weight] = Lambertian<Float, Spectrum>::sample(ctx, si, sample2, active, [&] { return a; });  \
+        return { val, pdf, bs, weight };                                                                      \
+    }                                                                                                         \
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {           \
         (void) active;                                                                                        \
         return depolarizer<Spectrum>(ALBEDO);                                                                 \

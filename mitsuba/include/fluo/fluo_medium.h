@@ -28,17 +28,6 @@
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
 
-/// A fluo medium's double property, rejecting non-numeric input with a message naming it.
-inline double medium_double(const Properties &props, const char *plugin, const char *name, double def) {
-    if (!props.has_property(name))
-        return def;
-    try {
-        return props.get<double>(name);
-    } catch (const std::exception &e) {
-        Throw("%s: parameter \"%s\" must be a number (%s)", plugin, name, e.what());
-    }
-}
-
 /// A traversed parameter of a medium's model (FluoMediumBase::init): its name, its value
 /// as loaded, and the step h of its derivative's central differences (h·max(|value|, 1);
 /// the first parameter is the absorber's amount, linear, whose step is unused).
@@ -84,12 +73,10 @@ template <typename Float, typename Spectrum> struct MediumCommon {
     MI_IMPORT_TYPES(Volume)
     double scale = 1.0, max_density = 1.0, max_sigma_s = 0.0;
     bool bounded = false;
-    /// No density grid and a constant σs: the extinction is the same everywhere.
-    bool constant = false;
     ref<Volume> density, sigma_s;
 
     MediumCommon(const Properties &props, const char *plugin) {
-        scale = medium_double(props, plugin, "scale", 1.0);
+        scale = get_float<double>(plugin, props, "scale", 1.0);
         if (!(scale > 0.0) || !std::isfinite(scale))
             Throw("%s: invalid parameter \"scale\" = %g: valid range is (0, inf) (metres per scene unit)", plugin,
                   scale);
@@ -138,7 +125,6 @@ template <typename Float, typename Spectrum> struct MediumCommon {
                                                  [&](const Wavelength &w) { return sigma_s->eval(at(w), true); });
         max_density = d;
         max_sigma_s = s;
-        constant = !bounded && dr::all(sigma_s->resolution() == ScalarVector3i(1, 1, 1));
     }
 
     /// The majorant's floor for a medium whose μa peaks at mu_max (1/m at density 1): where
@@ -380,11 +366,11 @@ public:
                 // two of nodes: an update that bakes another node count keeps the kernel)
                 UInt32 k = dr::binary_search<UInt32>(1, search_bound, [&](const UInt32 &i) {
                                return i < m_grid.v_n - 1 &&
-                                      dr::gather<Float>(m_cum, dr::minimum(i, m_grid.v_n - 1), live) <= target;
+                                      fluo_detail::fetch<Float>(m_cum, dr::minimum(i, m_grid.v_n - 1), live) <= target;
                            }) - 1;
-                Float x0 = dr::gather<Float>(m_grid.nodes, k, live), x1 = dr::gather<Float>(m_grid.nodes, k + 1, live);
-                Float f0 = dr::gather<Float>(m_mu_a, k, live), f1 = dr::gather<Float>(m_mu_a, k + 1, live);
-                Float off = fluo_detail::linear_cell_inverse(f0, f1, x1 - x0, target - dr::gather<Float>(m_cum, k, live));
+                Float x0 = fluo_detail::fetch<Float>(m_grid.nodes, k, live), x1 = fluo_detail::fetch<Float>(m_grid.nodes, k + 1, live);
+                Float f0 = fluo_detail::fetch<Float>(m_mu_a, k, live), f1 = fluo_detail::fetch<Float>(m_mu_a, k + 1, live);
+                Float off = fluo_detail::linear_cell_inverse(f0, f1, x1 - x0, target - fluo_detail::fetch<Float>(m_cum, k, live));
                 li[j] = dr::clip(x0 + off, (float) a, top);
                 ok[j] = live && cb > ca && dr::isfinite(cb);
                 if (m_ad.on) // μa(λi)/(C(top) − C(a)) with the parameters' derivatives
@@ -663,7 +649,7 @@ private:
 
     Float mu_a_in(const Cell &c, const Mask &active) const {
         const FloatStorage &t = mu_a_table();
-        return dr::lerp(dr::gather<Float>(t, c.k, active), dr::gather<Float>(t, c.k + 1, active), c.f);
+        return dr::lerp(fluo_detail::fetch<Float>(t, c.k, active), fluo_detail::fetch<Float>(t, c.k + 1, active), c.f);
     }
 
     /// μa at the wavelengths (spectral) or its sRGB (RGB), 1/m at density 1.
@@ -720,8 +706,8 @@ private:
     /// ∫ μa from the grid's start to λ in cell c, nm/m.
     Float cumulative(const Float &lambda, const Cell &c, const Mask &active) const {
         Float x = dr::clip(lambda, c.x0, c.x1);
-        Float f0 = dr::gather<Float>(mu_a_table(), c.k, active);
-        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), dr::gather<Float>(cum_table(), c.k, active));
+        Float f0 = fluo_detail::fetch<Float>(mu_a_table(), c.k, active);
+        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), fluo_detail::fetch<Float>(cum_table(), c.k, active));
     }
     double host_cumulative(double lambda) const {
         auto [k, f] = m_grid.host_cell(lambda);
@@ -737,7 +723,7 @@ private:
         Mask inside = active && lambda_o >= m_egrid.v_l0 && lambda_o <= m_egrid.v_l1;
         Cell ce = m_egrid.cell(lambda_o, inside);
         const FloatStorage &et = emission_table();
-        Float e = dr::lerp(dr::gather<Float>(et, ce.k, inside), dr::gather<Float>(et, ce.k + 1, inside), ce.f);
+        Float e = dr::lerp(fluo_detail::fetch<Float>(et, ce.k, inside), fluo_detail::fetch<Float>(et, ce.k + 1, inside), ce.f);
         // C(min(λo, b)) from λo's own cell where λo < b
         Float c_top = dr::select(lambda_o < (float) b, cumulative(lambda_o, c, inside), cum_at(b));
         Float mass = c_top - cum_at(a);

@@ -150,16 +150,5 @@ ParamLevels param_levels(const char *plugin, const char *name, const Texture<Flo
     return out;
 }
 
-/// Index of the level nearest to x (levels sorted, non-empty; NaN gives the first).
-inline size_t nearest_level(const std::vector<float> &levels, float x) {
-    auto it = std::lower_bound(levels.begin(), levels.end(), x);
-    if (it == levels.begin())
-        return 0;
-    if (it == levels.end())
-        return levels.size() - 1;
-    size_t hi = (size_t) (it - levels.begin());
-    return (x - levels[hi - 1] <= levels[hi] - x) ? hi - 1 : hi;
-}
-
 NAMESPACE_END(fluo_detail)
 NAMESPACE_END(mitsuba)

@@ -62,7 +62,7 @@ template <typename Float, typename Spectrum> struct QdSetup {
                  { "vacuum_permittivity", &kc.vacuum_permittivity },
                  { "relative_permittivity", &kc.relative_permittivity }, { "temperature", &kc.temperature } })
             if (!textured(name))
-                *field = get_double(props, name, *field);
+                *field = get_float<double>(Plugin, props, name, *field); // (constants span 1e-34..1e8)
         if (props.has_property("table_cos_nodes")) {
             int64_t rows = props.get<int64_t>("table_cos_nodes");
             if (rows < 2 || rows > 1025)
@@ -212,17 +212,6 @@ template <typename Float, typename Spectrum> struct QdSetup {
             }
         }
         return out;
-    }
-
-    /// A double property (the constants span 1e-34..1e8, beyond a float's comfort).
-    static double get_double(const Properties &props, const char *name, double def) {
-        if (!props.has_property(name))
-            return def;
-        try {
-            return props.get<double>(name);
-        } catch (const std::exception &e) {
-            Throw("%s: parameter \"%s\" must be a number (%s)", Plugin, name, e.what());
-        }
     }
 
     /// eta and k of a named conductor, taken from a native roughconductor built with the

@@ -166,7 +166,7 @@ public:
         Rows<K> out;
         for (size_t r = 0; r < 3; ++r)
             for (size_t k = 0; k < K; ++k)
-                out[r * K + k] = (float) m_output[r * K + k] * t[r];
+                out[r * K + k] = m_output[r * K + k] * t[r];
         return out;
     }
 
@@ -187,8 +187,7 @@ public:
                                                         const Mask &active) const {
         Coeffs<K> c;
         for (size_t k = 0; k < K; ++k)
-            c[k] = (float) m_from_rgb[3 * k] * le[0] + (float) m_from_rgb[3 * k + 1] * le[1] +
-                   (float) m_from_rgb[3 * k + 2] * le[2];
+            c[k] = m_from_rgb[3 * k] * le[0] + m_from_rgb[3 * k + 1] * le[1] + m_from_rgb[3 * k + 2] * le[2];
         // Emitters are compared by pointer (a handful per scene), without a virtual call.
         Float y = 0.212671f * le[0] + 0.715160f * le[1] + 0.072169f * le[2];
         for (const auto &[e, src] : m_sources) {
@@ -319,7 +318,7 @@ public:
             UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
             for (const Lobes &l : m_lobes) {
                 Mask known = rest && id < l.n_slots;
-                UInt32 slot = dr::gather<UInt32>(l.slots, id, known);
+                UInt32 slot = fluo_detail::fetch<UInt32>(l.slots, id, known);
                 Mask in = known && slot > 0u;
                 auto [a, b] = joined_products<K, Block>(l, slot - 1u, si, R, c, wa, wb, in);
                 va_j = dr::select(in, a, va_j);
@@ -482,14 +481,14 @@ private:
                 return { Mask(false), dr::zeros<Rows<K>>() };
             UInt32 id = dr::reinterpret_array<UInt32>(bsdf);
             Mask known = active && id < m_n_slots;
-            UInt32 row = dr::gather<UInt32>(m_slots, id, known);
+            UInt32 row = fluo_detail::fetch<UInt32>(m_slots, id, known);
             Mask g = known && row > 0u;
             UInt32 base = (row - 1u) * (uint32_t) (K * K);
             Rows<K> out = dr::zeros<Rows<K>>();
             for (size_t j = 0; j < K; ++j) {
                 Coeffs<K> col; // A[:, j]
                 for (size_t k = 0; k < K; ++k)
-                    col[k] = dr::gather<Float>(m_rows, base + (uint32_t) (k * K + j), g);
+                    col[k] = fluo_detail::fetch<Float>(m_rows, base + (uint32_t) (k * K + j), g);
                 Color3f rc = apply<K>(R, col);
                 for (size_t r = 0; r < 3; ++r)
                     out[r * K + j] = rc[r];
@@ -557,10 +556,10 @@ private:
             Coeffs<K> col = dr::zeros<Coeffs<K>>(); // A[:, j]
             for (size_t k = 0; k < K; ++k) {
                 if (e.n_table > 0)
-                    col[k] = wn * dr::gather<Float>(e.table, base + (uint32_t) (k * K + j), on);
+                    col[k] = wn * fluo_detail::fetch<Float>(e.table, base + (uint32_t) (k * K + j), on);
                 for (uint32_t t = 0; t < (uint32_t) wt.size(); ++t)
                     col[k] = dr::fmadd(wt[t],
-                                       dr::gather<Float>(e.table_d, base + t * e.n_table * (uint32_t) (K * K) +
+                                       fluo_detail::fetch<Float>(e.table_d, base + t * e.n_table * (uint32_t) (K * K) +
                                                                        (uint32_t) (k * K + j), on),
                                        col[k]);
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
@@ -597,8 +596,8 @@ private:
             Mask live = on && lobe != 0.f;
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(dr::gather<Float>(e.nodes, j * T + t, live),
-                                dr::gather<Float>(e.nodes, (j + 1) * T + t, live), f) * scale;
+                w[t] = dr::lerp(fluo_detail::fetch<Float>(e.nodes, j * T + t, live),
+                                fluo_detail::fetch<Float>(e.nodes, (j + 1) * T + t, live), f) * scale;
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
@@ -653,7 +652,7 @@ private:
         UInt32 base = member * l.width;
         return table_products<K, Block>(
             l.rows, base + 1u, l.rows, base + 1u + l.n_nodes * (uint32_t) Bispectral::MaxTerms, l.n_nodes,
-            dr::gather<Float>(l.rows, base, on),
+            fluo_detail::fetch<Float>(l.rows, base, on),
             [&](const Vector3f &wo, const Mask &m) { return l.first->jit_lobe_joined(l.joined, member, si, wo, m); },
             R, c, wa, wb, on);
     }
@@ -681,8 +680,8 @@ private:
                     Coeffs<K> m; // ∂A/∂θ_d [:, col] at cos θ
                     for (size_t k = 0; k < K; ++k) {
                         uint32_t i = (uint32_t) (k * K + col);
-                        m[k] = dr::lerp(dr::gather<Float>(e.node_d, base + i, live),
-                                        dr::gather<Float>(e.node_d, base + KK + i, live), f) * scale;
+                        m[k] = dr::lerp(fluo_detail::fetch<Float>(e.node_d, base + i, live),
+                                        fluo_detail::fetch<Float>(e.node_d, base + KK + i, live), f) * scale;
                     }
                     for (size_t r = 0; r < 3; ++r) {
                         Float acc = R[r * K] * m[0];
@@ -736,7 +735,7 @@ private:
             UInt32 row = node_base + j * T;
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(dr::gather<Float>(nodes, row + t, m), dr::gather<Float>(nodes, row + T + t, m), f) *
+                w[t] = dr::lerp(fluo_detail::fetch<Float>(nodes, row + t, m), fluo_detail::fetch<Float>(nodes, row + T + t, m), f) *
                        (lobe * scale);
             return w;
         };
@@ -747,7 +746,7 @@ private:
             Coeffs<K> col_a = dr::zeros<Coeffs<K>>(), col_b = dr::zeros<Coeffs<K>>(); // A[:, j]
             for (size_t k = 0; k < K; ++k)
                 for (uint32_t t = 0; t < T; ++t) {
-                    Float b = dr::gather<Float>(terms, term_base + (t * KK + (uint32_t) (k * K + j)), live);
+                    Float b = fluo_detail::fetch<Float>(terms, term_base + (t * KK + (uint32_t) (k * K + j)), live);
                     col_a[k] = dr::fmadd(w_a[t], b, col_a[k]);
                     col_b[k] = dr::fmadd(w_b[t], b, col_b[k]);
                 }
@@ -778,18 +777,17 @@ private:
         m_transport = std::move(t);
         m_k = fluo::transport_size(**m_transport);
         check_bands();
-        m_output.resize(3 * m_k);
-        m_from_rgb.resize(3 * m_k);
-        m_white.resize(m_k);
-        fluo::transport_output(**m_transport, rust::Slice<double>(m_output.data(), m_output.size()));
-        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(m_from_rgb.data(), m_from_rgb.size()));
-        fluo::transport_white(**m_transport, rust::Slice<double>(m_white.data(), m_white.size()));
+        std::vector<double> output(3 * m_k), from_rgb(3 * m_k), white(m_k);
+        fluo::transport_output(**m_transport, rust::Slice<double>(output.data(), output.size()));
+        fluo::transport_from_rgb(**m_transport, rust::Slice<double>(from_rgb.data(), from_rgb.size()));
+        fluo::transport_white(**m_transport, rust::Slice<double>(white.data(), white.size()));
+        m_output.assign(output.begin(), output.end());
+        m_from_rgb.assign(from_rgb.begin(), from_rgb.end());
         // band_albedo's rows: F_k/(F·1)_k, or the mean where a band holds no white
         m_albedo_map.resize(3 * m_k);
         for (size_t k = 0; k < m_k; ++k)
             for (size_t c = 0; c < 3; ++c)
-                m_albedo_map[3 * k + c] = std::abs(m_white[k]) > 1e-12 ? (float) (m_from_rgb[3 * k + c] / m_white[k])
-                                                                        : 1.f / 3.f;
+                m_albedo_map[3 * k + c] = std::abs(white[k]) > 1e-12 ? (float) (from_rgb[3 * k + c] / white[k]) : 1.f / 3.f;
     }
 
     const char *m_plugin;
@@ -797,8 +795,8 @@ private:
     bool m_adaptive; ///< basis "auto": built in prepare() from the scene's light spectra
     std::optional<rust::Box<fluo::TransportBasis>> m_transport;
     size_t m_k = 3;
-    std::vector<double> m_output, m_from_rgb, m_white;
-    std::vector<float> m_albedo_map; ///< band_albedo's K×3 map
+    std::vector<float> m_output, m_from_rgb; ///< O (3×K) and F (K×3), in single precision
+    std::vector<float> m_albedo_map;         ///< band_albedo's K×3 map
     std::vector<Entry> m_entries;
     bool m_opaque = false; ///< see LiteralEntries
     std::array<std::vector<bool>, Bispectral::MaxTerms> m_any; ///< per term: entries non-zero in some material
