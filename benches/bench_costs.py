@@ -39,6 +39,7 @@ llvm: 200 distinct materials (jung, qd; both)     first render, peak memory / na
 llvm: one backward pass, peak memory (spectral)   ``fluo_prb`` / AD through ``fluo_path``      0.5
 llvm: one backward pass, peak memory (RGB)        ``fluo_prb`` / AD through ``fluo_path``      0.5
 llvm: one backward pass, QD cuvette (spectral)    ``fluo_prbvolpath`` / AD, ``fluo_volpath``   0.5
+llvm: one backward pass, QD cuvette (RGB)         ``fluo_prbvolpath`` / AD, ``fluo_volpath``   0.5
 ================================================  ===========================================  ======
 
 The materials of the box rows replace the box's walls and blocks; the light is the
@@ -518,7 +519,8 @@ def backward_pass(variant: str, integrator: str) -> dict:
     """Load the fluorescent Cornell box (its fluo_jung walls' concentration with gradients;
     Mitsuba's `prb`: diffuse walls, their reflectance) or, for the volumetric integrators,
     the quantum-dot cuvette (Q 0.8, its concentration; Mitsuba's `prbvolpath`: a homogeneous
-    medium, its σt; at VOLUME_BACKWARD_RES², VOLUME_BACKWARD_SPP spp) and run one reverse-mode
+    medium, its σt; RGB: the floor's reflectance, all three; at VOLUME_BACKWARD_RES²,
+    VOLUME_BACKWARD_SPP spp) and run one reverse-mode
     pass of mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process:
     its peak memory (peak_mb), and what the process held before the pass."""
     import drjit as dr
@@ -533,6 +535,8 @@ def backward_pass(variant: str, integrator: str) -> dict:
         spp = VOLUME_BACKWARD_SPP
         d["integrator"]["max_depth"] = 8
         key = "cuvette.interior_medium." + ("sigma_t.value.value" if native else "concentration")
+        if variant.endswith("_rgb"):  # (RGB replays surfaces' parameters, not the media's)
+            key = "floor.bsdf.reflectance.value"
     else:
         d = box(BACKWARD_RES, integrator=integrator, bsdf=diffuse if native else jung)
         key = "white.reflectance.value" if native else "white.concentration"
@@ -778,6 +782,11 @@ ROWS = {
                                     "llvm_ad_spectral", 0.5,
                                     lambda a: backward_row(a, "llvm_ad_spectral",
                                                            ("fluo_prbvolpath", "fluo_volpath", "prbvolpath"))),
+    "llvm_backward_memory_volume_rgb": ("llvm: backward pass peak memory, fluo_prbvolpath / AD through fluo_volpath "
+                                        "(QD cuvette, Q 0.8, the floor's reflectance, 32², 32 spp, max_depth 8), "
+                                        "llvm_ad_rgb (reduced transport)", 0.5,
+                                        lambda a: backward_row(a, "llvm_ad_rgb",
+                                                               ("fluo_prbvolpath", "fluo_volpath", "prbvolpath"))),
     "llvm_speedup": ("speed-up: scalar_spectral / llvm_ad_spectral fluo_path, fluorescent box", None,
                      lambda a: speedup_row(a, "spectral")),
     "llvm_speedup_rgb": ("speed-up: scalar_rgb / llvm_ad_rgb fluo_path x7, fluorescent box", None,

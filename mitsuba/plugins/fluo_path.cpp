@@ -715,42 +715,16 @@ private:
         }
     }
 
-    /// K > 0, fluo_prb's replay: the radiance still to come from the vertex that `from`
-    /// starts, per unit of throughput. A matrix throughput's is K basis coefficients r (the
-    /// path's rest R'·r), which its 3 RGB values do not determine; so continuations of the
-    /// path carry the identity's rows in place of R' (3 each, ⌈K/3⌉ of them) and give r; an
-    /// RGB throughput's is the 3 values of the first one (t = 1). Each replays the path's
-    /// random numbers (a clone of its sampler) without gradients; its roulette decides on
-    /// its own throughput (unbiased, not the primal's decisions). Memory does not grow with
-    /// depth; time does, quadratically (each vertex continues the path to its end).
+    /// K > 0, fluo_prb's replay: the radiance still to come from `from` per unit of
+    /// throughput (fluo_detail::future, this loop's continuations).
     template <size_t K>
     std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
-        dr::suspend_grad<Float> detached;
         const Walk primal{ false, Spectrum() };
-        Mask weighed = dr::any(w.delta_L != 0.f); // (invalid or clipped samples: nothing to weigh)
-        Coeffs<K> coeffs = dr::zeros<Coeffs<K>>();
-        Color3f rgb = 0.f;
-        for (size_t b = 0; 3 * b < K; ++b) {
-            ref<Sampler> clone = from.sampler->clone();
-            LoopState<K> cs = from;
-            cs.sampler = clone.get();
-            cs.result = dr::zeros<Spectrum>();
-            cs.c.t = Color3f(1.f);
-            cs.c.R = dr::zeros<Rows<K>>();
-            for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-                cs.c.R[r * K + 3 * b + r] = 1.f;
-            if (b > 0) // RGB throughputs need the first only
-                cs.active &= from.c.reduced;
-            cs.active &= weighed;
+        return fluo_detail::future<K, Coeffs<K>, Color3f>(from, Mask(dr::any(w.delta_L != 0.f)), [&](LoopState<K> &cs) {
             dr::tie(cs) = dr::while_loop(
                 dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
                 [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
-            for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-                coeffs[3 * b + r] = cs.result[r];
-            if (b == 0)
-                rgb = cs.result;
-        }
-        return { coeffs, rgb };
+        });
     }
 
     double m_lambda_min = 300.0;

@@ -173,9 +173,8 @@ the render). Where nothing fluoresces the primal render is ``volpath``'s and the
 derivatives are still this loop's.
 
 **Path replay (``fluo_prbvolpath``).** The same class registered as ``fluo_prbvolpath``
-renders exactly what ``fluo_volpath`` renders and, in the spectral AD variants
-(``llvm_ad_spectral``, ``cuda_ad_spectral``), replays each path for reverse-mode
-derivatives instead of recording the loop (Vicini et al. 2021, as Mitsuba's
+renders exactly what ``fluo_volpath`` renders and, in the AD variants (``llvm_ad_*``,
+``cuda_ad_*``), replays each path for reverse-mode derivatives instead of recording the loop (Vicini et al. 2021, as Mitsuba's
 ``prbvolpath``; fluo_prb's three passes, ``fluo_path_scene.h``): the same paths again
 (same collisions, null/real choices, shifts and wavelengths) carrying the radiance still
 to come, each event backpropagating δL times its emission, its next-event estimate and the
@@ -184,10 +183,15 @@ real collision's σs + μf, the shift's excitation density, phase function, BSDF
 memory independent of depth. A next-event estimate's transmittance is tracked a second
 time with the same random numbers (a clone of the sampler) to backpropagate each ratio
 tracking step's factor. With roulette off its derivatives equal the recorded loop's to
-5e-6 (test_fluo_prbvolpath.py). The RGB variants have no volumetric replay yet (a shadow
-ray through a fluorescent medium multiplies 3×K matrices, whose derivative needs the
-product still to come): there ``fluo_prbvolpath``'s backward pass records
-``fluo_volpath``'s loop, and says so once. The polarized variants refuse it.
+5e-6 (test_fluo_prbvolpath.py). In the RGB variants (the reduced transport) each event's
+radiance still to come is the path's rest per unit of matrix throughput: K coefficients
+from continuations carrying the identity's rows (⌈K/3⌉ per event, as ``fluo_prb``'s;
+memory independent of depth, time growing with its square), and a next-event estimate's
+T·c(light) likewise from continuations of its shadow ray. There a shadow ray's own
+factors are not differentiated (a shadow ray through a fluorescent medium multiplies 3×K
+matrices, whose derivative needs the product still to come): where a medium's or a null
+surface's parameter carries gradients, the RGB backward pass records ``fluo_volpath``'s
+loop instead and says so once. The polarized variants refuse it.
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.
@@ -260,8 +264,9 @@ public:
     void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
                          uint32_t spp) override {
         Differentiating on{ this };
-        if constexpr (dr::is_diff_v<Float> && is_spectral_v<Spectrum> && !is_polarized_v<Spectrum>) {
-            if (m_replay) { // path replay (fluo_path_scene.h's PathReplay), its primal this loop's
+        if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
+            if (m_replay && (is_spectral_v<Spectrum> || !transmittance_gradients(scene))) {
+                // path replay (fluo_path_scene.h's PathReplay), its primal this loop's
                 prepare(scene);
                 m_prepared.mark(scene);
                 if (m_max_depth == 0)
@@ -269,15 +274,16 @@ public:
                 return m_replayer.backward(
                     "fluo_prbvolpath",
                     [&](bool develop) { return Base::render(scene, sensor, seed, spp, develop, false); }, sensor,
-                    grad_in, spp, false);
+                    grad_in, spp, !is_spectral_v<Spectrum>); // (RGB: trace<K> clips)
             }
         }
         if (m_replay && !m_replay_warned) {
             m_replay_warned = true;
-            Log(Warn, "fluo_prbvolpath: the RGB variants have no volumetric path replay yet (a shadow ray "
-                      "through a fluorescent medium multiplies 3xK matrices, whose derivative needs the "
-                      "product still to come); this backward pass differentiates fluo_volpath's recorded "
-                      "loop instead: the same gradients, with memory growing with the path depth");
+            Log(Warn, "fluo_prbvolpath: in the RGB variants a medium's (or a null surface's) parameters "
+                      "with gradients are not replayed (a shadow ray through a fluorescent medium multiplies "
+                      "3xK matrices, whose derivative needs the product still to come); this backward pass "
+                      "differentiates fluo_volpath's recorded loop instead: the same gradients, with memory "
+                      "growing with the path depth");
         }
         Base::render_backward(scene, params, grad_in, sensor, seed, spp);
     }
@@ -290,13 +296,18 @@ public:
         if constexpr (!is_spectral_v<Spectrum>) {
             if (!m_fluorescent && !m_differentiating)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
-            if (m_reduced.bands() == 3)
-                return trace<3>(scene, sampler, ray, medium, active);
-            if (m_reduced.bands() == 4)
-                return trace<4>(scene, sampler, ray, medium, active);
-            if (m_reduced.bands() == 7)
-                return trace<7>(scene, sampler, ray, medium, active);
-            return trace<Reduced::KMax>(scene, sampler, ray, medium, active); // auto with two light bands
+            auto bands = [&](bool adjoint, bool clip) {
+                if (m_reduced.bands() == 3)
+                    return trace<3>(scene, sampler, ray, medium, active, adjoint, clip);
+                if (m_reduced.bands() == 4)
+                    return trace<4>(scene, sampler, ray, medium, active, adjoint, clip);
+                if (m_reduced.bands() == 7)
+                    return trace<7>(scene, sampler, ray, medium, active, adjoint, clip);
+                return trace<Reduced::KMax>(scene, sampler, ray, medium, active, adjoint, clip); // auto, 2 light bands
+            };
+            if (m_replayer.replay([&](bool adjoint) { return bands(adjoint, false); }))
+                return { 0.f, false };
+            return bands(false, true);
         } else {
             if (!m_fluorescent && !m_differentiating)
                 return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
@@ -711,11 +722,25 @@ private:
         }
     }
 
+    /// What the iterations of one trace() share: whether it is fluo_prbvolpath's replay
+    /// (`adjoint`, with the sample's adjoint radiance δL) or a derivative pass
+    /// (`differentiating`), and the render's flags.
+    struct Walk {
+        bool adjoint = false, differentiating = false, directional = false, surfaces = false, media = false;
+        double range_lo = 0.0, range_hi = 0.0;
+        Spectrum delta_L;
+    };
+
     /// volpath's loop with fluorescence; what differs between the carried throughputs is
-    /// marked K == 0 (wavelength shifting) / K > 0 (the reduced transport).
+    /// marked K == 0 (wavelength shifting) / K > 0 (the reduced transport). `adjoint`:
+    /// fluo_prbvolpath's replay; K = 0: `result` holds the radiance still to come (the
+    /// primal's, less what the events passed gave); K > 0: each iteration's radiance still to
+    /// come is estimated by future(). `clip`: K > 0 clips out-of-gamut colours per sample
+    /// (the replay's primal pass keeps them: their sign masks δL).
     template <size_t K>
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
-                                    const Medium *initial_medium, Bool active, bool adjoint = false) const {
+                                    const Medium *initial_medium, Bool active, bool adjoint = false,
+                                    bool clip = true) const {
         LoopState<K> ls;
         start(ls, scene, sampler, ray_, initial_medium, active);
         if constexpr (K == 0)
@@ -723,373 +748,421 @@ private:
         else
             ls.c = { Color3f(1.f), dr::zeros<Rows<K>>(), Mask(false) };
         ls.result = Spectrum(0.f);
-        // fluo_prbvolpath's replay (K = 0): `result` holds the radiance still to come (the
-        // primal's, less what the events passed gave), δL the sample's adjoint radiance
-        Spectrum delta_L;
-        if constexpr (dr::is_diff_v<Float> && K == 0) {
+        Walk w;
+        if constexpr (dr::is_diff_v<Float>) {
             if (adjoint) {
-                ls.result = m_replayer.primal();
-                delta_L = m_replayer.adjoint();
+                if constexpr (K == 0)
+                    ls.result = m_replayer.primal();
+                w.delta_L = m_replayer.adjoint();
             }
         } else {
             adjoint = false;
         }
-        const bool directional = m_directional, surfaces = K == 0 ? !m_bsdfs.empty() : m_reduced.size() > 0,
-                   media = !m_media.empty();
-        const double range_lo = m_range_lo, range_hi = m_range_hi;
+        w.adjoint = adjoint;
         // a derivative pass: media sampled without gradients, their coefficients with them at
         // the detached collisions (attach_collision; as volpath, d/dσt of a homogeneous medium
         // came out 0.0089 and 0.0096 against 0.208 by differences, spectral and RGB)
-        const bool differentiating = m_differentiating || adjoint;
-        constexpr size_t KC = K == 0 ? 1 : K; // (the band arrays' size where K = 0 has none)
-
+        w.differentiating = m_differentiating || adjoint;
+        w.directional = m_directional;
+        w.surfaces = K == 0 ? !m_bsdfs.empty() : m_reduced.size() > 0;
+        w.media = !m_media.empty();
+        w.range_lo = m_range_lo;
+        w.range_hi = m_range_hi;
         dr::tie(ls) = dr::while_loop(
             dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
-            [this, scene, directional, surfaces, media, range_lo, range_hi, adjoint, differentiating,
-             delta_L](LoopState<K> &ls) {
-                Mask &active = ls.active;
-                Carried<K> &c = ls.c;
-                Sampler *sampler = ls.sampler;
-                // The replay: this iteration's values with gradients, what it gives (Lo)
-                // backpropagated at its end, sampling without gradients (as prbvolpath); the
-                // throughput enters detached, so the rest of the path's derivative is
-                // result·relative(throughput) after the iteration's weights.
-                dr::resume_grad<Float> attached(adjoint);
-                Spectrum Lo = 0.f;
-                auto detached = [adjoint](auto &&f) {
-                    dr::suspend_grad<Float> off(adjoint);
-                    return f();
-                };
-                auto detached_media = [differentiating](auto &&f) {
-                    dr::suspend_grad<Float> off(differentiating);
-                    return f();
-                };
-                // (the replay's first tracking renders; its second, in shadow(), replays)
-                const Shadow shadow_mode = differentiating && !adjoint ? Shadow::Recorded : Shadow::Render;
-                auto add = [&](const Spectrum &x, const Mask &m) { // K = 0: a contribution to the radiance
-                    if (adjoint) {
-                        Spectrum v = dr::select(m, x, 0.f);
-                        Lo += v;
-                        ls.result -= dr::detach(v);
-                    } else {
-                        dr::masked(ls.result, m) += x;
-                    }
-                };
-                // K = 0: a next-event estimate's transmittance, the replay keeping a clone of the
-                // sampler to track it again with gradients
-                auto transmittance = [&](const auto &at, const DirectionSample3f &ds, ref<Sampler> &again,
-                                         const Mask &on) {
-                    if (dr::none_or<false>(on))
-                        return Spectrum(1.f);
-                    if (adjoint)
-                        again = sampler->clone();
-                    return detached([&] {
-                        return std::get<0>(
-                            transmit<0>(at, ds, scene, sampler, ls.medium, ls.channel, Float(0.f), on, shadow_mode));
-                    });
-                };
-                // ... and its contribution x, whose transmittance's derivative the replay
-                // backpropagates along the same ratio tracking
-                auto shadow = [&](const auto &at, const DirectionSample3f &ds, ref<Sampler> &again,
-                                  const Spectrum &x, const Mask &on) {
-                    add(x, on);
-                    if constexpr (K == 0)
-                        if (adjoint && dr::any_or<true>(on))
-                            transmit<0>(at, ds, scene, again.get(), ls.medium, ls.channel, Float(0.f), on,
-                                        Shadow::Replay, delta_L * dr::detach(dr::select(on, x, 0.f)));
-                };
-
-                // ----------------- Russian roulette, max_depth -----------------
-                if constexpr (K == 0) {
-                    auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(c.throughput)),
-                                                     dr::any(unpolarized_spectrum(c.throughput) != 0.f));
-                    dr::masked(c.throughput, perform_rr) *= rr;
-                } else {
-                    Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
-                    auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
-                    dr::masked(c.t, perform_rr) *= rr;
-                    dr::masked(c.R, perform_rr) *= rr;
-                }
-                if (dr::none_or<false>(active))
-                    return;
-
-                // ------------------------ Sampling the RTE ---------------------
-                Mask active_medium = active && ls.medium != nullptr;
-                Mask active_surface = active && !active_medium;
-                Mask act_null = false, act_scatter = false, escaped = false;
-                Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
-                Float p_null = 0.f, p_real = 1.f, d = 0.f;
-                UnpolarizedSpectrum mu_f = 0.f;                   // K = 0: μf at the collision
-                Coeffs<KC> sigma_s = dr::zeros<Coeffs<KC>>();     // K > 0: a fluorescent collision's σs per band
-                MediaMasks which;
-                if (dr::any_or<true>(active_medium)) {
-                    is_spectral &= ls.medium->has_spectral_extinction();
-                    not_spectral = !is_spectral && active_medium;
-                    Mask fluo_flight = detached_media([&] { return start_flight(scene, ls, active_medium); });
-                    // what the majorant covers of the source rate (up to 1/ℓ)
-                    UnpolarizedSpectrum source = 0.f;
-                    if constexpr (K == 0) {
-                        if (dr::any_or<true>(fluo_flight)) {
-                            auto [mu_a, mu_f_] =
-                                detached_media([&] { return rates(ls.medium, ls.ray.wavelengths, fluo_flight); });
-                            dr::masked(ls.mu_a, fluo_flight) = mu_a;
-                            dr::masked(c.mu_f, fluo_flight) = mu_f_;
-                        }
-                        source = c.mu_f;
-                    } else {
-                        if (dr::any_or<true>(fluo_flight))
-                            dr::masked(ls.mu_a, fluo_flight) =
-                                absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
-                        if (media)
-                            which = which_media(ls.medium);
-                        source = media ? per_medium(which, &ReducedMedium::f_max, 0) : Float(0.f);
-                    }
-                    Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
-                    auto [mei, mf, fl, dd] = detached_media([&] {
-                        return sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), ls.channel, rate,
-                                             ls.mu_a, source, active_medium);
-                    });
-                    detached_media([&] { return place_collision(scene, ls, mei, active_medium); });
-                    mu_f = mf;
-                    d = dd;
-                    is_fluo = fl && active_medium;
-                    if constexpr (K > 0)
-                        is_spectral &= !is_fluo; // R carries a fluorescent medium's weights
-                    Mask weighted = is_spectral; // (escaping flights too)
-                    auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
-                    if (differentiating) // the collision's coefficients (and the flight's weight) with gradients
-                        attach_collision(ls, w, mu_f, d, weighted, is_fluo, active_medium);
-                    weigh<K>(c, w, weighted);
-
-                    // Null or real: volpath's rule; in fluorescent media spectral tracking
-                    // (K = 0) or band tracking on R (K > 0). The probabilities are detached:
-                    // a weight σ/p then differentiates σ alone (the choice's own derivative
-                    // is not the integrand's).
-                    p_null = dr::detach(pn);
-                    p_real = dr::detach(pr);
-                    Float majorant = ls.mei.combined_extinction[0];
-                    if (media && dr::any_or<true>(is_fluo)) {
-                        std::pair<Float, Float> p;
-                        if constexpr (K == 0) {
-                            p = spectral_tracking(ls.mei, c.throughput, mu_f, ls.inv_len);
-                        } else {
-                            c.R = dr::select(is_fluo && !c.reduced, m_reduced.template output_rows<K>(c.t), c.R);
-                            c.reduced |= is_fluo;
-                            sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
-                            p = band_tracking<K>(c.R, sigma_s, d, majorant, ls.inv_len, which);
-                        }
-                        p_null = dr::select(is_fluo, dr::detach(p.first), p_null);
-                        p_real = dr::select(is_fluo, dr::detach(p.second), p_real);
-                    }
-                    Mask null_scatter = sampler->next_1d(active_medium) < p_null;
-                    act_null = null_scatter && active_medium;
-                    act_scatter = !null_scatter && active_medium;
-                    weigh<K>(c, ls.mei.sigma_n / p_null, act_null && is_spectral);
-                    if constexpr (K > 0) {
-                        Mask fl_null = act_null && is_fluo;
-                        if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
-                            Float s = dr::rcp(majorant * p_null);
-                            Coeffs<K> g;
-                            for (size_t k = 0; k < K; ++k)
-                                g[k] = (majorant - sigma_s[k]) * s;
-                            c.R = dr::select(fl_null, medium_product<K>(c.R, g, -d * s, &ReducedMedium::a, which),
-                                             c.R);
-                        }
-                    }
-                }
-                settle_collision(ls, act_null, act_scatter);
-
-                if (dr::any_or<true>(act_scatter)) {
-                    // K = 0: elastic scattering, or per wavelength a shift to λi (the docs'
-                    // estimator). K > 0: a fluorescent medium's source operator
-                    // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
-                    Mask fl_scatter = act_scatter && is_fluo;
-                    WMask shifted = false;
-                    Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
-                    UnpolarizedSpectrum sigma_w = ls.mei.sigma_s;
-                    if constexpr (K == 0) {
-                        if (media && dr::any_or<true>(fl_scatter))
-                            shifted = shift_collision(ls, mu_f, sampler, fl_scatter, range_lo, range_hi, sigma_w);
-                    }
-                    weigh<K>(c, sigma_w / p_real, act_scatter && is_spectral);
-                    weigh<K>(c, ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
-                    if constexpr (K == 0) {
-                        // A collision that absorbed every wavelength for good ends the path.
-                        Mask dead = fl_scatter && dr::all(unpolarized_spectrum(c.throughput) == 0.f);
-                        active &= !dead;
-                        act_scatter &= !dead;
-                    }
-
-                    PhaseFunctionContext phase_ctx(sampler);
-                    auto [phase, active_e] = begin_scatter(ls, act_scatter);
-
-                    // ------------------------ Emitter sampling -----------------
-                    if (dr::any_or<true>(active_e)) {
-                        auto [ds, emitter_val] = detached([&] {
-                            return scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
-                        });
-                        active_e &= ds.pdf != 0.f;
-                        if (adjoint) // the emitter's value with gradients at the detached sample
-                            emitter_val = fluo_detail::emitter_weight(scene, ls.mei, ds, emitter_val, active_e);
-                        auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
-                        Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
-                        if constexpr (K == 0) {
-                            // shifted wavelengths re-emit isotropically
-                            phase_val =
-                                fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi), phase_val);
-                            ref<Sampler> again;
-                            Spectrum emitted = emitter_val * transmittance(ls.mei, ds, again, active_e);
-                            shadow(ls.mei, ds, again, c.throughput * phase_val * emitted * mis, active_e);
-                        } else {
-                            Color3f pv(phase_val);
-                            Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
-                            Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
-                            if (media && dr::any_or<true>(fl_scatter))
-                                B = dr::select(fl_scatter,
-                                               source_product<K>(c.R, sigma_s, pv, d, InvFourPi, real_scale, which), B);
-                            dr::masked(ls.result, active_e) += light<K>(ls.mei, ds, emitter_val, scene, sampler,
-                                                                        ls.medium, ls.channel, B, c.t * pv,
-                                                                        c.reduced, active_e, shadow_mode) * mis;
-                        }
-                    }
-
-                    // ---------------------- Phase function sampling ------------
-                    if (dr::any_or<true>(act_scatter)) { // (phase is null elsewhere)
-                        Float phase_1 = sampler->next_1d(act_scatter);
-                        Point2f phase_2 = sampler->next_2d(act_scatter);
-                        auto [wo, phase_weight, phase_pdf] = detached(
-                            [&] { return phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter); });
-                        act_scatter &= phase_pdf > 0.f;
-                        if (adjoint) // the phase function's value with gradients at the detached sample
-                            phase_weight *= fluo_detail::relative(
-                                phase->eval_pdf(phase_ctx, ls.mei, wo, act_scatter).first);
-                        if constexpr (K == 0) {
-                            phase_weight = fluo_detail::select_unpolarized(
-                                shifted, UnpolarizedSpectrum(InvFourPi / phase_pdf), phase_weight);
-                            dr::masked(c.throughput, act_scatter) *= phase_weight;
-                        } else {
-                            fl_scatter &= act_scatter;
-                            if (media && dr::any_or<true>(fl_scatter))
-                                c.R = dr::select(fl_scatter,
-                                                 source_product<K>(c.R, sigma_s, Color3f(phase_weight), d,
-                                                                   InvFourPi / phase_pdf, real_scale, which),
-                                                 c.R);
-                            weigh<K>(c, phase_weight, act_scatter && !is_fluo);
-                        }
-                        dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo); // carries λi where shifted
-                        ls.needs_intersection |= act_scatter;
-                        dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
-                    }
-                }
-
-                // ----------------------- Surface interactions ------------------
-                active_surface |= escaped;
-                Mask intersect = detached([&] { return reach_surface(scene, ls, active_surface); });
-
-                if (dr::any_or<true>(active_surface)) {
-                    auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
-                    if (adjoint) // the replay differentiates materials, emitters and media, not geometry
-                        ls.si = dr::detach(ls.si);
-                    if constexpr (K == 0)
-                        add(c.throughput * emitted * weight, active_e);
-                    else if (dr::any_or<true>(active_e))
-                        dr::masked(ls.result, active_e) +=
-                            m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, emitted, active_e) * weight;
-                }
-                active_surface &= ls.si.is_valid();
-                if (dr::any_or<true>(active_surface)) {
-                    BSDFContext ctx;
-                    SurfaceInteraction3f &si = ls.si;
-                    BSDFPtr bsdf = si.bsdf(ls.ray);
-                    typename Wrappers::Perturbations perturbed;
-                    if (!m_wrappers.empty())
-                        bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
-                    fluo_detail::SurfaceShift<Float, Spectrum> shift; // K = 0: elastic or shift per wavelength
-                    if (K == 0 && surfaces)
-                        shift.choose(m_bsdfs, bsdf, si, sampler, active_surface, range_lo, range_hi);
-
-                    // ------------------------ Emitter sampling -----------------
-                    Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
-                                    ls.depth + 1 < (uint32_t) m_max_depth;
-                    DirectionSample3f ds = dr::zeros<DirectionSample3f>();
-                    Spectrum emitter_val = 0.f;
-                    ref<Sampler> again; // K = 0, the replay: the shadow ray's numbers again
-                    if (dr::any_or<true>(active_e)) {
-                        std::tie(ds, emitter_val) = detached([&] {
-                            return scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
-                        });
-                        active_e &= ds.pdf != 0.f;
-                        if (adjoint)
-                            emitter_val = fluo_detail::emitter_weight(scene, si, ds, emitter_val, active_e);
-                        if constexpr (K == 0) // (the transmittance before the BSDF's numbers, as volpath)
-                            emitter_val *= transmittance(si, ds, again, active_e);
-                    }
-                    active_e &= perturbed.keeps_side(ds.d);
-                    Vector3f wo = si.to_local(ds.d);
-
-                    // ---------------- Emitter contribution, BSDF sampling ------
-                    Float sample_1 = sampler->next_1d(active_surface);
-                    Point2f sample_2 = sampler->next_2d(active_surface);
-                    auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] = detached([&] {
-                        return shift.eval_pdf_sample(m_bsdfs, bsdf, ctx, si, wo, sample_1, sample_2, active_surface);
-                    });
-                    if (adjoint) { // the BSDF's values with gradients at the detached samples (as fluo_prb)
-                        bsdf_val = bsdf->eval(ctx, si, wo, active_e);
-                        bsdf_weight *= fluo_detail::relative(bsdf->eval(ctx, si, bs.wo, active_surface));
-                    } else {
-                        fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface);
-                    }
-                    Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
-                    if constexpr (K == 0) {
-                        if (surfaces)
-                            shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
-                        shadow(si, ds, again, c.throughput * bsdf_val * mis * emitter_val, active_e);
-                        dr::masked(c.throughput, active_surface) *= bsdf_weight;
-                    } else {
-                        Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
-                        Mask is_fl = false, native_elastic = false;
-                        Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
-                        if (surfaces)
-                            std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
-                                bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
-                                m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
-                        if (dr::any_or<true>(active_e)) {
-                            Rows<K> B_red =
-                                Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
-                            Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
-                            dr::masked(ls.result, active_e) += light<K>(si, ds, emitter_val, scene, sampler, ls.medium,
-                                                                        ls.channel, B, c.t * bsdf_val,
-                                                                        c.reduced || is_fl, active_e, shadow_mode) * mis;
-                        }
-                        m_reduced.template scatter<K>(c.R, c.t, c.reduced, Rm, R_fl, is_fl, native_elastic, bsdf_weight,
-                                                      active_surface);
-                    }
-                    leave_surface(ls, si, bs, active_surface); // the ray carries λi where shifted
-                    active_surface &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
-                }
-                active &= active_surface || active_medium;
-                if constexpr (dr::is_diff_v<Float> && K == 0) {
-                    if (adjoint) { // the rest of the path through this iteration's weights
-                        Lo += dr::select(active, ls.result * fluo_detail::relative(c.throughput), 0.f);
-                        if (dr::grad_enabled(Lo)) {
-                            Spectrum weighted = delta_L * Lo;
-                            dr::backward_from(weighted);
-                        }
-                        // the path itself carries no gradients
-                        c.throughput = dr::detach(c.throughput);
-                        ls.si = dr::detach(ls.si);
-                        ls.mei = dr::detach(ls.mei);
-                        ls.ray = dr::detach(ls.ray);
-                        ls.eta = dr::detach(ls.eta);
-                        ls.last_scatter_event = dr::detach(ls.last_scatter_event);
-                        ls.last_scatter_direction_pdf = dr::detach(ls.last_scatter_direction_pdf);
-                    }
-                }
-            });
+            [this, scene, w](LoopState<K> &ls) { step<K>(scene, ls, w); });
         if constexpr (K == 0)
             return { ls.result, ls.valid_ray };
-        else // out-of-gamut colours are clipped per sample (as fluo_path does)
+        else if (clip) // out-of-gamut colours are clipped per sample (as fluo_path does)
             return { dr::select(ls.valid_ray, dr::maximum(ls.result, 0.f), 0.f), ls.valid_ray };
+        else
+            return { dr::select(ls.valid_ray, ls.result, 0.f), ls.valid_ray };
+    }
+
+    /// One iteration of trace()'s loop: a free flight and its collision, or a surface.
+    template <size_t K> void step(const Scene *scene, LoopState<K> &ls, const Walk &w) const {
+        const bool adjoint = w.adjoint, differentiating = w.differentiating, directional = w.directional,
+                   surfaces = w.surfaces, media = w.media;
+        const double range_lo = w.range_lo, range_hi = w.range_hi;
+        const Spectrum &delta_L = w.delta_L;
+        constexpr size_t KC = K == 0 ? 1 : K; // (the band arrays' size where K = 0 has none)
+        Mask &active = ls.active;
+        Carried<K> &c = ls.c;
+        Sampler *sampler = ls.sampler;
+        // The replay: this iteration's values with gradients, what it gives (Lo)
+        // backpropagated at its end, sampling without gradients (as prbvolpath); the
+        // throughput enters detached, so the rest of the path's derivative is
+        // result·relative(throughput) after the iteration's weights.
+        dr::resume_grad<Float> attached(adjoint);
+        Spectrum Lo = 0.f;
+        auto detached = [adjoint](auto &&f) {
+            dr::suspend_grad<Float> off(adjoint);
+            return f();
+        };
+        auto detached_media = [differentiating](auto &&f) {
+            dr::suspend_grad<Float> off(differentiating);
+            return f();
+        };
+        // (the replay's first tracking renders; its second, in shadow(), replays)
+        const Shadow shadow_mode = differentiating && !adjoint ? Shadow::Recorded : Shadow::Render;
+        auto add = [&](const Spectrum &x, const Mask &m) { // a contribution to the radiance
+            if (adjoint) {
+                Spectrum v = dr::select(m, x, 0.f);
+                Lo += v;
+                if constexpr (K == 0) // (K > 0: the radiance still to come is future()'s)
+                    ls.result -= dr::detach(v);
+            } else {
+                dr::masked(ls.result, m) += x;
+            }
+        };
+        // K = 0: a next-event estimate's transmittance, the replay keeping a clone of the
+        // sampler to track it again with gradients
+        auto transmittance = [&](const auto &at, const DirectionSample3f &ds, ref<Sampler> &again,
+                                 const Mask &on) {
+            if (dr::none_or<false>(on))
+                return Spectrum(1.f);
+            if (adjoint)
+                again = sampler->clone();
+            return detached([&] {
+                return std::get<0>(
+                    transmit<0>(at, ds, scene, sampler, ls.medium, ls.channel, Float(0.f), on, shadow_mode));
+            });
+        };
+        // ... and its contribution x, whose transmittance's derivative the replay
+        // backpropagates along the same ratio tracking
+        auto shadow = [&](const auto &at, const DirectionSample3f &ds, ref<Sampler> &again,
+                          const Spectrum &x, const Mask &on) {
+            add(x, on);
+            if constexpr (K == 0)
+                if (adjoint && dr::any_or<true>(on))
+                    transmit<0>(at, ds, scene, again.get(), ls.medium, ls.channel, Float(0.f), on,
+                                Shadow::Replay, delta_L * dr::detach(dr::select(on, x, 0.f)));
+        };
+
+        // ----------------- Russian roulette, max_depth -----------------
+        if constexpr (K == 0) {
+            auto [perform_rr, rr] = roulette(ls, dr::max(unpolarized_spectrum(c.throughput)),
+                                             dr::any(unpolarized_spectrum(c.throughput) != 0.f));
+            dr::masked(c.throughput, perform_rr) *= rr;
+        } else {
+            Float t_max = dr::select(c.reduced, Reduced::template max_abs<K>(c.R), dr::max(c.t));
+            auto [perform_rr, rr] = roulette(ls, t_max, t_max != 0.f);
+            dr::masked(c.t, perform_rr) *= rr;
+            dr::masked(c.R, perform_rr) *= rr;
+        }
+        if (dr::none_or<false>(active))
+            return;
+
+        // ------------------------ Sampling the RTE ---------------------
+        Mask active_medium = active && ls.medium != nullptr;
+        Mask active_surface = active && !active_medium;
+        Mask act_null = false, act_scatter = false, escaped = false;
+        Mask is_spectral = active_medium, not_spectral = false, is_fluo = false;
+        Float p_null = 0.f, p_real = 1.f, d = 0.f;
+        UnpolarizedSpectrum mu_f = 0.f;                   // K = 0: μf at the collision
+        Coeffs<KC> sigma_s = dr::zeros<Coeffs<KC>>();     // K > 0: a fluorescent collision's σs per band
+        MediaMasks which;
+        if (dr::any_or<true>(active_medium)) {
+            is_spectral &= ls.medium->has_spectral_extinction();
+            not_spectral = !is_spectral && active_medium;
+            Mask fluo_flight = detached_media([&] { return start_flight(scene, ls, active_medium); });
+            // what the majorant covers of the source rate (up to 1/ℓ)
+            UnpolarizedSpectrum source = 0.f;
+            if constexpr (K == 0) {
+                if (dr::any_or<true>(fluo_flight)) {
+                    auto [mu_a, mu_f_] =
+                        detached_media([&] { return rates(ls.medium, ls.ray.wavelengths, fluo_flight); });
+                    dr::masked(ls.mu_a, fluo_flight) = mu_a;
+                    dr::masked(c.mu_f, fluo_flight) = mu_f_;
+                }
+                source = c.mu_f;
+            } else {
+                if (dr::any_or<true>(fluo_flight))
+                    dr::masked(ls.mu_a, fluo_flight) =
+                        absorption_bound<K>(ls.medium, ls.ray.wavelengths, fluo_flight);
+                if (media)
+                    which = which_media(ls.medium);
+                source = media ? per_medium(which, &ReducedMedium::f_max, 0) : Float(0.f);
+            }
+            Float rate = dr::select(ls.inv_len > 0.f, ls.inv_len, dr::Infinity<Float>);
+            auto [mei, mf, fl, dd] = detached_media([&] {
+                return sample_medium(ls.medium, ls.ray, sampler->next_1d(active_medium), ls.channel, rate,
+                                     ls.mu_a, source, active_medium);
+            });
+            detached_media([&] { return place_collision(scene, ls, mei, active_medium); });
+            mu_f = mf;
+            d = dd;
+            is_fluo = fl && active_medium;
+            if constexpr (K > 0)
+                is_spectral &= !is_fluo; // R carries a fluorescent medium's weights
+            Mask weighted = is_spectral; // (escaping flights too)
+            auto [w, pn, pr] = end_flight(ls, active_medium, escaped, is_spectral, not_spectral, is_fluo);
+            if (differentiating) // the collision's coefficients (and the flight's weight) with gradients
+                attach_collision(ls, w, mu_f, d, weighted, is_fluo, active_medium);
+            weigh<K>(c, w, weighted);
+
+            // Null or real: volpath's rule; in fluorescent media spectral tracking
+            // (K = 0) or band tracking on R (K > 0). The probabilities are detached:
+            // a weight σ/p then differentiates σ alone (the choice's own derivative
+            // is not the integrand's).
+            p_null = dr::detach(pn);
+            p_real = dr::detach(pr);
+            Float majorant = ls.mei.combined_extinction[0];
+            if (media && dr::any_or<true>(is_fluo)) {
+                std::pair<Float, Float> p;
+                if constexpr (K == 0) {
+                    p = spectral_tracking(ls.mei, c.throughput, mu_f, ls.inv_len);
+                } else {
+                    c.R = dr::select(is_fluo && !c.reduced, m_reduced.template output_rows<K>(c.t), c.R);
+                    c.reduced |= is_fluo;
+                    sigma_s = m_reduced.template band_albedo<K>(ls.mei.sigma_s);
+                    p = band_tracking<K>(c.R, sigma_s, d, majorant, ls.inv_len, which);
+                }
+                p_null = dr::select(is_fluo, dr::detach(p.first), p_null);
+                p_real = dr::select(is_fluo, dr::detach(p.second), p_real);
+            }
+            Mask null_scatter = sampler->next_1d(active_medium) < p_null;
+            act_null = null_scatter && active_medium;
+            act_scatter = !null_scatter && active_medium;
+            weigh<K>(c, ls.mei.sigma_n / p_null, act_null && is_spectral);
+            if constexpr (K > 0) {
+                Mask fl_null = act_null && is_fluo;
+                if (media && dr::any_or<true>(fl_null)) { // R ← R·(μ̄ − σs − d·A)/(μ̄ p_null)
+                    Float s = dr::rcp(majorant * p_null);
+                    Coeffs<K> g;
+                    for (size_t k = 0; k < K; ++k)
+                        g[k] = (majorant - sigma_s[k]) * s;
+                    c.R = dr::select(fl_null, medium_product<K>(c.R, g, -d * s, &ReducedMedium::a, which),
+                                     c.R);
+                }
+            }
+        }
+        settle_collision(ls, act_null, act_scatter);
+
+        if (dr::any_or<true>(act_scatter)) {
+            // K = 0: elastic scattering, or per wavelength a shift to λi (the docs'
+            // estimator). K > 0: a fluorescent medium's source operator
+            // W = diag(σs·p) + d·F/(4π) over μ̄ p_real, applied with the direction.
+            Mask fl_scatter = act_scatter && is_fluo;
+            WMask shifted = false;
+            Float real_scale = dr::rcp(ls.mei.combined_extinction[0] * p_real);
+            UnpolarizedSpectrum sigma_w = ls.mei.sigma_s;
+            if constexpr (K == 0) {
+                if (media && dr::any_or<true>(fl_scatter))
+                    shifted = shift_collision(ls, mu_f, sampler, fl_scatter, range_lo, range_hi, sigma_w);
+            }
+            weigh<K>(c, sigma_w / p_real, act_scatter && is_spectral);
+            weigh<K>(c, ls.mei.sigma_s / ls.mei.sigma_t, act_scatter && not_spectral);
+            if constexpr (K == 0) {
+                // A collision that absorbed every wavelength for good ends the path.
+                Mask dead = fl_scatter && dr::all(unpolarized_spectrum(c.throughput) == 0.f);
+                active &= !dead;
+                act_scatter &= !dead;
+            }
+
+            PhaseFunctionContext phase_ctx(sampler);
+            auto [phase, active_e] = begin_scatter(ls, act_scatter);
+
+            // ------------------------ Emitter sampling -----------------
+            if (dr::any_or<true>(active_e)) {
+                auto [ds, emitter_val] = detached([&] {
+                    return scene->sample_emitter_direction(ls.mei, sampler->next_2d(active_e), false, active_e);
+                });
+                active_e &= ds.pdf != 0.f;
+                if (adjoint) // the emitter's value with gradients at the detached sample
+                    emitter_val = fluo_detail::emitter_weight(scene, ls.mei, ds, emitter_val, active_e);
+                auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
+                Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                if constexpr (K == 0) {
+                    // shifted wavelengths re-emit isotropically
+                    phase_val =
+                        fluo_detail::select_unpolarized(shifted, UnpolarizedSpectrum(InvFourPi), phase_val);
+                    ref<Sampler> again;
+                    Spectrum emitted = emitter_val * transmittance(ls.mei, ds, again, active_e);
+                    shadow(ls.mei, ds, again, c.throughput * phase_val * emitted * mis, active_e);
+                } else {
+                    Color3f pv(phase_val);
+                    Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
+                    Rows<K> B = Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(pv));
+                    if (media && dr::any_or<true>(fl_scatter))
+                        B = dr::select(fl_scatter,
+                                       source_product<K>(c.R, sigma_s, pv, d, InvFourPi, real_scale, which), B);
+                    add(light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium, ls.channel, B, c.t * pv,
+                                 c.reduced, active_e, shadow_mode, adjoint) * mis,
+                        active_e);
+                }
+            }
+
+            // ---------------------- Phase function sampling ------------
+            if (dr::any_or<true>(act_scatter)) { // (phase is null elsewhere)
+                Float phase_1 = sampler->next_1d(act_scatter);
+                Point2f phase_2 = sampler->next_2d(act_scatter);
+                auto [wo, phase_weight, phase_pdf] = detached(
+                    [&] { return phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter); });
+                act_scatter &= phase_pdf > 0.f;
+                if (adjoint) // the phase function's value with gradients at the detached sample
+                    phase_weight *= fluo_detail::relative(
+                        phase->eval_pdf(phase_ctx, ls.mei, wo, act_scatter).first);
+                if constexpr (K == 0) {
+                    phase_weight = fluo_detail::select_unpolarized(
+                        shifted, UnpolarizedSpectrum(InvFourPi / phase_pdf), phase_weight);
+                    dr::masked(c.throughput, act_scatter) *= phase_weight;
+                } else {
+                    fl_scatter &= act_scatter;
+                    if (media && dr::any_or<true>(fl_scatter))
+                        c.R = dr::select(fl_scatter,
+                                         source_product<K>(c.R, sigma_s, Color3f(phase_weight), d,
+                                                           InvFourPi / phase_pdf, real_scale, which),
+                                         c.R);
+                    weigh<K>(c, phase_weight, act_scatter && !is_fluo);
+                }
+                dr::masked(ls.ray, act_scatter) = ls.mei.spawn_ray(wo); // carries λi where shifted
+                ls.needs_intersection |= act_scatter;
+                dr::masked(ls.last_scatter_direction_pdf, act_scatter) = phase_pdf;
+            }
+        }
+
+        // ----------------------- Surface interactions ------------------
+        active_surface |= escaped;
+        Mask intersect = detached([&] { return reach_surface(scene, ls, active_surface); });
+
+        if (dr::any_or<true>(active_surface)) {
+            auto [emitter, emitted, weight, active_e] = surface_emission(scene, ls, active_surface, intersect);
+            if (adjoint) // the replay differentiates materials, emitters and media, not geometry
+                ls.si = dr::detach(ls.si);
+            if constexpr (K == 0)
+                add(c.throughput * emitted * weight, active_e);
+            else if (dr::any_or<true>(active_e))
+                add(m_reduced.template through<K>(c.R, c.t, c.reduced, emitter, emitted, active_e) * weight, active_e);
+        }
+        active_surface &= ls.si.is_valid();
+        if (dr::any_or<true>(active_surface)) {
+            BSDFContext ctx;
+            SurfaceInteraction3f &si = ls.si;
+            BSDFPtr bsdf = si.bsdf(ls.ray);
+            typename Wrappers::Perturbations perturbed;
+            if (!m_wrappers.empty())
+                bsdf = m_wrappers.resolve(bsdf, si, sampler, perturbed, active_surface);
+            fluo_detail::SurfaceShift<Float, Spectrum> shift; // K = 0: elastic or shift per wavelength
+            if (K == 0 && surfaces)
+                shift.choose(m_bsdfs, bsdf, si, sampler, active_surface, range_lo, range_hi);
+
+            // ------------------------ Emitter sampling -----------------
+            Mask active_e = active_surface && has_flag(bsdf->flags(), BSDFFlags::Smooth) &&
+                            ls.depth + 1 < (uint32_t) m_max_depth;
+            DirectionSample3f ds = dr::zeros<DirectionSample3f>();
+            Spectrum emitter_val = 0.f;
+            ref<Sampler> again; // K = 0, the replay: the shadow ray's numbers again
+            if (dr::any_or<true>(active_e)) {
+                std::tie(ds, emitter_val) = detached([&] {
+                    return scene->sample_emitter_direction(si, sampler->next_2d(active_e), false, active_e);
+                });
+                active_e &= ds.pdf != 0.f;
+                if (adjoint)
+                    emitter_val = fluo_detail::emitter_weight(scene, si, ds, emitter_val, active_e);
+                if constexpr (K == 0) // (the transmittance before the BSDF's numbers, as volpath)
+                    emitter_val *= transmittance(si, ds, again, active_e);
+            }
+            active_e &= perturbed.keeps_side(ds.d);
+            Vector3f wo = si.to_local(ds.d);
+
+            // ---------------- Emitter contribution, BSDF sampling ------
+            Float sample_1 = sampler->next_1d(active_surface);
+            Point2f sample_2 = sampler->next_2d(active_surface);
+            auto [bsdf_val, bsdf_pdf, bs, bsdf_weight] = detached([&] {
+                return shift.eval_pdf_sample(m_bsdfs, bsdf, ctx, si, wo, sample_1, sample_2, active_surface);
+            });
+            if (adjoint) { // the BSDF's values with gradients at the detached samples (as fluo_prb)
+                bsdf_val = bsdf->eval(ctx, si, wo, active_e);
+                bsdf_weight *= fluo_detail::relative(bsdf->eval(ctx, si, bs.wo, active_surface));
+            } else {
+                fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface);
+            }
+            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+            if constexpr (K == 0) {
+                if (surfaces)
+                    shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
+                shadow(si, ds, again, c.throughput * bsdf_val * mis * emitter_val, active_e);
+                dr::masked(c.throughput, active_surface) *= bsdf_weight;
+            } else {
+                Rows<K> Rm = dr::select(c.reduced, c.R, m_reduced.template output_rows<K>(c.t));
+                Mask is_fl = false, native_elastic = false;
+                Rows<K> B_fl = dr::zeros<Rows<K>>(), R_fl = dr::zeros<Rows<K>>();
+                if (surfaces)
+                    std::tie(is_fl, native_elastic, B_fl, R_fl) = m_reduced.template vertex<K, true>(
+                        bsdf, si, Rm, dr::zeros<Coeffs<K>>(), wo, bs.wo, bs.pdf, m_directional,
+                        m_varying ? sampler->next_1d(active_surface) : Float(0.f), active_surface);
+                if (dr::any_or<true>(active_e)) {
+                    Rows<K> B_red =
+                        Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
+                    Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
+                    add(light<K>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel, B, c.t * bsdf_val,
+                                 c.reduced || is_fl, active_e, shadow_mode, adjoint) * mis,
+                        active_e);
+                }
+                m_reduced.template scatter<K>(c.R, c.t, c.reduced, Rm, R_fl, is_fl, native_elastic, bsdf_weight,
+                                              active_surface);
+            }
+            leave_surface(ls, si, bs, active_surface); // the ray carries λi where shifted
+            active_surface &= perturbed.keeps_side(ls.ray.d); // a map's sample across the surface
+        }
+        active &= active_surface || active_medium;
+        if constexpr (dr::is_diff_v<Float>) {
+            if (adjoint) { // the rest of the path through this iteration's weights
+                Carried<K> next = c; // (with this iteration's gradients)
+                // the path itself carries no gradients
+                c = dr::detach(c);
+                ls.si = dr::detach(ls.si);
+                ls.mei = dr::detach(ls.mei);
+                ls.ray = dr::detach(ls.ray);
+                ls.eta = dr::detach(ls.eta);
+                ls.last_scatter_event = dr::detach(ls.last_scatter_event);
+                ls.last_scatter_direction_pdf = dr::detach(ls.last_scatter_direction_pdf);
+                if constexpr (K == 0) {
+                    Lo += dr::select(active, ls.result * fluo_detail::relative(next.throughput), 0.f);
+                } else { // the matrix throughput after this iteration times what the rest gives
+                    auto [coeffs, rgb] = future<K>(scene, ls, w);
+                    Lo += dr::select(active, dr::select(c.reduced, Reduced::template apply<K>(next.R, coeffs),
+                                                        next.t * rgb),
+                                     0.f);
+                }
+                if (dr::grad_enabled(Lo)) {
+                    Spectrum weighted = delta_L * Lo;
+                    dr::backward_from(weighted);
+                }
+            }
+        }
+    }
+
+    /// RGB replay: whether a shadow ray's transmittance can carry gradients (a parameter of a
+    /// medium or of a null surface, such as a mask's opacity, with gradients); the replay
+    /// does not differentiate those factors (light()).
+    bool transmittance_gradients(const Scene *scene) const {
+        auto has = [](const Object *o) { return o && fluo_detail::has_gradients<Float>(const_cast<Object *>(o)); };
+        for (const auto &shape : scene->shapes()) {
+            const BSDF *b = shape->bsdf();
+            if (has(shape->interior_medium()) || has(shape->exterior_medium()) ||
+                (b && has_flag(b->flags(), BSDFFlags::Null) && has(b)))
+                return true;
+        }
+        for (const auto &sensor : scene->sensors())
+            if (has(sensor->medium()))
+                return true;
+        return false;
+    }
+
+    /// K > 0, fluo_prbvolpath's replay: the radiance still to come from `from` per unit of
+    /// throughput (fluo_detail::future, this loop's continuations).
+    template <size_t K>
+    std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
+        Walk primal = w;
+        primal.adjoint = false;
+        primal.differentiating = false;
+        return fluo_detail::future<K, Coeffs<K>, Color3f>(from, Mask(dr::any(w.delta_L != 0.f)), [&](LoopState<K> &cs) {
+            dr::tie(cs) = dr::while_loop(
+                dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
+                [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
+        });
     }
 
     /// fluo_prbvolpath's replay: the majorant at a detached collision mei with gradients, as the
@@ -1228,15 +1301,40 @@ private:
     /// AD) or backpropagated at once (`Replay`, K = 0: fluo_prbvolpath).
     enum class Shadow { Render, Recorded, Replay };
 
-    /// K > 0: the emitter sample ds's value `emitter_val` seen from `ref` through media
+    /// K > 0: the emitter sample ds's value `emitter_val` seen from `at` through media
     /// (transmit), the contribution of a vertex whose operator towards it is B (3×K,
     /// `matrix`: the path is in matrix form there) or, in RGB form, `rgb` (the throughput
     /// times the vertex's value). (K = 0 multiplies transmit's transmittance in the loop.)
+    /// `replay` (fluo_prbvolpath's): with the derivatives of B, `rgb` and the emitter's value,
+    /// the transmittance's own factors carrying none (render_backward replays only scenes
+    /// whose media and null surfaces have no parameter with gradients). B·T·c(le) is linear
+    /// in B: T·c(le), K coefficients s, comes from continuations of the shadow ray carrying
+    /// the identity's rows (⌈K/3⌉ clones of the sampler, as fluo_detail::future); then the ray
+    /// itself, without gradients, for its RGB transmittance and the sampler's numbers.
     template <size_t K, typename Interaction>
-    Spectrum light(const Interaction &ref, const DirectionSample3f &ds, const Spectrum &emitter_val,
+    Spectrum light(const Interaction &at, const DirectionSample3f &ds, const Spectrum &emitter_val,
                    const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
-                   const Block<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active, Shadow mode) const {
-        auto [tr, B_out, met] = transmit<K>(ref, ds, scene, sampler, medium, channel, B, active, mode);
+                   const Block<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active, Shadow mode,
+                   bool replay = false) const {
+        if (replay) {
+            Coeffs<K> s;
+            for (size_t b = 0; 3 * b < K; ++b) {
+                ref<Sampler> clone = sampler->clone();
+                Rows<K> probe = dr::zeros<Rows<K>>();
+                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+                    probe[r * K + 3 * b + r] = 1.f;
+                Color3f v = light<K>(at, ds, emitter_val, scene, clone.get(), medium, channel, probe, Color3f(0.f),
+                                     Mask(true), active, Shadow::Render);
+                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+                    s[3 * b + r] = v[r];
+            }
+            auto [tr, B_out, met] = [&] {
+                dr::suspend_grad<Float> off;
+                return transmit<K>(at, ds, scene, sampler, medium, channel, dr::detach(B), active, Shadow::Render);
+            }();
+            return dr::select(met || matrix, Reduced::template apply<K>(B, s), rgb * emitter_val * tr);
+        }
+        auto [tr, B_out, met] = transmit<K>(at, ds, scene, sampler, medium, channel, B, active, mode);
         // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
         Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
         Color3f le = dr::select(met, emitter_val, emitter_val * tr);

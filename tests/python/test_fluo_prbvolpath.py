@@ -7,8 +7,9 @@ same events (roulette off: both sample media without gradients and weigh each ev
 coefficients with them), and central finite differences of the image mean (same seed) for a
 native homogeneous medium's extinction, whose derivative AD through Mitsuba's volpath (and
 fluo_volpath's loop before the detached sampling) gets wrong. The media parameters' own
-finite-difference checks are test_fluo_volpath.py's test08 (recorded loop). The AD variants
-run in a fresh process (llvm_worker.py).
+finite-difference checks are test_fluo_volpath.py's test08 (recorded loop). In RGB the
+replay's continuations are checked against the recorded loop (grey medium) and central
+differences (fluorescent medium). The AD variants run in a fresh process (llvm_worker.py).
 """
 
 from __future__ import annotations
@@ -93,14 +94,50 @@ def test04_native_extinction_matches_finite_differences():
     check(run_worker(jobs)[0], jobs)
 
 
-def test05_rgb_records_the_loop_and_says_so():
-    """llvm_ad_rgb has no volumetric replay (a shadow ray through a fluorescent medium
-    multiplies 3×K matrices): fluo_prbvolpath's backward pass differentiates fluo_volpath's
-    recorded loop, with one warning: the same derivatives (fluorescent medium's concentration)."""
+def foggy(integrator: str, medium: str) -> str:
+    """test_fluo_prb's box (fluo_jung sphere, grey walls, D65 sky, 365 nm lamp, roulette off)
+    with a 0.8-unit cube of `medium` between the sphere and the camera's left."""
+    cube_ = ('<shape type="cube" id="fog"><transform name="to_world"><scale value="0.4"/>'
+             f'<translate x="-0.95" y="0.1" z="1.0"/></transform><bsdf type="null"/>{medium}</shape>')
+    xml = box(integrator, JUNG).replace('<integer name="rr_depth" value="3"/>', '<integer name="rr_depth" value="9"/>')
+    return xml.replace("</scene>", cube_ + "</scene>")
+
+
+def test05_rgb_replay_equals_the_recorded_loop():
+    """llvm_ad_rgb, roulette off, 32 spp: the replay (each iteration's radiance still to come
+    from continuations carrying the identity's rows, as fluo_prb's; a next-event estimate's
+    K coefficients T·c from continuations of its shadow ray) and AD through fluo_volpath's
+    recorded loop give the same derivatives to 1e-4 relative for the dye's amount and shape
+    and the walls' reflectance, in a box whose light crosses a grey homogeneous medium (its
+    null/real choices do not depend on the throughput: the continuations follow the path's
+    own events)."""
+    jobs = [{"variant": "llvm_ad_rgb", "xml": foggy(integrator, NATIVE),
+             "spp": 32, "seed": 3, "ad_only": True,
+             "gradients": {"dye.concentration": 0, "dye.emission_peak": 0, "wall.reflectance.value": 0}}
+            for integrator in ("fluo_prbvolpath", "fluo_volpath")]
+    compare_replay(jobs, rel=1e-4)
+
+
+def test06_rgb_replay_through_a_fluorescent_medium_matches_finite_differences():
+    """llvm_ad_rgb: the replay through a fluorescent medium (fluo_qd_medium, Q = 0.8: band
+    tracking, whose null/real choices follow the matrix throughput, so continuations draw
+    their own, equally valid, events; shadow rays multiply its 3xK operators) gives the
+    dye's and the walls' derivatives within 10 % of central differences (AD 256 spp,
+    differences 2048)."""
+    jobs = [{"variant": "llvm_ad_rgb", "xml": foggy("fluo_prbvolpath", _qd_medium_xml(0.8)), "spp": 256,
+             "fd_spp": 2048, "seed": 3, "gradients": {"dye.concentration": 0.1, "wall.reflectance.value": 0.05}}]
+    check(run_worker(jobs)[0], jobs)
+
+
+def test07_rgb_media_gradients_record_the_loop_and_say_so():
+    """llvm_ad_rgb does not replay a medium's parameters (a shadow ray through a fluorescent
+    medium multiplies 3×K matrices, whose derivative needs the product still to come):
+    fluo_prbvolpath's backward pass then differentiates fluo_volpath's recorded loop, with one
+    warning: the same derivatives (fluorescent medium's concentration)."""
     jobs = [{"variant": "llvm_ad_rgb", "xml": cube(integrator, _qd_medium_xml(0.8), res=8), "spp": 16, "seed": 3,
              "gradients": {MEDIUM + "concentration": 0}, "ad_only": True}
             for integrator in ("fluo_prbvolpath", "fluo_volpath")]
     results, log = run_worker(jobs)
     a, b = (r["gradients"][MEDIUM + "concentration"][0] for r in results)
     assert a == pytest.approx(b, rel=1e-5) and abs(a) > 1e-3, (a, b)
-    assert log.count("fluo_prbvolpath: the RGB variants have no volumetric path replay") == 1, log[-3000:]
+    assert log.count("fluo_prbvolpath: in the RGB variants a medium's (or a null surface's) parameters") == 1, log[-3000:]

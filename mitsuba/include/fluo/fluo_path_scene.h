@@ -74,6 +74,33 @@ template <typename M, typename Scene> std::vector<const M *> managed_media(const
     return media;
 }
 
+/// Whether a value traversed from an object (its children's included) carries gradients.
+template <typename Float> struct GradientFinder : TraversalCallback {
+    using T = CoreAliases<Float>;
+    bool found = false;
+    std::unordered_set<Object *> seen;
+    template <typename V> void check(void *ptr, const std::type_info &type) {
+        if (type == typeid(V))
+            found |= dr::grad_enabled(*static_cast<V *>(ptr));
+    }
+    void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
+        check<Float>(ptr, type);
+        check<typename T::Color3f>(ptr, type);
+        check<DynamicBuffer<Float>>(ptr, type);
+        check<typename T::TensorXf>(ptr, type);
+    }
+    void put_object(std::string_view, Object *c, uint32_t) override {
+        if (c && seen.insert(c).second)
+            c->traverse(this);
+    }
+};
+template <typename Float> bool has_gradients(Object *o) {
+    GradientFinder<Float> f;
+    f.seen.insert(o);
+    o->traverse(&f);
+    return f.found;
+}
+
 /// Every object reachable from the scene's shapes (their BSDFs, wrapped ones, textures).
 template <typename Scene> Collector shape_objects(const Scene *scene) {
     Collector c;
@@ -432,6 +459,42 @@ Spectrum emitter_weight(const Scene *scene, const Interaction &at, const Directi
                         const Mask &active) {
     Spectrum value = scene->eval_emitter_direction(at, ds, active);
     return with_grad(weight, value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
+}
+
+/// The reduced transport's replay (fluo_prb, fluo_prbvolpath; K > 0): the radiance still
+/// to come from the loop state `from`, per unit of throughput. A matrix throughput's is K
+/// basis coefficients r (the path's rest R'·r), which its 3 RGB values do not determine; so
+/// continuations of the path carry the identity's rows in place of R' (3 each, ⌈K/3⌉ of
+/// them) and give r; an RGB throughput's is the 3 values of the first one (t = 1). Each
+/// replays the path's random numbers (a clone of its sampler) without gradients, `run(state)`
+/// being the integrator's loop (with its own roulette: unbiased, not the primal's decisions).
+/// Memory does not grow with depth; time does, quadratically (each vertex continues the path
+/// to its end). `weighed`: the lanes whose δL is not 0.
+template <size_t K, typename Coeffs, typename Color3f, typename State, typename Mask, typename Run>
+std::pair<Coeffs, Color3f> future(const State &from, const Mask &weighed, Run &&run) {
+    using Float = dr::value_t<Color3f>;
+    dr::suspend_grad<Float> detached;
+    Coeffs coeffs = dr::zeros<Coeffs>();
+    Color3f rgb = 0.f;
+    for (size_t b = 0; 3 * b < K; ++b) {
+        auto clone = from.sampler->clone();
+        State cs = from;
+        cs.sampler = clone.get();
+        cs.result = dr::zeros<decltype(cs.result)>();
+        cs.c.t = Color3f(1.f);
+        cs.c.R = dr::zeros<decltype(cs.c.R)>();
+        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+            cs.c.R[r * K + 3 * b + r] = 1.f;
+        if (b > 0) // RGB throughputs need the first only
+            cs.active &= from.c.reduced;
+        cs.active &= weighed;
+        run(cs);
+        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+            coeffs[3 * b + r] = cs.result[r];
+        if (b == 0)
+            rgb = Color3f(cs.result);
+    }
+    return { coeffs, rgb };
 }
 
 /// fluo_prb's and fluo_prbvolpath's reverse mode (Vicini et al. 2021, path replay
