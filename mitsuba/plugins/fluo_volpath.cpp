@@ -174,8 +174,8 @@ derivatives are still this loop's.
 
 **Path replay (``fluo_prbvolpath``).** The same class registered as ``fluo_prbvolpath``
 renders exactly what ``fluo_volpath`` renders and, in the AD variants (``llvm_ad_*``,
-``cuda_ad_*``), replays each path for reverse-mode derivatives instead of recording the loop (Vicini et al. 2021, as Mitsuba's
-``prbvolpath``; fluo_prb's three passes, ``fluo_path_scene.h``): the same paths again
+``cuda_ad_*``), replays each path for reverse-mode derivatives instead of recording the
+loop (Vicini et al. 2021, as Mitsuba's ``prbvolpath``; fluo_prb's three passes, ``fluo_path_scene.h``): the same paths again
 (same collisions, null/real choices, shifts and wavelengths) carrying the radiance still
 to come, each event backpropagating δL times its emission, its next-event estimate and the
 rest of the path through the relative derivative of its weights (free flight, σn or the
@@ -791,8 +791,8 @@ private:
         Sampler *sampler = ls.sampler;
         // The replay: this iteration's values with gradients, what it gives (Lo)
         // backpropagated at its end, sampling without gradients (as prbvolpath); the
-        // throughput enters detached, so the rest of the path's derivative is
-        // result·relative(throughput) after the iteration's weights.
+        // throughput enters detached, so the rest of the path's derivative is, after the
+        // iteration's weights, result·relative(throughput) (K = 0) or R·future() (K > 0).
         dr::resume_grad<Float> attached(adjoint);
         Spectrum Lo = 0.f;
         auto detached = [adjoint](auto &&f) {
@@ -1320,11 +1320,9 @@ private:
             Coeffs<K> s;
             for (size_t b = 0; 3 * b < K; ++b) {
                 ref<Sampler> clone = sampler->clone();
-                Rows<K> probe = dr::zeros<Rows<K>>();
-                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-                    probe[r * K + 3 * b + r] = 1.f;
-                Color3f v = light<K>(at, ds, emitter_val, scene, clone.get(), medium, channel, probe, Color3f(0.f),
-                                     Mask(true), active, Shadow::Render);
+                Color3f v = light<K>(at, ds, emitter_val, scene, clone.get(), medium, channel,
+                                     fluo_detail::identity_rows<K, Rows<K>>(b), Color3f(0.f), Mask(true), active,
+                                     Shadow::Render);
                 for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
                     s[3 * b + r] = v[r];
             }

@@ -461,6 +461,15 @@ Spectrum emitter_weight(const Scene *scene, const Interaction &at, const Directi
     return with_grad(weight, value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
 }
 
+/// Rows 3b, 3b + 1, 3b + 2 of the K×K identity as a 3×K block (fewer where K ends): what a
+/// continuation carries in place of a matrix throughput to give 3 of K coefficients.
+template <size_t K, typename Rows> Rows identity_rows(size_t b) {
+    Rows probe = dr::zeros<Rows>();
+    for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+        probe[r * K + 3 * b + r] = 1.f;
+    return probe;
+}
+
 /// The reduced transport's replay (fluo_prb, fluo_prbvolpath; K > 0): the radiance still
 /// to come from the loop state `from`, per unit of throughput. A matrix throughput's is K
 /// basis coefficients r (the path's rest R'·r), which its 3 RGB values do not determine; so
@@ -482,9 +491,7 @@ std::pair<Coeffs, Color3f> future(const State &from, const Mask &weighed, Run &&
         cs.sampler = clone.get();
         cs.result = dr::zeros<decltype(cs.result)>();
         cs.c.t = Color3f(1.f);
-        cs.c.R = dr::zeros<decltype(cs.c.R)>();
-        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-            cs.c.R[r * K + 3 * b + r] = 1.f;
+        cs.c.R = identity_rows<K, decltype(cs.c.R)>(b);
         if (b > 0) // RGB throughputs need the first only
             cs.active &= from.c.reduced;
         cs.active &= weighed;
