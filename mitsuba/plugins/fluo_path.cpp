@@ -286,9 +286,17 @@ public:
         return Base::render(scene, sensor, seed, spp, develop, evaluate);
     }
 
+    // Derivatives recorded through this loop weigh BSDF samples as the replay does
+    // (fluo_detail::detach_moving_sample).
+    using Base::render_forward;
+    TensorXf render_forward(Scene *scene, void *params, Sensor *sensor, UInt32 seed, uint32_t spp) override {
+        fluo_detail::Raised on{ m_differentiating };
+        return Base::render_forward(scene, params, sensor, seed, spp);
+    }
     using Base::render_backward;
     void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
                          uint32_t spp) override {
+        fluo_detail::Raised on{ m_differentiating };
         if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
             if (m_replay) {
                 prepare(scene);
@@ -489,7 +497,7 @@ private:
     /// What the vertices of one trace() share: whether it is fluo_prb's third pass
     /// (replay_backward), and that pass's adjoint radiance δL.
     struct Walk {
-        bool adjoint = false;
+        bool adjoint = false, differentiating = false; ///< the replay; a recorded derivative pass
         Spectrum delta_L;
     };
 
@@ -513,7 +521,7 @@ private:
                                 Float(1.f), UInt32(0), Mask(!m_hide_emitters && scene->environment() != nullptr),
                                 dr::zeros<Interaction3f>(), Float(1.f), Bool(true), active, sampler };
             ls.pi = camera_intersection(scene, ls.ray, ls.active);
-            Walk w{ adjoint, Spectrum() };
+            Walk w{ adjoint, m_differentiating, Spectrum() };
             if constexpr (dr::is_diff_v<Float>) {
                 if (adjoint) {
                     if constexpr (K == 0)
@@ -610,13 +618,14 @@ private:
                 return shift.eval_pdf_sample(m_bsdfs, bsdf, bsdf_ctx, si, wo, sample_1, sample_2, true);
             });
         if (!w.adjoint) // (the replay's samples carry no gradients)
-            fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next);
+            fluo_detail::detach_moving_sample(bsdf, bsdf_ctx, si, bs, bsdf_pdf, bsdf_weight, active_next,
+                                              w.differentiating);
         Float mis_em = dr::select(ds.delta, 1.f, mis_weight(ds.pdf, bsdf_pdf));
         if constexpr (dr::is_diff_v<Float>) {
             if (w.adjoint) { // values with gradients at the detached samples
                 em_weight = fluo_detail::emitter_weight(scene, si, ds, em_weight, active_em);
                 bsdf_val = bsdf->eval(bsdf_ctx, si, wo, active_em);
-                bsdf_weight *= fluo_detail::relative(bsdf->eval(bsdf_ctx, si, bs.wo, active_next));
+                bsdf_weight *= fluo_detail::sampled_relative(bsdf, bsdf_ctx, si, bs, active_next);
             }
         }
 
@@ -719,7 +728,7 @@ private:
     /// throughput (fluo_detail::future, this loop's continuations).
     template <size_t K>
     std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
-        const Walk primal{ false, Spectrum() };
+        const Walk primal{ false, false, Spectrum() };
         return fluo_detail::future<K, Coeffs<K>, Color3f>(from, Mask(dr::any(w.delta_L != 0.f)), [&](LoopState<K> &cs) {
             dr::tie(cs) = dr::while_loop(
                 dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
@@ -738,6 +747,7 @@ private:
     bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
 
     bool m_replay = false; ///< registered as fluo_prb
+    bool m_differentiating = false; ///< in render_forward/backward (recorded AD of this loop)
     fluo_detail::PathReplay<Float, Spectrum> m_replayer; ///< its passes (replay_backward)
 };
 

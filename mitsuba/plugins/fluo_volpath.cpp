@@ -187,11 +187,13 @@ tracking step's factor. With roulette off its derivatives equal the recorded loo
 radiance still to come is the path's rest per unit of matrix throughput: K coefficients
 from continuations carrying the identity's rows (⌈K/3⌉ per event, as ``fluo_prb``'s;
 memory independent of depth, time growing with its square), and a next-event estimate's
-T·c(light) likewise from continuations of its shadow ray. There a shadow ray's own
-factors are not differentiated (a shadow ray through a fluorescent medium multiplies 3×K
-matrices, whose derivative needs the product still to come): where a medium's or a null
-surface's parameter carries gradients, the RGB backward pass records ``fluo_volpath``'s
-loop instead and says so once. The polarized variants refuse it.
+T·c(light) likewise from continuations of its shadow ray. A shadow ray's own factors
+(a medium's coefficients, a null surface's transmission) are differentiated at each
+tracking step that carries derivatives: its value is linear in the RGB transmittance so
+far and in the 3×K operator so far, so the step's derivative needs the rest of the ray
+per unit of each, from 3 + ⌈K/3⌉ continuations of the ray (time growing with the square of
+its steps, only where a medium's or null surface's parameter has gradients). The
+polarized variants refuse it.
 
 Mitsuba's ``volpath`` renders fluorescent media as absorbing only (their Q = 0 limit)
 and warns once per scene.
@@ -257,15 +259,15 @@ public:
     // integrand's (a pure absorber's d/dc came out +0.04 against −2.4 by differences).
     using Base::render_forward;
     TensorXf render_forward(Scene *scene, void *params, Sensor *sensor, UInt32 seed, uint32_t spp) override {
-        Differentiating on{ this };
+        fluo_detail::Raised on{ m_differentiating };
         return Base::render_forward(scene, params, sensor, seed, spp);
     }
     using Base::render_backward;
     void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
                          uint32_t spp) override {
-        Differentiating on{ this };
+        fluo_detail::Raised on{ m_differentiating };
         if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
-            if (m_replay && (is_spectral_v<Spectrum> || !transmittance_gradients(scene))) {
+            if (m_replay) {
                 // path replay (fluo_path_scene.h's PathReplay), its primal this loop's
                 prepare(scene);
                 m_prepared.mark(scene);
@@ -276,14 +278,6 @@ public:
                     [&](bool develop) { return Base::render(scene, sensor, seed, spp, develop, false); }, sensor,
                     grad_in, spp, !is_spectral_v<Spectrum>); // (RGB: trace<K> clips)
             }
-        }
-        if (m_replay && !m_replay_warned) {
-            m_replay_warned = true;
-            Log(Warn, "fluo_prbvolpath: in the RGB variants a medium's (or a null surface's) parameters "
-                      "with gradients are not replayed (a shadow ray through a fluorescent medium multiplies "
-                      "3xK matrices, whose derivative needs the product still to come); this backward pass "
-                      "differentiates fluo_volpath's recorded loop instead: the same gradients, with memory "
-                      "growing with the path depth");
         }
         Base::render_backward(scene, params, grad_in, sensor, seed, spp);
     }
@@ -987,8 +981,11 @@ private:
                     if (media && dr::any_or<true>(fl_scatter))
                         B = dr::select(fl_scatter,
                                        source_product<K>(c.R, sigma_s, pv, d, InvFourPi, real_scale, which), B);
+                    Color3f adj; // the replay: what the shadow ray's own factors are weighed by
+                    if (adjoint)
+                        adj = dr::select(active_e, delta_L * dr::detach(mis), 0.f);
                     add(light<K>(ls.mei, ds, emitter_val, scene, sampler, ls.medium, ls.channel, B, c.t * pv,
-                                 c.reduced, active_e, shadow_mode, adjoint) * mis,
+                                 c.reduced, active_e, shadow_mode, adjoint ? &adj : nullptr) * mis,
                         active_e);
                 }
             }
@@ -997,10 +994,13 @@ private:
             if (dr::any_or<true>(act_scatter)) { // (phase is null elsewhere)
                 Float phase_1 = sampler->next_1d(act_scatter);
                 Point2f phase_2 = sampler->next_2d(act_scatter);
-                auto [wo, phase_weight, phase_pdf] = detached(
+                auto [wo, phase_weight, phase_pdf] = detached_media(
                     [&] { return phase->sample(phase_ctx, ls.mei, phase_1, phase_2, act_scatter); });
                 act_scatter &= phase_pdf > 0.f;
-                if (adjoint) // the phase function's value with gradients at the detached sample
+                // a derivative pass: the phase function's value with gradients at the detached
+                // sample (sampled with them, HG's weight is 1 and d/dg came out 0.0213 against
+                // 0.0609 by differences; detached, 0.0607)
+                if (differentiating)
                     phase_weight *= fluo_detail::relative(
                         phase->eval_pdf(phase_ctx, ls.mei, wo, act_scatter).first);
                 if constexpr (K == 0) {
@@ -1074,9 +1074,10 @@ private:
             });
             if (adjoint) { // the BSDF's values with gradients at the detached samples (as fluo_prb)
                 bsdf_val = bsdf->eval(ctx, si, wo, active_e);
-                bsdf_weight *= fluo_detail::relative(bsdf->eval(ctx, si, bs.wo, active_surface));
+                bsdf_weight *= fluo_detail::sampled_relative(bsdf, ctx, si, bs, active_surface);
             } else {
-                fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface);
+                fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface,
+                                                  differentiating);
             }
             Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
             if constexpr (K == 0) {
@@ -1096,8 +1097,11 @@ private:
                     Rows<K> B_red =
                         Reduced::template scale_columns<K>(Rm, m_reduced.template band_albedo<K>(bsdf_val));
                     Rows<K> B = dr::select(is_fl, B_fl + dr::select(native_elastic, B_red, 0.f), B_red);
+                    Color3f adj; // the replay: what the shadow ray's own factors are weighed by
+                    if (adjoint)
+                        adj = dr::select(active_e, delta_L * dr::detach(mis), 0.f);
                     add(light<K>(si, ds, emitter_val, scene, sampler, ls.medium, ls.channel, B, c.t * bsdf_val,
-                                 c.reduced || is_fl, active_e, shadow_mode, adjoint) * mis,
+                                 c.reduced || is_fl, active_e, shadow_mode, adjoint ? &adj : nullptr) * mis,
                         active_e);
                 }
                 m_reduced.template scatter<K>(c.R, c.t, c.reduced, Rm, R_fl, is_fl, native_elastic, bsdf_weight,
@@ -1132,23 +1136,6 @@ private:
                 }
             }
         }
-    }
-
-    /// RGB replay: whether a shadow ray's transmittance can carry gradients (a parameter of a
-    /// medium or of a null surface, such as a mask's opacity, with gradients); the replay
-    /// does not differentiate those factors (light()).
-    bool transmittance_gradients(const Scene *scene) const {
-        auto has = [](const Object *o) { return o && fluo_detail::has_gradients<Float>(const_cast<Object *>(o)); };
-        for (const auto &shape : scene->shapes()) {
-            const BSDF *b = shape->bsdf();
-            if (has(shape->interior_medium()) || has(shape->exterior_medium()) ||
-                (b && has_flag(b->flags(), BSDFFlags::Null) && has(b)))
-                return true;
-        }
-        for (const auto &sensor : scene->sensors())
-            if (has(sensor->medium()))
-                return true;
-        return false;
     }
 
     /// K > 0, fluo_prbvolpath's replay: the radiance still to come from `from` per unit of
@@ -1298,46 +1285,74 @@ private:
     /// derivative pass, sampled without gradients and each step's factors with them at the
     /// detached collisions (majorants as attach_collision's; a fluorescent medium's σs and d in
     /// the reduced transport) multiplied into the transmittance (`Recorded`: Mitsuba's recorded
-    /// AD) or backpropagated at once (`Replay`, K = 0: fluo_prbvolpath).
+    /// AD) or backpropagated at once (`Replay`: fluo_prbvolpath; K > 0: replay_step()).
     enum class Shadow { Render, Recorded, Replay };
+
+    /// K > 0, fluo_prbvolpath's replay of a shadow ray: what its value (light()'s) is made of
+    /// besides the tracking, detached, and δL (times the estimate's MIS weight) it is weighed by.
+    template <size_t K> struct ShadowAdjoint {
+        Color3f delta_L, emitter_val, rgb;
+        Mask matrix, active;
+        EmitterPtr emitter;
+    };
+
+    /// What the steps of one shadow ray share.
+    template <size_t K> struct ShadowWalk {
+        const Scene *scene;
+        Float max_dist, dist;
+        UInt32 channel;
+        Shadow mode;
+        Spectrum adj;                       ///< K = 0, Replay: δL times the estimate, detached
+        const ShadowAdjoint<K> *replay;     ///< K > 0, Replay
+    };
 
     /// K > 0: the emitter sample ds's value `emitter_val` seen from `at` through media
     /// (transmit), the contribution of a vertex whose operator towards it is B (3×K,
     /// `matrix`: the path is in matrix form there) or, in RGB form, `rgb` (the throughput
     /// times the vertex's value). (K = 0 multiplies transmit's transmittance in the loop.)
-    /// `replay` (fluo_prbvolpath's): with the derivatives of B, `rgb` and the emitter's value,
-    /// the transmittance's own factors carrying none (render_backward replays only scenes
-    /// whose media and null surfaces have no parameter with gradients). B·T·c(le) is linear
+    /// `adjoint` (fluo_prbvolpath's replay: δL times the estimate's MIS weight, detached):
+    /// the value with the derivatives of B, `rgb` and the emitter's value. B·T·c(le) is linear
     /// in B: T·c(le), K coefficients s, comes from continuations of the shadow ray carrying
     /// the identity's rows (⌈K/3⌉ clones of the sampler, as fluo_detail::future); then the ray
-    /// itself, without gradients, for its RGB transmittance and the sampler's numbers.
+    /// itself is tracked again, its own factors' derivatives backpropagated (replay_step).
     template <size_t K, typename Interaction>
     Spectrum light(const Interaction &at, const DirectionSample3f &ds, const Spectrum &emitter_val,
                    const Scene *scene, Sampler *sampler, const MediumPtr &medium, const UInt32 &channel,
                    const Block<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active, Shadow mode,
-                   bool replay = false) const {
-        if (replay) {
+                   const Color3f *adjoint = nullptr) const {
+        if (adjoint) {
             Coeffs<K> s;
-            for (size_t b = 0; 3 * b < K; ++b) {
+            for (size_t b = 0; 3 * b < K; ++b) { // (tracked without gradients, s with the emitter's)
                 ref<Sampler> clone = sampler->clone();
-                Color3f v = light<K>(at, ds, emitter_val, scene, clone.get(), medium, channel,
-                                     fluo_detail::identity_rows<K, Rows<K>>(b), Color3f(0.f), Mask(true), active,
-                                     Shadow::Render);
+                auto [tr, B_out, met] = [&] {
+                    dr::suspend_grad<Float> off;
+                    return transmit<K>(at, ds, scene, clone.get(), medium, channel,
+                                       fluo_detail::identity_rows<K, Rows<K>>(b), active, Shadow::Render);
+                }();
+                Color3f v = shadow_value<K>(tr, B_out, met, ds.emitter, emitter_val, Color3f(0.f), Mask(true), active);
                 for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
                     s[3 * b + r] = v[r];
             }
-            auto [tr, B_out, met] = [&] {
-                dr::suspend_grad<Float> off;
-                return transmit<K>(at, ds, scene, sampler, medium, channel, dr::detach(B), active, Shadow::Render);
-            }();
+            ShadowAdjoint<K> sa{ *adjoint, dr::detach(unpolarized_spectrum(emitter_val)), dr::detach(rgb), matrix, active,
+                                 ds.emitter };
+            auto [tr, B_out, met] = transmit<K>(at, ds, scene, sampler, medium, channel, dr::detach(B), active,
+                                                Shadow::Replay, Spectrum(), &sa);
             return dr::select(met || matrix, Reduced::template apply<K>(B, s), rgb * emitter_val * tr);
         }
         auto [tr, B_out, met] = transmit<K>(at, ds, scene, sampler, medium, channel, B, active, mode);
+        return shadow_value<K>(tr, B_out, met, ds.emitter, emitter_val, rgb, matrix, active);
+    }
+
+    /// K > 0: a shadow ray's value from what its tracking ended with (light()).
+    template <size_t K>
+    Spectrum shadow_value(const Spectrum &tr, const Rows<K> &B_out, const Mask &met, const EmitterPtr &emitter,
+                          const Spectrum &emitter_val, const Color3f &rgb, const Mask &matrix,
+                          const Mask &active) const {
         // through a fluorescent medium: B·diag(band albedos of the rest)·c(light)
         Rows<K> B_met = Reduced::template scale_columns<K>(B_out, m_reduced.template band_albedo<K>(tr));
         Color3f le = dr::select(met, emitter_val, emitter_val * tr);
         Color3f via_matrix = Reduced::template apply<K>(dr::select(met, B_met, B_out),
-                                                        m_reduced.template emitter_coefficients<K>(ds.emitter, le, active));
+                                                        m_reduced.template emitter_coefficients<K>(emitter, le, active));
         return dr::select(met || matrix, via_matrix, rgb * emitter_val * tr);
     }
 
@@ -1347,18 +1362,19 @@ private:
     /// multiplies B (given on entry) by its operator diag(μ̄ − σs)/μ̄ − (d/μ̄)·A, after the RGB
     /// transmittance so far (folded into B as per-band factors, then reset to 1); returns
     /// the transmittance, B and where a fluorescent medium was met (B multiplied out
-    /// row-wise from the vertex). `mode` (K = 0): see Shadow; the replay runs the same ratio
-    /// tracking again (the sampler a clone of the first's) and backpropagates adj (δL times the
-    /// next-event estimate, detached) times each step's relative derivative.
+    /// row-wise from the vertex). `mode`: see Shadow; the replay runs the same ratio tracking
+    /// again (the sampler a clone of the first's) and backpropagates, K = 0, adj (δL times the
+    /// next-event estimate, detached) times each step's relative derivative, K > 0 replay_step's.
     template <size_t K, typename Interaction>
     std::tuple<Spectrum, Block<K>, Mask> transmit(const Interaction &ref, const DirectionSample3f &ds,
                                                   const Scene *scene, Sampler *sampler, MediumPtr medium,
                                                   const UInt32 &channel, const Block<K> &B, Mask active,
-                                                  Shadow mode = Shadow::Render, const Spectrum &adj = Spectrum()) const {
+                                                  Shadow mode = Shadow::Render, const Spectrum &adj = Spectrum(),
+                                                  const ShadowAdjoint<K> *replay = nullptr) const {
         Ray3f ray = ref.spawn_ray_to(ds.p);
-        Float max_dist = ray.maxt;
         if constexpr (std::is_convertible_v<Interaction, SurfaceInteraction3f>)
             dr::masked(medium, ref.is_medium_transition()) = ref.target_medium(ray.d);
+        ShadowWalk<K> sw{ scene, ray.maxt, ds.dist, channel, mode, adj, replay };
 
         ShadowState<K> ss = { active,
                               ray,
@@ -1373,152 +1389,214 @@ private:
                               Mask(false),
                               UnpolarizedSpectrum(1.f),
                               sampler };
-        dr::tie(ss) = dr::while_loop(
-            dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
-            [this, scene, max_dist, ds, channel, adj, mode](ShadowState<K> &ss) {
-                // a derivative pass: sampling without gradients, each factor's relative derivative in rel
-                auto sampled = [&](auto &&f) {
-                    dr::suspend_grad<Float> off(mode != Shadow::Render);
-                    return f();
-                };
-                UnpolarizedSpectrum rel = 1.f;
-                auto attached = [&](const Mask &m, auto &&factor) {
-                    if constexpr (dr::is_diff_v<Float>) {
-                        if (mode != Shadow::Render && dr::any_or<true>(m)) {
-                            dr::resume_grad<Float> on;
-                            rel = dr::select(m, rel * fluo_detail::relative(unpolarized_spectrum(factor())), rel);
-                        }
-                    }
-                };
-                Float remaining = max_dist - ss.total_dist;
-                ss.ray.maxt = remaining;
-                ss.active &= remaining > 0.f;
-                if (dr::none_or<false>(ss.active))
-                    return;
-                Mask escaped = false;
-                Mask active_medium = ss.active && ss.medium != nullptr;
-                Mask active_surface = ss.active && !active_medium;
-                if (dr::any_or<true>(active_medium)) {
-                    // a fluorescent medium's μa, once per segment (the rate is 0: absorption alone)
-                    Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
-                    if (dr::any_or<true>(segment))
-                        dr::masked(ss.mu_a, segment) =
-                            sampled([&] { return absorption_bound<K>(ss.medium, ss.ray.wavelengths, segment); });
-                    auto [mei, mu_f, fl, d] = sampled([&] {
-                        return sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium), channel,
-                                             Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
-                    });
-                    (void) mu_f;
-                    dr::masked(ss.mei, active_medium) = mei;
-                    dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =
-                        dr::minimum(ss.mei.t, remaining);
-                    Mask intersect = ss.needs_intersection && active_medium;
-                    if (dr::any_or<true>(intersect))
-                        dr::masked(ss.si, intersect) =
-                            sampled([&] { return scene->ray_intersect(ss.ray, intersect); });
-                    dr::masked(ss.mei.t, active_medium && ss.si.t < ss.mei.t) = dr::Infinity<Float>;
-                    ss.needs_intersection &= !active_medium;
-
-                    // reduced transport: fluorescent media act on B (weight 1 to escape, the
-                    // majorant being one for all bands)
-                    Mask reduced_fl = K > 0 ? Mask(fl && active_medium) : Mask(false);
-                    Mask is_spectral = ss.medium->has_spectral_extinction() && active_medium && !reduced_fl;
-                    Mask not_spectral = !ss.medium->has_spectral_extinction() && active_medium;
-                    if (dr::any_or<true>(is_spectral)) {
-                        Float t = dr::minimum(remaining, dr::minimum(ss.mei.t, ss.si.t)) - ss.mei.mint;
-                        UnpolarizedSpectrum tr = dr::exp(-t * ss.mei.combined_extinction);
-                        UnpolarizedSpectrum pdf = dr::select(ss.si.t < ss.mei.t || ss.mei.t > remaining, tr,
-                                                             tr * ss.mei.combined_extinction);
-                        Float tr_pdf = channel_of(pdf, channel);
-                        dr::masked(ss.transmittance, is_spectral) *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
-                        attached(is_spectral, [&] { return dr::exp(-t * majorant_of(ss.medium, ss.mei, is_spectral)); });
-                    }
-                    dr::masked(ss.total_dist, active_medium && ss.mei.t > remaining && ss.mei.is_valid()) = ds.dist;
-                    dr::masked(ss.mei.t, active_medium && ss.mei.t > remaining) = dr::Infinity<Float>;
-                    escaped = active_medium && !ss.mei.is_valid();
-                    active_medium &= ss.mei.is_valid();
-                    is_spectral &= active_medium;
-                    not_spectral &= active_medium;
-                    reduced_fl &= active_medium;
-                    dr::masked(ss.total_dist, active_medium) += ss.mei.t;
-                    dr::masked(ss.ray.o, active_medium) = ss.mei.p;
-                    dr::masked(ss.si.t, active_medium) = ss.si.t - ss.mei.t;
-                    dr::masked(ss.transmittance, is_spectral) *= ss.mei.sigma_n;
-                    dr::masked(ss.transmittance, not_spectral) *= ss.mei.sigma_n / ss.mei.combined_extinction;
-                    attached(is_spectral || not_spectral, [&] {
-                        UnpolarizedSpectrum m = majorant_of(ss.medium, ss.mei, active_medium);
-                        UnpolarizedSpectrum n = m - std::get<2>(ss.medium->get_scattering_coefficients(ss.mei, active_medium));
-                        return dr::select(is_spectral, n, n / m);
-                    });
-                    if constexpr (K > 0) {
-                        if (dr::any_or<true>(reduced_fl)) {
-                            if (mode != Shadow::Render) // (sampled without gradients)
-                                attach_fluorescent(ss.medium, ss.mei, d, reduced_fl);
-                            Mask flush = reduced_fl && dr::any(ss.transmittance != 1.f);
-                            ss.B = dr::select(flush,
-                                              Reduced::template scale_columns<K>(
-                                                  ss.B, m_reduced.template band_albedo<K>(ss.transmittance)),
-                                              ss.B);
-                            dr::masked(ss.transmittance, reduced_fl) = 1.f;
-                            ss.met |= reduced_fl;
-                            Float mu = ss.mei.combined_extinction[0], inv_mu = dr::rcp(mu);
-                            Coeffs<K> g = m_reduced.template band_albedo<K>(ss.mei.sigma_s);
-                            for (size_t k = 0; k < K; ++k)
-                                g[k] = (mu - g[k]) * inv_mu;
-                            ss.B = dr::select(reduced_fl,
-                                              medium_product<K>(ss.B, g, -d * inv_mu, &ReducedMedium::a,
-                                                                which_media(ss.medium)),
-                                              ss.B);
-                        }
-                    } else {
-                        (void) d;
-                    }
-                }
-
-                Mask intersect = active_surface && ss.needs_intersection;
-                if (dr::any_or<true>(intersect))
-                    dr::masked(ss.si, intersect) = sampled([&] { return scene->ray_intersect(ss.ray, intersect); });
-                ss.needs_intersection &= !intersect;
-                active_surface |= escaped;
-                dr::masked(ss.total_dist, active_surface) += ss.si.t;
-
-                active_surface &= ss.si.is_valid() && ss.active && !active_medium;
-                if (dr::any_or<true>(active_surface)) {
-                    BSDFPtr bsdf = ss.si.bsdf(ss.ray);
-                    Spectrum v = bsdf->eval_null_transmission(ss.si, active_surface);
-                    dr::masked(ss.transmittance, active_surface) *= mode == Shadow::Replay ? dr::detach(v) : v;
-                    attached(active_surface, [&] { return bsdf->eval_null_transmission(ss.si, active_surface); });
-                }
-                dr::masked(ss.ray, active_surface) = ss.si.spawn_ray(ss.ray.d);
-                ss.ray.maxt = remaining;
-                ss.needs_intersection |= active_surface;
-                ss.active &= (active_medium || active_surface) &&
-                             dr::any(unpolarized_spectrum(ss.transmittance) != 0.f);
-                if constexpr (K > 0) {
-                    // a fluorescent medium's operator B carries the weight where it was met
-                    // (transmittance stays 1 there): once B is zero (absorbed: in an optically
-                    // thick medium a few null collisions), the ray stops as the spectral one
-                    // does at a zero transmittance, instead of crossing every null collision
-                    Mask alive = false;
-                    for (size_t i = 0; i < 3 * K; ++i)
-                        alive |= ss.B[i] != 0.f;
-                    ss.active &= !ss.met || alive;
-                }
-                Mask transition = active_surface && ss.si.is_medium_transition();
-                dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);
-                if constexpr (dr::is_diff_v<Float>) {
-                    if (mode != Shadow::Render) {
-                        dr::resume_grad<Float> on;
-                        if (mode == Shadow::Recorded)
-                            ss.derivative *= rel;
-                        else if (Spectrum weighted = adj * rel; dr::grad_enabled(weighted))
-                            dr::backward_from(weighted);
-                    }
-                }
-            });
+        track<K>(ss, sw);
         if (mode == Shadow::Recorded)
             ss.transmittance *= ss.derivative;
         return { ss.transmittance, ss.B, ss.met };
+    }
+
+    /// transmit()'s ratio tracking from the state ss to its end.
+    template <size_t K> void track(ShadowState<K> &ss, const ShadowWalk<K> &sw) const {
+        dr::tie(ss) = dr::while_loop(
+            dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
+            [this, sw](ShadowState<K> &ss) { shadow_step<K>(ss, sw); });
+    }
+
+    /// One step of transmit()'s ratio tracking: a null collision, a null surface or the ray's end.
+    template <size_t K> void shadow_step(ShadowState<K> &ss, const ShadowWalk<K> &sw) const {
+        const Shadow mode = sw.mode;
+        // a derivative pass: sampling without gradients, each factor's relative derivative in rel
+        auto sampled = [&](auto &&f) {
+            dr::suspend_grad<Float> off(mode != Shadow::Render);
+            return f();
+        };
+        UnpolarizedSpectrum rel = 1.f;
+        auto attached = [&](const Mask &m, auto &&factor) {
+            if constexpr (dr::is_diff_v<Float>) {
+                if (mode != Shadow::Render && dr::any_or<true>(m)) {
+                    dr::resume_grad<Float> on;
+                    rel = dr::select(m, rel * fluo_detail::relative(unpolarized_spectrum(factor())), rel);
+                }
+            }
+        };
+        Float remaining = sw.max_dist - ss.total_dist;
+        ss.ray.maxt = remaining;
+        ss.active &= remaining > 0.f;
+        if (dr::none_or<false>(ss.active))
+            return;
+        Mask escaped = false;
+        Mask active_medium = ss.active && ss.medium != nullptr;
+        Mask active_surface = ss.active && !active_medium;
+        if (dr::any_or<true>(active_medium)) {
+            // a fluorescent medium's μa, once per segment (the rate is 0: absorption alone)
+            Mask segment = ss.needs_intersection && is_fluorescent_medium(ss.medium, active_medium);
+            if (dr::any_or<true>(segment))
+                dr::masked(ss.mu_a, segment) =
+                    sampled([&] { return absorption_bound<K>(ss.medium, ss.ray.wavelengths, segment); });
+            auto [mei, mu_f, fl, d] = sampled([&] {
+                return sample_medium(ss.medium, ss.ray, ss.sampler->next_1d(active_medium), sw.channel,
+                                     Float(0.f), ss.mu_a, UnpolarizedSpectrum(0.f), active_medium);
+            });
+            (void) mu_f;
+            dr::masked(ss.mei, active_medium) = mei;
+            dr::masked(ss.ray.maxt, active_medium && ss.medium->is_homogeneous() && ss.mei.is_valid()) =
+                dr::minimum(ss.mei.t, remaining);
+            Mask intersect = ss.needs_intersection && active_medium;
+            if (dr::any_or<true>(intersect))
+                dr::masked(ss.si, intersect) =
+                    sampled([&] { return sw.scene->ray_intersect(ss.ray, intersect); });
+            dr::masked(ss.mei.t, active_medium && ss.si.t < ss.mei.t) = dr::Infinity<Float>;
+            ss.needs_intersection &= !active_medium;
+
+            // reduced transport: fluorescent media act on B (weight 1 to escape, the
+            // majorant being one for all bands)
+            Mask reduced_fl = K > 0 ? Mask(fl && active_medium) : Mask(false);
+            Mask is_spectral = ss.medium->has_spectral_extinction() && active_medium && !reduced_fl;
+            Mask not_spectral = !ss.medium->has_spectral_extinction() && active_medium;
+            if (dr::any_or<true>(is_spectral)) {
+                Float t = dr::minimum(remaining, dr::minimum(ss.mei.t, ss.si.t)) - ss.mei.mint;
+                UnpolarizedSpectrum tr = dr::exp(-t * ss.mei.combined_extinction);
+                UnpolarizedSpectrum pdf = dr::select(ss.si.t < ss.mei.t || ss.mei.t > remaining, tr,
+                                                     tr * ss.mei.combined_extinction);
+                Float tr_pdf = channel_of(pdf, sw.channel);
+                dr::masked(ss.transmittance, is_spectral) *= dr::select(tr_pdf > 0.f, tr / tr_pdf, 0.f);
+                attached(is_spectral, [&] { return dr::exp(-t * majorant_of(ss.medium, ss.mei, is_spectral)); });
+            }
+            dr::masked(ss.total_dist, active_medium && ss.mei.t > remaining && ss.mei.is_valid()) = sw.dist;
+            dr::masked(ss.mei.t, active_medium && ss.mei.t > remaining) = dr::Infinity<Float>;
+            escaped = active_medium && !ss.mei.is_valid();
+            active_medium &= ss.mei.is_valid();
+            is_spectral &= active_medium;
+            not_spectral &= active_medium;
+            reduced_fl &= active_medium;
+            dr::masked(ss.total_dist, active_medium) += ss.mei.t;
+            dr::masked(ss.ray.o, active_medium) = ss.mei.p;
+            dr::masked(ss.si.t, active_medium) = ss.si.t - ss.mei.t;
+            dr::masked(ss.transmittance, is_spectral) *= ss.mei.sigma_n;
+            dr::masked(ss.transmittance, not_spectral) *= ss.mei.sigma_n / ss.mei.combined_extinction;
+            attached(is_spectral || not_spectral, [&] {
+                UnpolarizedSpectrum m = majorant_of(ss.medium, ss.mei, active_medium);
+                UnpolarizedSpectrum n = m - std::get<2>(ss.medium->get_scattering_coefficients(ss.mei, active_medium));
+                return dr::select(is_spectral, n, n / m);
+            });
+            if constexpr (K > 0) {
+                if (dr::any_or<true>(reduced_fl)) {
+                    if (mode != Shadow::Render) // (sampled without gradients)
+                        attach_fluorescent(ss.medium, ss.mei, d, reduced_fl);
+                    Mask flush = reduced_fl && dr::any(ss.transmittance != 1.f);
+                    ss.B = dr::select(flush,
+                                      Reduced::template scale_columns<K>(
+                                          ss.B, m_reduced.template band_albedo<K>(ss.transmittance)),
+                                      ss.B);
+                    dr::masked(ss.transmittance, reduced_fl) = 1.f;
+                    ss.met |= reduced_fl;
+                    Float mu = ss.mei.combined_extinction[0], inv_mu = dr::rcp(mu);
+                    Coeffs<K> g = m_reduced.template band_albedo<K>(ss.mei.sigma_s);
+                    for (size_t k = 0; k < K; ++k)
+                        g[k] = (mu - g[k]) * inv_mu;
+                    ss.B = dr::select(reduced_fl,
+                                      medium_product<K>(ss.B, g, -d * inv_mu, &ReducedMedium::a,
+                                                        which_media(ss.medium)),
+                                      ss.B);
+                }
+            } else {
+                (void) d;
+            }
+        }
+
+        Mask intersect = active_surface && ss.needs_intersection;
+        if (dr::any_or<true>(intersect))
+            dr::masked(ss.si, intersect) = sampled([&] { return sw.scene->ray_intersect(ss.ray, intersect); });
+        ss.needs_intersection &= !intersect;
+        active_surface |= escaped;
+        dr::masked(ss.total_dist, active_surface) += ss.si.t;
+
+        active_surface &= ss.si.is_valid() && ss.active && !active_medium;
+        if (dr::any_or<true>(active_surface)) {
+            BSDFPtr bsdf = ss.si.bsdf(ss.ray);
+            Spectrum v = bsdf->eval_null_transmission(ss.si, active_surface);
+            dr::masked(ss.transmittance, active_surface) *= mode == Shadow::Render ? v : dr::detach(v);
+            attached(active_surface, [&] { return v; }); // (its derivative once: in rel)
+        }
+        dr::masked(ss.ray, active_surface) = ss.si.spawn_ray(ss.ray.d);
+        ss.ray.maxt = remaining;
+        ss.needs_intersection |= active_surface;
+        ss.active &= (active_medium || active_surface) &&
+                     dr::any(unpolarized_spectrum(ss.transmittance) != 0.f);
+        if constexpr (K > 0) {
+            // a fluorescent medium's operator B carries the weight where it was met
+            // (transmittance stays 1 there): once B is zero (absorbed: in an optically
+            // thick medium a few null collisions), the ray stops as the spectral one
+            // does at a zero transmittance, instead of crossing every null collision
+            Mask alive = false;
+            for (size_t i = 0; i < 3 * K; ++i)
+                alive |= ss.B[i] != 0.f;
+            ss.active &= !ss.met || alive;
+        }
+        Mask transition = active_surface && ss.si.is_medium_transition();
+        dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);
+        if constexpr (dr::is_diff_v<Float>) {
+            if (mode == Shadow::Recorded) {
+                dr::resume_grad<Float> on;
+                ss.derivative *= rel;
+            } else if (mode == Shadow::Replay) {
+                dr::resume_grad<Float> on;
+                if constexpr (K == 0) {
+                    if (Spectrum weighted = sw.adj * rel; dr::grad_enabled(weighted))
+                        dr::backward_from(weighted);
+                } else if constexpr (!is_polarized_v<Spectrum>) {
+                    replay_step<K>(ss, sw, rel);
+                }
+            }
+        }
+    }
+
+    /// K > 0, fluo_prbvolpath's replay of a shadow ray, after a step whose factors carry
+    /// derivatives: the ray's value (shadow_value) is linear in the transmittance so far t
+    /// (3 values; B given) and in B (t given), so the step's factors contribute
+    /// δLᵀ·J_t·(t ⊙ rel) + δLᵀ·B'·s, where B' is B with this step's derivatives, the columns
+    /// of J_t come from continuations of the ray carrying the unit vectors in place of t, and s
+    /// (K coefficients) from continuations carrying the identity's rows in place of B (clones
+    /// of the sampler, without gradients: the same steps). Time grows with the square of the
+    /// number of steps (as fluo_detail::future's); the ray goes on detached.
+    template <size_t K> void replay_step(ShadowState<K> &ss, const ShadowWalk<K> &sw, const Color3f &rel) const {
+        Rows<K> B = ss.B; // (with this step's derivatives)
+        ss.B = dr::detach(ss.B);
+        ss.mei = dr::detach(ss.mei);
+        const ShadowAdjoint<K> &sa = *sw.replay;
+        auto value = [&](auto &&set) { // the ray's value from ss on, with a part of its state replaced
+            dr::suspend_grad<Float> off;
+            ShadowState<K> cs = ss;
+            ref<Sampler> clone = ss.sampler->clone();
+            cs.sampler = clone.get();
+            set(cs);
+            ShadowWalk<K> render = sw;
+            render.mode = Shadow::Render;
+            track<K>(cs, render);
+            return Color3f(shadow_value<K>(cs.transmittance, cs.B, cs.met, sa.emitter, sa.emitter_val, sa.rgb,
+                                           sa.matrix, sa.active));
+        };
+        Float weighted = 0.f;
+        if (dr::grad_enabled(rel)) {
+            for (size_t j = 0; j < 3; ++j) {
+                Color3f c = value([j](ShadowState<K> &cs) {
+                    cs.transmittance = 0.f;
+                    cs.transmittance[j] = 1.f;
+                });
+                weighted += dr::dot(sa.delta_L, c) * ss.transmittance[j] * rel[j];
+            }
+        }
+        if (dr::grad_enabled(B)) {
+            Coeffs<K> s;
+            for (size_t b = 0; 3 * b < K; ++b) {
+                Color3f c = value([b](ShadowState<K> &cs) { cs.B = fluo_detail::identity_rows<K, Rows<K>>(b); });
+                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+                    s[3 * b + r] = c[r];
+            }
+            weighted += dr::dot(sa.delta_L, Reduced::template apply<K>(B, s));
+        }
+        if (dr::grad_enabled(weighted))
+            dr::backward_from(weighted);
     }
 
     // ------------------------------------------------ RGB: reduced transport
@@ -1657,15 +1735,9 @@ private:
     double m_range_lo = 0.0, m_range_hi = 0.0;
     bool m_fluorescent = false, m_directional = false;
     bool m_differentiating = false; ///< in render_forward/backward: this loop, volpath's never
-    struct Differentiating {
-        FluoVolpath *self;
-        Differentiating(FluoVolpath *s) : self(s) { self->m_differentiating = true; }
-        ~Differentiating() { self->m_differentiating = false; }
-    };
     bool m_varying = false; ///< RGB: a direction-dependent lobe varies over the surface (a model picked per vertex)
     Wrappers m_wrappers;    ///< around fluorescent BSDFs, this render
     bool m_replay = false;  ///< registered as fluo_prbvolpath
-    bool m_replay_warned = false; ///< ... and said once that RGB variants record the loop
     fluo_detail::PathReplay<Float, Spectrum> m_replayer; ///< its passes (render_backward)
 };
 

@@ -74,33 +74,6 @@ template <typename M, typename Scene> std::vector<const M *> managed_media(const
     return media;
 }
 
-/// Whether a value traversed from an object (its children's included) carries gradients.
-template <typename Float> struct GradientFinder : TraversalCallback {
-    using T = CoreAliases<Float>;
-    bool found = false;
-    std::unordered_set<Object *> seen;
-    template <typename V> void check(void *ptr, const std::type_info &type) {
-        if (type == typeid(V))
-            found |= dr::grad_enabled(*static_cast<V *>(ptr));
-    }
-    void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
-        check<Float>(ptr, type);
-        check<typename T::Color3f>(ptr, type);
-        check<DynamicBuffer<Float>>(ptr, type);
-        check<typename T::TensorXf>(ptr, type);
-    }
-    void put_object(std::string_view, Object *c, uint32_t) override {
-        if (c && seen.insert(c).second)
-            c->traverse(this);
-    }
-};
-template <typename Float> bool has_gradients(Object *o) {
-    GradientFinder<Float> f;
-    f.seen.insert(o);
-    o->traverse(&f);
-    return f.found;
-}
-
 /// Every object reachable from the scene's shapes (their BSDFs, wrapped ones, textures).
 template <typename Scene> Collector shape_objects(const Scene *scene) {
     Collector c;
@@ -116,6 +89,13 @@ template <typename Scene> Collector shape_objects(const Scene *scene) {
 /// (update_generation), so that the joined tables, ranges and reduced operators follow it.
 /// Mitsuba's own plugins are read live, except an emitter's spectral range: after updating
 /// that, render with fluo_path itself.
+/// Sets a flag for its lifetime (an integrator's derivative pass: render_forward/backward).
+struct Raised {
+    bool &flag;
+    explicit Raised(bool &f) : flag(f) { flag = true; }
+    ~Raised() { flag = false; }
+};
+
 class PreparedScene {
 public:
     template <typename Prepare> void ensure(const void *scene, Prepare &&prepare) {
