@@ -519,7 +519,7 @@ def backward_pass(variant: str, integrator: str) -> dict:
     """Load the fluorescent Cornell box (its fluo_jung walls' concentration with gradients;
     Mitsuba's `prb`: diffuse walls, their reflectance) or, for the volumetric integrators,
     the quantum-dot cuvette (Q 0.8, its concentration; Mitsuba's `prbvolpath`: a homogeneous
-    medium, its σt; RGB: the floor's reflectance, all three; at VOLUME_BACKWARD_RES²,
+    medium, its σt; at VOLUME_BACKWARD_RES²,
     VOLUME_BACKWARD_SPP spp) and run one reverse-mode
     pass of mi.render at BACKWARD_RES², BACKWARD_SPP spp, max_depth 8 in this fresh process:
     its peak memory (peak_mb), and what the process held before the pass."""
@@ -535,8 +535,6 @@ def backward_pass(variant: str, integrator: str) -> dict:
         spp = VOLUME_BACKWARD_SPP
         d["integrator"]["max_depth"] = 8
         key = "cuvette.interior_medium." + ("sigma_t.value.value" if native else "concentration")
-        if variant.endswith("_rgb"):  # (RGB replays surfaces' parameters, not the media's)
-            key = "floor.bsdf.reflectance.value"
     else:
         d = box(BACKWARD_RES, integrator=integrator, bsdf=diffuse if native else jung)
         key = "white.reflectance.value" if native else "white.concentration"
@@ -783,7 +781,7 @@ ROWS = {
                                     lambda a: backward_row(a, "llvm_ad_spectral",
                                                            ("fluo_prbvolpath", "fluo_volpath", "prbvolpath"))),
     "llvm_backward_memory_volume_rgb": ("llvm: backward pass peak memory, fluo_prbvolpath / AD through fluo_volpath "
-                                        "(QD cuvette, Q 0.8, the floor's reflectance, 32², 32 spp, max_depth 8), "
+                                        "(QD cuvette, Q 0.8, 32², 32 spp, max_depth 8), "
                                         "llvm_ad_rgb (reduced transport)", 0.5,
                                         lambda a: backward_row(a, "llvm_ad_rgb",
                                                                ("fluo_prbvolpath", "fluo_volpath", "prbvolpath"))),
