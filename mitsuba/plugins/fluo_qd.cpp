@@ -779,7 +779,8 @@ private:
     /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
     /// corners at the roughness level nearest its alpha, with bilinear weights), its Q, the
     /// elastic lobe's roughness (the hit's own) and the cells of its wavelengths in each
-    /// radius corner's grid (spectral, coated, `with_cells`).
+    /// radius corner's grid (spectral, coated, `with_cells`: the elastic lobe's calls, which
+    /// also read the substrate's index).
     struct Hit {
         size_t n = 1, per_radius = 1; ///< corners; corner i reads cells[i / per_radius]
         std::array<ModelAt, MaxCorners> model;
@@ -787,6 +788,7 @@ private:
         Float q, alpha;
         std::array<Cells, 2> cells;
         bool has_cells = false;
+        dr::Complex<UnpolarizedSpectrum> ior; ///< the substrate's eta + i·k (`with_cells`)
     };
 
     /// One of a hit's models picked with its weight as probability by u (the first with
@@ -961,9 +963,9 @@ private:
             if (h.has_cells)
                 for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
                     h.cells[0][w] = cell(h.model[0], si.wavelengths[w], active);
-        } else {
-            (void) si, (void) with_cells;
         }
+        if (with_cells)
+            h.ior = substrate_ior(si, active);
         return h;
     }
 
@@ -1003,10 +1005,15 @@ private:
                 for (size_t a = 0; a * h.per_radius < h.n; ++a)
                     for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
                         h.cells[a][w] = cell(h.model[a * h.per_radius], si.wavelengths[w], active);
-        } else {
-            (void) with_cells;
         }
+        if (with_cells)
+            h.ior = substrate_ior(si, active);
         return h;
+    }
+    /// The substrate's complex index at si (its eta/k textures, as roughconductor's), once
+    /// per hit: an eval_pdf_sample's two Fresnel factors share it.
+    dr::Complex<UnpolarizedSpectrum> substrate_ior(const SurfaceInteraction3f &si, const Mask &active) const {
+        return { m_setup.eta->eval(si, active), m_setup.k->eval(si, active) };
     }
 
     /// The microfacet lobe D G/(4 cos θi) at roughness alpha, and cos θ = ωi·h.
@@ -1037,7 +1044,7 @@ private:
         active &= (pdf != 0.f) && Frame3f::cos_theta(bs.wo) > 0.f;
         bs.pdf = dr::select(active, pdf / (4.f * dr::dot(bs.wo, m)), 0.f);
         UnpolarizedSpectrum weight = distr.smith_g1(bs.wo, m) * fresnel_value(si, dr::dot(si.wi, m), active, h);
-        return { bs, lobe_spectrum(ctx, si, bs.wo, m, weight, active) };
+        return { bs, lobe_spectrum(ctx, si, bs.wo, m, weight, active, h) };
     }
 
     /// The elastic lobe's `value` as Mitsuba's Spectrum: in the polarized variants the
@@ -1047,9 +1054,9 @@ private:
     /// intensity is `value`: the coating's tables are averaged over polarization, so the
     /// coating scales the substrate's matrix (exact without a coating); elsewhere the value.
     Spectrum lobe_spectrum(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
-                           const Vector3f &m, const UnpolarizedSpectrum &value, const Mask &active) const {
+                           const Vector3f &m, const UnpolarizedSpectrum &value, const Mask &active, const Hit &h) const {
         if constexpr (is_polarized_v<Spectrum>) {
-            dr::Complex<UnpolarizedSpectrum> eta_c(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
+            const dr::Complex<UnpolarizedSpectrum> &eta_c = h.ior;
             // Light arrives along −w_in and leaves along w_out.
             bool radiance = ctx.mode == TransportMode::Radiance;
             Vector3f w_in = radiance ? wo : si.wi, w_out = radiance ? si.wi : wo;
@@ -1063,7 +1070,7 @@ private:
             UnpolarizedSpectrum f0 = F(0, 0);
             return (F * dr::select(f0 > 0.f, value / f0, 0.f)) & active;
         } else {
-            (void) ctx, (void) wo, (void) m;
+            (void) ctx, (void) wo, (void) m, (void) h;
             return depolarizer<Spectrum>(dr::select(active, value, 0.f));
         }
     }
@@ -1080,7 +1087,7 @@ private:
         Float G = smith_g1_wi * distr.smith_g1(wo, H);
         UnpolarizedSpectrum value = fresnel_value(si, dr::dot(si.wi, H), active, h) * (D * G / (4.f * cos_theta_i));
         Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
-        return { lobe_spectrum(ctx, si, wo, H, value, active), dr::select(active, pdf, 0.f) };
+        return { lobe_spectrum(ctx, si, wo, H, value, active, h), dr::select(active, pdf, 0.f) };
     }
     /// A table's row (offset `row`) at the cell, linear in λ.
     Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {
@@ -1260,13 +1267,15 @@ private:
     /// values mixed with their weights.
     UnpolarizedSpectrum fresnel_value(const SurfaceInteraction3f &si, const Float &cos_m, const Mask &active,
                                       const Hit &h) const {
-        dr::Complex<UnpolarizedSpectrum> eta_c(m_setup.eta->eval(si, active), m_setup.k->eval(si, active));
-        UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), eta_c);
+        UnpolarizedSpectrum F = fresnel_conductor(UnpolarizedSpectrum(cos_m), h.ior);
         if (!m_coated)
             return F;
         UnpolarizedSpectrum mixed(0.f);
         for (size_t i = 0; i < h.n; ++i) {
             Mask on = active && h.weight[i] > 0.f;
+            if constexpr (!dr::is_jit_v<Float>)
+                if (!on) // (scalar: a corner without weight, e.g. a texture at a level, adds nothing)
+                    continue;
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
                 for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {

@@ -1290,20 +1290,20 @@ private:
 
     /// K > 0, fluo_prbvolpath's replay of a shadow ray: what its value (light()'s) is made of
     /// besides the tracking, detached, and δL (times the estimate's MIS weight) it is weighed by.
-    template <size_t K> struct ShadowAdjoint {
+    struct ShadowAdjoint {
         Color3f delta_L, emitter_val, rgb;
         Mask matrix, active;
         EmitterPtr emitter;
     };
 
     /// What the steps of one shadow ray share.
-    template <size_t K> struct ShadowWalk {
+    struct ShadowWalk {
         const Scene *scene;
         Float max_dist, dist;
         UInt32 channel;
         Shadow mode;
         Spectrum adj;                       ///< K = 0, Replay: δL times the estimate, detached
-        const ShadowAdjoint<K> *replay;     ///< K > 0, Replay
+        const ShadowAdjoint *replay;     ///< K > 0, Replay
     };
 
     /// K > 0: the emitter sample ds's value `emitter_val` seen from `at` through media
@@ -1321,19 +1321,16 @@ private:
                    const Block<K> &B, const Color3f &rgb, const Mask &matrix, const Mask &active, Shadow mode,
                    const Color3f *adjoint = nullptr) const {
         if (adjoint) {
-            Coeffs<K> s;
-            for (size_t b = 0; 3 * b < K; ++b) { // (tracked without gradients, s with the emitter's)
+            // (tracked without gradients, s with the emitter's)
+            Coeffs<K> s = fluo_detail::probe_coefficients<K, Coeffs<K>, Rows<K>>([&](const Rows<K> &probe, size_t) {
                 ref<Sampler> clone = sampler->clone();
                 auto [tr, B_out, met] = [&] {
                     dr::suspend_grad<Float> off;
-                    return transmit<K>(at, ds, scene, clone.get(), medium, channel,
-                                       fluo_detail::identity_rows<K, Rows<K>>(b), active, Shadow::Render);
+                    return transmit<K>(at, ds, scene, clone.get(), medium, channel, probe, active, Shadow::Render);
                 }();
-                Color3f v = shadow_value<K>(tr, B_out, met, ds.emitter, emitter_val, Color3f(0.f), Mask(true), active);
-                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-                    s[3 * b + r] = v[r];
-            }
-            ShadowAdjoint<K> sa{ *adjoint, dr::detach(unpolarized_spectrum(emitter_val)), dr::detach(rgb), matrix, active,
+                return Color3f(shadow_value<K>(tr, B_out, met, ds.emitter, emitter_val, Color3f(0.f), Mask(true), active));
+            });
+            ShadowAdjoint sa{ *adjoint, dr::detach(unpolarized_spectrum(emitter_val)), dr::detach(rgb), matrix, active,
                                  ds.emitter };
             auto [tr, B_out, met] = transmit<K>(at, ds, scene, sampler, medium, channel, dr::detach(B), active,
                                                 Shadow::Replay, Spectrum(), &sa);
@@ -1370,11 +1367,11 @@ private:
                                                   const Scene *scene, Sampler *sampler, MediumPtr medium,
                                                   const UInt32 &channel, const Block<K> &B, Mask active,
                                                   Shadow mode = Shadow::Render, const Spectrum &adj = Spectrum(),
-                                                  const ShadowAdjoint<K> *replay = nullptr) const {
+                                                  const ShadowAdjoint *replay = nullptr) const {
         Ray3f ray = ref.spawn_ray_to(ds.p);
         if constexpr (std::is_convertible_v<Interaction, SurfaceInteraction3f>)
             dr::masked(medium, ref.is_medium_transition()) = ref.target_medium(ray.d);
-        ShadowWalk<K> sw{ scene, ray.maxt, ds.dist, channel, mode, adj, replay };
+        ShadowWalk sw{ scene, ray.maxt, ds.dist, channel, mode, adj, replay };
 
         ShadowState<K> ss = { active,
                               ray,
@@ -1396,14 +1393,14 @@ private:
     }
 
     /// transmit()'s ratio tracking from the state ss to its end.
-    template <size_t K> void track(ShadowState<K> &ss, const ShadowWalk<K> &sw) const {
+    template <size_t K> void track(ShadowState<K> &ss, const ShadowWalk &sw) const {
         dr::tie(ss) = dr::while_loop(
             dr::make_tuple(ss), [](const ShadowState<K> &ss) { return dr::detach(ss.active); },
             [this, sw](ShadowState<K> &ss) { shadow_step<K>(ss, sw); });
     }
 
     /// One step of transmit()'s ratio tracking: a null collision, a null surface or the ray's end.
-    template <size_t K> void shadow_step(ShadowState<K> &ss, const ShadowWalk<K> &sw) const {
+    template <size_t K> void shadow_step(ShadowState<K> &ss, const ShadowWalk &sw) const {
         const Shadow mode = sw.mode;
         // a derivative pass: sampling without gradients, each factor's relative derivative in rel
         auto sampled = [&](auto &&f) {
@@ -1559,18 +1556,18 @@ private:
     /// (K coefficients) from continuations carrying the identity's rows in place of B (clones
     /// of the sampler, without gradients: the same steps). Time grows with the square of the
     /// number of steps (as fluo_detail::future's); the ray goes on detached.
-    template <size_t K> void replay_step(ShadowState<K> &ss, const ShadowWalk<K> &sw, const Color3f &rel) const {
+    template <size_t K> void replay_step(ShadowState<K> &ss, const ShadowWalk &sw, const Color3f &rel) const {
         Rows<K> B = ss.B; // (with this step's derivatives)
         ss.B = dr::detach(ss.B);
         ss.mei = dr::detach(ss.mei);
-        const ShadowAdjoint<K> &sa = *sw.replay;
+        const ShadowAdjoint &sa = *sw.replay;
         auto value = [&](auto &&set) { // the ray's value from ss on, with a part of its state replaced
             dr::suspend_grad<Float> off;
             ShadowState<K> cs = ss;
             ref<Sampler> clone = ss.sampler->clone();
             cs.sampler = clone.get();
             set(cs);
-            ShadowWalk<K> render = sw;
+            ShadowWalk render = sw;
             render.mode = Shadow::Render;
             track<K>(cs, render);
             return Color3f(shadow_value<K>(cs.transmittance, cs.B, cs.met, sa.emitter, sa.emitter_val, sa.rgb,
@@ -1587,12 +1584,8 @@ private:
             }
         }
         if (dr::grad_enabled(B)) {
-            Coeffs<K> s;
-            for (size_t b = 0; 3 * b < K; ++b) {
-                Color3f c = value([b](ShadowState<K> &cs) { cs.B = fluo_detail::identity_rows<K, Rows<K>>(b); });
-                for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-                    s[3 * b + r] = c[r];
-            }
+            Coeffs<K> s = fluo_detail::probe_coefficients<K, Coeffs<K>, Rows<K>>(
+                [&](const Rows<K> &probe, size_t) { return value([&probe](ShadowState<K> &cs) { cs.B = probe; }); });
             weighted += dr::dot(sa.delta_L, Reduced::template apply<K>(B, s));
         }
         if (dr::grad_enabled(weighted))

@@ -441,13 +441,20 @@ Spectrum emitter_weight(const Scene *scene, const Interaction &at, const Directi
     return with_grad(weight, value * dr::detach(dr::select(ds.pdf != 0.f, dr::rcp(ds.pdf), 0.f)));
 }
 
-/// Rows 3b, 3b + 1, 3b + 2 of the K×K identity as a 3×K block (fewer where K ends): what a
-/// continuation carries in place of a matrix throughput to give 3 of K coefficients.
-template <size_t K, typename Rows> Rows identity_rows(size_t b) {
-    Rows probe = dr::zeros<Rows>();
-    for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-        probe[r * K + 3 * b + r] = 1.f;
-    return probe;
+/// The K coefficients s of a value linear in a 3×K block B (v = B·s): `value(P, b)` at
+/// P = rows 3b, 3b + 1, 3b + 2 of the K×K identity (fewer where K ends), 3 coefficients a
+/// call (⌈K/3⌉ calls): what continuations carry in place of a matrix throughput.
+template <size_t K, typename Coeffs, typename Rows, typename Value> Coeffs probe_coefficients(Value &&value) {
+    Coeffs s = dr::zeros<Coeffs>();
+    for (size_t b = 0; 3 * b < K; ++b) {
+        Rows probe = dr::zeros<Rows>();
+        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+            probe[r * K + 3 * b + r] = 1.f;
+        auto v = value(probe, b);
+        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
+            s[3 * b + r] = v[r];
+    }
+    return s;
 }
 
 /// The reduced transport's replay (fluo_prb, fluo_prbvolpath; K > 0): the radiance still
@@ -463,24 +470,22 @@ template <size_t K, typename Coeffs, typename Color3f, typename State, typename 
 std::pair<Coeffs, Color3f> future(const State &from, const Mask &weighed, Run &&run) {
     using Float = dr::value_t<Color3f>;
     dr::suspend_grad<Float> detached;
-    Coeffs coeffs = dr::zeros<Coeffs>();
     Color3f rgb = 0.f;
-    for (size_t b = 0; 3 * b < K; ++b) {
+    Coeffs coeffs = probe_coefficients<K, Coeffs, decltype(from.c.R)>([&](const auto &probe, size_t b) {
         auto clone = from.sampler->clone();
         State cs = from;
         cs.sampler = clone.get();
         cs.result = dr::zeros<decltype(cs.result)>();
         cs.c.t = Color3f(1.f);
-        cs.c.R = identity_rows<K, decltype(cs.c.R)>(b);
+        cs.c.R = probe;
         if (b > 0) // RGB throughputs need the first only
             cs.active &= from.c.reduced;
         cs.active &= weighed;
         run(cs);
-        for (size_t r = 0; r < 3 && 3 * b + r < K; ++r)
-            coeffs[3 * b + r] = cs.result[r];
         if (b == 0)
             rgb = Color3f(cs.result);
-    }
+        return Color3f(cs.result);
+    });
     return { coeffs, rgb };
 }
 

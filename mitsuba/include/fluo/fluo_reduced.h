@@ -131,6 +131,7 @@ public:
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t) // (`m` as final: jit_reduced_nodes rewrites it)
                     for (size_t i = 0; i < e.m[t].size() && i < m_k * m_k; ++i)
                         e.mf[t][i] = (float) e.m[t][i];
+                uniform_operator(e);
                 m_entries.push_back(std::move(e));
             }
             // (gradients on baked parameters: their values change every optimisation step, and
@@ -376,6 +377,9 @@ private:
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
         /// `m` in single precision (scalar variants: dense()), every term K·K entries
         std::array<std::array<float, KMax * KMax>, Bispectral::MaxTerms> mf{};
+        /// Scalar variants, an operator the same at every hit: A itself (uniform_operator)
+        std::array<float, KMax * KMax> a{};
+        bool uniform = false;
         /// Derivative matrices of parameters baked into `m` (Bispectral::jit_reduced_derivatives)
         std::vector<std::vector<double>> d;
         std::vector<std::vector<Float>> dv; ///< `d` as opaque values (Lambertian)
@@ -454,7 +458,30 @@ private:
         }
         return a;
     }
-    template <size_t K> static Rows<K> times(const Rows<K> &R, const Dense<K> &a) {
+    /// Scalar variants: a Lambertian material whose operator is the same at every hit (no
+    /// texture, table, cosine nodes or derivatives) has A = Σ_t w_t·M_t (+ the elastic band
+    /// albedos where A lacks them) formed here, once per render, not at every vertex.
+    void uniform_operator(Entry &e) const {
+        e.uniform = !dr::is_jit_v<Float> && e.bispectral->jit_uniform() && e.n_nodes == 0 && e.n_table == 0 &&
+                    e.n_d == 0;
+        if constexpr (!dr::is_jit_v<Float>) {
+            if (!e.uniform)
+                return;
+            const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
+            for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
+                for (size_t i = 0; i < m_k * m_k; ++i)
+                    e.a[i] += w[t] * e.mf[t][i];
+            if (!e.full) {
+                Color3f v = e.bispectral->jit_elastic_albedo(dr::zeros<SurfaceInteraction3f>(), true);
+                for (size_t k = 0; k < m_k; ++k) {
+                    const float *map = &m_albedo_map[3 * k];
+                    e.a[k * m_k + k] += map[0] * v[0] + map[1] * v[1] + map[2] * v[2];
+                }
+            }
+        }
+    }
+    template <size_t K> static Rows<K> times(const Rows<K> &R, const Dense<K> &a) { return times<K>(R, a.data()); }
+    template <size_t K> static Rows<K> times(const Rows<K> &R, const float *a) {
         Rows<K> out;
         for (size_t r = 0; r < 3; ++r) {
             float acc[K] = {}; // (local accumulators: the rows of the product stay in registers)
@@ -513,6 +540,9 @@ private:
     /// derivative tables' Σ_d w_d·D_{d,n}; the scalar variants, without AD, have none).
     template <size_t K>
     Rows<K> lambertian_product(const Entry &e, const SurfaceInteraction3f &si, const Rows<K> &R, const Mask &on) const {
+        if constexpr (!dr::is_jit_v<Float>)
+            if (e.uniform)
+                return times<K>(R, e.a.data());
         Rows<K> ra;
         const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
         const bool elastic = !e.full;
