@@ -1,10 +1,9 @@
 // fluo_jung, one class template for every variant it serves (the documentation below).
 //
-// Rust validates the parameters and bakes, at load and in parameters_changed(): the dye's
-// absorption on a grid (the table that samples excitation wavelengths), the RGB parts and,
-// through fluo_path, the reduced matrices. Per lane the plugin evaluates Jung's closed forms
-// (fluo_forms.h) with Dr.Jit types, so gradients reach c, Q, λe, s and the reflectance.
-#include <mitsuba/core/distr_1d.h>
+// Rust validates the parameters and bakes, at load and in parameters_changed(): the RGB
+// parts and, through fluo_path, the reduced matrices. Per lane the plugin evaluates Jung's
+// closed forms (fluo_forms.h; excitation wavelengths drawn by inverting the absorption
+// b-spline's CDF) with Dr.Jit types, so gradients reach c, Q, λe, s and the reflectance.
 #include <mitsuba/core/fresolver.h>
 #include <mitsuba/core/properties.h>
 #include <mitsuba/render/bsdf.h>
@@ -242,14 +241,6 @@ public:
     using Joined = typename Bispectral::Joined;
 
     static constexpr const char *Plugin = "fluo_jung";
-    /// Nodes of the table of b(v − 3) over v ∈ [0, 6] that samples excitation wavelengths
-    /// (in the b-spline coordinate, mapped to λ per lane: the table does not depend on the
-    /// dye, so parameter updates reuse the compiled kernels; the values weighting a sample
-    /// are the closed forms, the table shapes only the variance). 61 nodes: the linear
-    /// interpolant stays within 0.1 % of b's peak (|b''| ≤ 2/3, step 0.1), and a sample's
-    /// binary search takes 6 steps (601 nodes took 10, for 7 % of a fluorescent render).
-    static constexpr size_t BsplineNodes = 61;
-
     FluoJung(const Properties &props) : Base(props) {
         using namespace fluo_detail;
         // A numeric parameter is a float (differentiable) or a float texture (per lane).
@@ -262,10 +253,6 @@ public:
         m_shift = (ScalarFloat) m_config.stokes_shift;
         m_conc = (ScalarFloat) m_config.concentration;
         m_yield = (ScalarFloat) m_config.quantum_yield;
-        std::vector<float> b(BsplineNodes);
-        for (size_t i = 0; i < BsplineNodes; ++i)
-            b[i] = (float) fluo_detail::JungDye<double>::bspline(6.0 * (double) i / (double) (BsplineNodes - 1) - 3.0);
-        m_bspline = ContinuousDistribution<Wavelength>(ScalarVector2f(0.f, 6.f), b.data(), BsplineNodes);
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();
@@ -698,8 +685,8 @@ private:
             Mask overlap = active && hi > lo;
             Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
                   v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
-            Float cdf_a = m_bspline.eval_cdf(Wavelength(v_a), overlap)[0],
-                  mass = dr::select(overlap, m_bspline.eval_cdf(Wavelength(v_b), overlap)[0] - cdf_a, 0.f);
+            Float cdf_a = fluo_detail::JungDye<Float>::bspline_cdf(v_a),
+                  mass = dr::select(overlap, fluo_detail::JungDye<Float>::bspline_cdf(v_b) - cdf_a, 0.f);
             // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
             // any positive value where the shift integrand is positive keeps the estimate
             // unbiased; a close one keeps the variance low.
@@ -716,11 +703,12 @@ private:
                     return { lambda_o, choice.weight(UnpolarizedSpectrum(0.f), u1), choice.shifted,
                              UnpolarizedSpectrum(0.f), UInt32(0) };
             WMask &shifted = choice.shifted;
-            // v from the table restricted to [v_a, v_b] (its unnormalised CDF at cdf_a + u2·mass),
-            // mapped to λi; pdf(λi) = pdf(v)·|dv/dλ|.
-            Wavelength v = m_bspline.sample((cdf_a + u2p * mass) * m_bspline.normalization(), shifted);
+            // v ∝ b(v − 3) on [v_a, v_b] by inverting its CDF in closed form (no table, no
+            // search: the dye's parameters stay kernel inputs), mapped to λi;
+            // pdf(λi) = b(v − 3)/mass·|dv/dλ|.
+            Wavelength v = Dye::bspline_cdf_inverse(cdf_a + u2p * mass);
             Wavelength lambda_i = dye.lambda_of(v);
-            UnpolarizedSpectrum pdf_i = m_bspline.eval_pdf(v, shifted) / mass * dye.dv_dlambda(lambda_i);
+            UnpolarizedSpectrum pdf_i = Dye::bspline(v - 3.f) / mass * dye.dv_dlambda(lambda_i);
             UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
             // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
             Dye exact(t.peak, t.shift);
@@ -1107,7 +1095,6 @@ private:
     ref<Texture> m_reflectance;                              ///< null: sigmoid coefficients
     Float m_peak, m_shift, m_conc, m_yield;                  ///< λe, s, c, Q (differentiable)
     Float m_coef[3];                                         ///< the sigmoid's coefficients
-    ContinuousDistribution<Wavelength> m_bspline;           ///< b(v − 3) on [0, 6]: samples v
     Color3f m_rgb_reflectance = 0.f, m_rgb_reflectance_absorbed = 0.f, m_rgb_absorbed_scale = 0.f,
             m_rgb_fluorescence = 0.f; ///< RGB variant: fluo::JungRgbParts of the unit dye
     bool m_color_mode = false;
@@ -1138,7 +1125,7 @@ private:
     mutable FloatStorage m_shape_dparts[2][ShapeFields - SReflectanceAbsorbed];
     mutable uint32_t m_shape_d = 0;
 
-    MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_bspline, m_rgb_reflectance,
+    MI_TRAVERSE_CB(Base, m_reflectance, m_peak, m_shift, m_conc, m_yield, m_rgb_reflectance,
                    m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence)
 };
 

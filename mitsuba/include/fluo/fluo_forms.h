@@ -43,6 +43,26 @@ template <typename Value> struct JungDye {
         return dr::select(ax <= 1.f, 1.f - x * x * (1.f / 3.f), dr::select(ax < 3.f, d * d * (1.f / 6.f), 0.f));
     }
 
+    /// B(v) = ∫_0^v b(t − 3) dt for v ∈ [0, 6] (8/3 in all): (v)³/18, then 4/3 + y − y³/9
+    /// (y = v − 3 ∈ [−1, 1]), then 8/3 − (6 − v)³/18.
+    static Value bspline_cdf(const Value &v) {
+        Value y = dr::clip(v, 0.f, 6.f) - 3.f, l = 3.f + y, h = 3.f - y;
+        return dr::select(y <= -1.f, l * l * l * (1.f / 18.f),
+                          dr::select(y < 1.f, 4.f / 3.f + y - y * y * y * (1.f / 9.f),
+                                     8.f / 3.f - h * h * h * (1.f / 18.f)));
+    }
+    /// The v with B(v) = t, t ∈ [0, 8/3]: cube roots on the outer pieces; on the middle one
+    /// the root in [−1, 1] of y³ − 9y + 9t − 12 = 0 (three real roots: the trigonometric form).
+    /// Sampling v ∝ b(v − 3) on [v_a, v_b] is B⁻¹(B(v_a) + u·(B(v_b) − B(v_a))).
+    static Value bspline_cdf_inverse(const Value &t_) {
+        Value t = dr::clip(t_, 0.f, 8.f / 3.f);
+        Value lo = dr::cbrt(18.f * t) - 3.f, hi = 3.f - dr::cbrt(18.f * (8.f / 3.f - t));
+        const float r3 = 1.7320508f; // √3
+        Value c = dr::clip((12.f - 9.f * t) / (6.f * r3), -1.f, 1.f);
+        Value mid = 2.f * r3 * dr::cos(dr::acos(c) * (1.f / 3.f) - 2.0943951f);
+        return dr::clip(dr::select(t <= 4.f / 9.f, lo, dr::select(t < 20.f / 9.f, mid, hi)) + 3.f, 0.f, 6.f);
+    }
+
     /// e(λ), nm⁻¹, unit integral (eq. 5).
     Value emission(const Value &lambda) const {
         return bspline(3.f * (lambda - peak) / alpha) * (9.f / 8.f) / alpha;
