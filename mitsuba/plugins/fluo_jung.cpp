@@ -677,16 +677,16 @@ private:
             (void) t, (void) we, (void) u1, (void) u2p, (void) range_lo, (void) range_hi, (void) active;
             return this->elastic_only(lambda_o);
         } else {
+            using Band = fluo_detail::JungDye<Float>; // (one value per lane; Dye: per wavelength)
             Dye dye(dr::detach(t.peak), dr::detach(t.shift));
-            fluo_detail::JungDye<Float> band(dr::detach(t.peak), dr::detach(t.shift));
+            Band band(dr::detach(t.peak), dr::detach(t.shift));
             // The excitation range: the dye's absorption band inside the lights' range, as
             // an interval of the b-spline coordinate v (decreasing in λ).
             Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
             Mask overlap = active && hi > lo;
             Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
                   v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
-            Float cdf_a = fluo_detail::JungDye<Float>::bspline_cdf(v_a),
-                  mass = dr::select(overlap, fluo_detail::JungDye<Float>::bspline_cdf(v_b) - cdf_a, 0.f);
+            Float cdf_a = Band::bspline_cdf(v_a), mass = dr::select(overlap, Band::bspline_cdf(v_b) - cdf_a, 0.f);
             // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
             // any positive value where the shift integrand is positive keeps the estimate
             // unbiased; a close one keeps the variance low.

@@ -22,6 +22,7 @@
 #include "fluo_bispectral.h"
 #include "fluo_reduced.h"
 #include "fluo_path_scene.h"
+#include "fluo_integrator.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -256,69 +257,19 @@ equal the recorded loop's to 1e-6). Polarized variants refuse it.
 */
 
 template <typename Float, typename Spectrum>
-class FluoPath final : public MonteCarloIntegrator<Float, Spectrum> {
+class FluoPath final : public FluoIntegrator<Float, Spectrum> {
 public:
-    MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
+    MI_IMPORT_BASE(FluoIntegrator, m_max_depth, m_rr_depth, m_hide_emitters, m_lambda_min, m_reduced, m_bsdfs,
+                   m_range_lo, m_range_hi, m_wrappers, m_directional, m_varying, m_differentiating, m_replayer)
     MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape, Texture)
-    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
-    using WMask = dr::mask_t<UnpolarizedSpectrum>;
+        using typename Base::Reduced;
+    using typename Base::Wrappers;
+    template <size_t K> using Coeffs = typename Base::template Coeffs<K>;
+    template <size_t K> using Rows = typename Base::template Rows<K>;
 
     static constexpr const char *Plugin = "fluo_path";
-    using Reduced = fluo_detail::ReducedTransport<Float, Spectrum>;
-    using Wrappers = fluo_detail::FluoWrappers<Float, Spectrum>;
 
-    FluoPath(const Properties &props)
-        : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
-          m_reduced(Plugin, std::string(props.get<std::string_view>("basis", "auto")),
-                    std::string(props.get<std::string_view>("method", "ours"))),
-          m_replay(props.plugin_name() == "fluo_prb") {
-        if (m_replay && is_polarized_v<Spectrum>)
-            Throw("fluo_prb: path replay is not available in the polarized variants (its adjoint divides "
-                  "the throughput per wavelength, which a Mueller matrix does not allow); render them "
-                  "with fluo_path, whose gradients differentiate the recorded loop");
-    }
-
-    using Base::render;
-    TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
-                    bool evaluate) override {
-        prepare(scene);
-        m_prepared.mark(scene);
-        return Base::render(scene, sensor, seed, spp, develop, evaluate);
-    }
-
-    // Derivatives recorded through this loop weigh BSDF samples as the replay does
-    // (fluo_detail::detach_moving_sample).
-    using Base::render_forward;
-    TensorXf render_forward(Scene *scene, void *params, Sensor *sensor, UInt32 seed, uint32_t spp) override {
-        fluo_detail::Raised on{ m_differentiating };
-        return Base::render_forward(scene, params, sensor, seed, spp);
-    }
-    using Base::render_backward;
-    void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
-                         uint32_t spp) override {
-        fluo_detail::Raised on{ m_differentiating };
-        if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
-            if (m_replay) {
-                prepare(scene);
-                m_prepared.mark(scene);
-                return replay_backward(scene, grad_in, sensor, seed, spp);
-            }
-        }
-        Base::render_backward(scene, params, grad_in, sensor, seed, spp);
-    }
-
-    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
-                                     const Medium * /* medium */, Float * /* aovs */, Bool active) const override {
-        if (auto seed = m_replayer.seed("fluo_prb", dr::width(ray))) // replay_backward's passes
-            return *seed;
-        m_prepared.ensure(scene, [&] { const_cast<FluoPath *>(this)->prepare(const_cast<Scene *>(scene)); });
-        if (unlikely(m_max_depth == 0))
-            return { 0.f, false };
-        // (the primal pass unclipped: the replay differentiates where a colour was not clipped)
-        if (m_replayer.replay([&](bool adjoint) { return trace_bands(scene, sampler, ray, active, adjoint, false); }))
-            return { 0.f, false };
-        return trace_bands(scene, sampler, ray, active, false, true);
-    }
+    FluoPath(const Properties &props) : Base(props, Plugin, "fluo_prb", "auto") {}
 
     std::string to_string() const override {
         std::ostringstream oss;
@@ -335,40 +286,34 @@ public:
 
     MI_DECLARE_CLASS(FluoPath)
 
-private:
+protected:
     /// Once per render: the fluorescent BSDFs and the wrappers around them, the emitters'
     /// spectral range and, in RGB variants, reduced matrices and the emitters' basis
     /// coefficients.
-    void prepare(Scene *scene) {
+    void prepare(Scene *scene) override {
         fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
-        fluo::Range lights = fluo_detail::emitters_range(scene);
-        double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
-        fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
-        m_wrappers.scan(objects, Plugin);
-        std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
-        for (Bispectral *b : bsdfs)
-            hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
-        bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
+        auto [bsdfs, directional] = this->scan(scene, 0.0, m_range_lo, m_range_hi);
         if (scene->emitters().empty())
             bsdfs.clear();
         m_reduced.prepare(scene, bsdfs, false);
         m_bsdfs.assign(bsdfs);
-        m_range_lo = lo;
-        m_range_hi = hi;
         m_directional = directional && !m_bsdfs.empty();
         m_varying = m_directional && m_reduced.varying();
     }
 
-    /// fluo_prb's reverse mode (PathReplay's passes). The reduced RGB transport (K > 0) takes
-    /// the rest of the path from future() instead, and its clipped colours get no derivative.
-    void replay_backward(Scene *scene, const TensorXf &grad_in, Sensor *sensor, UInt32 seed, uint32_t spp) {
-        if (m_max_depth == 0)
-            return; // nothing is rendered, nothing depends on the parameters
-        m_replayer.backward(
-            "fluo_prb", [&](bool develop) { return Base::render(scene, sensor, seed, spp, develop, false); },
-            sensor, grad_in, spp, m_reduced.size() > 0);
+    /// trace() with the carried throughput of this render: the reduced transport's K bands
+    /// in RGB variants with fluorescent materials, else Mitsuba's throughput.
+    std::pair<Spectrum, Bool> trace_sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                           const Medium * /* medium */, Float * /* aovs */, Bool active,
+                                           bool adjoint, bool clip) const override {
+        return this->with_bands(clipped(), [&](auto k) {
+            return trace<decltype(k)::value>(scene, sampler, ray, active, adjoint, clip);
+        });
     }
+    /// The reduced transport (RGB variants with fluorescent materials) clips per sample.
+    bool clipped() const override { return m_reduced.size() > 0; }
 
+private:
     /// First intersection of a camera ray, skipping area emitters when they are hidden
     /// (as path.cpp does at depth 0).
     PreliminaryIntersection3f camera_intersection(const Scene *scene, const Ray3f &ray, Mask active) const {
@@ -440,8 +385,6 @@ private:
 
 
     // ------------------------------------------------------------ the loop
-    template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
-    template <size_t K> using Rows = typename Reduced::template Rows<K>;
 
     /// What a path carries. K = 0: Mitsuba's throughput (the spectral variants shift its
     /// wavelengths at fluorescent vertices; a scene without fluorescence is `path`).
@@ -475,34 +418,15 @@ private:
                      active, sampler)
     };
 
-    /// trace() with the carried throughput of this render: the reduced transport's K bands
-    /// in RGB variants with fluorescent materials, else Mitsuba's throughput.
-    std::pair<Spectrum, Bool> trace_bands(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
-                                          Bool active, bool adjoint, bool clip) const {
-        if constexpr (is_rgb_v<Spectrum>) {
-            if (m_reduced.size() > 0) {
-                if (m_reduced.bands() == 3)
-                    return trace<3>(scene, sampler, ray, active, adjoint, clip);
-                if (m_reduced.bands() == 4)
-                    return trace<4>(scene, sampler, ray, active, adjoint, clip);
-                if (m_reduced.bands() == 7)
-                    return trace<7>(scene, sampler, ray, active, adjoint, clip);
-                // auto with two light bands
-                return trace<Reduced::KMax>(scene, sampler, ray, active, adjoint, clip);
-            }
-        }
-        return trace<0>(scene, sampler, ray, active, adjoint, clip);
-    }
-
-    /// What the vertices of one trace() share: whether it is fluo_prb's third pass
-    /// (replay_backward), and that pass's adjoint radiance δL.
+    /// What the vertices of one trace() share: whether it is fluo_prb's third pass (the
+    /// replay), and that pass's adjoint radiance δL.
     struct Walk {
         bool adjoint = false, differentiating = false; ///< the replay; a recorded derivative pass
         Spectrum delta_L;
     };
 
     /// path.cpp's loop; what differs between the carried throughputs is marked K == 0 / K > 0.
-    /// `adjoint` (fluo_prb's third pass): the replay of replay_backward. K = 0: `result` holds
+    /// `adjoint`: fluo_prb's third pass, the replay (FluoIntegrator). K = 0: `result` holds
     /// the radiance still to come (the primal's, less what the vertices passed gave); K > 0:
     /// each vertex's radiance still to come is estimated by future(). `clip`: K > 0 clips
     /// out-of-gamut colours per sample (the replay's primal pass keeps them: their sign masks δL).
@@ -736,19 +660,7 @@ private:
         });
     }
 
-    double m_lambda_min = 300.0;
-    Reduced m_reduced;   ///< RGB variants: the reduced transport
-    fluo_detail::FluorescentSet<Float, Spectrum> m_bsdfs; ///< fluorescent BSDFs this render
-    double m_range_lo = 0.0, m_range_hi = 0.0;
     const Scene *m_media_warned = nullptr; ///< the scene last warned of media
-    Wrappers m_wrappers;                   ///< around fluorescent BSDFs, this render
-    mutable fluo_detail::PreparedScene m_prepared; ///< the scene prepared last (nested use)
-    bool m_directional = false; ///< some fluorescent BSDF has a direction-dependent lobe
-    bool m_varying = false;     ///< ... that varies over the surface (RGB: a model picked per vertex)
-
-    bool m_replay = false; ///< registered as fluo_prb
-    bool m_differentiating = false; ///< in render_forward/backward (recorded AD of this loop)
-    fluo_detail::PathReplay<Float, Spectrum> m_replayer; ///< its passes (replay_backward)
 };
 
 static const bool fluo_path_jit_registered =

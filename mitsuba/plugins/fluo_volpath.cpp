@@ -25,6 +25,7 @@
 #include "fluo_reduced.h"
 #include "fluo_medium.h"
 #include "fluo_path_scene.h"
+#include "fluo_integrator.h"
 
 NAMESPACE_BEGIN(mitsuba)
 
@@ -212,103 +213,29 @@ and warns once per scene.
 */
 
 template <typename Float, typename Spectrum>
-class FluoVolpath final : public MonteCarloIntegrator<Float, Spectrum> {
+class FluoVolpath final : public FluoIntegrator<Float, Spectrum> {
 public:
-    MI_IMPORT_BASE(MonteCarloIntegrator, m_max_depth, m_rr_depth, m_hide_emitters)
+    MI_IMPORT_BASE(FluoIntegrator, m_max_depth, m_rr_depth, m_hide_emitters, m_lambda_min, m_reduced, m_bsdfs,
+                   m_range_lo, m_range_hi, m_wrappers, m_directional, m_varying, m_differentiating, m_replayer)
     MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, MediumPtr, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape,
                     PhaseFunctionContext, PhaseFunction, PhaseFunctionPtr)
-    using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
+    using typename Base::Bispectral;
+    using typename Base::Reduced;
+    using typename Base::Wrappers;
+    using typename Base::WMask;
     using BMedium = fluo_detail::BispectralMedium<Float, Spectrum>;
-    using WMask = dr::mask_t<UnpolarizedSpectrum>;
-    using Reduced = fluo_detail::ReducedTransport<Float, Spectrum>;
-    using Wrappers = fluo_detail::FluoWrappers<Float, Spectrum>;
-    template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
-    template <size_t K> using Rows = typename Reduced::template Rows<K>;
+    template <size_t K> using Coeffs = typename Base::template Coeffs<K>;
+    template <size_t K> using Rows = typename Base::template Rows<K>;
 
     static constexpr const char *Plugin = "fluo_volpath";
     static constexpr float InvFourPi = fluo_detail::InvFourPi;
 
-    FluoVolpath(const Properties &props)
-        : Base(props), m_lambda_min(fluo_detail::lambda_min_of(Plugin, props)),
-          m_reduced(Plugin, fluo_detail::get_string(props, "basis", "x7"),
-                    fluo_detail::get_string(props, "method", "ours")),
-          m_replay(props.plugin_name() == "fluo_prbvolpath") {
-        if (m_replay && is_polarized_v<Spectrum>)
-            Throw("fluo_prbvolpath: path replay is not available in the polarized variants (its adjoint "
-                  "divides the throughput per wavelength, which a Mueller matrix does not allow); render them "
-                  "with fluo_volpath, whose gradients differentiate the recorded loop");
+    FluoVolpath(const Properties &props) : Base(props, Plugin, "fluo_prbvolpath", "x7") {
         Properties vp("volpath");
         vp.set("max_depth", (int64_t) props.get<int64_t>("max_depth", -1));
         vp.set("rr_depth", (int64_t) props.get<int64_t>("rr_depth", 5));
         vp.set("hide_emitters", props.get<bool>("hide_emitters", false));
-        m_volpath = PluginManager::instance()->create_object<Base>(vp);
-    }
-
-    using Base::render;
-    TensorXf render(Scene *scene, Sensor *sensor, UInt32 seed, uint32_t spp, bool develop,
-                    bool evaluate) override {
-        prepare(scene);
-        m_prepared.mark(scene);
-        if (!m_fluorescent && !m_differentiating)
-            return m_volpath->render(scene, sensor, seed, spp, develop, evaluate);
-        return Base::render(scene, sensor, seed, spp, develop, evaluate);
-    }
-
-    // Derivatives (Mitsuba's recorded AD of the render) always run this loop: volpath's
-    // tracking draws null or real with the attached σn/μ̄, whose derivative is not the
-    // integrand's (a pure absorber's d/dc came out +0.04 against −2.4 by differences).
-    using Base::render_forward;
-    TensorXf render_forward(Scene *scene, void *params, Sensor *sensor, UInt32 seed, uint32_t spp) override {
-        fluo_detail::Raised on{ m_differentiating };
-        return Base::render_forward(scene, params, sensor, seed, spp);
-    }
-    using Base::render_backward;
-    void render_backward(Scene *scene, void *params, const TensorXf &grad_in, Sensor *sensor, UInt32 seed,
-                         uint32_t spp) override {
-        fluo_detail::Raised on{ m_differentiating };
-        if constexpr (dr::is_diff_v<Float> && !is_polarized_v<Spectrum>) {
-            if (m_replay) {
-                // path replay (fluo_path_scene.h's PathReplay), its primal this loop's
-                prepare(scene);
-                m_prepared.mark(scene);
-                if (m_max_depth == 0)
-                    return; // nothing is rendered, nothing depends on the parameters
-                return m_replayer.backward(
-                    "fluo_prbvolpath",
-                    [&](bool develop) { return Base::render(scene, sensor, seed, spp, develop, false); }, sensor,
-                    grad_in, spp, !is_spectral_v<Spectrum>); // (RGB: trace<K> clips)
-            }
-        }
-        Base::render_backward(scene, params, grad_in, sensor, seed, spp);
-    }
-
-    std::pair<Spectrum, Bool> sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
-                                     const Medium *medium, Float *aovs, Bool active) const override {
-        if (auto seed = m_replayer.seed("fluo_prbvolpath", dr::width(ray))) // render_backward's replay
-            return *seed;
-        m_prepared.ensure(scene, [&] { const_cast<FluoVolpath *>(this)->prepare(const_cast<Scene *>(scene)); });
-        if constexpr (!is_spectral_v<Spectrum>) {
-            if (!m_fluorescent && !m_differentiating)
-                return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
-            auto bands = [&](bool adjoint, bool clip) {
-                if (m_reduced.bands() == 3)
-                    return trace<3>(scene, sampler, ray, medium, active, adjoint, clip);
-                if (m_reduced.bands() == 4)
-                    return trace<4>(scene, sampler, ray, medium, active, adjoint, clip);
-                if (m_reduced.bands() == 7)
-                    return trace<7>(scene, sampler, ray, medium, active, adjoint, clip);
-                return trace<Reduced::KMax>(scene, sampler, ray, medium, active, adjoint, clip); // auto, 2 light bands
-            };
-            if (m_replayer.replay([&](bool adjoint) { return bands(adjoint, false); }))
-                return { 0.f, false };
-            return bands(false, true);
-        } else {
-            if (!m_fluorescent && !m_differentiating)
-                return m_volpath->sample(scene, sampler, ray, medium, aovs, active);
-            if (m_replayer.replay([&](bool adjoint) { return trace<0>(scene, sampler, ray, medium, active, adjoint); }))
-                return { 0.f, false };
-            return trace<0>(scene, sampler, ray, medium, active);
-        }
+        m_volpath = PluginManager::instance()->create_object<MonteCarloIntegrator<Float, Spectrum>>(vp);
     }
 
     std::string to_string() const override {
@@ -327,30 +254,23 @@ public:
 
     MI_DECLARE_CLASS(FluoVolpath)
 
-private:
+protected:
     /// Once per render: the fluorescent media and BSDFs (and the wrappers around those) and
-    /// the emitters' spectral range; whether
-    /// anything fluoresces. RGB variants: the reduced transport's matrices (the BSDFs' and
-    /// the media's operators) and the emitters' basis coefficients.
-    void prepare(Scene *scene) {
+    /// the emitters' spectral range; whether anything fluoresces. RGB variants: the reduced
+    /// transport's matrices (the BSDFs' and the media's operators) and the emitters' basis
+    /// coefficients.
+    void prepare(Scene *scene) override {
         m_media.clear();
         m_media_set.clear();
         m_bsdfs.clear();
         m_rmedia.clear();
         std::vector<const BMedium *> media = fluo_detail::managed_media<BMedium>(scene);
-        fluo::Range lights = fluo_detail::emitters_range(scene);
-        double lo = std::max(lights.lo, m_lambda_min), hi = lights.hi;
-        fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
-        m_wrappers.scan(objects, Plugin);
-        std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
-        for (Bispectral *b : bsdfs)
-            hi = std::max(hi, b->jit_emission_range().hi); // re-emitted light can excite further shifts
+        double reemitted = 0.0;
         for (const BMedium *b : media)
             if (b->jit_fluorescent(0.0, 1e30))
-                hi = std::max(hi, b->jit_range().hi);
-        bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
-        m_range_lo = lo;
-        m_range_hi = hi;
+                reemitted = std::max(reemitted, b->jit_range().hi);
+        auto [bsdfs, directional] = this->scan(scene, reemitted, m_range_lo, m_range_hi);
+        const double lo = m_range_lo, hi = m_range_hi;
         for (const BMedium *b : media)
             fluo_detail::rust_call(Plugin, [&] { // the parameters carrying gradients
                 b->jit_prepare(lo, hi);
@@ -394,6 +314,27 @@ private:
         }
     }
 
+    /// trace() with the carried throughput: the reduced transport's K bands in RGB variants.
+    std::pair<Spectrum, Bool> trace_sample(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
+                                           const Medium *medium, Float * /* aovs */, Bool active, bool adjoint,
+                                           bool clip) const override {
+        return this->with_bands(true, [&](auto k) {
+            return trace<decltype(k)::value>(scene, sampler, ray, medium, active, adjoint, clip);
+        });
+    }
+    /// RGB variants clip per sample (trace<K>).
+    bool clipped() const override { return !is_spectral_v<Spectrum>; }
+    /// volpath renders a scene where nothing fluoresces, except in a derivative pass: those
+    /// always run this loop, since volpath's tracking draws null or real with the attached
+    /// σn/μ̄, whose derivative is not the integrand's (a pure absorber's d/dc came out +0.04
+    /// against −2.4 by differences).
+    MonteCarloIntegrator<Float, Spectrum> *delegate() const override {
+        if (m_fluorescent || m_differentiating)
+            return nullptr;
+        return const_cast<MonteCarloIntegrator<Float, Spectrum> *>(m_volpath.get());
+    }
+
+private:
     static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
 
     /// A fluorescent medium's majorant in a derivative pass (render_forward/backward), over
@@ -1302,8 +1243,8 @@ private:
         Float max_dist, dist;
         UInt32 channel;
         Shadow mode;
-        Spectrum adj;                       ///< K = 0, Replay: δL times the estimate, detached
-        const ShadowAdjoint *replay;     ///< K > 0, Replay
+        Spectrum adj;                ///< K = 0, Replay: δL times the estimate, detached
+        const ShadowAdjoint *replay; ///< K > 0, Replay
     };
 
     /// K > 0: the emitter sample ds's value `emitter_val` seen from `at` through media
@@ -1717,21 +1658,11 @@ private:
         return medium_product<K>(R, g, d * iso * s, &ReducedMedium::f, which);
     }
 
-    double m_lambda_min = 300.0;
-    ref<Base> m_volpath; ///< the render without fluorescence
+    ref<MonteCarloIntegrator<Float, Spectrum>> m_volpath; ///< the render without fluorescence
     std::vector<const BMedium *> m_media;
-    mutable fluo_detail::PreparedScene m_prepared; ///< the scene prepared last (nested use)
     fluo_detail::InterfaceSet<Medium, BMedium> m_media_set; ///< m_media, found per event by address
-    fluo_detail::FluorescentSet<Float, Spectrum> m_bsdfs;
-    Reduced m_reduced;                     ///< RGB variants: the reduced transport
     std::vector<ReducedMedium> m_rmedia;   ///< RGB variants: the fluorescent media's operators
-    double m_range_lo = 0.0, m_range_hi = 0.0;
-    bool m_fluorescent = false, m_directional = false;
-    bool m_differentiating = false; ///< in render_forward/backward: this loop, volpath's never
-    bool m_varying = false; ///< RGB: a direction-dependent lobe varies over the surface (a model picked per vertex)
-    Wrappers m_wrappers;    ///< around fluorescent BSDFs, this render
-    bool m_replay = false;  ///< registered as fluo_prbvolpath
-    fluo_detail::PathReplay<Float, Spectrum> m_replayer; ///< its passes (render_backward)
+    bool m_fluorescent = false;
 };
 
 static const bool fluo_volpath_jit_registered =

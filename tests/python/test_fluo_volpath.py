@@ -1,7 +1,8 @@
 """fluo_volpath: Mitsuba's volpath plus wavelength shifting in fluorescent media.
 
 * test01: without fluorescence it is volpath (homogeneous, grid and fluo_qd_medium with
-  Q = 0, both variants): the same image to float rounding.
+  Q = 0, both variants): the same image to float rounding. test01b: max_depth 0 renders
+  nothing, as volpath and path.
 * test02: a slab of dots over a large flat lamp, seen from above through the slab, against
   an independent 1-D reference computed here by quadrature (transmitted Beer-Lambert
   spectrum plus singly re-emitted light), band by band over 300-700 nm.
@@ -106,6 +107,23 @@ def test01_without_fluorescence_it_is_volpath(variant, kind, tmp_path):
     assert native.mean() > 0.01
     # The same random numbers and arithmetic: equal up to float rounding.
     np.testing.assert_allclose(ours, native, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test01b_max_depth_0_renders_nothing(variant):
+    """max_depth = 0 renders nothing, as Mitsuba's volpath and path do, with fluorescent
+    media and surfaces in the scene (the check both integrators share, FluoIntegrator)."""
+    mi.set_variant(variant)
+    medium = medium_dict(quantum_yield=0.8, concentration=0.1, scale=0.01, sigma_s=0.5)
+    for native, ours in (("volpath", "fluo_volpath"), ("path", "fluo_path")):
+        images = []
+        for integrator in (native, ours):
+            scene = cube_scene(integrator, medium)
+            scene["integrator"]["max_depth"] = 0
+            scene["floor"]["bsdf"] = {"type": "fluo_jung", "emission_peak": 560.0, "concentration": 0.8}
+            images.append(render(scene, seed=3))
+        assert images[0].shape == images[1].shape
+        assert not images[0].any() and not images[1].any(), (native, ours)
 
 
 # ------------------------------------------------------------------------- test02

@@ -82,13 +82,6 @@ template <typename Scene> Collector shape_objects(const Scene *scene) {
     return c;
 }
 
-/// fluo_path and fluo_volpath prepare a render in render(); nested in another integrator
-/// whose render() calls only their sample() (`stokes`, `moment`; `aov` calls render()) the
-/// first sample of a scene prepares it instead, under a lock (the scalar variants sample
-/// from many threads), and again after any update of one of fluo's plugins
-/// (update_generation), so that the joined tables, ranges and reduced operators follow it.
-/// Mitsuba's own plugins are read live, except an emitter's spectral range: after updating
-/// that, render with fluo_path itself.
 /// Sets a flag for its lifetime (an integrator's derivative pass: render_forward/backward).
 struct Raised {
     bool &flag;
@@ -96,6 +89,13 @@ struct Raised {
     ~Raised() { flag = false; }
 };
 
+/// fluo_path and fluo_volpath prepare a render in render(); nested in another integrator
+/// whose render() calls only their sample() (`stokes`, `moment`; `aov` calls render()) the
+/// first sample of a scene prepares it instead, under a lock (the scalar variants sample
+/// from many threads), and again after any update of one of fluo's plugins
+/// (update_generation), so that the joined tables, ranges and reduced operators follow it.
+/// Mitsuba's own plugins are read live, except an emitter's spectral range: after updating
+/// that, render with fluo_path itself.
 class PreparedScene {
 public:
     template <typename Prepare> void ensure(const void *scene, Prepare &&prepare) {

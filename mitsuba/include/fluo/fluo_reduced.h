@@ -175,11 +175,14 @@ public:
     /// (wavelength-preserving) BSDF, medium or phase weight acts on the K coefficients.
     template <size_t K> Coeffs<K> band_albedo(const Color3f &v) const {
         Coeffs<K> d;
-        for (size_t k = 0; k < K; ++k) {
-            const float *a = &m_albedo_map[3 * k];
-            d[k] = a[0] * v[0] + a[1] * v[1] + a[2] * v[2];
-        }
+        for (size_t k = 0; k < K; ++k)
+            d[k] = band_albedo(k, v);
         return d;
+    }
+    /// Its band k.
+    Float band_albedo(size_t k, const Color3f &v) const {
+        const float *a = &m_albedo_map[3 * k];
+        return a[0] * v[0] + a[1] * v[1] + a[2] * v[2];
     }
 
     /// Basis coefficients of an emitter's radiance `le` (RGB): a fluo_illuminant's own
@@ -462,9 +465,8 @@ private:
     /// texture, table, cosine nodes or derivatives) has A = Σ_t w_t·M_t (+ the elastic band
     /// albedos where A lacks them) formed here, once per render, not at every vertex.
     void uniform_operator(Entry &e) const {
-        e.uniform = !dr::is_jit_v<Float> && e.bispectral->jit_uniform() && e.n_nodes == 0 && e.n_table == 0 &&
-                    e.n_d == 0;
         if constexpr (!dr::is_jit_v<Float>) {
+            e.uniform = e.bispectral->jit_uniform() && e.n_nodes == 0 && e.n_table == 0 && e.n_d == 0;
             if (!e.uniform)
                 return;
             const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
@@ -473,10 +475,8 @@ private:
                     e.a[i] += w[t] * e.mf[t][i];
             if (!e.full) {
                 Color3f v = e.bispectral->jit_elastic_albedo(dr::zeros<SurfaceInteraction3f>(), true);
-                for (size_t k = 0; k < m_k; ++k) {
-                    const float *map = &m_albedo_map[3 * k];
-                    e.a[k * m_k + k] += map[0] * v[0] + map[1] * v[1] + map[2] * v[2];
-                }
+                for (size_t k = 0; k < m_k; ++k)
+                    e.a[k * m_k + k] += band_albedo(k, v);
             }
         }
     }
