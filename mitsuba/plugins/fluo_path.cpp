@@ -262,7 +262,8 @@ public:
     MI_IMPORT_BASE(FluoIntegrator, m_max_depth, m_rr_depth, m_hide_emitters, m_lambda_min, m_reduced, m_bsdfs,
                    m_range_lo, m_range_hi, m_wrappers, m_directional, m_varying, m_differentiating, m_replayer)
     MI_IMPORT_TYPES(Scene, Sensor, Sampler, Medium, Emitter, EmitterPtr, BSDF, BSDFPtr, Shape, Texture)
-        using typename Base::Reduced;
+    using typename Base::Bispectral;
+    using typename Base::Reduced;
     using typename Base::Wrappers;
     template <size_t K> using Coeffs = typename Base::template Coeffs<K>;
     template <size_t K> using Rows = typename Base::template Rows<K>;
@@ -292,12 +293,9 @@ protected:
     /// coefficients.
     void prepare(Scene *scene) override {
         fluo_detail::warn_if_media(Plugin, scene, m_media_warned);
-        auto [bsdfs, directional] = this->scan(scene, 0.0, m_range_lo, m_range_hi);
-        if (scene->emitters().empty())
-            bsdfs.clear();
+        std::vector<Bispectral *> bsdfs = this->scan(scene, 0.0);
         m_reduced.prepare(scene, bsdfs, false);
         m_bsdfs.assign(bsdfs);
-        m_directional = directional && !m_bsdfs.empty();
         m_varying = m_directional && m_reduced.varying();
     }
 

@@ -269,22 +269,19 @@ protected:
         for (const BMedium *b : media)
             if (b->jit_fluorescent(0.0, 1e30))
                 reemitted = std::max(reemitted, b->jit_range().hi);
-        auto [bsdfs, directional] = this->scan(scene, reemitted, m_range_lo, m_range_hi);
+        std::vector<Bispectral *> bsdfs = this->scan(scene, reemitted);
         const double lo = m_range_lo, hi = m_range_hi;
         for (const BMedium *b : media)
             fluo_detail::rust_call(Plugin, [&] { // the parameters carrying gradients
                 b->jit_prepare(lo, hi);
                 return 0;
             });
-        if (scene->emitters().empty())
-            bsdfs.clear();
-        else
+        if (!scene->emitters().empty())
             for (const BMedium *b : media)
                 if (b->jit_fluorescent(lo, hi))
                     m_media.push_back(b);
         m_bsdfs.assign(bsdfs);
         m_media_set.assign(m_media);
-        m_directional = directional && !m_bsdfs.empty();
         m_fluorescent = !m_media.empty() || !m_bsdfs.empty();
         if constexpr (is_rgb_v<Spectrum>) {
             m_reduced.prepare(scene, bsdfs, !m_media.empty());

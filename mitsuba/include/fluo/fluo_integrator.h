@@ -13,7 +13,7 @@
 
 NAMESPACE_BEGIN(mitsuba)
 
-/// A fluorescent integrator (registered for `Plugin` and, as path replay, for `Replay`):
+/// A fluorescent integrator (registered as `plugin` and, as path replay, as `replay`):
 /// the derived class prepares a render (prepare(): the fluorescent BSDFs of the scene, the
 /// lights' range, the reduced transport) and traces one sample (trace_sample(), its loop).
 /// Derivatives differentiate the recorded loop, or replay each path when registered as
@@ -85,7 +85,8 @@ public:
         if (unlikely(m_max_depth == 0))
             return { 0.f, false };
         // (the replay's primal pass unclipped: it differentiates where a colour was not clipped)
-        if (m_replayer.replay([&](bool adjoint) { return trace_sample(scene, sampler, ray, medium, aovs, active, adjoint, false); }))
+        if (m_replayer.replay(
+                [&](bool adjoint) { return trace_sample(scene, sampler, ray, medium, aovs, active, adjoint, false); }))
             return { 0.f, false };
         return trace_sample(scene, sampler, ray, medium, aovs, active, false, true);
     }
@@ -125,21 +126,25 @@ protected:
         return f(std::integral_constant<size_t, 0>{});
     }
 
-    /// The scene's fluorescent BSDFs (their wrappers scanned) and the lights' range [lo, hi]
-    /// from lambda_min, widened to what those BSDFs and `reemitted` (fluorescent media) re-emit,
-    /// since re-emitted light can excite further shifts. Returns whether one of them has a
-    /// direction-dependent lobe to keep (fluo_detail::keep_excited).
-    std::pair<std::vector<Bispectral *>, bool> scan(Scene *scene, double reemitted, double &lo, double &hi) {
+    /// The render's fluorescent BSDFs (their wrappers scanned; none in a scene without
+    /// emitters) and m_range_lo/hi: the lights' range from lambda_min, widened to what those
+    /// BSDFs and `reemitted` (fluorescent media) re-emit, since re-emitted light can excite
+    /// further shifts. Sets m_directional: one of them keeps a direction-dependent lobe
+    /// (fluo_detail::keep_excited).
+    std::vector<Bispectral *> scan(Scene *scene, double reemitted) {
         fluo::Range lights = fluo_detail::emitters_range(scene);
-        lo = std::max(lights.lo, m_lambda_min);
-        hi = std::max(lights.hi, reemitted);
+        m_range_lo = std::max(lights.lo, m_lambda_min);
+        m_range_hi = std::max(lights.hi, reemitted);
         fluo_detail::Collector objects = fluo_detail::shape_objects(scene);
         m_wrappers.scan(objects, m_plugin);
         std::vector<Bispectral *> bsdfs = fluo_detail::fluorescent_bsdfs<Bispectral>(objects);
         for (Bispectral *b : bsdfs)
-            hi = std::max(hi, b->jit_emission_range().hi);
-        bool directional = fluo_detail::keep_excited<Spectrum>(bsdfs, lo, hi);
-        return { std::move(bsdfs), directional };
+            m_range_hi = std::max(m_range_hi, b->jit_emission_range().hi);
+        m_directional = fluo_detail::keep_excited<Spectrum>(bsdfs, m_range_lo, m_range_hi);
+        if (scene->emitters().empty())
+            bsdfs.clear();
+        m_directional &= !bsdfs.empty();
+        return bsdfs;
     }
 
     double m_lambda_min = 300.0;
