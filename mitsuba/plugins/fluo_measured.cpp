@@ -564,11 +564,7 @@ public:
         if constexpr (is_rgb_v<Spectrum>) {
             return rgb_at(m_rgb_elastic, mat, active);
         } else {
-            typename Grids::At gd = m_gd.at(mat, active);
-            UnpolarizedSpectrum out;
-            for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
-                out[w] = reflectance(gd, si.wavelengths[w], active);
-            return out;
+            return UnpolarizedSpectrum(reflectance(m_gd.at(mat, active), si.wavelengths, active));
         }
     }
 
@@ -581,40 +577,27 @@ public:
             UInt32 mat = material(si, active);
             File file = file_at(mat, active);
             UnpolarizedSpectrum we = dr::maximum(jit_elastic_albedo(si, active), 0.f);
-            Wavelength lambda_i = lambda_o;
-            UnpolarizedSpectrum scale(0.f), rerad(0.f);
-            WMask shifted(false);
             Mixture own;
             const Mixture &mix = m_gmm ? mixture_at(mat, active, own) : own;
             // Per hero wavelength the excitation interval [a, b] (λi ≤ λo) and its mass; the
-            // shift's value and pdf once sampled with u2 (fluo_gmm: the four wavelengths at
-            // once, its exp/erfc in packets; fluo_matrix: a table search per wavelength).
-            Wavelength a, b, mass, x, value;
-            WMask ok;
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                a[w] = dr::maximum((float) range_lo, file.rect[0]);
-                b[w] = dr::minimum(dr::minimum((float) range_hi, lambda_o[w]), file.rect[1]);
-                ok[w] = active && b[w] > a[w] && lambda_o[w] >= file.rect[2] && lambda_o[w] <= file.rect[3];
-            }
+            // shift's value and pdf once sampled with u2 (the four wavelengths at once:
+            // fluo_gmm's exp/erfc and fluo_matrix's cells in packets).
+            Wavelength a = dr::maximum((float) range_lo, file.rect[0]),
+                       b = dr::minimum(dr::minimum((float) range_hi, lambda_o), file.rect[1]);
+            WMask ok = WMask(active) && b > a && lambda_o >= file.rect[2] && lambda_o <= file.rect[3];
             // (scalar variants draw λi only where the shift is taken: `takes`; fluo_matrix:
             // whether the lights reach below every file's first λi node, so that a is that node)
+            auto takes = [&](const Wavelength &m) {
+                return dr::any(fluo_detail::ShiftChoice<Wavelength>(we, m, u1, active).shifted);
+            };
             const bool from_start = !m_gmm && range_lo <= (double) m_lambda_i_min;
-            if (m_gmm)
-                std::tie(mass, x, value) = gmm_shift(mix, file, lambda_o, a, b, u2, ok, [&](const Wavelength &m) {
-                    return dr::any(fluo_detail::ShiftChoice<Wavelength>(we, m, u1, active).shifted);
-                });
-            else
-                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w)
-                    std::tie(mass[w], x[w], value[w]) =
-                        matrix_shift(file, lambda_o[w], a[w], b[w], u2[w], ok[w], from_start, [&](const Float &m) {
-                            return fluo_detail::ShiftChoice<Float>(we[w], m, u1[w], active).shifted;
-                        });
+            auto [mass, x, value] = m_gmm ? gmm_shift(mix, file, lambda_o, a, b, u2, ok, takes)
+                                          : matrix_shift(file, lambda_o, a, b, u2, ok, from_start, takes);
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, mass, u1, active);
-            scale = choice.weight(dr::detach(value) / mass, u1);
-            shifted = choice.shifted;
-            lambda_i = dr::select(shifted, x, lambda_o);
-            rerad = dr::select(shifted, value, 0.f); // π·f_fl(λi, λo) = P(λi, λo)
-            return { lambda_i, scale, shifted, rerad, UInt32(0) };
+            UnpolarizedSpectrum scale = choice.weight(dr::detach(value) / mass, u1);
+            // π·f_fl(λi, λo) = P(λi, λo)
+            return { dr::select(choice.shifted, x, lambda_o), scale, choice.shifted,
+                     dr::select(choice.shifted, value, 0.f), UInt32(0) };
         }
     }
 
@@ -856,13 +839,16 @@ protected:
 
     /// ρ(λ) of a lane's file: linear between the diagonal's nodes, constant beyond its ends
     /// (0 for λ not finite).
-    Float reflectance(const typename Grids::At &gd, const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, gd.lo, gd.hi);
-        auto [j, x0, x1] = m_gd.cell(gd, x, active);
-        Float t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
-        UInt32 i = gd.off + j;
-        Float v = dr::lerp(fluo_detail::fetch<Float>(m_diag, i, active), fluo_detail::fetch<Float>(m_diag, i + 1, active), t);
-        return dr::select(active && dr::isfinite(lambda), v, 0.f);
+    /// (the four hero wavelengths at once: in the scalar variants, in SIMD registers)
+    template <typename Value>
+    Value reflectance(const typename Grids::At &gd, const Value &lambda, const Mask &active) const {
+        dr::mask_t<Value> on = dr::mask_t<Value>(active) && dr::isfinite(lambda);
+        Value x = dr::clip(lambda, gd.lo, gd.hi);
+        auto [j, x0, x1] = m_gd.cell(gd, x, on);
+        Value t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
+        dr::uint32_array_t<Value> i = gd.off + j;
+        Value v = dr::lerp(fluo_detail::fetch_each<Value>(m_diag, i, on), fluo_detail::fetch_each<Value>(m_diag, i + 1, on), t);
+        return dr::select(on, v, 0.f);
     }
 
     /// The albedo served to Mitsuba: the diagonal (spectral), or in RGB the albedo under
@@ -880,67 +866,72 @@ protected:
     /// times its mass on [a, b], then λi ∝ that row by inverting its CDF exactly (the last
     /// node whose running integral is ≤ the target, then the cell's quadratic root in the
     /// cancellation-free form of matrix.rs). The density is the slice's own, P/mass.
-    template <typename Takes>
-    std::tuple<Float, Float, Float> matrix_shift(const File &file, const Float &lambda_o, const Float &a,
-                                                 const Float &b, const Float &u, const Mask &ok, bool from_start,
-                                                 const Takes &takes) const {
+    /// Value: a Float, or the packet of a lane's four hero wavelengths (in the scalar variants
+    /// their arithmetic in SIMD registers).
+    template <typename Value, typename Takes>
+    std::tuple<Value, Value, Value> matrix_shift(const File &file, const Value &lambda_o, const Value &a,
+                                                 const Value &b, const Value &u, const dr::mask_t<Value> &ok,
+                                                 bool from_start, const Takes &takes) const {
+        using UIntV = dr::uint32_array_t<Value>;
+        using MaskV = dr::mask_t<Value>;
         const typename Grids::At &gi = file.gi, &go = file.go;
-        Float lo = dr::clip(lambda_o, go.lo, go.hi);
+        Value lo = dr::clip(lambda_o, go.lo, go.hi);
         auto [j, o0, o1] = m_go.cell(go, lo, ok);
-        Float t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
-        UInt32 r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last = gi.n - 1;
+        Value t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
+        UIntV r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last(gi.n - 1);
         // (the sampling and the mass from P detached; the value attached when P carries gradients)
         // (AD variants: a detached view of the table, no copy; scalar ones read it as is, where
         // dr::detach of the buffer copied the whole matrix per wavelength and vertex)
-        auto p = [&](const UInt32 &r, const UInt32 &k) {
+        auto p = [&](const UIntV &r, const UIntV &k) {
             if constexpr (dr::is_diff_v<Float>)
-                return fluo_detail::fetch<Float>(dr::detach(m_p), r + k, ok);
+                return fluo_detail::fetch_each<Value>(dr::detach(m_p), r + k, ok);
             else
-                return fluo_detail::fetch<Float>(m_p, r + k, ok);
+                return fluo_detail::fetch_each<Value>(m_p, r + k, ok);
         };
-        auto c = [&](const UInt32 &r, const UInt32 &k) { return fluo_detail::fetch<Float>(m_rcdf, r + k, ok); };
+        auto c = [&](const UIntV &r, const UIntV &k) { return fluo_detail::fetch_each<Value>(m_rcdf, r + k, ok); };
         // ∫ from λi_0 to x of each row.
-        auto cdf = [&](const Float &x) {
+        auto cdf = [&](const Value &x) {
             auto [k, x0, x1] = m_gi.cell(gi, x, ok);
-            Float s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), half = .5f * (x - x0);
-            Float f0 = p(r0, k), g0 = p(r1, k);
+            Value s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), half = .5f * (x - x0);
+            Value f0 = p(r0, k), g0 = p(r1, k);
             return std::make_tuple(c(r0, k) + half * (f0 + dr::lerp(f0, p(r0, k + 1), s)),
                                    c(r1, k) + half * (g0 + dr::lerp(g0, p(r1, k + 1), s)), k);
         };
-        Float a_ = dr::select(ok, a, gi.lo), b_ = dr::select(ok, b, gi.lo);
+        Value a_ = dr::select(ok, a, gi.lo), b_ = dr::select(ok, b, gi.lo);
         // (`from_start`: a is every lane's first λi node, where both rows' integrals are 0)
-        auto [ca0, ca1, k_lo] = from_start ? std::make_tuple(Float(0.f), Float(0.f), UInt32(0)) : cdf(a_);
+        auto [ca0, ca1, k_lo] = from_start ? std::make_tuple(Value(0.f), Value(0.f), UIntV(0)) : cdf(a_);
         auto [cb0, cb1, k_hi] = cdf(b_);
-        Float m0 = (1.f - t) * dr::maximum(cb0 - ca0, 0.f), m1 = t * dr::maximum(cb1 - ca1, 0.f);
-        Float mass = dr::select(ok, m0 + m1, 0.f);
+        Value m0 = (1.f - t) * dr::maximum(cb0 - ca0, 0.f), m1 = t * dr::maximum(cb1 - ca1, 0.f);
+        Value mass = dr::select(ok, m0 + m1, 0.f);
         if constexpr (!dr::is_jit_v<Float>)
             if (!takes(mass))
                 return { mass, lambda_o, 0.f };
         // The row, and u rescaled within its share.
-        Float split = u * mass;
-        Mask second = (split >= m0 && m1 > 0.f) || !(m0 > 0.f);
-        UInt32 r = dr::select(second, r1, r0);
-        Float m_row = dr::select(second, cb1 - ca1, cb0 - ca0);
-        Float u_row = dr::clip(dr::select(second, (split - m0) / m1, split / m0), 0.f, 1.f);
-        Float target = dr::select(second, ca1, ca0) + u_row * dr::maximum(m_row, 0.f);
+        Value split = u * mass;
+        MaskV second = (split >= m0 && m1 > 0.f) || !(m0 > 0.f);
+        UIntV r = dr::select(second, r1, r0);
+        Value m_row = dr::select(second, cb1 - ca1, cb0 - ca0);
+        Value u_row = dr::clip(dr::select(second, (split - m0) / m1, split / m0), 0.f, 1.f);
+        Value target = dr::select(second, ca1, ca0) + u_row * dr::maximum(m_row, 0.f);
         // (over the longest λi grid, each lane's row clamped to its own last node)
-        UInt32 k = dr::binary_search<UInt32>(1, m_gi.n_max - 1,
-                                             [&](const UInt32 &i) { return c(r, dr::minimum(i, last)) <= target; }) -
-                   1;
+        UIntV k = dr::binary_search<UIntV>(1, m_gi.n_max - 1,
+                                           [&](const UIntV &i) { return c(r, dr::minimum(i, last)) <= target; }) -
+                  1;
         k = dr::clip(k, k_lo, k_hi);
         Mask uniform = gi.step > 0.f;
-        Float x0 = dr::select(uniform, dr::fmadd(Float(k), gi.step, gi.lo),
-                              fluo_detail::fetch<Float>(m_gi.nodes, gi.off + k, ok && !uniform));
-        Float x1 = dr::select(uniform, x0 + gi.step, fluo_detail::fetch<Float>(m_gi.nodes, gi.off + k + 1, ok && !uniform));
-        Float h = x1 - x0;
-        Float f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
-        Float e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
-        Float step = fluo_detail::linear_cell_inverse(e0, e1, h, target - c(r, k));
-        Float x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
-        Float s = dr::clip((x - x0) / h, 0.f, 1.f);
-        Float value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
+        MaskV nodes = ok && !MaskV(uniform);
+        Value x0 = dr::select(uniform, dr::fmadd(Value(k), gi.step, gi.lo),
+                              fluo_detail::fetch_each<Value>(m_gi.nodes, gi.off + k, nodes));
+        Value x1 = dr::select(uniform, x0 + gi.step, fluo_detail::fetch_each<Value>(m_gi.nodes, gi.off + k + 1, nodes));
+        Value h = x1 - x0;
+        Value f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
+        Value e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
+        Value step = fluo_detail::linear_cell_inverse(e0, e1, h, target - c(r, k));
+        Value x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
+        Value s = dr::clip((x - x0) / h, 0.f, 1.f);
+        Value value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
         if (dr::grad_enabled(m_p)) {
-            auto pa = [&](const UInt32 &r, const UInt32 &k) { return fluo_detail::fetch<Float>(m_p, r + k, ok); };
+            auto pa = [&](const UIntV &r, const UIntV &k) { return fluo_detail::fetch_each<Value>(m_p, r + k, ok); };
             value = dr::lerp(dr::lerp(pa(r0, k), pa(r0, k + 1), s), dr::lerp(pa(r1, k), pa(r1, k + 1), s), t);
         }
         return { mass, x, dr::select(ok, value, 0.f) };

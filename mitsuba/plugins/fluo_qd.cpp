@@ -704,8 +704,10 @@ public:
 private:
     /// λ in the table's cell k (λ_k = x0 ≤ λ ≤ λ_{k+1} = x1, clamped to the grid) at fraction f.
     using Cell = typename fluo_detail::LaneGrid<Float>::Cell;
-    /// The cells of a hit's wavelengths (spectral; unused in RGB).
-    using Cells = std::array<Cell, dr::size_v<UnpolarizedSpectrum>>;
+    /// The cells of a hit's hero wavelengths, one packet (spectral; unused in RGB).
+    using Cells = typename fluo_detail::LaneGrid<Float>::template CellOf<Wavelength>;
+    using UInt32W = dr::uint32_array_t<Wavelength>;
+    using WaveMask = dr::mask_t<Wavelength>;
     using GridAt = typename fluo_detail::LaneGridSet<Float>::At;
 
     bool textured() const { return !m_tex.models.empty(); }
@@ -756,24 +758,28 @@ private:
                          dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) },
                  a.joined };
     }
-    static Cell select_cell(const Mask &m, const Cell &a, const Cell &b) {
+    template <typename C, typename M> static C select_cell(const M &m, const C &a, const C &b) {
         return { dr::select(m, a.k, b.k), dr::select(m, a.f, b.f), dr::select(m, a.x0, b.x0),
                  dr::select(m, a.x1, b.x1) };
     }
 
-    /// The cell of λ in a model's grid (uniform: the bucket index, else binary search).
-    Cell cell(const ModelAt &mo, const Float &lambda, const Mask &active) const {
+    /// The cell of λ in a model's grid (uniform: the bucket index, else binary search); λ a
+    /// Float or the packet of a lane's hero wavelengths.
+    template <typename Value>
+    typename fluo_detail::LaneGrid<Float>::template CellOf<Value> cell(const ModelAt &mo, const Value &lambda,
+                                                                       const dr::mask_t<Value> &active) const {
         if (!textured() && !mo.joined)
             return m_grid.cell(lambda, active);
-        Float x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
+        Value x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
         auto [k, x0, x1] = (mo.joined ? mo.joined->grids : m_grids).cell(mo.grid, x, active);
         return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
     }
-    /// Node k of a model's grid.
-    Float node(const ModelAt &mo, const UInt32 &k, const Mask &active) const {
+    /// Node k of a model's grid (per hero wavelength).
+    Wavelength node(const ModelAt &mo, const UInt32W &k, const WaveMask &active) const {
         if (!textured() && !mo.joined)
-            return fluo_detail::fetch<Float>(m_grid.nodes, k, active);
-        return fluo_detail::fetch<Float>((mo.joined ? mo.joined->grids : m_grids).nodes, mo.grid.off + k, active);
+            return fluo_detail::fetch_each<Wavelength>(m_grid.nodes, k, active);
+        return fluo_detail::fetch_each<Wavelength>((mo.joined ? mo.joined->grids : m_grids).nodes, mo.grid.off + k,
+                                                   active);
     }
 
     /// A hit: the models it mixes (uniform: the one; textured: its (radius, density)
@@ -810,8 +816,7 @@ private:
             Mask take = !done && w > 0.f;
             p.model = select_model(take, h.model[i], p.model);
             if (h.has_cells)
-                for (size_t j = 0; j < p.cells.size(); ++j)
-                    p.cells[j] = select_cell(take, h.cells[i / h.per_radius][j], p.cells[j]);
+                p.cells = select_cell(WaveMask(take), h.cells[i / h.per_radius], p.cells);
             p.u = dr::select(take, dr::clip((u - run) / w, 0.f, 1.f), p.u);
             done |= take && u < run + w;
             run += w;
@@ -833,26 +838,19 @@ private:
             Wavelength u1 = u1_;
             Pick p = pick(h, u1[0]);
             const ModelAt &mo = p.model;
-            Cells cells;
-            for (size_t w = 0; w < cells.size(); ++w)
-                cells[w] = cell(mo, lambda_o[w], active);
+            Cells cells = cell(mo, lambda_o, active);
             u1[0] = p.u;
             fluo_detail::rotate_hero(u1); // uniform again given the pick
             Emission em = emission_of(mo, active); // with radius's and density's gradients
             // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
             // weight positive where the elastic lobe is keeps the estimator unbiased; this one
             // spares the substrate's eta/k lookups).
-            UnpolarizedSpectrum we;
-            for (size_t w = 0; w < cells.size(); ++w)
-                we[w] = dr::maximum(bilinear(store(), start(mo, RTot), dr::maximum(cos_i, 0.f), cells[w], mo, active),
-                                    0.f);
+            UnpolarizedSpectrum we(
+                dr::maximum(bilinear(store(), start(mo, RTot), dr::maximum(cos_i, 0.f), cells, mo, active), 0.f));
             // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
             // within the model's excitation range.
             Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
             Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
-            Wavelength lambda_i = lambda_o;
-            UnpolarizedSpectrum scale(0.f), rerad(0.f);
-            WMask shifted(false);
             // The A_tot row nearest cos θi (as the Rust model's sampling).
             UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n;
             UInt32 last = mo.n - 1;
@@ -863,45 +861,42 @@ private:
                 q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
             // the row's running integral at a: one row and one a for every hero wavelength
             Float c_a = running(mo, row, ca, active && cos_i > 0.f);
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                // The excitation interval [a, b] (λi ≤ λo), e(λo | a) and the row's mass there.
-                Float lo = lambda_o[w], b = dr::minimum(hi_r, lo);
-                Mask ok = active && cos_i > 0.f && b > a_r && lo >= em.lmin && lo <= em.lmax;
-                Float e_ad = dr::select(ok, emission(lo, em), 0.f), e = dr::detach(e_ad);
-                ok &= e > 0.f;
-                Mask below = lo < hi_r;
-                Cell cb = select_cell(below, cells[w], c_hi);
-                Float c_b = running(mo, row, cb, ok);
-                Float mass = dr::select(ok, dr::maximum(c_b - c_a, 0.f), 0.f);
-                ok &= mass > 0.f;
-                fluo_detail::ShiftChoice<Float> choice(we[w], q_choice * e * mass, u1[w], active);
-                if constexpr (!dr::is_jit_v<Float>)
-                    if (!choice.shifted) { // (scalar variants draw λi only where the shift is taken)
-                        scale[w] = choice.weight(0.f, u1[w]);
-                        continue;
-                    }
-                // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
-                // then the cell's quadratic root (cancellation-free form); the search runs
-                // over the longest grid, each lane's row clamped to its own.
-                Float target = c_a + dr::clip(u2[w], 0.f, 1.f) * mass;
-                const FloatStorage &t = store();
-                UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
-                UInt32 k = dr::binary_search<UInt32>(1, grid_max(mo) - 1, [&](const UInt32 &i) {
-                               return fluo_detail::fetch<Float>(t, cdf + dr::minimum(i, last), ok) <= target;
-                           }) - 1;
-                k = dr::clip(k, ca.k, cb.k);
-                Float x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
-                Float f0 = fluo_detail::fetch<Float>(t, a_tot + k, ok), f1 = fluo_detail::fetch<Float>(t, a_tot + k + 1, ok);
-                Float h_ = x1 - x0;
-                Float step = fluo_detail::linear_cell_inverse(f0, f1, h_, target - fluo_detail::fetch<Float>(t, cdf + k, ok));
-                Float x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
-                Float pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
-                scale[w] = choice.weight(pdf, u1[w]);
-                shifted[w] = choice.shifted;
-                lambda_i[w] = dr::select(choice.shifted, x, lo);
-                rerad[w] = dr::select(choice.shifted, h.q * e_ad, 0.f); // Q·e(λo | λi), nm⁻¹
-            }
-            return { lambda_i, scale, shifted, rerad, mo.index };
+            // Per hero wavelength (one packet) the excitation interval [a, b] (λi ≤ λo),
+            // e(λo | a) and the row's mass there.
+            Wavelength b = dr::minimum(hi_r, lambda_o);
+            WaveMask ok = WaveMask(active && cos_i > 0.f) && b > a_r && lambda_o >= em.lmin && lambda_o <= em.lmax;
+            Wavelength e_ad = dr::select(ok, emission(lambda_o, em), 0.f), e = dr::detach(e_ad);
+            ok &= e > 0.f;
+            Cells c_top{ UInt32W(c_hi.k), Wavelength(c_hi.f), Wavelength(c_hi.x0), Wavelength(c_hi.x1) };
+            Cells cb = select_cell(lambda_o < hi_r, cells, c_top);
+            Wavelength mass = dr::select(ok, dr::maximum(running(mo, row, cb, ok) - c_a, 0.f), 0.f);
+            ok &= mass > 0.f;
+            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, q_choice * e * mass, u1, active);
+            if constexpr (!dr::is_jit_v<Float>)
+                if (dr::none(choice.shifted)) // (scalar variants draw λi only where a shift is taken)
+                    return { lambda_o, choice.weight(0.f, u1), choice.shifted, 0.f, mo.index };
+            // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
+            // then the cell's quadratic root (cancellation-free form); the search runs over
+            // the longest grid, each lane's row clamped to its own.
+            Wavelength target = c_a + dr::clip(u2, 0.f, 1.f) * mass;
+            const FloatStorage &t = store();
+            UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
+            UInt32W k = dr::binary_search<UInt32W>(1, grid_max(mo) - 1, [&](const UInt32W &i) {
+                            return fluo_detail::fetch_each<Wavelength>(t, cdf + dr::minimum(i, last), ok) <= target;
+                        }) - 1;
+            k = dr::clip(k, ca.k, cb.k);
+            Wavelength x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
+            Wavelength f0 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k, ok),
+                       f1 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k + 1, ok);
+            Wavelength h_ = x1 - x0;
+            Wavelength step = fluo_detail::linear_cell_inverse(
+                f0, f1, h_, target - fluo_detail::fetch_each<Wavelength>(t, cdf + k, ok));
+            Wavelength x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
+            Wavelength pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
+            UnpolarizedSpectrum scale = choice.weight(pdf, u1);
+            const WMask &shifted = choice.shifted;
+            // Q·e(λo | λi), nm⁻¹
+            return { dr::select(shifted, x, lambda_o), scale, shifted, dr::select(shifted, h.q * e_ad, 0.f), mo.index };
         }
     }
 
@@ -915,13 +910,11 @@ private:
         if constexpr (is_spectral_v<Spectrum>) {
             auto [lobe_a, c_a] = lobe(si, wo_a, alpha, active);
             auto [lobe_b, c_b] = lobe(si, wo_b, alpha, active);
-            for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
-                Mask on = active && (dr::grad_enabled(rerad[w]) ? Mask(true) : Mask(rerad[w] != 0.f));
-                Cell c = cell(mo, si.wavelengths[w], on);
-                out_a[w] = rerad[w] * lobe_a * bilinear_ad(ATot, &Tangents::a_tot, c_a, c, mo, on);
-                out_b[w] = rerad[w] * lobe_b * bilinear_ad(ATot, &Tangents::a_tot, c_b, c, mo, on);
-            }
+            // (at Q = 0 rerad is 0 but carries dQ: every active lane then)
+            WaveMask on = WaveMask(active) && (dr::grad_enabled(rerad) ? WaveMask(true) : WaveMask(rerad != 0.f));
+            Cells c = cell(mo, si.wavelengths, on);
+            out_a = rerad * lobe_a * UnpolarizedSpectrum(bilinear_ad(ATot, &Tangents::a_tot, c_a, c, mo, on));
+            out_b = rerad * lobe_b * UnpolarizedSpectrum(bilinear_ad(ATot, &Tangents::a_tot, c_b, c, mo, on));
         } else {
             (void) mo, (void) alpha, (void) si, (void) rerad, (void) wo_a, (void) wo_b, (void) active;
         }
@@ -961,8 +954,7 @@ private:
         if constexpr (is_spectral_v<Spectrum>) {
             h.has_cells = m_coated && with_cells;
             if (h.has_cells)
-                for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
-                    h.cells[0][w] = cell(h.model[0], si.wavelengths[w], active);
+                h.cells[0] = cell(h.model[0], si.wavelengths, active);
         }
         if (with_cells)
             h.ior = substrate_ior(si, active);
@@ -1003,8 +995,7 @@ private:
             h.has_cells = m_coated && with_cells;
             if (h.has_cells)
                 for (size_t a = 0; a * h.per_radius < h.n; ++a)
-                    for (size_t w = 0; w < dr::size_v<UnpolarizedSpectrum>; ++w)
-                        h.cells[a][w] = cell(h.model[a * h.per_radius], si.wavelengths[w], active);
+                    h.cells[a] = cell(h.model[a * h.per_radius], si.wavelengths, active);
         }
         if (with_cells)
             h.ior = substrate_ior(si, active);
@@ -1089,17 +1080,22 @@ private:
         Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
         return { lobe_spectrum(ctx, si, wo, H, value, active, h), dr::select(active, pdf, 0.f) };
     }
+    /// A cell of one λ (Value: Float) or of a lane's hero wavelengths (Value: Wavelength).
+    template <typename Value> using CellOf = typename fluo_detail::LaneGrid<Float>::template CellOf<Value>;
     /// A table's row (offset `row`) at the cell, linear in λ.
-    Float along(const FloatStorage &t, const UInt32 &row, const Cell &c, const Mask &active) const {
-        return dr::lerp(fluo_detail::fetch<Float>(t, row + c.k, active), fluo_detail::fetch<Float>(t, row + c.k + 1, active), c.f);
+    template <typename Value>
+    Value along(const FloatStorage &t, const UInt32 &row, const CellOf<Value> &c, const dr::mask_t<Value> &active) const {
+        return dr::lerp(fluo_detail::fetch_each<Value>(t, row + c.k, active),
+                        fluo_detail::fetch_each<Value>(t, row + c.k + 1, active), c.f);
     }
     /// The running integral of row `row` (its offset in a table) of A_tot up to the cell's λ.
-    Float running(const ModelAt &mo, const UInt32 &row, const Cell &c, const Mask &active) const {
+    template <typename Value>
+    Value running(const ModelAt &mo, const UInt32 &row, const CellOf<Value> &c, const dr::mask_t<Value> &active) const {
         const FloatStorage &t = store();
-        UInt32 a_tot = start(mo, ATot) + row + c.k;
-        Float f0 = fluo_detail::fetch<Float>(t, a_tot, active), f1 = fluo_detail::fetch<Float>(t, a_tot + 1, active);
-        Float half = .5f * c.f * (c.x1 - c.x0);
-        return fluo_detail::fetch<Float>(t, start(mo, Cdf) + row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
+        dr::uint32_array_t<Value> a_tot = start(mo, ATot) + row + c.k;
+        Value f0 = fluo_detail::fetch_each<Value>(t, a_tot, active), f1 = fluo_detail::fetch_each<Value>(t, a_tot + 1, active);
+        Value half = .5f * c.f * (c.x1 - c.x0);
+        return fluo_detail::fetch_each<Value>(t, start(mo, Cdf) + row + c.k, active) + half * (f0 + dr::lerp(f0, f1, c.f));
     }
     /// Rows j, j + 1 around cos θ and the fraction between them.
     std::pair<UInt32, Float> rows_at(const Float &cos_theta) const {
@@ -1108,8 +1104,9 @@ private:
         return { j, x - Float(j) };
     }
     /// A model's [rows][λ] table (in `t` at `base`), bilinear in (cos θ, λ).
-    Float bilinear(const FloatStorage &t, const UInt32 &base, const Float &cos_theta, const Cell &c, const ModelAt &mo,
-                   const Mask &active) const {
+    template <typename Value>
+    Value bilinear(const FloatStorage &t, const UInt32 &base, const Float &cos_theta, const CellOf<Value> &c,
+                   const ModelAt &mo, const dr::mask_t<Value> &active) const {
         auto [j, fc] = rows_at(cos_theta);
         UInt32 r0 = base + j * mo.n;
         return dr::lerp(along(t, r0, c, active), along(t, r0 + mo.n, c, active), fc);
@@ -1205,9 +1202,10 @@ private:
 
     /// bilinear() of table k, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
     /// carry gradients (`table`: which of Tangents' arrays, [rows][n] each).
-    Float bilinear_ad(Table k, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta, const Cell &c,
-                      const ModelAt &mo, const Mask &active) const {
-        Float v = bilinear(store(), start(mo, k), cos_theta, c, mo, active);
+    template <typename Value>
+    Value bilinear_ad(Table k, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
+                      const CellOf<Value> &c, const ModelAt &mo, const dr::mask_t<Value> &active) const {
+        Value v = bilinear(store(), start(mo, k), cos_theta, c, mo, active);
         if (const Tangents *tg = mo.joined ? nullptr : tangents())
             for (size_t p = 0; p < 2; ++p)
                 if (wants(p))
@@ -1257,8 +1255,8 @@ private:
 
     /// e(λo | λi) = L(λo)/I (λo > λi, within [λmin, λmax], checked by the caller): the
     /// logistic density exp(−|u|)/(s(1 + exp(−|u|))²), u = (λo − peak)/s, as band.rs.
-    static Float emission(const Float &lambda_o, const Emission &em) {
-        Float e = dr::exp(-dr::abs((lambda_o - em.peak) / em.scale));
+    template <typename Value> static Value emission(const Value &lambda_o, const Emission &em) {
+        Value e = dr::exp(-dr::abs((lambda_o - em.peak) / em.scale));
         return e / (em.scale * dr::square(1.f + e)) * em.inv_norm;
     }
 
@@ -1278,11 +1276,9 @@ private:
                     continue;
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
-                for (size_t w = 0; w < dr::size_v<Wavelength>; ++w) {
-                    const Cell &c = h.cells[i / h.per_radius][w];
-                    r_spe[w] = bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], on);
-                    pass[w] = bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], on);
-                }
+                const Cells &c = h.cells[i / h.per_radius];
+                r_spe = UnpolarizedSpectrum(bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on)));
+                pass = UnpolarizedSpectrum(bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], WaveMask(on)));
             } else {
                 const JoinedTables *j = h.model[i].joined;
                 r_spe = rgb_rows(j ? j->rgb_r_spe : m_rgb_r_spe, cos_m, h.model[i], on);

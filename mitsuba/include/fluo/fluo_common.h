@@ -49,6 +49,21 @@ DRJIT_INLINE T fetch(const Buffer &buffer, const Index &index, const Mask &activ
     }
 }
 
+/// fetch for each hero wavelength: T a packet of Floats (a Wavelength), `index` and
+/// `active` packets of its shape, one read per entry (in the scalar variants, the packet's
+/// arithmetic around it stays in SIMD registers); T a Float: fetch itself.
+template <typename T, typename Buffer, typename Index, typename Mask>
+DRJIT_INLINE T fetch_each(const Buffer &buffer, const Index &index, const Mask &active) {
+    if constexpr (dr::is_static_array_v<T>) {
+        T out;
+        for (size_t k = 0; k < dr::size_v<T>; ++k)
+            out[k] = fetch<dr::value_t<T>>(buffer, index[k], active[k]);
+        return out;
+    } else {
+        return fetch<T>(buffer, index, active);
+    }
+}
+
 /// Call into Rust; a Rust error (cxx's rust::Error) becomes a Mitsuba exception
 /// that names the plugin and carries the Rust message.
 template <typename F> auto rust_call(const char *plugin, F &&f) -> decltype(f()) {

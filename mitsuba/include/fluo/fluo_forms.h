@@ -156,11 +156,13 @@ template <typename Float> struct LaneGrid {
     using UInt32 = dr::uint32_array_t<Float>;
     using Mask = dr::mask_t<Float>;
     static constexpr size_t MaxBuckets = 1 << 16;
-    /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f.
-    struct Cell {
-        UInt32 k;
-        Float f, x0, x1;
+    /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f; `Value`: a Float, or a
+    /// packet of them (a lane's hero wavelengths).
+    template <typename Value> struct CellOf {
+        dr::uint32_array_t<Value> k;
+        Value f, x0, x1;
     };
+    using Cell = CellOf<Float>;
 
     std::vector<double> host;
     DynamicBuffer<Float> nodes;
@@ -212,19 +214,20 @@ template <typename Float> struct LaneGrid {
         dr::make_opaque(v_l0, v_l1, v_inv_step, v_last_bucket, v_n);
     }
 
-    Cell cell(const Float &lambda, const Mask &active) const {
-        Float x = dr::clip(lambda, v_l0, v_l1);
-        UInt32 k;
+    template <typename Value> CellOf<Value> cell(const Value &lambda, const dr::mask_t<Value> &active) const {
+        using UIntV = dr::uint32_array_t<Value>;
+        Value x = dr::clip(lambda, v_l0, v_l1);
+        UIntV k;
         if (bucketed) {
-            UInt32 b = UInt32(dr::minimum(dr::floor((x - v_l0) * v_inv_step), v_last_bucket));
-            k = fluo_detail::fetch<UInt32>(buckets, b, active);
-            k = dr::select(k + 2 < v_n && fluo_detail::fetch<Float>(nodes, k + 1, active) <= x, k + 1, k);
+            UIntV b = UIntV(dr::minimum(dr::floor((x - v_l0) * v_inv_step), v_last_bucket));
+            k = fluo_detail::fetch_each<UIntV>(buckets, b, active);
+            k = dr::select(k + 2 < v_n && fluo_detail::fetch_each<Value>(nodes, k + 1, active) <= x, k + 1, k);
         } else {
-            k = dr::binary_search<UInt32>(1, n - 1, [&](const UInt32 &i) {
-                    return fluo_detail::fetch<Float>(nodes, i, active) <= x;
+            k = dr::binary_search<UIntV>(1, n - 1, [&](const UIntV &i) {
+                    return fluo_detail::fetch_each<Value>(nodes, i, active) <= x;
                 }) - 1;
         }
-        Float x0 = fluo_detail::fetch<Float>(nodes, k, active), x1 = fluo_detail::fetch<Float>(nodes, k + 1, active);
+        Value x0 = fluo_detail::fetch_each<Value>(nodes, k, active), x1 = fluo_detail::fetch_each<Value>(nodes, k + 1, active);
         return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
     }
 
@@ -328,31 +331,35 @@ template <typename Float> struct LaneGridSet {
     }
 
     /// The cell j ∈ [0, n − 2] (within the lane's grid) holding x ∈ [lo, hi] (the last
-    /// node ≤ x), and its ends.
-    std::tuple<UInt32, Float, Float> cell(const At &g, const Float &x, const Mask &active) const {
-        UInt32 j(0);
+    /// node ≤ x), and its ends. `Value`: a Float, or a packet of them (the four hero
+    /// wavelengths of a lane, which share its grid).
+    template <typename Value>
+    std::tuple<dr::uint32_array_t<Value>, Value, Value> cell(const At &g, const Value &x,
+                                                             const dr::mask_t<Value> &active) const {
+        using UIntV = dr::uint32_array_t<Value>;
+        UIntV j(0);
         if (!all_uniform && bucketed) {
-            UInt32 b = UInt32(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Float(g.b_n - 1)));
-            j = fluo_detail::fetch<UInt32>(buckets, g.b_off + b, active);
-            j = dr::select(j + 2 < g.n && fluo_detail::fetch<Float>(nodes, g.off + j + 1, active) <= x, j + 1, j);
+            UIntV b = UIntV(dr::clip(dr::floor((x - g.lo) / g.b_step), 0.f, Value(Float(g.b_n - 1))));
+            j = fluo_detail::fetch_each<UIntV>(buckets, b + g.b_off, active);
+            j = dr::select(j + 2 < g.n && fluo_detail::fetch_each<Value>(nodes, g.off + j + 1, active) <= x, j + 1, j);
         } else if (!all_uniform) {
             // over the longest grid, each lane's nodes clamped to its own last one
-            UInt32 last = g.n - 1;
-            j = dr::binary_search<UInt32>(1, n_max - 1, [&](const UInt32 &i) {
-                    return fluo_detail::fetch<Float>(nodes, g.off + dr::minimum(i, last), active) <= x;
+            UIntV last(g.n - 1);
+            j = dr::binary_search<UIntV>(1, n_max - 1, [&](const UIntV &i) {
+                    return fluo_detail::fetch_each<Value>(nodes, g.off + dr::minimum(i, last), active) <= x;
                 }) - 1;
             j = dr::minimum(j, g.n - 2);
         }
-        Float x0(0.f), x1(0.f);
+        Value x0(0.f), x1(0.f);
         if (!all_uniform) {
-            x0 = fluo_detail::fetch<Float>(nodes, g.off + j, active);
-            x1 = fluo_detail::fetch<Float>(nodes, g.off + j + 1, active);
+            x0 = fluo_detail::fetch_each<Value>(nodes, g.off + j, active);
+            x1 = fluo_detail::fetch_each<Value>(nodes, g.off + j + 1, active);
         }
         if (any_uniform) {
             Mask uniform = g.step > 0.f;
             Float s = dr::select(uniform, g.step, 1.f);
-            UInt32 ju = UInt32(dr::clip(dr::floor((x - g.lo) / s), 0.f, Float(g.n - 2)));
-            Float u0 = dr::fmadd(Float(ju), s, g.lo);
+            UIntV ju = UIntV(dr::clip(dr::floor((x - g.lo) / s), 0.f, Value(Float(g.n - 2))));
+            Value u0 = dr::fmadd(Value(ju), s, g.lo);
             j = dr::select(uniform, ju, j);
             x0 = dr::select(uniform, u0, x0);
             x1 = dr::select(uniform, u0 + s, x1);
