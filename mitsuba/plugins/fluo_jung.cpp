@@ -562,8 +562,8 @@ public:
                                  : Texel{ m_peak, m_shift, m_conc, m_yield };
             if (m_texels)
                 fluo_detail::rotate_hero(u2p); // uniform again given the texel
-            UnpolarizedSpectrum we = dr::maximum(dr::detach(jit_elastic_albedo(si, active)), 0.f);
-            return choose_dye(t, we, lambda_o, u1, u2p, range_lo, range_hi, active);
+            UnpolarizedSpectrum albedo = jit_elastic_albedo(si, active), we = dr::maximum(dr::detach(albedo), 0.f);
+            return choose_dye(t, we, albedo, lambda_o, u1, u2p, range_lo, range_hi, active);
         }
     }
 
@@ -629,7 +629,7 @@ public:
                                 fluo_detail::fetch<Float>(rows, base + 5u + j, active), x - Float(j));
             }
             UnpolarizedSpectrum we = dr::maximum(r * (1.f - t.conc * Dye(t.peak, t.shift).absorption(si.wavelengths)), 0.f);
-            return choose_dye(t, we, si.wavelengths, u1, u2, range_lo, range_hi, active);
+            return choose_dye(t, we, UnpolarizedSpectrum(-1.f), si.wavelengths, u1, u2, range_lo, range_hi, active);
         }
     }
 
@@ -670,11 +670,12 @@ private:
         Texel t;
     };
 
-    /// jit_choose for the dye t with elastic weight `we`.
-    Choice choose_dye(const Texel &t, const UnpolarizedSpectrum &we, const Wavelength &lambda_o, const Wavelength &u1,
-                      const Wavelength &u2p, double range_lo, double range_hi, const Mask &active) const {
+    /// jit_choose for the dye t with elastic weight `we` (`albedo`: the Choice's elastic albedo, or −1).
+    Choice choose_dye(const Texel &t, const UnpolarizedSpectrum &we, const UnpolarizedSpectrum &albedo,
+                      const Wavelength &lambda_o, const Wavelength &u1, const Wavelength &u2p, double range_lo,
+                      double range_hi, const Mask &active) const {
         if constexpr (!is_spectral_v<Spectrum>) {
-            (void) t, (void) we, (void) u1, (void) u2p, (void) range_lo, (void) range_hi, (void) active;
+            (void) t, (void) we, (void) albedo, (void) u1, (void) u2p, (void) range_lo, (void) range_hi, (void) active;
             return this->elastic_only(lambda_o);
         } else {
             using Band = fluo_detail::JungDye<Float>; // (one value per lane; Dye: per wavelength)
@@ -701,7 +702,7 @@ private:
             if constexpr (!dr::is_jit_v<Float>) // (scalar variants draw λi only where a shift is taken)
                 if (dr::none(choice.shifted))
                     return { lambda_o, choice.weight(UnpolarizedSpectrum(0.f), u1), choice.shifted,
-                             UnpolarizedSpectrum(0.f), UInt32(0) };
+                             UnpolarizedSpectrum(0.f), UInt32(0), albedo };
             WMask &shifted = choice.shifted;
             // v ∝ b(v − 3) on [v_a, v_b] by inverting its CDF in closed form (no table, no
             // search: the dye's parameters stay kernel inputs), mapped to λi;
@@ -714,7 +715,7 @@ private:
             Dye exact(t.peak, t.shift);
             UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
             rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
-            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0) };
+            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0), albedo };
         }
     }
 

@@ -576,7 +576,7 @@ public:
         } else {
             UInt32 mat = material(si, active);
             File file = file_at(mat, active);
-            UnpolarizedSpectrum we = dr::maximum(jit_elastic_albedo(si, active), 0.f);
+            UnpolarizedSpectrum albedo = jit_elastic_albedo(si, active), we = dr::maximum(albedo, 0.f);
             Mixture own;
             const Mixture &mix = m_gmm ? mixture_at(mat, active, own) : own;
             // Per hero wavelength the excitation interval [a, b] (λi ≤ λo) and its mass; the
@@ -597,7 +597,7 @@ public:
             UnpolarizedSpectrum scale = choice.weight(dr::detach(value) / mass, u1);
             // π·f_fl(λi, λo) = P(λi, λo)
             return { dr::select(choice.shifted, x, lambda_o), scale, choice.shifted,
-                     dr::select(choice.shifted, value, 0.f), UInt32(0) };
+                     dr::select(choice.shifted, value, 0.f), UInt32(0), albedo };
         }
     }
 
@@ -1024,22 +1024,26 @@ protected:
         return m;
     }
 
-    /// The lane's mixture: in the scalar variants with one file the same at every vertex,
-    /// formed once (fix_mixture: at load and on each accepted update; its reading per vertex
-    /// was 7 % of a scalar fluo_gmm render), else read into `scratch`.
+    /// The lane's mixture: with one file and no gradients the same at every vertex, formed
+    /// once (fix_mixture: at load and on each accepted update; its reading per vertex was 7 %
+    /// of a scalar fluo_gmm render; JIT variants: evaluated values the kernels read, not
+    /// literals, so an update reuses them), else read into `scratch`.
     const Mixture &mixture_at(const UInt32 &mat, const Mask &active, Mixture &scratch) const {
-        if constexpr (!dr::is_jit_v<Float>)
-            if (m_fixed_mixture)
-                return *m_fixed_mixture;
+        if (m_fixed_mixture && !mixture_gradients())
+            return *m_fixed_mixture;
         scratch = mixture(mat, active);
         return scratch;
     }
     void fix_mixture() {
-        if constexpr (!dr::is_jit_v<Float>) {
-            m_fixed_mixture.reset();
-            if (m_gmm && !m_index)
-                m_fixed_mixture = mixture(UInt32(0), Mask(true));
-        }
+        m_fixed_mixture.reset();
+        if (!m_gmm || m_index)
+            return;
+        dr::suspend_grad<Float> detached;
+        Mixture m = mixture(UInt32(0), Mask(true));
+        if constexpr (dr::is_jit_v<Float>)
+            for (size_t k = 0; k < m_n_comps; ++k)
+                dr::make_opaque(m.weight[k], m.mu_i[k], m.mu_o[k]);
+        m_fixed_mixture = std::move(m);
     }
 
     /// The mixture's weights at a lane's file renormalised to sum 1 (differentiable): taken
@@ -1231,7 +1235,7 @@ protected:
     std::vector<float> m_scale;
     // fluo_gmm: [file][component], padded to the largest mixture
     size_t m_n_comps = 0;
-    std::optional<Mixture> m_fixed_mixture; ///< mixture_at's (scalar variants, one file)
+    std::optional<Mixture> m_fixed_mixture; ///< mixture_at's (one file)
     std::vector<size_t> m_file_comps; ///< each file's own number of components
     mutable uint32_t m_mix_d = 0;     ///< several files, RGB: the derivative tables of this render
     mutable std::vector<Float> m_delta; ///< fluo_matrix in RGB with gradients on P: δA per entry (jit_reduced_derivatives)

@@ -874,7 +874,7 @@ private:
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, q_choice * e * mass, u1, active);
             if constexpr (!dr::is_jit_v<Float>)
                 if (dr::none(choice.shifted)) // (scalar variants draw λi only where a shift is taken)
-                    return { lambda_o, choice.weight(0.f, u1), choice.shifted, 0.f, mo.index };
+                    return { lambda_o, choice.weight(0.f, u1), choice.shifted, 0.f, mo.index, -1.f };
             // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
             // then the cell's quadratic root (cancellation-free form); the search runs over
             // the longest grid, each lane's row clamped to its own.
@@ -896,7 +896,8 @@ private:
             UnpolarizedSpectrum scale = choice.weight(pdf, u1);
             const WMask &shifted = choice.shifted;
             // Q·e(λo | λi), nm⁻¹
-            return { dr::select(shifted, x, lambda_o), scale, shifted, dr::select(shifted, h.q * e_ad, 0.f), mo.index };
+            return { dr::select(shifted, x, lambda_o), scale,   shifted, dr::select(shifted, h.q * e_ad, 0.f),
+                     mo.index,                         -1.f };
         }
     }
 

@@ -26,6 +26,7 @@
 
 #include "fluo_common.h"
 #include "fluo_forms.h"
+#include "fluo_lambertian.h"
 
 NAMESPACE_BEGIN(mitsuba)
 NAMESPACE_BEGIN(fluo_detail)
@@ -310,13 +311,19 @@ public:
     /// weight (1/probability; detached), which wavelengths shifted, and for those the
     /// reradiation π·f_fl(λi, λo) (differentiable), and the model a varying material picked
     /// at this vertex (`local`, handed back to jit_reradiation; 0 for the others). A
-    /// Lambertian lobe (f_fl·cos θo = that value·cos θo/π) needs no further call.
-    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32>;
+    /// Lambertian lobe (f_fl·cos θo = that value·cos θo/π) needs no further call. Last, where
+    /// the material's own (elastic) lobe is Lambertian (jit_lambertian_elastic), its albedo at
+    /// λo as the choice read it (differentiable), which SurfaceShift evaluates that lobe with
+    /// (the BSDF is then not called: its albedo is not read twice per vertex); else −1.
+    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32, UnpolarizedSpectrum>;
     /// The choice that keeps every wavelength (RGB variants, where fluo_path does not call
     /// jit_choose, and materials that do not re-emit).
     static Choice elastic_only(const Wavelength &lambda_o) {
-        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f), UInt32(0) };
+        return { lambda_o, UnpolarizedSpectrum(1.f), WMask(false), UnpolarizedSpectrum(0.f), UInt32(0),
+                 UnpolarizedSpectrum(-1.f) };
     }
+    /// Host: whether jit_choose may hand back the elastic lobe's albedo (Choice's last entry).
+    virtual bool jit_lambertian_elastic() const { return false; }
     virtual Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2,
                               double range_lo, double range_hi, Mask active) const = 0;
 
@@ -596,6 +603,8 @@ public:
 
     template <typename B> void assign(const std::vector<B *> &objects) {
         InterfaceSet<BSDF<Float, Spectrum>, Bispectral>::assign(objects);
+        m_lambertian =
+            std::any_of(objects.begin(), objects.end(), [](const B *b) { return b->jit_lambertian_elastic(); });
         m_groups.clear();
         m_joined.clear();
         m_elastic.clear();
@@ -641,8 +650,11 @@ public:
     }
     /// Whether some material of the set is reached through a call.
     bool dispatched() const { return m_joined.size() < this->size(); }
+    /// Whether some material's choice may hand back its Lambertian albedo (jit_lambertian_elastic).
+    bool lambertian() const { return m_lambertian; }
 
 private:
+    bool m_lambertian = false;
     std::vector<Group> m_groups;
     std::vector<const BSDF<Float, Spectrum> *> m_joined, m_elastic;
 };
@@ -657,7 +669,9 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
 
     UnpolarizedSpectrum scale = 1.f, rerad = 0.f;
+    UnpolarizedSpectrum elastic = -1.f; ///< the choice's Lambertian albedo (−1: none)
     WMask shifted = false;
+    bool chose = false; ///< whether choose() ran
     UInt32 local = 0;  ///< the model a varying material picked (jit_choose)
     UInt32 group = 0;  ///< 1 + the lane's group in FluorescentSet (0: none)
     UInt32 member = 0; ///< the lane's index in its group
@@ -685,7 +699,8 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
         }
     }
 
-    /// The BSDF's eval_pdf_sample at the vertex: the lanes of members evaluated joined
+    /// The BSDF's eval_pdf_sample at the vertex: a Lambertian lobe with the albedo the
+    /// choice handed back (Choice's last entry) here, the lanes of members evaluated joined
     /// (FluorescentSet::elastic_joined) from their group, the others through the call, in
     /// which those members trace nothing.
     typename Bispectral::EvalPdfSample eval_pdf_sample(const FluorescentSet<Float, Spectrum> &set,
@@ -693,6 +708,23 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                                                        const SurfaceInteraction3f &si, const Vector3f &wo,
                                                        const Float &sample1, const Point2f &sample2,
                                                        const Mask &active) {
+        Mask lambert = active && elastic[0] >= 0.f;
+        if (!chose || !set.lambertian() || dr::none_or<false>(lambert))
+            return evaluate(set, bsdf, ctx, si, wo, sample1, sample2, active);
+        auto albedo = [this] { return elastic; };
+        auto [val, pdf] = Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, lambert, albedo);
+        auto [bs, weight] = Lambertian<Float, Spectrum>::sample(ctx, si, sample2, lambert, albedo);
+        typename Bispectral::EvalPdfSample own(val, pdf, bs, weight);
+        if (dr::all_or<false>(lambert))
+            return own;
+        return select_tuple(lambert, own, evaluate(set, bsdf, ctx, si, wo, sample1, sample2, active && !lambert));
+    }
+
+    /// eval_pdf_sample's lanes that call the BSDF or its joined group.
+    typename Bispectral::EvalPdfSample evaluate(const FluorescentSet<Float, Spectrum> &set, const BSDFPtr &bsdf,
+                                               const BSDFContext &ctx, const SurfaceInteraction3f &si,
+                                               const Vector3f &wo, const Float &sample1, const Point2f &sample2,
+                                               const Mask &active) {
         if (!set.elastic_joined())
             return bsdf->eval_pdf_sample(ctx, si, wo, sample1, sample2, active);
         if (!located)
@@ -754,8 +786,10 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                     return Bispectral::elastic_only(si_.wavelengths);
                 },
                 si, u1, u2, rest), c);
-        auto [li, sc, sh, rr, lc] = c;
+        auto [li, sc, sh, rr, lc, el] = c;
         Mask has_bsdf = active && bsdf != nullptr;
+        chose = true;
+        elastic = dr::select(has_bsdf, el, -1.f);
         si.wavelengths = dr::select(has_bsdf, li, si.wavelengths);
         scale = dr::select(has_bsdf, sc, 1.f);
         shifted = WMask(has_bsdf) && sh;

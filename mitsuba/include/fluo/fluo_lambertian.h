@@ -70,7 +70,9 @@ template <typename Float, typename Spectrum> struct Lambertian {
 /// The BSDF methods (sample, eval, pdf, eval_pdf, eval_diffuse_reflectance) of a plugin
 /// whose lobe is Lambertian, in its class body: `ALBEDO` is an expression of `si` and
 /// `active` giving the albedo, `BEFORE_SAMPLE` a statement sample() runs first (e.g. the
-/// unmanaged-use warning; `(void) 0` for none).
+/// unmanaged-use warning; `(void) 0` for none). And BispectralBSDF::jit_lambertian_elastic: the
+/// plugin's jit_choose hands back ALBEDO at λo (spectral), for fluo_path to evaluate this
+/// lobe with.
 #define FLUO_LAMBERTIAN_BSDF_METHODS(ALBEDO, BEFORE_SAMPLE)                                                   \
     std::pair<BSDFSample3f, Spectrum> sample(const BSDFContext &ctx, const SurfaceInteraction3f &si,          \
                                              Float /* sample1 */, const Point2f &sample2, Mask active)        \
@@ -103,6 +105,7 @@ template <typename Float, typename Spectrum> struct Lambertian {
     Spectrum eval_diffuse_reflectance(const SurfaceInteraction3f &si, Mask active) const override {           \
         (void) active;                                                                                        \
         return depolarizer<Spectrum>(ALBEDO);                                                                 \
-    }
+    }                                                                                                         \
+    bool jit_lambertian_elastic() const override { return true; }
 
 NAMESPACE_END(mitsuba)
