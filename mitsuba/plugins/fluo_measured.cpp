@@ -847,7 +847,8 @@ protected:
         auto [j, x0, x1] = m_gd.cell(gd, x, on);
         Value t = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f);
         dr::uint32_array_t<Value> i = gd.off + j;
-        Value v = dr::lerp(fluo_detail::fetch_each<Value>(m_diag, i, on), fluo_detail::fetch_each<Value>(m_diag, i + 1, on), t);
+        Value v = dr::lerp(fluo_detail::fetch_each<Value>(m_diag, i, on),
+                           fluo_detail::fetch_each<Value>(m_diag, i + 1, on), t);
         return dr::select(on, v, 0.f);
     }
 

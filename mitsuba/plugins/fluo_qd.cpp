@@ -703,9 +703,11 @@ public:
 
 private:
     /// λ in the table's cell k (λ_k = x0 ≤ λ ≤ λ_{k+1} = x1, clamped to the grid) at fraction f.
-    using Cell = typename fluo_detail::LaneGrid<Float>::Cell;
+    /// (Value: Float, or a lane's hero wavelengths: Wavelength)
+    template <typename Value> using CellOf = typename fluo_detail::LaneGrid<Float>::template CellOf<Value>;
+    using Cell = CellOf<Float>;
     /// The cells of a hit's hero wavelengths, one packet (spectral; unused in RGB).
-    using Cells = typename fluo_detail::LaneGrid<Float>::template CellOf<Wavelength>;
+    using Cells = CellOf<Wavelength>;
     using UInt32W = dr::uint32_array_t<Wavelength>;
     using WaveMask = dr::mask_t<Wavelength>;
     using GridAt = typename fluo_detail::LaneGridSet<Float>::At;
@@ -766,8 +768,7 @@ private:
     /// The cell of λ in a model's grid (uniform: the bucket index, else binary search); λ a
     /// Float or the packet of a lane's hero wavelengths.
     template <typename Value>
-    typename fluo_detail::LaneGrid<Float>::template CellOf<Value> cell(const ModelAt &mo, const Value &lambda,
-                                                                       const dr::mask_t<Value> &active) const {
+    CellOf<Value> cell(const ModelAt &mo, const Value &lambda, const dr::mask_t<Value> &active) const {
         if (!textured() && !mo.joined)
             return m_grid.cell(lambda, active);
         Value x = dr::clip(lambda, mo.grid.lo, mo.grid.hi);
@@ -896,8 +897,8 @@ private:
             UnpolarizedSpectrum scale = choice.weight(pdf, u1);
             const WMask &shifted = choice.shifted;
             // Q·e(λo | λi), nm⁻¹
-            return { dr::select(shifted, x, lambda_o), scale,   shifted, dr::select(shifted, h.q * e_ad, 0.f),
-                     mo.index,                         -1.f };
+            return { dr::select(shifted, x, lambda_o), scale, shifted, dr::select(shifted, h.q * e_ad, 0.f),
+                     mo.index, -1.f };
         }
     }
 
@@ -1081,8 +1082,6 @@ private:
         Float pdf = D * smith_g1_wi / (4.f * cos_theta_i);
         return { lobe_spectrum(ctx, si, wo, H, value, active, h), dr::select(active, pdf, 0.f) };
     }
-    /// A cell of one λ (Value: Float) or of a lane's hero wavelengths (Value: Wavelength).
-    template <typename Value> using CellOf = typename fluo_detail::LaneGrid<Float>::template CellOf<Value>;
     /// A table's row (offset `row`) at the cell, linear in λ.
     template <typename Value>
     Value along(const FloatStorage &t, const UInt32 &row, const CellOf<Value> &c, const dr::mask_t<Value> &active) const {

@@ -315,7 +315,8 @@ public:
     /// the material's own (elastic) lobe is Lambertian (jit_lambertian_elastic), its albedo at
     /// λo as the choice read it (differentiable), which SurfaceShift evaluates that lobe with
     /// (the BSDF is then not called: its albedo is not read twice per vertex); else −1.
-    using Choice = std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32, UnpolarizedSpectrum>;
+    using Choice =
+        std::tuple<Wavelength, UnpolarizedSpectrum, WMask, UnpolarizedSpectrum, UInt32, UnpolarizedSpectrum>;
     /// The choice that keeps every wavelength (RGB variants, where fluo_path does not call
     /// jit_choose, and materials that do not re-emit).
     static Choice elastic_only(const Wavelength &lambda_o) {
@@ -708,8 +709,10 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                                                        const SurfaceInteraction3f &si, const Vector3f &wo,
                                                        const Float &sample1, const Point2f &sample2,
                                                        const Mask &active) {
+        if (!chose || !set.lambertian())
+            return evaluate(set, bsdf, ctx, si, wo, sample1, sample2, active);
         Mask lambert = active && elastic[0] >= 0.f;
-        if (!chose || !set.lambertian() || dr::none_or<false>(lambert))
+        if (dr::none_or<false>(lambert))
             return evaluate(set, bsdf, ctx, si, wo, sample1, sample2, active);
         auto albedo = [this] { return elastic; };
         auto [val, pdf] = Lambertian<Float, Spectrum>::eval_pdf(ctx, si, wo, lambert, albedo);

@@ -227,7 +227,8 @@ template <typename Float> struct LaneGrid {
                     return fluo_detail::fetch_each<Value>(nodes, i, active) <= x;
                 }) - 1;
         }
-        Value x0 = fluo_detail::fetch_each<Value>(nodes, k, active), x1 = fluo_detail::fetch_each<Value>(nodes, k + 1, active);
+        Value x0 = fluo_detail::fetch_each<Value>(nodes, k, active),
+              x1 = fluo_detail::fetch_each<Value>(nodes, k + 1, active);
         return { k, dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), x0, x1 };
     }
 
