@@ -30,7 +30,7 @@
 //! * `excitation_range` / `emission_range`: where the material fluoresces.
 //!
 //! This module imports no model: the models (`crate::models`) implement it, and
-//! `crate::model::Model` dispatches over the closed set of them.
+//! `crate::models::Model` dispatches over the closed set of them.
 
 /// λi step of the trapezoid in the provided [`Bispectral::reradiated`], nm.
 pub const RERADIATED_STEP_NM: f64 = 0.5;

@@ -4,13 +4,14 @@
 //! crate in `mitsuba/`) reach it through one cxx bridge. Dependencies run one way:
 //!
 //! ```text
-//! interface  <-  models/*  <-  model  <-  {patch, reduce, upsample, bin/fluo-rs}  <-  fluo-mitsuba
+//! interface  <-  models/* (and their closed set, Model)  <-  model  <-  {patch, reduce, upsample, bin/fluo-rs}  <-  fluo-mitsuba
 //! ```
 //!
 //! * [`interface`]: the one trait every bispectral material implements ([`Bispectral`]).
 //! * [`models`]: one module per model (Jung, quantum dots, measured matrices, their
-//!   Gaussian mixtures), each with its implementation of the interface.
-//! * [`model`]: the closed set of models ([`Model`]) and the only code naming every one.
+//!   Gaussian mixtures), each with its implementation of the interface, and their closed
+//!   set ([`Model`]), the only code naming every one.
+//! * [`model`]: command-line materials and the closed set of fluorescent media.
 //! * [`patch`], [`reduce`], [`upsample`], [`shift`]: what is computed from any material
 //!   (patch colorimetry, Fichet et al.'s reduced matrices, RGB -> fluorescent
 //!   upsampling, the shift albedo tabulated for the integrator).
@@ -38,4 +39,4 @@ pub mod upsample;
 
 pub use error::{num, shown, Error, Result};
 pub use interface::Bispectral;
-pub use model::Model;
+pub use models::Model;

@@ -1,7 +1,6 @@
-//! The closed set of fluorescent models ([`Model`], dispatched through the [`Bispectral`]
-//! interface)
-//! and material descriptions for the command line: the only file that names every
-//! model.
+//! Material descriptions for the command line, and the closed set of fluorescent media
+//! ([`MediumModel`]). The closed set of surface models, [`crate::models::Model`], sits beside
+//! their modules.
 //!
 //! # Command-line materials (`fluo patch --material M`)
 //! `M` is a JSON object, given inline or as a path to a `.json` file:
@@ -21,110 +20,16 @@
 //! [`crate::models::gmm`]).
 
 use std::fmt;
-use std::sync::Arc;
 
 use serde_json::Value;
 
 use crate::interface::Bispectral;
 use crate::models::gmm::GmmModel;
-use crate::models::jung::{DyeMedium, JungFluorescence, JungMaterial, JungParams, Reflectance};
+use crate::models::jung::{DyeMedium, JungMaterial, JungParams, Reflectance};
 use crate::models::matrix::MatrixModel;
-use crate::models::qd::{QdMedium, QdModel};
+use crate::models::qd::QdMedium;
 use crate::sigmoid::SigmoidPolynomial;
 use crate::{Error, Result};
-
-/// The closed set of fluorescent models.
-///
-/// Each variant holds its model behind an [`Arc`], so that a handle that needs the
-/// concrete model (a plugin's) and this generic one share a single copy; cloning a
-/// `Model` is cheap.
-#[derive(Debug, Clone)]
-pub enum Model {
-    /// Jung et al.'s diffuse parametric model (the dye; the base reflectance is the
-    /// plugin's texture).
-    Jung(Arc<JungFluorescence>),
-    /// Benamira & Pattanaik's quantum-dot coated microfacet model.
-    Qd(Arc<QdModel>),
-    /// A measured reradiation matrix, tabulated (`fluo_matrix`).
-    Matrix(Arc<MatrixModel>),
-    /// A Gaussian-mixture fit of a measured matrix (`fluo_gmm`).
-    Gmm(Arc<GmmModel>),
-}
-
-impl Model {
-    /// The model's display name.
-    pub fn name(&self) -> &'static str {
-        match self {
-            Model::Jung(_) => "jung",
-            Model::Qd(_) => "qd",
-            Model::Matrix(_) => "matrix",
-            Model::Gmm(_) => "gmm",
-        }
-    }
-}
-
-impl fmt::Display for Model {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        match self {
-            Model::Jung(m) => fmt::Display::fmt(&**m, f),
-            Model::Qd(m) => fmt::Display::fmt(&**m, f),
-            Model::Matrix(m) => fmt::Display::fmt(&**m, f),
-            Model::Gmm(m) => fmt::Display::fmt(&**m, f),
-        }
-    }
-}
-
-impl Model {
-    /// The model behind the handle, as the interface every model implements.
-    pub fn as_dyn(&self) -> &dyn Bispectral {
-        match self {
-            Model::Jung(m) => &**m,
-            Model::Qd(m) => &**m,
-            Model::Matrix(m) => &**m,
-            Model::Gmm(m) => &**m,
-        }
-    }
-}
-
-/// Every method forwards to the model behind the handle ([`Model::as_dyn`]).
-impl Bispectral for Model {
-    fn excitation_range(&self) -> Option<(f64, f64)> {
-        self.as_dyn().excitation_range()
-    }
-    fn emission_range(&self) -> Option<(f64, f64)> {
-        self.as_dyn().emission_range()
-    }
-    fn elastic_albedo(&self, cos_i: f64, lambda: f64) -> f64 {
-        self.as_dyn().elastic_albedo(cos_i, lambda)
-    }
-    fn density(&self, cos_i: f64, lambda_i: f64, lambda_o: f64) -> f64 {
-        self.as_dyn().density(cos_i, lambda_i, lambda_o)
-    }
-    fn density_factors(&self, cos_i: f64, lambdas: &[f64]) -> Option<(Vec<f64>, Vec<f64>)> {
-        self.as_dyn().density_factors(cos_i, lambdas)
-    }
-    fn reradiated(&self, illum: &dyn Fn(f64) -> f64, domain: (f64, f64), lambda_o: f64) -> f64 {
-        self.as_dyn().reradiated(illum, domain, lambda_o)
-    }
-    fn reradiation(&self, wi: [f64; 3], wo: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        self.as_dyn().reradiation(wi, wo, lambda_i, lambda_o)
-    }
-    fn shift_albedo(&self, wi: [f64; 3], lambda_o: f64, range: (f64, f64)) -> f64 {
-        self.as_dyn().shift_albedo(wi, lambda_o, range)
-    }
-    fn sample_excitation(&self, wi: [f64; 3], lambda_o: f64, xi: f64, range: (f64, f64)) -> Option<(f64, f64)> {
-        self.as_dyn().sample_excitation(wi, lambda_o, xi, range)
-    }
-    fn excitation_pdf(&self, wi: [f64; 3], lambda_o: f64, lambda_i: f64, range: (f64, f64)) -> f64 {
-        self.as_dyn().excitation_pdf(wi, lambda_o, lambda_i, range)
-    }
-    fn sample_emission(&self, wi: [f64; 3], lambda_i: f64, xi: f64) -> Option<(f64, f64)> {
-        self.as_dyn().sample_emission(wi, lambda_i, xi)
-    }
-    fn emission_pdf(&self, wi: [f64; 3], lambda_i: f64, lambda_o: f64) -> f64 {
-        self.as_dyn().emission_pdf(wi, lambda_i, lambda_o)
-    }
-}
 
 /// Read a material argument: inline JSON (starting with `{`) or a path to a JSON file.
 pub fn load_material(arg: &str) -> Result<Box<dyn Bispectral>> {

@@ -41,12 +41,13 @@ use std::sync::Arc;
 use fluo::colour::bounded_rgb_albedo;
 use fluo::colour::mitsuba::{spectrum_to_srgb, CIE_MAX_NM, CIE_MIN_NM};
 use fluo::interface::Bispectral;
-use fluo::model::{MediumModel, Model};
+use fluo::model::MediumModel;
 use fluo::models::jung::{DyeMedium, DyeMediumParams, JungFluorescence, JungParams, Reflectance};
 use fluo::models::qd;
 use fluo::reduce::{Method, Operator, Transport};
 use fluo::sigmoid::SigmoidPolynomial;
 use fluo::spectrum::{cmf, illuminant, IrregularSpectrum, Observer, Spectral};
+use fluo::Model;
 
 #[cxx::bridge(namespace = "fluo")]
 mod bridge {
