@@ -604,41 +604,46 @@ public:
 
     template <typename B> void assign(const std::vector<B *> &objects) {
         InterfaceSet<BSDF<Float, Spectrum>, Bispectral>::assign(objects);
-        m_lambertian =
-            std::any_of(objects.begin(), objects.end(), [](const B *b) { return b->jit_lambertian_elastic(); });
         m_groups.clear();
         m_joined.clear();
         m_elastic.clear();
         if constexpr (dr::is_jit_v<Float>) {
-            if (objects.size() <= ManyMaterials)
-                return;
-            std::vector<const Bispectral *> materials;
-            std::vector<const BSDF<Float, Spectrum> *> bases;
-            std::vector<uint32_t> ids;
-            for (B *b : objects) {
-                const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
-                uint32_t id = base ? jit_registry_id(base) : 0u;
-                if (id == 0 || !b->jit_joinable() || (!is_spectral_v<Spectrum> && !b->jit_elastic_joined()))
-                    continue;
-                materials.push_back(b);
-                bases.push_back(base);
-                ids.push_back(id);
-            }
-            for (auto &g : join_classes(materials, ids, std::vector<std::string>(materials.size()))) {
-                const Bispectral *first = materials[g.members.front()];
-                bool elastic = first->jit_elastic_joined();
-                m_groups.push_back(Group{ first, std::move(g.joined),
-                                          dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
-                                          (uint32_t) g.slots.size(), elastic });
-                for (size_t i : g.members) {
-                    m_joined.push_back(bases[i]);
-                    if (elastic)
-                        m_elastic.push_back(bases[i]);
-                }
-            }
-            std::sort(m_joined.begin(), m_joined.end());
-            std::sort(m_elastic.begin(), m_elastic.end());
+            if (objects.size() > ManyMaterials)
+                join(objects);
         }
+        // (joined members' choices read their class's tables and give no albedo)
+        m_lambertian = std::any_of(objects.begin(), objects.end(), [this](const B *b) {
+            return b->jit_lambertian_elastic() && !joined(dynamic_cast<const BSDF<Float, Spectrum> *>(b));
+        });
+    }
+    /// JIT, many materials: the joinable ones grouped by class (join_classes).
+    template <typename B> void join(const std::vector<B *> &objects) {
+        std::vector<const Bispectral *> materials;
+        std::vector<const BSDF<Float, Spectrum> *> bases;
+        std::vector<uint32_t> ids;
+        for (B *b : objects) {
+            const auto *base = dynamic_cast<const BSDF<Float, Spectrum> *>(b);
+            uint32_t id = base ? jit_registry_id(base) : 0u;
+            if (id == 0 || !b->jit_joinable() || (!is_spectral_v<Spectrum> && !b->jit_elastic_joined()))
+                continue;
+            materials.push_back(b);
+            bases.push_back(base);
+            ids.push_back(id);
+        }
+        for (auto &g : join_classes(materials, ids, std::vector<std::string>(materials.size()))) {
+            const Bispectral *first = materials[g.members.front()];
+            bool elastic = first->jit_elastic_joined();
+            m_groups.push_back(Group{ first, std::move(g.joined),
+                                      dr::load<DynamicBuffer<UInt32>>(g.slots.data(), g.slots.size()),
+                                      (uint32_t) g.slots.size(), elastic });
+            for (size_t i : g.members) {
+                m_joined.push_back(bases[i]);
+                if (elastic)
+                    m_elastic.push_back(bases[i]);
+            }
+        }
+        std::sort(m_joined.begin(), m_joined.end());
+        std::sort(m_elastic.begin(), m_elastic.end());
     }
     const std::vector<Group> &groups() const { return m_groups; }
     /// Whether `b`'s lanes are evaluated through its group.
