@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Run all tests: set up (scripts/setup.sh), the format check and clippy (warnings are
-# errors), pure-Rust tests (cargo test --release),
+# Run all tests: set up (scripts/setup.sh), the format check, clippy and the docs' links
+# (warnings are errors), pure-Rust tests (cargo test --release),
 # the Python/Mitsuba tests (pytest tests/python; extra args are passed to pytest), then
 # the user path: build the wheel and use it from a fresh venv (scripts/wheel_smoke.sh).
 # Every suite runs; the exit status is non-zero if any failed, or if pytest collected
@@ -19,6 +19,10 @@ echo "[test] cargo fmt --all --check"
 cargo fmt --all --check || failed+=("cargo fmt --all --check")
 echo "[test] cargo clippy --workspace --all-targets -- -D warnings"
 cargo clippy --release --workspace --all-targets -- -D warnings || failed+=("cargo clippy")
+# Doc links resolve (fluo-mitsuba's docs are for maintainers and link its private items).
+echo "[test] cargo doc --workspace --no-deps (warnings are errors)"
+RUSTDOCFLAGS="-D warnings -A rustdoc::private_intra_doc_links" cargo doc --release --workspace --no-deps \
+    || failed+=("cargo doc")
 
 echo "[test] cargo test --release --workspace"
 cargo test --release --workspace || failed+=("cargo test")

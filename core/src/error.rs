@@ -26,7 +26,7 @@ pub enum Error {
 impl Error {
     /// Shorthand for [`Error::InvalidParameter`]. The value is shown readably: a
     /// number in exponent form when its plain form would be long (`1e-300`, not 300
-    /// digits), and any text cut to [`MAX_SHOWN_CHARS`] (see [`shown`]).
+    /// digits), and any text cut to `MAX_SHOWN_CHARS` (80) characters (see [`shown`]).
     pub fn param(name: &str, value: impl fmt::Display, valid: impl Into<String>) -> Self {
         Error::InvalidParameter { name: shown(&name), value: shown(&value), valid: valid.into() }
     }
@@ -61,7 +61,7 @@ pub fn num(x: f64) -> String {
 }
 
 /// `value` as error messages show it: a number through [`num`], any other text cut
-/// to [`MAX_SHOWN_CHARS`] so that a message never echoes unbounded input (a 50 MB
+/// to `MAX_SHOWN_CHARS` (80) characters so that a message never echoes unbounded input (a 50 MB
 /// line of a data file, say).
 pub fn shown(value: &impl fmt::Display) -> String {
     let text = value.to_string();

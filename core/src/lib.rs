@@ -12,9 +12,9 @@
 //!   Gaussian mixtures), each with its implementation of the interface, and their closed
 //!   set ([`Model`]), the only code naming every one.
 //! * [`model`]: command-line materials and the closed set of fluorescent media.
-//! * [`patch`], [`reduce`], [`upsample`], [`shift`]: what is computed from any material
+//! * [`patch`], [`reduce`], [`upsample`], [`reports`]: what is computed from any material
 //!   (patch colorimetry, Fichet et al.'s reduced matrices, RGB -> fluorescent
-//!   upsampling, the shift albedo tabulated for the integrator).
+//!   upsampling, the reports).
 //! * [`spectrum`], [`colour`], [`sigmoid`], [`fileio`]: data and numerics they share.
 //!
 //! Units: wavelengths in nm; `lambda_i` is the excitation (incident) wavelength,

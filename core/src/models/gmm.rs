@@ -16,7 +16,7 @@
 //! (π, μ, the 2×2 Σ): 1 + 7K numbers for the fluorescence (sec. 7.6).
 //!
 //! # Fitting (sec. 5)
-//! Weighted EM [GAPFH16] on the matrix entries above the diagonal: every node
+//! Weighted EM \[GAPFH16\] on the matrix entries above the diagonal: every node
 //! (λi_k, λo_j) with P > 0 is an observation of weight P(λi_k, λo_j). Responsibilities
 //! are computed with log-sum-exp; every covariance gets `diag(hi²/6, ho²/6)` added in
 //! the M-step: the variance of the tent (linear-interpolation) kernel that the
@@ -72,7 +72,7 @@
 //!
 //! # References
 //! Q. Hua, V. Tázlar, A. Fichet, A. Wilkie, "Efficient Storage and Importance Sampling
-//! for Fluorescent Reflectance", CGF 2022. [GAPFH16] I. D. Gebru et al., "EM algorithms
+//! for Fluorescent Reflectance", CGF 2022. \[GAPFH16\] I. D. Gebru et al., "EM algorithms
 //! for weighted-data clustering", IEEE TPAMI 38(12), 2016.
 
 use std::fmt;

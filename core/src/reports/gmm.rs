@@ -6,7 +6,7 @@
 //! by CIEDE2000 (k_L = k_C = k_H = 1) under two sets of lights (sec. 7.2):
 //!
 //! * **CIE illuminants**: every illuminant of [`crate::spectrum::ILLUMINANT_NAMES`],
-//!   through [`patch_xyz`] (single bounce, light and view along the normal, eq. 15;
+//!   through [`crate::patch::patch_xyz`] (single bounce, light and view along the normal, eq. 15;
 //!   white Y = 1); L\*a\*b\* relative to the illuminant's own white.
 //! * **Monochromatic light** at λ0 = 300, 310, …, 780 nm, of radiant power ∫ȳ dλ, so a
 //!   light at a wavelength where ȳ = 1 has the luminance of the unit white:
@@ -45,7 +45,7 @@ pub const ACCEPTANCE_DELTA_E: f64 = 0.3;
 pub const ACCEPTANCE_COMPONENTS: usize = 8;
 
 /// A bispectral material sampled at integer wavelengths: P(λi, λo) for λi in
-/// [`Dense::lambda_i0`] + i nm and λo on the observer's 1 nm grid, and ρ on that grid.
+/// `lambda_i0` + i nm and λo on the observer's 1 nm grid, and ρ on that grid.
 pub struct Dense {
     lambda_i0: f64,
     n_i: usize,
