@@ -61,8 +61,8 @@ pub fn num(x: f64) -> String {
 }
 
 /// `value` as error messages show it: a number through [`num`], any other text cut
-/// to `MAX_SHOWN_CHARS` (80) characters so that a message never echoes unbounded input (a 50 MB
-/// line of a data file, say).
+/// to `MAX_SHOWN_CHARS` (80) characters so that a message never echoes unbounded input
+/// (a 50 MB line of a data file, say).
 pub fn shown(value: &impl fmt::Display) -> String {
     let text = value.to_string();
     match text.trim().parse::<f64>() {

@@ -4,7 +4,7 @@
 //! crate in `mitsuba/`) reach it through one cxx bridge. Dependencies run one way:
 //!
 //! ```text
-//! interface  <-  models/* (and their closed set, Model)  <-  model  <-  {patch, reduce, upsample, bin/fluo-rs}  <-  fluo-mitsuba
+//! interface  <-  models (one module each; Model)  <-  model  <-  {patch, reduce, upsample, bin/fluo-rs}  <-  fluo-mitsuba
 //! ```
 //!
 //! * [`interface`]: the one trait every bispectral material implements ([`Bispectral`]).

@@ -307,7 +307,7 @@ pub const MEDIUM_JIT_EMISSION_TOL: f64 = 1e-5;
 pub const MEDIUM_JIT_EMISSION_STEP_NM: f64 = 1.0;
 
 /// A fluorescent medium as the vectorised variants evaluate it per lane (both models
-/// re-emit f(λi → λo) = e(λo)·\[λi < λo\] for λi in their range, so two tables hold the
+/// re-emit f(λi → λo) = e(λo)·`[λi < λo]` for λi in their range, so two tables hold the
 /// whole contract):
 ///
 /// ```text

@@ -21,8 +21,9 @@
 //! The naive reduction (eq. 6–7, Hullin et al. 2010) reconstructs the incoming
 //! spectrum from the area-normalised basis s̄_k = s_k / ∫ s_k dλ and downsamples the
 //! outgoing one with the plain basis: `P_naive = Sᵀ W 𝒫 S̄` (our reading of eq. 7, which
-//! reproduces the paper's naive rows of Table 1, see [`crate::reports::reduction::TABLE1_XYZ_NAIVE`]). It is kept for
-//! comparison only; it does not map identity to identity.
+//! reproduces the paper's naive rows of Table 1, see
+//! [`crate::reports::reduction::TABLE1_XYZ_NAIVE`]). It is kept for comparison only; it does
+//! not map identity to identity.
 //!
 //! **What the matrices act on.** Reduced matrices act on *basis coefficients*
 //! (downsampled radiance, c = Sᵀ W L), not on tristimulus values of another space.
@@ -653,8 +654,8 @@ fn right(basis: &Basis, method: Method) -> DMatrix<f64> {
     }
 }
 
-/// Colour of a lit patch through the reduced pipeline: c_o = M down\[I\], XYZ = T c_o,
-/// normalised so that the illuminant's own XYZ (T down\[I\]) has Y = 1. Returns
+/// Colour of a lit patch through the reduced pipeline: `c_o = M down[I]`, `XYZ = T c_o`,
+/// normalised so that the illuminant's own XYZ (`T down[I]`) has Y = 1. Returns
 /// (xyz, white_xyz).
 pub fn reduced_patch_xyz(reduced: &Reduced, basis: &Basis, illum: &dyn Spectral) -> Result<([f64; 3], [f64; 3])> {
     let c = basis.down(&|l| illum.eval(l));
@@ -703,7 +704,7 @@ pub fn spectral_patch_xyz(material: &Operator, basis: &Basis, illum: &dyn Spectr
 }
 
 /// A family of matrices M_j (flattened, all of one length) written as
-/// M_j = Σ_t w\[j\]\[t\]·B_t with few terms: the truncated singular value decomposition of the
+/// `M_j = Σ_t w[j][t]·B_t` with few terms: the truncated singular value decomposition of the
 /// rows M_j. A direction-dependent reduced operator tabulated at cosines (fluo_qd's
 /// microfacet lobe) is then, between nodes, Σ_t w_t(cos θ)·B_t with w_t linear between
 /// the nodes' weights: per lane a few weights instead of whole matrices.
@@ -711,9 +712,9 @@ pub fn spectral_patch_xyz(material: &Operator, basis: &Basis, illum: &dyn Spectr
 pub struct LowRank {
     /// B_t, each as long as an M_j.
     pub basis: Vec<Vec<f64>>,
-    /// w\[j\]\[t\], per node j.
+    /// `w[j][t]`, per node j.
     pub weights: Vec<Vec<f64>>,
-    /// max_j max_i |M_j,i − Σ_t w\[j\]\[t\] B_t,i| / max |M|: the error of the truncation.
+    /// max_j max_i `|M_j,i − Σ_t w[j][t] B_t,i|` / max |M|: the error of the truncation.
     pub error: f64,
 }
 

@@ -6,8 +6,8 @@
 //! by CIEDE2000 (k_L = k_C = k_H = 1) under two sets of lights (sec. 7.2):
 //!
 //! * **CIE illuminants**: every illuminant of [`crate::spectrum::ILLUMINANT_NAMES`],
-//!   through [`crate::patch::patch_xyz`] (single bounce, light and view along the normal, eq. 15;
-//!   white Y = 1); L\*a\*b\* relative to the illuminant's own white.
+//!   through [`crate::patch::patch_xyz`] (single bounce, light and view along the normal,
+//!   eq. 15; white Y = 1); L\*a\*b\* relative to the illuminant's own white.
 //! * **Monochromatic light** at λ0 = 300, 310, …, 780 nm, of radiant power ∫ȳ dλ, so a
 //!   light at a wavelength where ȳ = 1 has the luminance of the unit white:
 //!   `XYZ = ρ(λ0)·cmf(λ0) + ∫ cmf(λo) P(λ0, λo) dλo`; L\*a\*b\* relative to the

@@ -64,7 +64,7 @@ const GRID_TOLERANCE: f64 = 1e-9;
 pub const MAX_GRID_SAMPLES: usize = 10_000_000;
 
 /// The running trapezoid integral of the piecewise-linear function with values `y` at the
-/// nodes `x` (the same length): ∫ from x\[0\] to each node, exact for that function.
+/// nodes `x` (the same length): ∫ from `x[0]` to each node, exact for that function.
 pub fn running_trapezoid(x: &[f64], y: &[f64]) -> Vec<f64> {
     let mut cum = Vec::with_capacity(x.len());
     let mut acc = 0.0;

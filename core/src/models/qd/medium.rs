@@ -71,7 +71,7 @@ use super::volume::QdVolume;
 use crate::error::check_range;
 use crate::Result;
 
-/// Avogadro's number × 10⁻²¹: μ [1/m] = c [µmol/L] · σ \[nm²\] · this (1 µmol/L =
+/// Avogadro's number × 10⁻²¹: μ [1/m] = c [µmol/L] · σ `[nm²]` · this (1 µmol/L =
 /// 10⁻³ mol/m³; 1 nm² = 10⁻¹⁸ m²).
 pub const PER_M_PER_UM_NM2: f64 = 6.022_140_76e23 * 1e-21;
 /// Valid range of `concentration`, µmol/L.

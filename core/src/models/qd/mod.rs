@@ -294,20 +294,20 @@ pub struct JitTables {
     pub lambda: Vec<f64>,
     /// Rows, at cos θ = j/(rows − 1).
     pub rows: usize,
-    /// A_tot, row major \[rows\]\[lambda\].
+    /// A_tot, row major `[rows][lambda]`.
     pub a_tot: Vec<f64>,
     /// Its running integral along λ, nm.
     pub cdf: Vec<f64>,
-    /// The coating's R_spe, \[rows\]\[lambda\].
+    /// The coating's R_spe, `[rows][lambda]`.
     pub r_spe: Vec<f64>,
-    /// (T_spe (1 − A_tf))², \[rows\]\[lambda\].
+    /// (T_spe (1 − A_tf))², `[rows][lambda]`.
     pub pass: Vec<f64>,
     /// The smooth surface's R_tot over this model's substrate ([`QdModel::r_tot`]),
-    /// \[rows\]\[lambda\].
+    /// `[rows][lambda]`.
     pub r_tot: Vec<f64>,
-    /// R_spe at the requested extra wavelengths, \[rows\]\[extra\].
+    /// R_spe at the requested extra wavelengths, `[rows][extra]`.
     pub extra_r_spe: Vec<f64>,
-    /// pass at the requested extra wavelengths, \[rows\]\[extra\].
+    /// pass at the requested extra wavelengths, `[rows][extra]`.
     pub extra_pass: Vec<f64>,
     /// The emission e(λo | λi) = logistic(λo; peak, scale)/norm for λo > λi within
     /// [λmin, λmax] ([`QdModel::emission_given`], with [`band::logistic`]): its peak, nm...
@@ -730,7 +730,7 @@ impl QdModel {
     /// bilinear interpolant), and the coating's R_spe and pass = (T_spe (1 − A_tf))², from which the
     /// renderer forms the elastic R_tot = R_spe + pass·R/(1 − R·R_spe) over its own
     /// substrate Fresnel factor R; and R_spe, pass at the wavelengths `extra_nm` (the RGB
-    /// channels'), row major \[rows\]\[extra\]. Bilinear interpolation in (cos θ, λ) is the
+    /// channels'), row major `[rows][extra]`. Bilinear interpolation in (cos θ, λ) is the
     /// vectorised model: test `jit_tables_interpolate_the_model` measures its error.
     pub fn jit_tables(&self, rows: usize, extra_nm: &[f64]) -> JitTables {
         self.jit_tables_on(rows, &self.lambda, extra_nm)
