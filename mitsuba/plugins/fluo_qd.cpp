@@ -8,7 +8,8 @@
 // jit_tables_interpolate_the_model). Per lane the plugin evaluates with Dr.Jit types:
 // - the elastic lobe: Mitsuba's microfacet distribution (as roughconductor) with the Fresnel
 //   factor R_tot = R_spe + pass·F/(1 − F·R_spe) over the substrate's own F (its eta/k
-//   textures); RGB variants take R_spe and pass at the channels' wavelengths.
+//   textures, spectral ones read on their own nodes: IorTable); RGB variants take R_spe
+//   and pass at the channels' wavelengths.
 // - the shift (spectral): λi | λo sampled ∝ the A_tot row nearest cos θi on the excitation
 //   interval (its CDF inverted exactly, the cell's quadratic root), weighted by the logistic
 //   emission e(λo | λi) = L(λo)/I and Q; the reradiation towards ωo is
@@ -190,9 +191,12 @@ integral along λ and the coating's R_spe and (T_spe(1 − A_tf))² on the model
 65 cosines; the plugin interpolates them bilinearly per lane (within 7e-4 of A_tot's
 peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``; 0.69 MB of
 float tables per coating, every coating's in one array of the process, so that many
-coatings read theirs per lane from it), evaluates
+coatings read theirs per lane from it; the grid is uniform between λmin, λQD ± 10 δλ,
+λQD and λmax, so that a lane finds its cell by arithmetic), evaluates
 the substrate's Fresnel factor, the microfacet lobe and the logistic emission in closed
-form, samples λi | λo from the A_tot row nearest cos θi (exact inverse CDF) and forms the
+form (the substrate's ``uniform`` or ``irregular`` eta and k spectra, as ``material``'s
+are, read per lane from their own nodes with one cell lookup for both: Mitsuba's values,
+without a search per spectrum), samples λi | λo from the A_tot row nearest cos θi (exact inverse CDF) and forms the
 reradiation towards each direction from the half vector. No variant calls Rust per
 vertex. In the RGB variants ``fluo_path`` uses Rust's reduced reradiation matrices at the
 microfacet cosines, written by Rust as at most three terms s_t(cos θ)·B_t (a truncated
@@ -765,7 +769,8 @@ private:
                  dr::select(m, a.x1, b.x1) };
     }
 
-    /// The cell of λ in a model's grid (uniform: the bucket index, else binary search); λ a
+    /// The cell of λ in a model's grid (a uniform material: m_grid's arithmetic over its
+    /// uniform segments; textured, joined: LaneGridSet's bucket index); λ a
     /// Float or the packet of a lane's hero wavelengths.
     template <typename Value>
     CellOf<Value> cell(const ModelAt &mo, const Value &lambda, const dr::mask_t<Value> &active) const {
@@ -1004,9 +1009,81 @@ private:
         return h;
     }
     /// The substrate's complex index at si (its eta/k textures, as roughconductor's), once
-    /// per hit: an eval_pdf_sample's two Fresnel factors share it.
+    /// per hit: an eval_pdf_sample's two Fresnel factors share it. Spectral: from m_ior
+    /// where it holds the textures' nodes.
     dr::Complex<UnpolarizedSpectrum> substrate_ior(const SurfaceInteraction3f &si, const Mask &active) const {
+        if constexpr (is_spectral_v<Spectrum>) {
+            if (m_ior.constant)
+                return { UnpolarizedSpectrum(m_ior.eta_c), UnpolarizedSpectrum(m_ior.k_c) };
+            if (m_ior.tabulated) {
+                const Wavelength &lambda = si.wavelengths;
+                WaveMask inside = WaveMask(active) && lambda >= m_ior.grid.v_l0 && lambda <= m_ior.grid.v_l1;
+                Cells c = m_ior.grid.cell(lambda, inside);
+                auto at = [&](const FloatStorage &v) {
+                    return UnpolarizedSpectrum(dr::select(
+                        inside,
+                        dr::lerp(fluo_detail::fetch_each<Wavelength>(v, c.k, inside),
+                                 fluo_detail::fetch_each<Wavelength>(v, c.k + 1, inside), c.f),
+                        0.f));
+                };
+                return { at(m_ior.eta), at(m_ior.k) };
+            }
+        }
         return { m_setup.eta->eval(si, active), m_setup.k->eval(si, active) };
+    }
+
+    /// The substrate's eta and k as the spectral variants read them per lane: Mitsuba's
+    /// `uniform` spectra as two constants; `irregular` ones on the same nodes (eta and k on
+    /// one grid, as Mitsuba's conductor data are) as m_ior's tables, linear between the
+    /// nodes and 0 outside them, as the spectra's own eval, but with one bucketed cell
+    /// lookup for both (the spectra's eval searches its nodes per texture: that search was
+    /// ~0.15 of fluo_qd's per-vertex cost ratio). Anything else is evaluated per lane.
+    struct IorTable {
+        bool constant = false, tabulated = false;
+        Float eta_c = 0.f, k_c = 0.f;
+        fluo_detail::LaneGrid<Float> grid;
+        FloatStorage eta, k;
+    };
+    void sync_ior() {
+        m_ior = IorTable();
+        if constexpr (is_spectral_v<Spectrum>) {
+            if (!m_setup.uniform_substrate())
+                return;
+            struct Nodes : TraversalCallback {
+                std::string_view kind;
+                std::vector<float> x, y, value;
+                void put_value(std::string_view name, void *v, uint32_t, const std::type_info &type) override {
+                    if (type == typeid(FloatStorage) && (name == "wavelengths" || name == "values")) {
+                        const FloatStorage &b = *static_cast<const FloatStorage *>(v);
+                        (name == "wavelengths" ? x : y) = fluo_detail::host_lanes(b, dr::width(b));
+                    } else if (type == typeid(Float) && name == "value") {
+                        value = { (float) dr::slice(dr::detach(*static_cast<const Float *>(v))) };
+                    }
+                }
+                void put_object(std::string_view, Object *, uint32_t) override {}
+            } eta, k;
+            for (auto [tex, out] : { std::pair{ m_setup.eta.get(), &eta }, std::pair{ m_setup.k.get(), &k } }) {
+                out->kind = tex->class_name();
+                tex->traverse(out);
+            }
+            if (eta.kind == "UniformSpectrum" && k.kind == "UniformSpectrum" && eta.value.size() == 1 &&
+                k.value.size() == 1) {
+                m_ior.constant = true;
+                m_ior.eta_c = dr::opaque<Float>(eta.value[0]);
+                m_ior.k_c = dr::opaque<Float>(k.value[0]);
+                return;
+            }
+            bool ok = eta.kind == "IrregularSpectrum" && k.kind == "IrregularSpectrum" && eta.x.size() >= 2 &&
+                      eta.x == k.x && eta.y.size() == eta.x.size() && k.y.size() == k.x.size();
+            for (size_t i = 1; ok && i < eta.x.size(); ++i)
+                ok = eta.x[i] > eta.x[i - 1];
+            if (!ok)
+                return;
+            m_ior.grid.set(std::vector<double>(eta.x.begin(), eta.x.end()));
+            m_ior.eta = dr::load<FloatStorage>(eta.y.data(), eta.y.size());
+            m_ior.k = dr::load<FloatStorage>(k.y.data(), k.y.size());
+            m_ior.tabulated = true;
+        }
     }
 
     /// The microfacet lobe D G/(4 cos θi) at roughness alpha, and cos θ = ωi·h.
@@ -1339,6 +1416,7 @@ private:
         m_setup.sample_all(m_config, eta, k, qd_eta, qd_k);
         m_tex.bake(m_config, eta, k, qd_eta, qd_k); // textured: m_config takes the largest levels
         m_samples = { eta, k, qd_eta, qd_k };       // (sampled once: the tangents reuse them)
+        sync_ior();
         rust::Box<fluo::QdModel> model = fluo_detail::rust_call(Plugin, [&] {
             return fluo::qd_new(m_config, eta.view(), k.view(), qd_eta.view(), qd_k.view());
         });
@@ -1473,13 +1551,14 @@ private:
     uint64_t m_build = 0;
     mutable Tangents m_tangents; ///< the spectral tables' derivatives (tangents())
     std::array<fluo_detail::QdSamples, 4> m_samples; ///< eta, k, qd_eta, qd_k as Rust got them
+    IorTable m_ior; ///< the substrate's eta/k as the spectral variants read them (sync_ior)
     // the reduced operator of the last basis fluo_path asked for (jit_reduced_nodes), and
     // every textured model's (jit_reduced_nodes_table)
     mutable std::string m_reduced_key, m_table_key;
     mutable std::array<std::vector<double>, MaxTerms> m_reduced_m;
     mutable std::vector<double> m_reduced_nodes, m_table_m, m_table_nodes;
     mutable size_t m_reduced_n = 0, m_table_n = 0;
-    fluo_detail::LaneGrid<Float> m_grid; ///< a uniform material's λ grid and its bucket index
+    fluo_detail::LaneGrid<Float> m_grid; ///< a uniform material's λ grid (its uniform segments)
     fluo_detail::LaneGridSet<Float> m_grids; ///< the textured models' λ grids
     /// a uniform material's emission: peak, scale, 1/normalisation, lmin, lmax, ex_lo, ex_hi
     Float m_em[7];
@@ -1489,7 +1568,8 @@ private:
     ScalarFloat m_width = 0.f;
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
-                   m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q)
+                   m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q, m_ior.grid.nodes, m_ior.grid.buckets, m_ior.eta,
+                   m_ior.k)
 };
 
 static const bool fluo_qd_jit_registered =

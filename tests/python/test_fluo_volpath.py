@@ -326,13 +326,17 @@ def test04_hard_cases(case):
             assert np.all(re == 0.0)
         else:
             # Re-emitted light the dots absorb again (their emission overlaps their band
-            # edge) and re-emit at Q = 1 adds ~3.5 % to band 6 (seeds 2-5: 94.4-98.0, mean
-            # 96.1, against 92.4 at max_depth 2); nothing is lost elsewhere.
-            # (the mean of four seeds: one seed's band 6 scatters by ~1.7 %)
-            deep = np.mean([slab_bands(2048, seed=s, concentration=0.15, radius=2.7, quantum_yield=q, max_depth=8)
-                            for s in range(1, 5)], axis=0)
-            assert 1.015 * bands[6] < deep[6] < 1.07 * bands[6], (bands, deep)
-            np.testing.assert_allclose(np.delete(deep, 6), np.delete(bands, 6), rtol=0.03)
+            # edge) and re-emit at Q = 1 adds ~3 % to band 6 (seeds 1-4: 93.9-97.5, mean
+            # 95.8, against 92.1-94.4, mean 93.3, at max_depth 2; the reference 93.1);
+            # nothing is lost elsewhere. Both depths are the means of the same four seeds:
+            # one seed's band 6 scatters by ~1.7 %, as much as the margin.
+            def mean_bands(depth):
+                return np.mean([slab_bands(2048, seed=s, concentration=0.15, radius=2.7, quantum_yield=q,
+                                           max_depth=depth) for s in range(1, 5)], axis=0)
+
+            shallow, deep = mean_bands(2), mean_bands(8)
+            assert 1.015 * shallow[6] < deep[6] < 1.07 * shallow[6], (shallow, deep)
+            np.testing.assert_allclose(np.delete(deep, 6), np.delete(shallow, 6), rtol=0.03)
     elif case == "lamp_outside_band":
         lamp = {"type": "regular", "wavelength_min": 700, "wavelength_max": 830, "values": "1, 1"}
         bands = slab_bands(256, lamp=lamp, concentration=0.15, **base)

@@ -149,13 +149,21 @@ template <typename Value> Value linear_cell_inverse(const Value &f0, const Value
     return dr::select(denom > 0.f, 2.f * d / denom, 0.f);
 }
 
-/// A piecewise-linear function's nodes on the device with a bucket index (one bucket per
-/// `step` nm, never wider than a cell: a node's cell is its bucket's or the next), else
-/// binary search.
+/// A piecewise-linear function's nodes on the device. A grid of at most MaxSegments uniform
+/// runs (fluo_qd's: Rust's lambda_grid) finds a cell by arithmetic, reading nothing; others
+/// through a bucket index (one bucket per `step` nm, never wider than a cell: a node's cell
+/// is its bucket's or the next), else by binary search.
 template <typename Float> struct LaneGrid {
     using UInt32 = dr::uint32_array_t<Float>;
     using Mask = dr::mask_t<Float>;
     static constexpr size_t MaxBuckets = 1 << 16;
+    static constexpr size_t MaxSegments = 4;
+    /// A uniform run: its first node, step and 1/step, its first cell's index and its last
+    /// cell's offset from it (values of the kernel: dr::make_opaque).
+    struct Segment {
+        Float start, step, inv_step, last;
+        UInt32 first;
+    };
     /// λ in cell k (x0 ≤ λ ≤ x1, clamped to the grid) at fraction f; `Value`: a Float, or a
     /// packet of them (a lane's hero wavelengths).
     template <typename Value> struct CellOf {
@@ -170,6 +178,7 @@ template <typename Float> struct LaneGrid {
     float step = 1.f, l0 = 0.f, l1 = 1.f;
     uint32_t n = 2, n_buckets = 0;
     bool bucketed = false;
+    std::vector<Segment> segments; ///< the grid's uniform runs, if at most MaxSegments
     /// The same as values of the kernel, not literals (JIT variants: instances whose grids
     /// differ share one callable; dr::make_opaque).
     Float v_l0 = 0.f, v_l1 = 1.f, v_inv_step = 1.f, v_last_bucket = 0.f;
@@ -182,6 +191,21 @@ template <typename Float> struct LaneGrid {
         nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
         l0 = (float) x.front();
         l1 = (float) x.back();
+        segments.clear();
+        for (size_t k = 0; k + 1 < x.size();) {
+            double h = x[k + 1] - x[k];
+            size_t e = k + 1;
+            while (e + 1 < x.size() && std::abs((x[e + 1] - x[e]) - h) <= 1e-6 * h)
+                ++e;
+            double run = (x[e] - x[k]) / (double) (e - k);
+            Segment sg{ Float((float) x[k]), Float((float) run), Float((float) (1.0 / run)),
+                        Float((float) (e - k - 1)), UInt32((uint32_t) k) };
+            dr::make_opaque(sg.start, sg.step, sg.inv_step, sg.last, sg.first);
+            segments.push_back(sg);
+            k = e;
+        }
+        if (segments.size() > MaxSegments)
+            segments.clear();
         double narrowest = x.back() - x.front();
         for (size_t k = 0; k + 1 < x.size(); ++k)
             narrowest = std::min(narrowest, x[k + 1] - x[k]);
@@ -217,6 +241,23 @@ template <typename Float> struct LaneGrid {
     template <typename Value> CellOf<Value> cell(const Value &lambda, const dr::mask_t<Value> &active) const {
         using UIntV = dr::uint32_array_t<Value>;
         Value x = dr::clip(lambda, v_l0, v_l1);
+        if (!segments.empty()) {
+            Value start(segments[0].start), step_(segments[0].step), inv(segments[0].inv_step),
+                last(segments[0].last);
+            UIntV first(segments[0].first);
+            for (size_t i = 1; i < segments.size(); ++i) {
+                const Segment &sg = segments[i];
+                dr::mask_t<Value> in = x >= sg.start;
+                start = dr::select(in, Value(sg.start), start);
+                step_ = dr::select(in, Value(sg.step), step_);
+                inv = dr::select(in, Value(sg.inv_step), inv);
+                last = dr::select(in, Value(sg.last), last);
+                first = dr::select(in, UIntV(sg.first), first);
+            }
+            Value j = dr::clip(dr::floor((x - start) * inv), 0.f, last);
+            Value x0 = dr::fmadd(j, step_, start);
+            return { first + UIntV(j), dr::clip((x - x0) * inv, 0.f, 1.f), x0, x0 + step_ };
+        }
         UIntV k;
         if (bucketed) {
             UIntV b = UIntV(dr::minimum(dr::floor((x - v_l0) * v_inv_step), v_last_bucket));

@@ -253,29 +253,35 @@ pub(super) fn check_lambda_range(r: (f64, f64)) -> Result<()> {
     Ok(())
 }
 
-/// The λ grid of the tables: 1 nm over the range, refined near λQD, sorted.
+/// The λ grid of the tables: uniform segments between the range's ends and the cut points
+/// λQD and λQD ± GAUSS_CUTOFF·δλ (the band's centre and the cut Gaussian's ends, where
+/// the tabulated functions bend), each with the largest step ≤ `base_step` that divides
+/// it, and ≤ δλ/TABLE_REFINE inside the band. Piecewise uniform (at most four segments),
+/// so that the renderer finds a cell by arithmetic (fluo_qd's LaneGrid segments); a cut
+/// point within `MIN_SEGMENT_NM` of another end is dropped.
 pub(super) fn lambda_grid(range: (f64, f64), band: &QdBand, base_step: f64) -> Vec<f64> {
+    const MIN_SEGMENT_NM: f64 = 1e-2;
     let (lo, hi) = range;
-    let n = ((hi - lo) / base_step).ceil().max(1.0) as usize;
-    let mut g: Vec<f64> = (0..=n).map(|i| lo + (hi - lo) * i as f64 / n as f64).collect();
     let (c, d) = (band.lambda_qd_nm, band.width_nm);
-    let step = d / TABLE_REFINE;
-    if step < base_step {
-        let m = (2.0 * GAUSS_CUTOFF * TABLE_REFINE).round() as usize;
-        for i in 0..=m {
-            let l = c - GAUSS_CUTOFF * d + i as f64 * step;
-            if l > lo && l < hi {
-                g.push(l);
-            }
+    let fine = base_step.min(d / TABLE_REFINE);
+    let mut ends = vec![lo];
+    for cut in [c - GAUSS_CUTOFF * d, c, c + GAUSS_CUTOFF * d] {
+        if cut > ends[ends.len() - 1] + MIN_SEGMENT_NM && cut < hi - MIN_SEGMENT_NM {
+            ends.push(cut);
         }
     }
-    for l in [c, c - GAUSS_CUTOFF * d, c + GAUSS_CUTOFF * d] {
-        if l > lo && l < hi {
-            g.push(l);
-        }
+    ends.push(hi);
+    let mut g = Vec::new();
+    for w in ends.windows(2) {
+        let (s, e) = (w[0], w[1]);
+        // (segments end at the cut points, or within MIN_SEGMENT_NM of a dropped one)
+        let mid = 0.5 * (s + e);
+        let inside = mid > c - GAUSS_CUTOFF * d && mid < c + GAUSS_CUTOFF * d;
+        let step = if inside { fine } else { base_step };
+        let n = ((e - s) / step).ceil().max(1.0) as usize;
+        g.extend((0..n).map(|i| s + (e - s) * i as f64 / n as f64));
     }
-    g.sort_by(f64::total_cmp);
-    g.dedup_by(|a, b| (*a - *b).abs() < 1e-9);
+    g.push(hi);
     g
 }
 
@@ -352,6 +358,29 @@ pub(super) fn trapezoid(grid: &[f64], f: impl Fn(f64) -> f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn lambda_grid_is_piecewise_uniform() {
+        // the renderer's LaneGrid finds cells by arithmetic over at most four uniform runs
+        for (radius, width, step) in [(2.2, 15.0, 1.0), (3.3, 0.05, 1.0), (1.5, 2.0, 0.05), (5.0, 100.0, 50.0)] {
+            let band = QdBand::new(&QdConstants::default(), radius, width).unwrap();
+            let g = lambda_grid((300.0, 830.0), &band, step);
+            assert_eq!((g[0], g[g.len() - 1]), (300.0, 830.0));
+            let (a, b) =
+                (band.lambda_qd_nm - GAUSS_CUTOFF * band.width_nm, band.lambda_qd_nm + GAUSS_CUTOFF * band.width_nm);
+            let fine = step.min(band.width_nm / TABLE_REFINE);
+            let mut runs = 1;
+            for k in 0..g.len() - 1 {
+                let h = g[k + 1] - g[k];
+                let mid = 0.5 * (g[k] + g[k + 1]);
+                assert!(h > 0.0 && h <= (if mid > a && mid < b { fine } else { step }) * (1.0 + 1e-9), "{k}: {h}");
+                if k > 0 && (h - (g[k] - g[k - 1])).abs() > 1e-6 * h {
+                    runs += 1;
+                }
+            }
+            assert!(runs <= 4, "{runs} runs (R = {radius}, δλ = {width})");
+        }
+    }
 
     #[test]
     fn lambda_index_is_the_bisection() {

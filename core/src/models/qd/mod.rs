@@ -94,13 +94,14 @@
 //! refractiveindex.info table of the same paper in `../shared/data/ior/`.
 //!
 //! # Precomputation (per material)
-//! A_tot(θ_j, λ_k) on [`COS_NODES`] rows uniform in cos θ and a λ grid of 1 nm over
-//! [λmin, λmax] (defaults: `table_cos_nodes` and `table_step` set both per material)
-//! refined to δλ/8 within ±[`GAUSS_CUTOFF`]·δλ of λQD, with its running
+//! A_tot(θ_j, λ_k) on [`COS_NODES`] rows uniform in cos θ and a λ grid of steps ≤ 1 nm
+//! over [λmin, λmax] (defaults: `table_cos_nodes` and `table_step` set both per material),
+//! ≤ δλ/8 within ±[`GAUSS_CUTOFF`]·δλ of λQD, uniform between those ends and λQD (at most
+//! four uniform segments: the renderer finds a cell by arithmetic), with its running
 //! integral: this gives γ(θ), the shift albedo and an exact inverse-CDF sampler of
 //! λi | λo (piecewise-linear density of the row nearest cos θi). Memory, with the
 //! coating terms below: (3 · rows + 2) · nodes · 8 B + rows · 8 B + 8 · nodes B:
-//! 33 × 534 nodes, 436 KB with the defaults ([`QdModel::table_bytes`]; more nodes only
+//! 33 × 532 nodes, 434 KB with the defaults ([`QdModel::table_bytes`]; more nodes only
 //! for δλ < 8 nm). Time: about 2–5 ms per material on one core, plus
 //! about 10 ms once per process for the CdSe table (`fluo qd` prints both).
 //!
