@@ -25,6 +25,7 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cstring>
 #include <optional>
 #include <string>
 #include <vector>
@@ -192,7 +193,10 @@ integral along λ and the coating's R_spe and (T_spe(1 − A_tf))² on the model
 peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``; 0.69 MB of
 float tables per coating, every coating's in one array of the process, so that many
 coatings read theirs per lane from it; the grid is uniform between λmin, λQD ± 10 δλ,
-λQD and λmax, so that a lane finds its cell by arithmetic), evaluates
+λQD and λmax, so that a lane finds its cell by arithmetic; the scalar variants, and
+textured materials in every variant, also keep R_spe and pass side by side, one 64-bit
+word per node read for both: 0.28 MB more, not for a uniform material in the JIT
+variants, which many materials may join), evaluates
 the substrate's Fresnel factor, the microfacet lobe and the logistic emission in closed
 form (the substrate's ``uniform`` or ``irregular`` eta and k spectra, as ``material``'s
 are, read per lane from their own nodes with one cell lookup for both: Mitsuba's values,
@@ -264,6 +268,7 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using FloatStorage = DynamicBuffer<Float>;
     using UInt32Storage = DynamicBuffer<UInt32>;
+    using UInt64Storage = DynamicBuffer<dr::uint64_array_t<Float>>;
     using Setup = fluo_detail::QdSetup<Float, Spectrum>;
     using Tex = fluo_detail::QdTextures<Float, Spectrum>;
     using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
@@ -1290,6 +1295,28 @@ private:
         return v;
     }
 
+    /// The material's own model mo's R_spe and pass at (cos θ, the cell), bilinear as
+    /// bilinear(): m_film holds both of a node in one 64-bit word, one read for the two (the
+    /// same floats as the R_spe and pass tables, laid out as they are; the reads were ~0.2
+    /// of the per-vertex ratio).
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> film(const Float &cos_theta, const Cells &c, const ModelAt &mo,
+                                                             const WaveMask &active) const {
+        using UInt64W = dr::uint64_array_t<Wavelength>;
+        auto [j, fc] = rows_at(cos_theta);
+        UInt32 row = mo.off - m_tables.offset() + j * mo.n; // (the model's block in the tables)
+        Wavelength r[2][2], p[2][2]; // [row j, j + 1][node k, k + 1]
+        for (uint32_t a = 0; a < 2; ++a)
+            for (uint32_t b = 0; b < 2; ++b) {
+                UInt64W w = fluo_detail::fetch_each<UInt64W>(m_film, row + a * mo.n + c.k + b, active);
+                r[a][b] = dr::reinterpret_array<Wavelength>(UInt32W(w));
+                p[a][b] = dr::reinterpret_array<Wavelength>(UInt32W(w >> 32));
+            }
+        auto at = [&](const Wavelength (&v)[2][2]) {
+            return UnpolarizedSpectrum(dr::lerp(dr::lerp(v[0][0], v[0][1], c.f), dr::lerp(v[1][0], v[1][1], c.f), fc));
+        };
+        return { at(r), at(p) };
+    }
+
     /// A model's [rows][3] RGB table at cos θ, per channel.
     UnpolarizedSpectrum rgb_rows(const FloatStorage &t, const Float &cos_theta, const ModelAt &mo,
                                  const Mask &active) const {
@@ -1354,8 +1381,12 @@ private:
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
                 const Cells &c = h.cells[i / h.per_radius];
-                r_spe = UnpolarizedSpectrum(bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on)));
-                pass = UnpolarizedSpectrum(bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], WaveMask(on)));
+                if (dr::width(m_film) > 0 && !h.model[i].joined && !(!textured() && (wants(0) || wants(1)))) {
+                    std::tie(r_spe, pass) = film(cos_m, c, h.model[i], WaveMask(on));
+                } else {
+                    r_spe = UnpolarizedSpectrum(bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on)));
+                    pass = UnpolarizedSpectrum(bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], WaveMask(on)));
+                }
             } else {
                 const JoinedTables *j = h.model[i].joined;
                 r_spe = rgb_rows(j ? j->rgb_r_spe : m_rgb_r_spe, cos_m, h.model[i], on);
@@ -1499,6 +1530,20 @@ private:
                 block.insert(block.end(), t.begin(), t.end());
             m_tables.assign(block);
             m_len_v = dr::opaque<UInt32>(m_len);
+            m_film = UInt64Storage();
+            // R_spe and pass of each node side by side (film()): not for a uniform material
+            // in the JIT variants, which many materials may join (its tables are then read
+            // where they are, and a film for each would add 0.28 MB per material)
+            if (!dr::is_jit_v<Float> || textured()) {
+                std::vector<uint64_t> film(tables[RSpe].size());
+                for (size_t e = 0; e < film.size(); ++e) {
+                    uint32_t lo, hi;
+                    std::memcpy(&lo, &tables[RSpe][e], sizeof lo);
+                    std::memcpy(&hi, &tables[Pass][e], sizeof hi);
+                    film[e] = (uint64_t) lo | (uint64_t) hi << 32;
+                }
+                m_film = dr::load<UInt64Storage>(film.data(), film.size());
+            }
         } else {
             m_rgb_r_spe = load(rgb_r_spe);
             m_rgb_pass = load(rgb_pass);
@@ -1541,6 +1586,7 @@ private:
     uint32_t m_len = 0;
     UInt32 m_len_v = 0; ///< m_len, opaque
     FloatStorage m_rgb_r_spe, m_rgb_pass;
+    UInt64Storage m_film; ///< spectral (scalar; JIT: textured): R_spe and pass per node, one word (film())
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
@@ -1569,7 +1615,7 @@ private:
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
                    m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q, m_ior.grid.nodes, m_ior.grid.buckets, m_ior.eta,
-                   m_ior.k)
+                   m_ior.k, m_film)
 };
 
 static const bool fluo_qd_jit_registered =
