@@ -1381,7 +1381,8 @@ private:
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
                 const Cells &c = h.cells[i / h.per_radius];
-                if (dr::width(m_film) > 0 && !h.model[i].joined && !(!textured() && (wants(0) || wants(1)))) {
+                // (film: no tangents, which only a uniform material's gradients ask for)
+                if (dr::width(m_film) > 0 && !h.model[i].joined && (textured() || !(wants(0) || wants(1)))) {
                     std::tie(r_spe, pass) = film(cos_m, c, h.model[i], WaveMask(on));
                 } else {
                     r_spe = UnpolarizedSpectrum(bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on)));

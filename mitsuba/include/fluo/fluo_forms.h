@@ -206,6 +206,13 @@ template <typename Float> struct LaneGrid {
         }
         if (segments.size() > MaxSegments)
             segments.clear();
+        bucketed = false;
+        n_buckets = 0;
+        buckets = DynamicBuffer<UInt32>();
+        if (!segments.empty()) { // (cells by arithmetic: no bucket index)
+            opaque();
+            return;
+        }
         double narrowest = x.back() - x.front();
         for (size_t k = 0; k + 1 < x.size(); ++k)
             narrowest = std::min(narrowest, x[k + 1] - x[k]);
