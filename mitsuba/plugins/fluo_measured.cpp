@@ -570,6 +570,20 @@ public:
 
     Choice jit_choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
                       double range_hi, Mask active) const override {
+        if constexpr (dr::is_jit_v<Float>)
+            return choose(si, u1, u2, range_lo, range_hi, active);
+        else
+            return choose_inlined(si, u1, u2, range_lo, range_hi, active);
+    }
+    /// (scalar variants: with every call inlined, Dr.Jit's exp/log among them, which g++
+    /// leaves out of line: the fluo_gmm vertex 1.42 -> 1.34 of diffuse's)
+    __attribute__((flatten)) Choice choose_inlined(const SurfaceInteraction3f &si, const Wavelength &u1,
+                                                   const Wavelength &u2, double range_lo, double range_hi,
+                                                   Mask active) const {
+        return choose(si, u1, u2, range_lo, range_hi, active);
+    }
+    Choice choose(const SurfaceInteraction3f &si, const Wavelength &u1, const Wavelength &u2, double range_lo,
+                  double range_hi, Mask active) const {
         const Wavelength &lambda_o = si.wavelengths;
         if constexpr (!is_spectral_v<Spectrum>) {
             return this->elastic_only(lambda_o);

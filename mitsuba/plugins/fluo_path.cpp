@@ -588,9 +588,7 @@ private:
                 bool uses_red = true;
                 if constexpr (!dr::is_jit_v<Float>)
                     uses_red = is_fl ? native_elastic : c.reduced;
-                Color3f v_red = uses_red ? Reduced::template apply<K>(Reduced::template scale_columns<K>(
-                                                                         R, m_reduced.template band_albedo<K>(bsdf_val)),
-                                                                     cl)
+                Color3f v_red = uses_red ? Reduced::template apply<K>(R, m_reduced.template band_albedo<K>(bsdf_val) * cl)
                                          : Color3f(0.f);
                 v_fl += dr::select(native_elastic, v_red, 0.f);
                 Color3f v =

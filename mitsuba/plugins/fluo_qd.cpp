@@ -268,7 +268,6 @@ public:
     using WMask = dr::mask_t<UnpolarizedSpectrum>;
     using FloatStorage = DynamicBuffer<Float>;
     using UInt32Storage = DynamicBuffer<UInt32>;
-    using UInt64Storage = DynamicBuffer<dr::uint64_array_t<Float>>;
     using Setup = fluo_detail::QdSetup<Float, Spectrum>;
     using Tex = fluo_detail::QdTextures<Float, Spectrum>;
     using Bispectral = fluo_detail::BispectralBSDF<Float, Spectrum>;
@@ -382,6 +381,20 @@ public:
                                                                         const Point2f &sample2,
                                                                         Mask active) const override {
         this->warn_if_unmanaged(Plugin);
+        if constexpr (dr::is_jit_v<Float>)
+            return eval_pdf_sample_with(ctx, si, wo, sample2, active);
+        else
+            return eval_pdf_sample_inlined(ctx, si, wo, sample2, active);
+    }
+    __attribute__((flatten)) std::tuple<Spectrum, Float, BSDFSample3f, Spectrum>
+    eval_pdf_sample_inlined(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo,
+                            const Point2f &sample2, Mask active) const {
+        return eval_pdf_sample_with(ctx, si, wo, sample2, active);
+    }
+    std::tuple<Spectrum, Float, BSDFSample3f, Spectrum> eval_pdf_sample_with(const BSDFContext &ctx,
+                                                                             const SurfaceInteraction3f &si,
+                                                                             const Vector3f &wo, const Point2f &sample2,
+                                                                             Mask active) const {
         Hit h = hit(si, active, true);
         auto [value, pdf] = eval_pdf_with(ctx, si, wo, active, h);
         auto [bs, weight] = sample_with(ctx, si, sample2, active, h);
@@ -1295,22 +1308,29 @@ private:
         return v;
     }
 
-    /// The material's own model mo's R_spe and pass at (cos θ, the cell), bilinear as
-    /// bilinear(): m_film holds both of a node in one 64-bit word, one read for the two (the
-    /// same floats as the R_spe and pass tables, laid out as they are; the reads were ~0.2
-    /// of the per-vertex ratio).
+    /// Model mo's R_spe and pass at (cos θ, the cell), bilinear as bilinear(): the tables
+    /// hold them side by side (RSpe's place, twice its length), one read for both (a
+    /// packet gather in the JIT variants; the reads were ~0.2 of the per-vertex ratio).
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> film(const Float &cos_theta, const Cells &c, const ModelAt &mo,
                                                              const WaveMask &active) const {
-        using UInt64W = dr::uint64_array_t<Wavelength>;
         auto [j, fc] = rows_at(cos_theta);
-        UInt32 row = mo.off - m_tables.offset() + j * mo.n; // (the model's block in the tables)
+        // (in pairs: a block starts at an even place; a textured material's model mo at
+        // twice its place in the other tables)
+        UInt32 row = (start(mo, RSpe) + (mo.joined ? UInt32(0) : mo.off - m_tables.offset())) / 2 + j * mo.n;
         Wavelength r[2][2], p[2][2]; // [row j, j + 1][node k, k + 1]
         for (uint32_t a = 0; a < 2; ++a)
-            for (uint32_t b = 0; b < 2; ++b) {
-                UInt64W w = fluo_detail::fetch_each<UInt64W>(m_film, row + a * mo.n + c.k + b, active);
-                r[a][b] = dr::reinterpret_array<Wavelength>(UInt32W(w));
-                p[a][b] = dr::reinterpret_array<Wavelength>(UInt32W(w >> 32));
-            }
+            for (uint32_t b = 0; b < 2; ++b)
+                for (size_t l = 0; l < dr::size_v<Wavelength>; ++l) {
+                    UInt32 i = row + a * mo.n + c.k[l] + b;
+                    if constexpr (dr::is_jit_v<Float>) {
+                        dr::Array<Float, 2> v = dr::gather<dr::Array<Float, 2>>(store(), i, active[l]);
+                        r[a][b][l] = v[0];
+                        p[a][b][l] = v[1];
+                    } else {
+                        r[a][b][l] = fluo_detail::fetch<Float>(store(), 2 * i, active[l]);
+                        p[a][b][l] = fluo_detail::fetch<Float>(store(), 2 * i + 1, active[l]);
+                    }
+                }
         auto at = [&](const Wavelength (&v)[2][2]) {
             return UnpolarizedSpectrum(dr::lerp(dr::lerp(v[0][0], v[0][1], c.f), dr::lerp(v[1][0], v[1][1], c.f), fc));
         };
@@ -1381,13 +1401,15 @@ private:
             UnpolarizedSpectrum r_spe, pass;
             if constexpr (is_spectral_v<Spectrum>) {
                 const Cells &c = h.cells[i / h.per_radius];
-                // (film: no tangents, which only a uniform material's gradients ask for)
-                if (dr::width(m_film) > 0 && !h.model[i].joined && (textured() || !(wants(0) || wants(1)))) {
-                    std::tie(r_spe, pass) = film(cos_m, c, h.model[i], WaveMask(on));
-                } else {
-                    r_spe = UnpolarizedSpectrum(bilinear_ad(RSpe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on)));
-                    pass = UnpolarizedSpectrum(bilinear_ad(Pass, &Tangents::pass, cos_m, c, h.model[i], WaveMask(on)));
-                }
+                std::tie(r_spe, pass) = film(cos_m, c, h.model[i], WaveMask(on));
+                if (const Tangents *tg = h.model[i].joined ? nullptr : tangents())
+                    for (size_t p = 0; p < 2; ++p)
+                        if (wants(p)) {
+                            r_spe += delta(p) * UnpolarizedSpectrum(
+                                                    bilinear(tg->r_spe[p], UInt32(0), cos_m, c, h.model[i], WaveMask(on)));
+                            pass += delta(p) * UnpolarizedSpectrum(
+                                                   bilinear(tg->pass[p], UInt32(0), cos_m, c, h.model[i], WaveMask(on)));
+                        }
             } else {
                 const JoinedTables *j = h.model[i].joined;
                 r_spe = rgb_rows(j ? j->rgb_r_spe : m_rgb_r_spe, cos_m, h.model[i], on);
@@ -1525,26 +1547,16 @@ private:
         // spectral ones in the table store, one after the other
         if constexpr (is_spectral_v<Spectrum>) {
             m_len = (uint32_t) tables[ATot].size();
-            std::vector<float> block;
-            block.reserve(Tables * m_len);
-            for (const std::vector<float> &t : tables)
-                block.insert(block.end(), t.begin(), t.end());
+            // (R_spe and pass of each node side by side in their two places: film(); an even
+            // length, so that every block of the store starts at an even place)
+            std::vector<float> block(Tables * m_len + Tables * m_len % 2, 0.f);
+            for (uint32_t k = 0; k < Tables; ++k)
+                for (uint32_t e = 0; e < m_len; ++e)
+                    block[k < RSpe || k > Pass ? k * m_len + e : RSpe * m_len + 2 * e + (k - RSpe)] = tables[k][e];
             m_tables.assign(block);
+            if (m_tables.at() % 2 != 0)
+                Throw("%s: internal error: the coating's tables start at an odd place", Plugin);
             m_len_v = dr::opaque<UInt32>(m_len);
-            m_film = UInt64Storage();
-            // R_spe and pass of each node side by side (film()): not for a uniform material
-            // in the JIT variants, which many materials may join (its tables are then read
-            // where they are, and a film for each would add 0.28 MB per material)
-            if (!dr::is_jit_v<Float> || textured()) {
-                std::vector<uint64_t> film(tables[RSpe].size());
-                for (size_t e = 0; e < film.size(); ++e) {
-                    uint32_t lo, hi;
-                    std::memcpy(&lo, &tables[RSpe][e], sizeof lo);
-                    std::memcpy(&hi, &tables[Pass][e], sizeof hi);
-                    film[e] = (uint64_t) lo | (uint64_t) hi << 32;
-                }
-                m_film = dr::load<UInt64Storage>(film.data(), film.size());
-            }
         } else {
             m_rgb_r_spe = load(rgb_r_spe);
             m_rgb_pass = load(rgb_pass);
@@ -1587,7 +1599,6 @@ private:
     uint32_t m_len = 0;
     UInt32 m_len_v = 0; ///< m_len, opaque
     FloatStorage m_rgb_r_spe, m_rgb_pass;
-    UInt64Storage m_film; ///< spectral (scalar; JIT: textured): R_spe and pass per node, one word (film())
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
@@ -1616,7 +1627,7 @@ private:
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
                    m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q, m_ior.grid.nodes, m_ior.grid.buckets, m_ior.eta,
-                   m_ior.k, m_film)
+                   m_ior.k)
 };
 
 static const bool fluo_qd_jit_registered =

@@ -130,7 +130,7 @@ public:
                 }
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t) // (`m` as final: jit_reduced_nodes rewrites it)
                     for (size_t i = 0; i < e.m[t].size() && i < m_k * m_k; ++i)
-                        e.mf[t][i] = (float) e.m[t][i];
+                        e.mf[t][i / m_k * stride(m_k) + i % m_k] = (float) e.m[t][i];
                 uniform_operator(e);
                 m_entries.push_back(std::move(e));
             }
@@ -245,6 +245,7 @@ public:
         Color3f out;
         for (size_t r = 0; r < 3; ++r) {
             Float acc = R[r * K] * c[0];
+#pragma GCC unroll 8
             for (size_t k = 1; k < K; ++k)
                 acc = dr::fmadd(R[r * K + k], c[k], acc);
             out[r] = acc;
@@ -254,6 +255,7 @@ public:
     /// R·diag(d).
     template <size_t K> static Rows<K> scale_columns(Rows<K> R, const Coeffs<K> &d) {
         for (size_t r = 0; r < 3; ++r)
+#pragma GCC unroll 8
             for (size_t j = 0; j < K; ++j)
                 R[r * K + j] *= d[j];
         return R;
@@ -378,7 +380,7 @@ private:
         bool gathered = false; ///< its operator is a row of m_rows (gather_operators)
         std::array<std::vector<double>, Bispectral::MaxTerms> m;
         std::array<std::vector<Float>, Bispectral::MaxTerms> mv; ///< `m` as opaque values (many materials)
-        /// `m` in single precision (scalar variants: dense()), every term K·K entries
+        /// `m` in single precision (scalar variants: dense()), every term K rows of stride(K)
         std::array<std::array<float, KMax * KMax>, Bispectral::MaxTerms> mf{};
         /// Scalar variants, an operator the same at every hit: A itself (uniform_operator)
         std::array<float, KMax * KMax> a{};
@@ -450,13 +452,15 @@ private:
 
     /// Scalar variants: Σ_t w_t·M_t as one dense K×K (row major) and R times it, branch free
     /// (the JIT path's per-entry zero tests, which keep literal kernels small, were most of a
-    /// scalar vertex's cost at K = 7).
-    template <size_t K> using Dense = std::array<float, K * K>;
+    /// scalar vertex's cost at K = 7). Rows are padded to whole SSE packets (stride(): K = 7
+    /// reads 8), the products' packets (times()).
+    static constexpr size_t stride(size_t k) { return (k + 3) / 4 * 4; }
+    template <size_t K> using Dense = std::array<float, K * stride(K)>;
     template <size_t K> static Dense<K> dense(const Entry &e, const std::array<Float, Bispectral::MaxTerms> &w) {
         Dense<K> a{};
         for (size_t t = 0; t < Bispectral::MaxTerms; ++t) {
             const float wt = w[t], *m = e.mf[t].data();
-            for (size_t i = 0; i < K * K; ++i)
+            for (size_t i = 0; i < K * stride(K); ++i)
                 a[i] += wt * m[i];
         }
         return a;
@@ -471,28 +475,34 @@ private:
                 return;
             const std::array<Float, Bispectral::MaxTerms> w = e.bispectral->jit_reduced_weights();
             for (size_t t = 0; t < Bispectral::MaxTerms; ++t)
-                for (size_t i = 0; i < m_k * m_k; ++i)
+                for (size_t i = 0; i < m_k * stride(m_k); ++i)
                     e.a[i] += w[t] * e.mf[t][i];
             if (!e.full) {
                 Color3f v = e.bispectral->jit_elastic_albedo(dr::zeros<SurfaceInteraction3f>(), true);
                 for (size_t k = 0; k < m_k; ++k)
-                    e.a[k * m_k + k] += band_albedo(k, v);
+                    e.a[k * stride(m_k) + k] += band_albedo(k, v);
             }
         }
     }
     template <size_t K> static Rows<K> times(const Rows<K> &R, const Dense<K> &a) { return times<K>(R, a.data()); }
+    /// (in packets of stride(K) floats, loops unrolled: indexed in a loop, Dr.Jit's 3K-array
+    /// is a chain of branches; 2x faster at K = 7, measured)
     template <size_t K> static Rows<K> times(const Rows<K> &R, const float *a) {
-        Rows<K> out;
-        for (size_t r = 0; r < 3; ++r) {
-            float acc[K] = {}; // (local accumulators: the rows of the product stay in registers)
-            for (size_t k = 0; k < K; ++k) {
-                const float rk = R[r * K + k];
-                for (size_t j = 0; j < K; ++j)
-                    acc[j] += rk * a[k * K + j];
-            }
-            for (size_t j = 0; j < K; ++j)
-                out[r * K + j] = acc[j];
+        using Packet = dr::Array<float, stride(K)>;
+        Packet acc[3] = { Packet(0.f), Packet(0.f), Packet(0.f) };
+#pragma GCC unroll 8
+        for (size_t k = 0; k < K; ++k) {
+            Packet row = dr::load<Packet>(a + k * stride(K));
+#pragma GCC unroll 3
+            for (size_t i = 0; i < 3; ++i)
+                acc[i] = dr::fmadd(Packet(R[i * K + k]), row, acc[i]);
         }
+        Rows<K> out;
+#pragma GCC unroll 3
+        for (size_t i = 0; i < 3; ++i)
+#pragma GCC unroll 8
+            for (size_t j = 0; j < K; ++j)
+                out[i * K + j] = acc[i][j];
         return out;
     }
 
@@ -553,12 +563,12 @@ private:
                     auto [n, weight] = e.bispectral->jit_reduced_select(si, on);
                     const float *m = e.table.data() + (size_t) n * K * K;
                     for (size_t i = 0; i < K * K; ++i)
-                        a[i] += weight * m[i];
+                        a[i / K * stride(K) + i % K] += weight * m[i];
                 }
                 if (elastic) {
                     Coeffs<K> d = band_albedo<K>(e.bispectral->jit_elastic_albedo(si, on));
                     for (size_t k = 0; k < K; ++k)
-                        a[k * K + k] += d[k];
+                        a[k * stride(K) + k] += d[k];
                 }
                 return times<K>(R, a);
             }
@@ -617,9 +627,10 @@ private:
                               const Vector3f &wa, const Vector3f &wb, const Mask &on) const {
         constexpr uint32_t T = (uint32_t) Bispectral::MaxTerms;
         using Weights = std::array<Float, Bispectral::MaxTerms>;
+        const Float w0 = e.bispectral->jit_reduced_weights()[0];
         auto weights = [&](const Vector3f &wo) {
             auto [lobe, cos_h] = e.bispectral->jit_lobe(si, wo, on);
-            Float scale = lobe * e.bispectral->jit_reduced_weights()[0];
+            Float scale = lobe * w0;
             Float x = dr::clip(cos_h, 0.f, 1.f) * (float) (e.n_nodes - 1);
             UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
             Float f = x - Float(j);
@@ -634,15 +645,11 @@ private:
         if constexpr (!dr::is_jit_v<Float>) {
             if (e.n_d == 0) {
                 Dense<K> a = dense<K>(e, w_a);
-                if constexpr (Block) {
+                // (towards the emitter (R·A(ωa))·c: the product vectorises, A(ωa)·c's rows would not)
+                if constexpr (Block)
                     return std::make_pair(times<K>(R, a), times<K>(R, dense<K>(e, w_b)));
-                } else {
-                    Coeffs<K> ac = dr::zeros<Coeffs<K>>(); // A(ωa)·c
-                    for (size_t k = 0; k < K; ++k)
-                        for (size_t j = 0; j < K; ++j)
-                            ac[k] = dr::fmadd(a[k * K + j], c[j], ac[k]);
-                    return std::make_pair(apply<K>(R, ac), times<K>(R, dense<K>(e, w_b)));
-                }
+                else
+                    return std::make_pair(apply<K>(times<K>(R, a), c), times<K>(R, dense<K>(e, w_b)));
             }
         }
         std::conditional_t<Block, Rows<K>, Color3f> out_a = dr::zeros<std::conditional_t<Block, Rows<K>, Color3f>>();
