@@ -65,14 +65,11 @@ scene).
             <float name="scale" value="0.01"/>
         </medium>
 */
-template <typename Float, typename Spectrum> using DyeMediumBase = FluoMediumBase<Float, Spectrum>;
 
 /// Over Rust's tables (FluoMediumBase, fluo_medium.h), as fluo_qd_medium.
-template <typename Float, typename Spectrum> class FluoDyeMedium final : public DyeMediumBase<Float, Spectrum> {
+template <typename Float, typename Spectrum> class FluoDyeMedium final : public FluoMediumBase<Float, Spectrum> {
 public:
-    using Base = DyeMediumBase<Float, Spectrum>;
-    using Base::init;
-    using Base::describe;
+    using Base = FluoMediumBase<Float, Spectrum>;
 
     static constexpr const char *Plugin = "fluo_dye_medium";
 
@@ -83,14 +80,15 @@ public:
                  { "quantum_yield", &c.quantum_yield }, { "sigma_a", &c.sigma_a } })
             *field = fluo_detail::get_float<double>(Plugin, props, name, *field);
         using C = fluo::DyeMediumConfig;
-        init({ { "sigma_a", c.sigma_a, 0.0 }, { "emission_peak", c.emission_peak, 1e-4 },
-               { "stokes_shift", c.stokes_shift, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
-             fluo_detail::medium_builder(Plugin, c, { &C::sigma_a, &C::emission_peak, &C::stokes_shift, &C::quantum_yield },
-                                         [](const C &at) { return fluo::dye_medium_new(at); }),
-             "sigma_a");
+        this->init({ { "sigma_a", c.sigma_a, 0.0 }, { "emission_peak", c.emission_peak, 1e-4 },
+                     { "stokes_shift", c.stokes_shift, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
+                   fluo_detail::medium_builder(Plugin, c,
+                                               { &C::sigma_a, &C::emission_peak, &C::stokes_shift, &C::quantum_yield },
+                                               [](const C &at) { return fluo::dye_medium_new(at); }),
+                   "sigma_a");
     }
 
-    std::string to_string() const override { return describe("FluoDyeMedium"); }
+    std::string to_string() const override { return this->describe("FluoDyeMedium"); }
 
     MI_DECLARE_CLASS(FluoDyeMedium)
 };

@@ -103,10 +103,7 @@ public:
     }
 
     Float eval_1(const SurfaceInteraction3f &si, Mask active) const override {
-        if constexpr (is_spectral_v<Spectrum>)
-            return dr::mean(eval(si, active));
-        else
-            return dr::mean(m_rgb);
+        return dr::mean(eval(si, active));
     }
 
     const fluo::Illuminant &illuminant() const override { return *m_spectrum; }
@@ -128,13 +125,10 @@ public:
 
 private:
     static rust::Box<fluo::Illuminant> create(const Properties &props) {
-        std::string name = props.has_property("illuminant")
-                               ? std::string(props.get<std::string_view>("illuminant")) : "";
+        std::string name = fluo_detail::get_string(props, "illuminant", "");
         std::string file;
-        if (props.has_property("filename")) {
-            FileResolver *fr = mitsuba::file_resolver();
-            file = fr->resolve(fs::path(std::string(props.get<std::string_view>("filename")))).string();
-        }
+        if (props.has_property("filename"))
+            file = mitsuba::file_resolver()->resolve(fs::path(fluo_detail::get_string(props, "filename", ""))).string();
         double scale = fluo_detail::get_float(Plugin, props, "scale", 1.0);
         bool normalize = props.get<bool>("normalize", true);
         return fluo_detail::rust_call(Plugin, [&] { return fluo::illuminant_new(name, file, scale, normalize); });

@@ -249,13 +249,17 @@ public:
             init_color(props);
         else
             m_reflectance = jung_reflectance<Texture>(Plugin, props, m_config);
-        m_peak = (ScalarFloat) m_config.emission_peak;
-        m_shift = (ScalarFloat) m_config.stokes_shift;
-        m_conc = (ScalarFloat) m_config.concentration;
-        m_yield = (ScalarFloat) m_config.quantum_yield;
+        for (auto [value, field] : params())
+            *value = (ScalarFloat) *field;
         m_flags = BSDFFlags::DiffuseReflection | BSDFFlags::FrontSide;
         m_components.push_back(m_flags);
         rebuild();
+    }
+
+    /// The numeric parameters' members and configuration fields (fluo_detail::JungParamNames' order).
+    std::array<std::pair<Float *, double *>, fluo_detail::JungParams> params() {
+        return { { { &m_peak, &m_config.emission_peak }, { &m_shift, &m_config.stokes_shift },
+                   { &m_conc, &m_config.concentration }, { &m_yield, &m_config.quantum_yield } } };
     }
 
     void traverse(TraversalCallback *cb) override {
@@ -265,13 +269,12 @@ public:
             return; // everything derives from the colour and the cube
         if (m_reflectance)
             cb->put("reflectance", m_reflectance, ParamFlags::Differentiable);
-        Float *values[fluo_detail::JungParams] = { &m_peak, &m_shift, &m_conc, &m_yield };
         for (size_t i = 0; i < fluo_detail::JungParams; ++i) {
             if (m_param_tex[i]) // a texture: its values select the dye shapes baked at load and,
                 // per texel, carry gradients (docs: "Gradients")
                 cb->put(fluo_detail::JungParamNames[i], m_param_tex[i], ParamFlags::Differentiable);
             else
-                cb->put(fluo_detail::JungParamNames[i], *values[i], ParamFlags::Differentiable);
+                cb->put(fluo_detail::JungParamNames[i], *params()[i].first, ParamFlags::Differentiable);
         }
     }
 
@@ -280,18 +283,9 @@ public:
         // re-bakes the tables (a textured parameter's texture is read again). A refused
         // update puts every traversed value back (fluo_detail::UpdateRecord).
         m_record.update(this, m_config, [&] {
-            if (!m_param_tex[fluo_detail::JungPeak])
-                m_config.emission_peak =
-                    fluo_detail::updated_param(Plugin, "emission_peak", m_peak, m_config.emission_peak);
-            if (!m_param_tex[fluo_detail::JungShift])
-                m_config.stokes_shift =
-                    fluo_detail::updated_param(Plugin, "stokes_shift", m_shift, m_config.stokes_shift);
-            if (!m_param_tex[fluo_detail::JungConc])
-                m_config.concentration =
-                    fluo_detail::updated_param(Plugin, "concentration", m_conc, m_config.concentration);
-            if (!m_param_tex[fluo_detail::JungYield])
-                m_config.quantum_yield =
-                    fluo_detail::updated_param(Plugin, "quantum_yield", m_yield, m_config.quantum_yield);
+            for (size_t i = 0; i < fluo_detail::JungParams; ++i)
+                if (auto [value, field] = params()[i]; !m_param_tex[i])
+                    *field = fluo_detail::updated_param(Plugin, fluo_detail::JungParamNames[i], *value, *field);
             if (m_reflectance) // a texture updated in place: its values must stay in [0, 1]
                 fluo_detail::check_texture_range(Plugin, "reflectance", m_reflectance.get(), 0.0, 1.0);
             rebuild();
@@ -321,12 +315,15 @@ public:
         bool one_shape = !m_shapes || (!m_param_tex[fluo_detail::JungPeak] && !m_param_tex[fluo_detail::JungShift]);
         return one_shape && !m_texels && (dr::grad_enabled(m_peak) || dr::grad_enabled(m_shift));
     }
+    /// One dye shape at `cfg`'s (λe, s).
+    static rust::Box<fluo::JungShapes> unit_dye(const fluo::JungConfig &cfg) {
+        return fluo::jung_shapes_new(rust::Slice<const double>(&cfg.emission_peak, 1),
+                                     rust::Slice<const double>(&cfg.stokes_shift, 1));
+    }
     /// What RGB bakes from the dye's shape at `cfg` (fluo::jung_rgb_parts with this base):
     /// reflectance_absorbed, absorbed_scale, fluorescence (9 values).
     std::vector<double> rgb_parts_at(const fluo::JungConfig &cfg) const {
-        double pk = cfg.emission_peak, sh = cfg.stokes_shift;
-        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
-        fluo::JungRgbParts q = fluo::jung_rgb_parts(fluo::jung_shapes_model(*u, 0), **m_model);
+        fluo::JungRgbParts q = fluo::jung_rgb_parts(fluo::jung_shapes_model(*unit_dye(cfg), 0), **m_model);
         return { q.reflectance_absorbed.r, q.reflectance_absorbed.g, q.reflectance_absorbed.b,
                  q.absorbed_scale.r,       q.absorbed_scale.g,       q.absorbed_scale.b,
                  q.fluorescence.r,         q.fluorescence.g,         q.fluorescence.b };
@@ -335,8 +332,7 @@ public:
     static std::vector<double> shape_operator(const fluo::JungConfig &cfg, const fluo::TransportBasis &transport) {
         size_t kk = fluo::transport_size(transport) * fluo::transport_size(transport);
         std::vector<double> out(kk);
-        double pk = cfg.emission_peak, sh = cfg.stokes_shift;
-        auto u = fluo::jung_shapes_new(rust::Slice<const double>(&pk, 1), rust::Slice<const double>(&sh, 1));
+        auto u = unit_dye(cfg);
         auto reduced = fluo::reduced_new(fluo::jung_fluorescence(fluo::jung_shapes_model(*u, 0)), transport);
         if (!fluo::reduced_lambertian(*reduced, rust::Slice<double>(out.data(), kk)))
             Throw("%s: a dye shape has no Lambertian reduced operator", Plugin);
@@ -398,8 +394,7 @@ public:
         if (m_shapes)
             return false; // (m stays 0)
         auto slice = [](std::vector<double> &v) { return rust::Slice<double>(v.data(), v.size()); };
-        return fluo::jung_reduced_parts(**m_model, transport, slice(m[0]), slice(m[1]),
-                                        slice(m[2]));
+        return fluo::jung_reduced_parts(**m_model, transport, slice(m[0]), slice(m[1]), slice(m[2]));
     }
     std::array<Float, MaxTerms> jit_reduced_weights() const override {
         return { Float(1.f), -m_conc, m_conc * m_yield };
@@ -431,11 +426,7 @@ public:
         return 2;
     }
     std::vector<Float> jit_reduced_derivative_weights(const SurfaceInteraction3f &si, Mask active) const override {
-        Float scale = 1.f;
-        if (m_shapes) {
-            Hit h = hit(si, active);
-            scale = h.t.conc * h.t.yield;
-        }
+        Float scale = m_shapes ? jit_reduced_select(si, active).second : Float(1.f); // (textured: c·Q)
         return { (m_peak - dr::detach(m_peak)) * scale, (m_shift - dr::detach(m_shift)) * scale };
     }
 
@@ -513,25 +504,20 @@ public:
             if ((!m_param_tex[fluo_detail::JungPeak] && dr::grad_enabled(m_peak)) ||
                 (!m_param_tex[fluo_detail::JungShift] && dr::grad_enabled(m_shift)))
                 return true;
-            struct Probe : TraversalCallback {
-                bool any = false;
-                void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
-                    if (type == typeid(Float))
-                        any |= dr::grad_enabled(*(const Float *) ptr);
-                    else if (type == typeid(TensorXf))
-                        any |= dr::grad_enabled(*(const TensorXf *) ptr);
-                    else if (type == typeid(Color3f))
-                        any |= dr::grad_enabled(*(const Color3f *) ptr);
-                }
-                void put_object(std::string_view, Object *o, uint32_t) override {
-                    if (o)
-                        o->traverse(this);
-                }
-            } probe;
+            bool any = false;
+            auto value = [&](std::string_view, void *ptr, const std::type_info &type) {
+                if (type == typeid(Float))
+                    any |= dr::grad_enabled(*(const Float *) ptr);
+                else if (type == typeid(TensorXf))
+                    any |= dr::grad_enabled(*(const TensorXf *) ptr);
+                else if (type == typeid(Color3f))
+                    any |= dr::grad_enabled(*(const Color3f *) ptr);
+            };
             for (auto p : { fluo_detail::JungPeak, fluo_detail::JungShift })
-                if (m_param_tex[p])
-                    const_cast<Texture *>(m_param_tex[p].get())->traverse(&probe); // (reads only)
-            return probe.any;
+                if (m_param_tex[p]) // (reads only)
+                    fluo_detail::visit(const_cast<Texture *>(m_param_tex[p].get()), value,
+                                       [](std::string_view, Object *o) { return o != nullptr; });
+            return any;
         }
     }
 
@@ -723,17 +709,19 @@ private:
     void rebuild() {
         using namespace fluo_detail;
         m_shape_d = 0; // (the shapes may change: their derivatives are made again when a render begins)
-        init_param_textures();
+        // textured parameters: every texture's values validated (Rust names a bad texel) and one
+        // dye shape per (λe, s) pair (fluo_jung_color.h); the levels of λe and s on the device,
+        // for the per-lane nearest level
+        m_shapes = jung_shape_set(Plugin, m_param_tex, m_config);
+        if (m_shapes) {
+            m_peak_levels = dr::load<FloatStorage>(m_shapes->peaks.data(), m_shapes->peaks.size());
+            m_shift_levels = dr::load<FloatStorage>(m_shapes->shifts.data(), m_shapes->shifts.size());
+        }
         m_model = rust_call(Plugin, [&] { return fluo::jung_new(m_config); });
-        double peak = m_config.emission_peak, shift = m_config.stokes_shift;
-        m_unit = rust_call(Plugin, [&] {
-            return fluo::jung_shapes_new(rust::Slice<const double>(&peak, 1), rust::Slice<const double>(&shift, 1));
-        });
+        m_unit = rust_call(Plugin, [&] { return unit_dye(m_config); });
         const fluo::JungModel &unit = fluo::jung_shapes_model(**m_unit, 0);
         if constexpr (is_rgb_v<Spectrum>) {
-            auto color = [](const fluo::Rgb &c) {
-                return Color3f((ScalarFloat) c.r, (ScalarFloat) c.g, (ScalarFloat) c.b);
-            };
+            auto color = [](const fluo::Rgb &c) { return Color3f((float) c.r, (float) c.g, (float) c.b); };
             fluo::JungRgbParts p = fluo::jung_rgb_parts(unit, **m_model);
             m_rgb_reflectance = color(p.reflectance);
             m_rgb_reflectance_absorbed = color(p.reflectance_absorbed);
@@ -755,18 +743,14 @@ private:
             }
             if (m_shapes) { // per dye shape, gathered per lane
                 size_t n = fluo::jung_shapes_len(**m_shapes->shapes);
-                std::vector<float> parts[ShapeFields];
-                for (auto &f : parts)
-                    f.resize(n);
+                std::vector<float> parts[ShapeFields]; // [part][channel] of each shape
                 for (size_t i = 0; i < n; ++i) {
                     fluo::JungRgbParts q = fluo::jung_rgb_parts(shape(i), **m_model);
-                    const fluo::Rgb *rgb[4] = { &q.reflectance, &q.reflectance_absorbed, &q.absorbed_scale,
-                                                &q.fluorescence };
-                    for (size_t c = 0; c < 4; ++c) {
-                        parts[3 * c][i] = (float) rgb[c]->r;
-                        parts[3 * c + 1][i] = (float) rgb[c]->g;
-                        parts[3 * c + 2][i] = (float) rgb[c]->b;
-                    }
+                    size_t k = 0;
+                    for (const fluo::Rgb *c :
+                         { &q.reflectance, &q.reflectance_absorbed, &q.absorbed_scale, &q.fluorescence })
+                        for (double v : { c->r, c->g, c->b })
+                            parts[k++].push_back((float) v);
                 }
                 for (size_t f = 0; f < ShapeFields; ++f)
                     m_shape_parts[f] = dr::load<FloatStorage>(parts[f].data(), n);
@@ -782,17 +766,6 @@ private:
         // dyes: a 60 s first render); opaque, all instances share one (as Mitsuba's plugins do).
         dr::make_opaque(m_peak, m_shift, m_conc, m_yield, m_coef[0], m_coef[1], m_coef[2], m_rgb_reflectance,
                         m_rgb_reflectance_absorbed, m_rgb_absorbed_scale, m_rgb_fluorescence);
-    }
-
-    /// Textured parameters: every texture's values validated (Rust names a bad texel) and
-    /// one dye shape per (λe, s) pair (fluo_jung_color.h); the
-    /// levels of λe and s on the device, for the per-lane nearest level.
-    void init_param_textures() {
-        m_shapes = fluo_detail::jung_shape_set(Plugin, m_param_tex, m_config);
-        if (!m_shapes)
-            return;
-        m_peak_levels = dr::load<FloatStorage>(m_shapes->peaks.data(), m_shapes->peaks.size());
-        m_shift_levels = dr::load<FloatStorage>(m_shapes->shifts.data(), m_shapes->shifts.size());
     }
 
     const fluo::JungModel &shape(size_t i) const { return fluo::jung_shapes_model(**m_shapes->shapes, i); }

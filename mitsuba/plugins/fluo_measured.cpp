@@ -282,8 +282,7 @@ public:
             cb->put("weights", m_weights, ParamFlags::Differentiable);
             cb->put("means_excitation", m_means_i, ParamFlags::Differentiable);
             cb->put("means_emission", m_means_o, ParamFlags::Differentiable);
-        }
-        if (!m_gmm) // P at its nodes (nm⁻¹, [λo][λi]; several files: theirs in file order)
+        } else // P at its nodes (nm⁻¹, [λo][λi]; several files: theirs in file order)
             cb->put("reradiation", m_p, ParamFlags::Differentiable);
     }
 
@@ -296,6 +295,7 @@ public:
         m_record.update(this, [&] {
             if (m_index) // a changed index map is validated again
                 fluo_detail::MeasuredFiles<Float, Spectrum>::check_index(m_plugin, m_index.get(), m_models.size());
+            std::vector<rust::Box<fluo::MeasuredModel>> models; // (all validated before any is kept)
             if (!m_gmm) { // Rust validates each file's matrix and bakes its rows' integrals again
                 std::vector<double> p = host(m_p);
                 size_t total = m_file_off.back() + m_file_nodes.back();
@@ -303,7 +303,6 @@ public:
                     Throw("%s: \"reradiation\" must keep its %zu entries (one per node of %s), %zu given",
                           m_plugin, total, m_models.size() > 1 ? "every file's matrix, in file order" : "the matrix",
                           p.size());
-                std::vector<rust::Box<fluo::MeasuredModel>> models; // (all validated before any is kept)
                 std::vector<float> rcdf;
                 for (size_t f = 0; f < m_models.size(); ++f) {
                     models.push_back(fluo_detail::rust_call(m_plugin, [&] {
@@ -313,39 +312,35 @@ public:
                     rust::Vec<double> r = fluo::measured_tables(*models.back()).row_cdf;
                     rcdf.insert(rcdf.end(), r.begin(), r.end());
                 }
-                for (size_t f = 0; f < m_models.size(); ++f)
-                    m_models[f] = std::move(models[f]);
                 m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
-                m_table_key.clear(); // (the files' reduced operators: reduced again)
-                update_rgb();
-                return;
+            } else {
+                bool mixture = keys.empty() || std::any_of(keys.begin(), keys.end(), [](const std::string &k) {
+                                   return k == "weights" || k == "means_excitation" || k == "means_emission";
+                               });
+                if (!mixture) // (an index update alone: the mixtures stay as Rust holds them)
+                    return;
+                std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
+                size_t total = m_n_comps * m_models.size();
+                if (w.size() != total || mi.size() != total || mo.size() != total)
+                    Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries%s",
+                          m_plugin, total,
+                          m_models.size() > 1 ? " ([file][component], each file's padded to the largest mixture)" : "");
+                for (size_t f = 0; f < m_models.size(); ++f) {
+                    size_t o = f * m_n_comps, k = m_file_comps[f];
+                    for (size_t c = k; c < m_n_comps; ++c)
+                        if (w[o + c] != 0.0 || mi[o + c] != 0.0 || mo[o + c] != 0.0)
+                            Throw("%s: \"weights\"/\"means_excitation\"/\"means_emission\" entry %zu pads \"%s\" "
+                                  "(%zu components of %zu) and must stay 0",
+                                  m_plugin, o + c, m_keys[f], k, m_n_comps);
+                    auto slice = [&](const std::vector<double> &v) {
+                        return rust::Slice<const double>(v.data() + o, k);
+                    };
+                    models.push_back(fluo_detail::rust_call(
+                        m_plugin, [&] { return fluo::gmm_updated(*m_models[f], slice(w), slice(mi), slice(mo)); }));
+                }
             }
-            bool mixture = keys.empty() || std::any_of(keys.begin(), keys.end(), [](const std::string &k) {
-                               return k == "weights" || k == "means_excitation" || k == "means_emission";
-                           });
-            if (!mixture) // (an index update alone: the mixtures stay as Rust holds them)
-                return;
-            std::vector<double> w = host(m_weights), mi = host(m_means_i), mo = host(m_means_o);
-            size_t total = m_n_comps * m_models.size();
-            if (w.size() != total || mi.size() != total || mo.size() != total)
-                Throw("%s: \"weights\", \"means_excitation\" and \"means_emission\" must keep %zu entries%s",
-                      m_plugin, total,
-                      m_models.size() > 1 ? " ([file][component], each file's padded to the largest mixture)" : "");
-            std::vector<rust::Box<fluo::MeasuredModel>> models; // (all validated before any is kept)
-            for (size_t f = 0; f < m_models.size(); ++f) {
-                size_t o = f * m_n_comps, k = m_file_comps[f];
-                for (size_t c = k; c < m_n_comps; ++c)
-                    if (w[o + c] != 0.0 || mi[o + c] != 0.0 || mo[o + c] != 0.0)
-                        Throw("%s: \"weights\"/\"means_excitation\"/\"means_emission\" entry %zu pads \"%s\" "
-                              "(%zu components of %zu) and must stay 0",
-                              m_plugin, o + c, m_keys[f], k, m_n_comps);
-                auto slice = [&](const std::vector<double> &v) { return rust::Slice<const double>(v.data() + o, k); };
-                models.push_back(fluo_detail::rust_call(
-                    m_plugin, [&] { return fluo::gmm_updated(*m_models[f], slice(w), slice(mi), slice(mo)); }));
-            }
-            for (size_t f = 0; f < m_models.size(); ++f)
-                m_models[f] = std::move(models[f]);
-            m_table_key.clear(); // (several files' reduced operators: reduced again)
+            m_models = std::move(models);
+            m_table_key.clear(); // (the files' reduced operators: reduced again)
             update_rgb();
         });
         fix_mixture(); // (the values accepted)
@@ -357,10 +352,8 @@ public:
     // ------------------------------------------------ fluo_path's interface (fluo_bispectral.h)
     /// Whether any file re-emits.
     bool jit_fluorescent() const override {
-        for (const auto &m : m_models)
-            if (fluo::measured_is_fluorescent(*m))
-                return true;
-        return false;
+        return std::any_of(m_models.begin(), m_models.end(),
+                           [](const auto &m) { return fluo::measured_is_fluorescent(*m); });
     }
     /// The files' emission ranges' hull.
     fluo::Range jit_emission_range() const override {
@@ -491,9 +484,7 @@ public:
                 w.push_back(fluo_detail::fetch<Float>(m_delta_table, base + e, active));
             return w;
         }
-        if (!m_gmm)
-            return m_delta;
-        return mixture_deltas(UInt32(0), active);
+        return !m_gmm ? m_delta : mixture_deltas(UInt32(0), active);
     }
     /// θ − detach(θ) of file `mat`'s mixture (its renormalised weights π̂_k, its means), per
     /// array that carries gradients, per component slot.
@@ -554,15 +545,14 @@ public:
         return m_mix_d;
     }
     std::vector<Float> jit_reduced_select_derivatives(const SurfaceInteraction3f &si, Mask active) const override {
-        if (m_mix_d == 0) // (as counted when the render began)
-            return {};
-        return mixture_deltas(material(si, active), active);
+        // (m_mix_d: as counted when the render began)
+        return m_mix_d == 0 ? std::vector<Float>() : mixture_deltas(material(si, active), active);
     }
 
     UnpolarizedSpectrum jit_elastic_albedo(const SurfaceInteraction3f &si, Mask active) const override {
         UInt32 mat = material(si, active);
         if constexpr (is_rgb_v<Spectrum>) {
-            return rgb_at(m_rgb_elastic, mat, active);
+            return dr::gather<Color3f>(m_rgb_elastic, mat, active); // (3 values per file)
         } else {
             return UnpolarizedSpectrum(reflectance(m_gd.at(mat, active), si.wavelengths, active));
         }
@@ -665,11 +655,6 @@ protected:
         // (halves away from zero, as std::lround: not dr::round's ties to even)
         Float r = dr::clip(dr::floor(v + .5f), 0.f, (float) (m_models.size() - 1));
         return UInt32(dr::select(dr::isfinite(v), r, 0.f));
-    }
-
-    /// A per-file RGB colour (3 values per file) at a lane's file.
-    Color3f rgb_at(const FloatStorage &t, const UInt32 &mat, const Mask &active) const {
-        return dr::gather<Color3f>(t, mat, active);
     }
 
     /// A mixture component's fixed numbers (its covariance): −1/(2σoo), 1/√(2π σoo),
@@ -870,7 +855,7 @@ protected:
     /// equal-energy light (diagonal plus reradiation).
     UnpolarizedSpectrum albedo(const SurfaceInteraction3f &si, Mask active) const {
         if constexpr (is_rgb_v<Spectrum>)
-            return rgb_at(m_rgb_albedo, material(si, active), active);
+            return dr::gather<Color3f>(m_rgb_albedo, material(si, active), active);
         else
             return jit_elastic_albedo(si, active);
     }
@@ -1095,10 +1080,7 @@ protected:
 
     /// A differentiable array's values on the host (detached).
     static std::vector<double> host(const FloatStorage &v) {
-        FloatStorage d = dr::detach(v);
-        dr::eval(d);
-        std::vector<float> f(dr::width(d));
-        dr::store(f.data(), d);
+        std::vector<float> f = fluo_detail::host_lanes(v, dr::width(v));
         return std::vector<double>(f.begin(), f.end());
     }
 
@@ -1114,9 +1096,8 @@ protected:
     std::tuple<Value, Value, Value> gmm_shift(const Mixture &mix, const File &file, const Value &lambda_o,
                                               const Value &a, const Value &b, const Value &u,
                                               const dr::mask_t<Value> &ok, const Takes &takes) const {
-        if (mixture_gradients())
-            return gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok);
-        return gmm_shift_split(mix, file, lambda_o, a, b, u, ok, takes);
+        return mixture_gradients() ? gmm_shift_mixture(mix, file, lambda_o, a, b, u, ok)
+                                   : gmm_shift_split(mix, file, lambda_o, a, b, u, ok, takes);
     }
 
     /// fluo_gmm, given λo on [a, b]: P(λi, λo) = S Σ_k π_k N(λo | μo_k, σoo_k) N(λi | m_k, s_k²)

@@ -390,15 +390,8 @@ private:
         Spectrum throughput;
         DRJIT_STRUCT(Throughput, throughput)
     };
-    /// K > 0 (RGB with fluorescence, the reduced transport): Mitsuba's RGB throughput t
-    /// until the first fluorescent vertex, then the 3×K matrix throughput R.
-    template <size_t K> struct MatrixThroughput {
-        Color3f t;
-        dr::Array<Float, 3 * K> R;
-        Mask reduced; ///< where R is the throughput
-        DRJIT_STRUCT(MatrixThroughput, t, R, reduced)
-    };
-    template <size_t K> using Carried = std::conditional_t<K == 0, Throughput, MatrixThroughput<K>>;
+    /// K > 0 (RGB with fluorescence, the reduced transport): FluoIntegrator::MatrixThroughput.
+    template <size_t K> using Carried = typename Base::template Carried<K, Throughput>;
 
     template <size_t K> struct LoopState {
         Ray3f ray;
@@ -451,9 +444,7 @@ private:
                     w.delta_L = m_replayer.adjoint();
                 }
             }
-            dr::tie(ls) = dr::while_loop(
-                dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
-                [this, scene, w](LoopState<K> &ls) { step<K>(scene, ls, w); });
+            this->loop(ls, [&](LoopState<K> &s) { step<K>(scene, s, w); });
             // K > 0: out-of-gamut colours are clipped per sample (the docs' reduced transport)
             if constexpr (K > 0)
                 if (clip)
@@ -650,9 +641,7 @@ private:
     std::pair<Coeffs<K>, Color3f> future(const Scene *scene, const LoopState<K> &from, const Walk &w) const {
         const Walk primal{ false, false, Spectrum() };
         return fluo_detail::future<K, Coeffs<K>, Color3f>(from, Mask(dr::any(w.delta_L != 0.f)), [&](LoopState<K> &cs) {
-            dr::tie(cs) = dr::while_loop(
-                dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
-                [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
+            this->loop(cs, [&](LoopState<K> &s) { step<K>(scene, s, primal); });
         });
     }
 

@@ -297,25 +297,17 @@ public:
     void traverse(TraversalCallback *cb) override {
         m_record.arm(this);
         Base::traverse(cb);
-        if (m_tex.tex[Tex::Yield])
-            cb->put("quantum_yield", m_tex.tex[Tex::Yield], ParamFlags::NonDifferentiable);
-        else
-            cb->put("quantum_yield", m_q, ParamFlags::Differentiable);
-        // radius and density: differentiable in every variant of a uniform material (tangents();
-        // RGB: the reduced operator's derivative at the cosine nodes, jit_reduced_derivatives)
-        auto flag = !m_tex.any() ? ParamFlags::Differentiable : ParamFlags::NonDifferentiable;
-        for (auto [i, value] : { std::pair{ Tex::Radius, &m_radius }, std::pair{ Tex::Density, &m_density } }) {
+        // Q: differentiable; radius and density: in every variant of a uniform material (tangents(); RGB:
+        // the reduced operator's derivative at the cosine nodes, jit_reduced_derivatives); alpha: in every
+        // AD variant of a uniform material (the lobe D·G/(4 cos θi) is evaluated per lane from it; no table
+        // depends on it)
+        for (auto [i, value] : params()) {
             if (m_tex.tex[i])
                 cb->put(Tex::Names[i], m_tex.tex[i], ParamFlags::NonDifferentiable);
             else
-                cb->put(Tex::Names[i], *value, flag);
+                cb->put(Tex::Names[i], *value,
+                        i == Tex::Yield || !m_tex.any() ? ParamFlags::Differentiable : ParamFlags::NonDifferentiable);
         }
-        // alpha: differentiable in every AD variant of a uniform material (the lobe D·G/(4 cos θi)
-        // is evaluated per lane from it; no table depends on it)
-        if (m_tex.tex[Tex::Alpha])
-            cb->put("alpha", m_tex.tex[Tex::Alpha], ParamFlags::NonDifferentiable);
-        else
-            cb->put("alpha", m_alpha, m_tex.any() ? ParamFlags::NonDifferentiable : ParamFlags::Differentiable);
         cb->put("width", m_width, ParamFlags::NonDifferentiable);
         cb->put("eta", m_setup.eta, ParamFlags::NonDifferentiable);
         cb->put("k", m_setup.k, ParamFlags::NonDifferentiable);
@@ -326,15 +318,10 @@ public:
     /// material keeps working. Q keeps its AD graph (the reradiation is linear in it).
     void parameters_changed(const std::vector<std::string> &keys) override {
         m_record.update(this, m_config, [&] {
-            if (!m_tex.tex[Tex::Yield])
-                m_config.quantum_yield =
-                    fluo_detail::updated_param(Plugin, "quantum_yield", m_q, m_config.quantum_yield);
-            if (!m_tex.tex[Tex::Radius])
-                m_config.radius = fluo_detail::updated_param(Plugin, "radius", m_radius, m_config.radius);
-            if (!m_tex.tex[Tex::Density])
-                m_config.density = fluo_detail::updated_param(Plugin, "density", m_density, m_config.density);
-            if (!m_tex.tex[Tex::Alpha])
-                m_config.alpha = fluo_detail::updated_param(Plugin, "alpha", m_alpha, m_config.alpha);
+            for (auto [i, value] : params())
+                if (!m_tex.tex[i])
+                    Tex::field(m_config, i) =
+                        fluo_detail::updated_param(Plugin, Tex::Names[i], *value, Tex::field(m_config, i));
             m_config.width = fluo_detail::updated_param(Plugin, "width", m_width, m_config.width);
             rebuild();
             // gradients asked for (an optimiser's update): the tangents now, outside any trace
@@ -774,17 +761,8 @@ private:
         return { m, m_tables.offset() + fluo_detail::fetch<UInt32>(m_t_off, m, active), m_len_v, g.n, g };
     }
     static ModelAt select_model(const Mask &m, const ModelAt &a, const ModelAt &b) {
-        const GridAt &g = a.grid, &h = b.grid;
         return { dr::select(m, a.index, b.index), dr::select(m, a.off, b.off), dr::select(m, a.len, b.len),
-                 dr::select(m, a.n, b.n),
-                 GridAt{ dr::select(m, g.off, h.off), dr::select(m, g.n, h.n), dr::select(m, g.b_off, h.b_off),
-                         dr::select(m, g.b_n, h.b_n), dr::select(m, g.lo, h.lo), dr::select(m, g.hi, h.hi),
-                         dr::select(m, g.step, h.step), dr::select(m, g.b_step, h.b_step) },
-                 a.joined };
-    }
-    template <typename C, typename M> static C select_cell(const M &m, const C &a, const C &b) {
-        return { dr::select(m, a.k, b.k), dr::select(m, a.f, b.f), dr::select(m, a.x0, b.x0),
-                 dr::select(m, a.x1, b.x1) };
+                 dr::select(m, a.n, b.n), dr::select(m, a.grid, b.grid), a.joined };
     }
 
     /// The cell of λ in a model's grid (a uniform material: m_grid's arithmetic over its
@@ -840,7 +818,7 @@ private:
             Mask take = !done && w > 0.f;
             p.model = select_model(take, h.model[i], p.model);
             if (h.has_cells)
-                p.cells = select_cell(WaveMask(take), h.cells[i / h.per_radius], p.cells);
+                p.cells = dr::select(WaveMask(take), h.cells[i / h.per_radius], p.cells);
             p.u = dr::select(take, dr::clip((u - run) / w, 0.f, 1.f), p.u);
             done |= take && u < run + w;
             run += w;
@@ -892,7 +870,7 @@ private:
             Wavelength e_ad = dr::select(ok, emission(lambda_o, em), 0.f), e = dr::detach(e_ad);
             ok &= e > 0.f;
             Cells c_top{ UInt32W(c_hi.k), Wavelength(c_hi.f), Wavelength(c_hi.x0), Wavelength(c_hi.x1) };
-            Cells cb = select_cell(lambda_o < hi_r, cells, c_top);
+            Cells cb = dr::select(lambda_o < hi_r, cells, c_top);
             Wavelength mass = dr::select(ok, dr::maximum(running(mo, row, cb, ok) - c_a, 0.f), 0.f);
             ok &= mass > 0.f;
             fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, q_choice * e * mass, u1, active);
@@ -948,9 +926,7 @@ private:
 
     /// A numeric parameter at si: its texture's value (Mitsuba's own eval_1), else the float.
     Float param(const SurfaceInteraction3f &si, size_t i, const Mask &active) const {
-        if (m_tex.tex[i])
-            return m_tex.tex[i]->eval_1(si, active);
-        return Float((float) Tex::field(m_config, i));
+        return m_tex.tex[i] ? m_tex.tex[i]->eval_1(si, active) : Float((float) Tex::field(m_config, i));
     }
     /// The roughness of alpha level i (Mitsuba's clamp of a zero roughness).
     Float level_alpha(const UInt32 &i) const {
@@ -1067,22 +1043,21 @@ private:
         if constexpr (is_spectral_v<Spectrum>) {
             if (!m_setup.uniform_substrate())
                 return;
-            struct Nodes : TraversalCallback {
+            struct Nodes {
                 std::string_view kind;
                 std::vector<float> x, y, value;
-                void put_value(std::string_view name, void *v, uint32_t, const std::type_info &type) override {
-                    if (type == typeid(FloatStorage) && (name == "wavelengths" || name == "values")) {
-                        const FloatStorage &b = *static_cast<const FloatStorage *>(v);
-                        (name == "wavelengths" ? x : y) = fluo_detail::host_lanes(b, dr::width(b));
-                    } else if (type == typeid(Float) && name == "value") {
-                        value = { (float) dr::slice(dr::detach(*static_cast<const Float *>(v))) };
-                    }
-                }
-                void put_object(std::string_view, Object *, uint32_t) override {}
             } eta, k;
             for (auto [tex, out] : { std::pair{ m_setup.eta.get(), &eta }, std::pair{ m_setup.k.get(), &k } }) {
                 out->kind = tex->class_name();
-                tex->traverse(out);
+                auto value = [out = out](std::string_view name, void *v, const std::type_info &type) {
+                    if (type == typeid(FloatStorage) && (name == "wavelengths" || name == "values")) {
+                        const FloatStorage &b = *static_cast<const FloatStorage *>(v);
+                        (name == "wavelengths" ? out->x : out->y) = fluo_detail::host_lanes(b, dr::width(b));
+                    } else if (type == typeid(Float) && name == "value") {
+                        out->value = { (float) dr::slice(dr::detach(*static_cast<const Float *>(v))) };
+                    }
+                };
+                fluo_detail::visit(tex, value, [](std::string_view, Object *) { return false; });
             }
             if (eta.kind == "UniformSpectrum" && k.kind == "UniformSpectrum" && eta.value.size() == 1 &&
                 k.value.size() == 1) {
@@ -1240,8 +1215,6 @@ private:
     void bake_tangents() const {
         const fluo_detail::QdSamples &eta = m_samples[0], &k = m_samples[1], &qd_eta = m_samples[2],
                                      &qd_k = m_samples[3];
-        const float *rgb = Setup::RgbWavelengths;
-        std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
         rust::Slice<const double> grid(m_grid.host.data(), m_grid.host.size());
         Tangents t;
         for (size_t p = 0; p < 2; ++p) {
@@ -1256,7 +1229,7 @@ private:
                     // (RGB: the channels' tables alone, as rebuild())
                     return fluo::qd_jit_tables(*m, JitCosNodes,
                                                is_spectral_v<Spectrum> ? grid : rust::Slice<const double>(),
-                                               rust::Slice<const double>(extra.data(), extra.size()),
+                                               rust::Slice<const double>(Setup::RgbWavelengths, 3),
                                                is_spectral_v<Spectrum>);
                 } catch (const std::exception &) {
                     return std::nullopt;
@@ -1490,8 +1463,6 @@ private:
                 return fluo::qd_new(unit, eta.view(), k.view(), qd_eta.view(), qd_k.view());
             });
         }
-        const float *rgb = Setup::RgbWavelengths;
-        std::array<double, 3> extra = { rgb[0], rgb[1], rgb[2] };
         std::vector<const fluo::QdModel *> models;
         if (textured())
             for (const auto &m : m_tex.models)
@@ -1504,7 +1475,7 @@ private:
         m_grids = fluo_detail::LaneGridSet<Float>();
         for (const fluo::QdModel *m : models) {
             fluo::QdJitTables t =
-                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(extra.data(), extra.size()),
+                fluo::qd_jit_tables(*m, JitCosNodes, {}, rust::Slice<const double>(Setup::RgbWavelengths, 3),
                                     is_spectral_v<Spectrum>); // (RGB: the channels' tables alone)
             if (t.lambda.size() < 2 || t.rows < 2)
                 Throw("%s: the coating's tables have %zu wavelengths and %zu rows (at least 2 each expected)",
@@ -1541,7 +1512,6 @@ private:
             m_t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
         }
         m_model = std::move(model);
-        auto load = [](const std::vector<float> &v) { return dr::load<FloatStorage>(v.data(), v.size()); };
         // only the tables this variant reads (the RGB ones evaluate R_spe and pass at the
         // channels' wavelengths; 1.4 MB of spectral tables per material spared there), the
         // spectral ones in the table store, one after the other
@@ -1558,10 +1528,10 @@ private:
                 Throw("%s: internal error: the coating's tables start at an odd place", Plugin);
             m_len_v = dr::opaque<UInt32>(m_len);
         } else {
-            m_rgb_r_spe = load(rgb_r_spe);
-            m_rgb_pass = load(rgb_pass);
+            m_rgb_r_spe = fluo_detail::load_floats<FloatStorage>(rgb_r_spe);
+            m_rgb_pass = fluo_detail::load_floats<FloatStorage>(rgb_pass);
         }
-        m_emission = load(emission);
+        m_emission = fluo_detail::load_floats<FloatStorage>(emission);
         // uniform: the model's emission and roughness (Mitsuba's own clamp of a zero one) as
         // values of the kernel, not literals: instances differing in them share one callable
         for (size_t i = 0; i < 7; ++i)
@@ -1574,12 +1544,16 @@ private:
         m_build = ++builds;
     }
 
+    /// The parameters a texture may replace, as (Tex index, member), in traversal order.
+    std::array<std::pair<size_t, Float *>, 4> params() {
+        return { { { Tex::Yield, &m_q }, { Tex::Radius, &m_radius }, { Tex::Density, &m_density },
+                   { Tex::Alpha, &m_alpha } } };
+    }
+
     /// The traversed members from the configuration (at load).
     void sync_members() {
-        m_q = (ScalarFloat) m_config.quantum_yield;
-        m_radius = (ScalarFloat) m_config.radius;
-        m_density = (ScalarFloat) m_config.density;
-        m_alpha = (ScalarFloat) m_config.alpha;
+        for (auto [i, value] : params())
+            *value = (ScalarFloat) Tex::field(m_config, i);
         m_width = (ScalarFloat) m_config.width;
         dr::make_opaque(m_q, m_radius, m_density, m_alpha); // (see rebuild())
     }

@@ -152,27 +152,24 @@ inline fluo::QdMediumConfig qd_medium_config(const Properties &props, const char
 }
 
 /// The plugin over Rust's tables (FluoMediumBase, fluo_medium.h), in every variant.
-template <typename Float, typename Spectrum> using QdMediumBase = FluoMediumBase<Float, Spectrum>;
-
-template <typename Float, typename Spectrum> class FluoQdMedium final : public QdMediumBase<Float, Spectrum> {
+template <typename Float, typename Spectrum> class FluoQdMedium final : public FluoMediumBase<Float, Spectrum> {
 public:
-    using Base = QdMediumBase<Float, Spectrum>;
-    using Base::init;
-    using Base::describe;
+    using Base = FluoMediumBase<Float, Spectrum>;
 
     static constexpr const char *Plugin = "fluo_qd_medium";
 
     FluoQdMedium(const Properties &props) : Base(props, Plugin) {
         fluo::QdMediumConfig c = qd_medium_config(props, Plugin);
         using C = fluo::QdMediumConfig;
-        init({ { "concentration", c.concentration, 0.0 }, { "radius", c.radius, 1e-3 },
-               { "width", c.width, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
-             fluo_detail::medium_builder(Plugin, c, { &C::concentration, &C::radius, &C::width, &C::quantum_yield },
-                                         [](const C &at) { return fluo::qd_medium_new(at); }),
-             "the dots' concentration and radius");
+        this->init({ { "concentration", c.concentration, 0.0 }, { "radius", c.radius, 1e-3 },
+                     { "width", c.width, 1e-3 }, { "quantum_yield", c.quantum_yield, 1e-3 } },
+                   fluo_detail::medium_builder(Plugin, c,
+                                               { &C::concentration, &C::radius, &C::width, &C::quantum_yield },
+                                               [](const C &at) { return fluo::qd_medium_new(at); }),
+                   "the dots' concentration and radius");
     }
 
-    std::string to_string() const override { return describe("FluoQdMedium"); }
+    std::string to_string() const override { return this->describe("FluoQdMedium"); }
 
     MI_DECLARE_CLASS(FluoQdMedium)
 };

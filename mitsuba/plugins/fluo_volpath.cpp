@@ -272,10 +272,7 @@ protected:
         std::vector<Bispectral *> bsdfs = this->scan(scene, reemitted);
         const double lo = m_range_lo, hi = m_range_hi;
         for (const BMedium *b : media)
-            fluo_detail::rust_call(Plugin, [&] { // the parameters carrying gradients
-                b->jit_prepare(lo, hi);
-                return 0;
-            });
+            fluo_detail::rust_call(Plugin, [&] { b->jit_prepare(lo, hi); }); // the parameters carrying gradients
         if (!scene->emitters().empty())
             for (const BMedium *b : media)
                 if (b->jit_fluorescent(lo, hi))
@@ -293,7 +290,6 @@ protected:
                 fluo_detail::rust_call(Plugin, [&] {
                     b->jit_reduced_operators(m_reduced.basis(), rust::Slice<double>(r.a.data(), k * k),
                                              rust::Slice<double>(r.f.data(), k * k));
-                    return 0;
                 });
                 for (size_t i = 0; i < k; ++i) {
                     for (size_t j = 0; j < k; ++j)
@@ -326,14 +322,11 @@ protected:
     /// σn/μ̄, whose derivative is not the integrand's (a pure absorber's d/dc came out +0.04
     /// against −2.4 by differences).
     MonteCarloIntegrator<Float, Spectrum> *delegate() const override {
-        if (m_fluorescent || m_differentiating)
-            return nullptr;
-        return const_cast<MonteCarloIntegrator<Float, Spectrum> *>(m_volpath.get());
+        auto *volpath = const_cast<MonteCarloIntegrator<Float, Spectrum> *>(m_volpath.get());
+        return m_fluorescent || m_differentiating ? nullptr : volpath;
     }
 
 private:
-    static Float mis_weight(const Float &a, const Float &b) { return fluo_detail::mis_weight(a, b); }
-
     /// A fluorescent medium's majorant in a derivative pass (render_forward/backward), over
     /// the render's: clear of σt, so that every wavelength's null rate, 0 in value where the
     /// most absorbing one sets the majorant, keeps a probability (a path whose only live
@@ -356,9 +349,9 @@ private:
         return fluo_detail::dispatch_any(
             medium,
             [lo, hi, this](const Medium *m, const Wavelength &lambda_, const Mask &on) {
-                if (const BMedium *f = m_media_set.find(m))
-                    return f->jit_rates(lambda_, lo, hi, on);
-                return std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
+                const BMedium *f = m_media_set.find(m);
+                return f ? f->jit_rates(lambda_, lo, hi, on)
+                         : std::make_pair(UnpolarizedSpectrum(0.f), UnpolarizedSpectrum(0.f));
             },
             lambda, active);
     }
@@ -454,35 +447,9 @@ private:
                 dr::masked(emitter_pdf, mis_e) = scene->pdf_emitter_direction(ls.last_scatter_event, ds, mis_e);
             }
             emitted = emitter->eval(ls.si, active_e);
-            weight = dr::select(count_direct, 1.f, mis_weight(ls.last_scatter_direction_pdf, emitter_pdf));
+            weight = dr::select(count_direct, 1.f, fluo_detail::mis_weight(ls.last_scatter_direction_pdf, emitter_pdf));
         }
         return { emitter, emitted, weight, active_e };
-    }
-
-    /// volpath's loop state at the camera ray (the fields both loops share; the path's
-    /// throughput is the caller's).
-    template <typename State>
-    void start(State &ls, const Scene *scene, Sampler *sampler, const RayDifferential3f &ray,
-               const Medium *initial_medium, const Bool &active) const {
-        ls.active = active;
-        ls.depth = UInt32(0);
-        ls.ray = Ray3f(ray);
-        ls.si = dr::zeros<SurfaceInteraction3f>();
-        ls.mei = dr::zeros<MediumInteraction3f>();
-        ls.medium = MediumPtr(initial_medium);
-        ls.eta = Float(1.f);
-        ls.last_scatter_event = dr::zeros<Interaction3f>();
-        ls.last_scatter_direction_pdf = Float(1.f);
-        ls.needs_intersection = Mask(true);
-        ls.specular_chain = Mask(active && !m_hide_emitters);
-        ls.valid_ray = Mask(!m_hide_emitters && scene->environment() != nullptr);
-        ls.inv_len = Float(0.f);
-        ls.mu_a = UnpolarizedSpectrum(0.f);
-        ls.sampler = sampler;
-        // volpath's distance-sampling channel: one per path in RGB variants
-        ls.channel = UInt32(0);
-        if constexpr (is_rgb_v<Spectrum>)
-            ls.channel = UInt32(dr::minimum(sampler->next_1d(active) * 3.f, 2.f));
     }
 
     /// Where the path reaches a surface (`active`, or an escaped medium flight): its
@@ -611,13 +578,7 @@ private:
         UnpolarizedSpectrum mu_f;
         DRJIT_STRUCT(Throughput, throughput, mu_f)
     };
-    template <size_t K> struct MatrixThroughput {
-        Color3f t;
-        Rows<K> R;
-        Mask reduced; ///< where R is the throughput
-        DRJIT_STRUCT(MatrixThroughput, t, R, reduced)
-    };
-    template <size_t K> using Carried = std::conditional_t<K == 0, Throughput, MatrixThroughput<K>>;
+    template <size_t K> using Carried = typename Base::template Carried<K, Throughput>;
 
     template <size_t K> struct LoopState {
         Mask active;
@@ -673,36 +634,34 @@ private:
     std::pair<Spectrum, Bool> trace(const Scene *scene, Sampler *sampler, const RayDifferential3f &ray_,
                                     const Medium *initial_medium, Bool active, bool adjoint = false,
                                     bool clip = true) const {
-        LoopState<K> ls;
-        start(ls, scene, sampler, ray_, initial_medium, active);
+        // volpath's distance-sampling channel: one per path in RGB variants
+        UInt32 channel(0);
+        if constexpr (is_rgb_v<Spectrum>)
+            channel = UInt32(dr::minimum(sampler->next_1d(active) * 3.f, 2.f));
+        Carried<K> start;
         if constexpr (K == 0)
-            ls.c = { Spectrum(1.f), UnpolarizedSpectrum(0.f) };
+            start = { Spectrum(1.f), UnpolarizedSpectrum(0.f) };
         else
-            ls.c = { Color3f(1.f), dr::zeros<Rows<K>>(), Mask(false) };
-        ls.result = Spectrum(0.f);
-        Walk w;
+            start = { Color3f(1.f), dr::zeros<Rows<K>>(), Mask(false) };
+        LoopState<K> ls = { active, UInt32(0), Ray3f(ray_), start, Spectrum(0.f), dr::zeros<SurfaceInteraction3f>(),
+                            dr::zeros<MediumInteraction3f>(), MediumPtr(initial_medium), Float(1.f),
+                            dr::zeros<Interaction3f>(), Float(1.f), Mask(true), Mask(active && !m_hide_emitters),
+                            Mask(!m_hide_emitters && scene->environment() != nullptr), Float(0.f),
+                            UnpolarizedSpectrum(0.f), channel, sampler };
+        adjoint &= dr::is_diff_v<Float>;
+        // a derivative pass: media sampled without gradients, their coefficients with them at
+        // the detached collisions (attach_collision; as volpath, d/dσt of a homogeneous medium
+        // came out 0.0089 and 0.0096 against 0.208 by differences, spectral and RGB)
+        Walk w{ adjoint, m_differentiating || adjoint, m_directional, K == 0 ? !m_bsdfs.empty() : m_reduced.size() > 0,
+                !m_media.empty(), m_range_lo, m_range_hi, Spectrum() };
         if constexpr (dr::is_diff_v<Float>) {
             if (adjoint) {
                 if constexpr (K == 0)
                     ls.result = m_replayer.primal();
                 w.delta_L = m_replayer.adjoint();
             }
-        } else {
-            adjoint = false;
         }
-        w.adjoint = adjoint;
-        // a derivative pass: media sampled without gradients, their coefficients with them at
-        // the detached collisions (attach_collision; as volpath, d/dσt of a homogeneous medium
-        // came out 0.0089 and 0.0096 against 0.208 by differences, spectral and RGB)
-        w.differentiating = m_differentiating || adjoint;
-        w.directional = m_directional;
-        w.surfaces = K == 0 ? !m_bsdfs.empty() : m_reduced.size() > 0;
-        w.media = !m_media.empty();
-        w.range_lo = m_range_lo;
-        w.range_hi = m_range_hi;
-        dr::tie(ls) = dr::while_loop(
-            dr::make_tuple(ls), [](const LoopState<K> &ls) { return ls.active; },
-            [this, scene, w](LoopState<K> &ls) { step<K>(scene, ls, w); });
+        this->loop(ls, [&](LoopState<K> &s) { step<K>(scene, s, w); });
         if constexpr (K == 0)
             return { ls.result, ls.valid_ray };
         else if (clip) // out-of-gamut colours are clipped per sample (as fluo_path does)
@@ -904,7 +863,7 @@ private:
                 if (adjoint) // the emitter's value with gradients at the detached sample
                     emitter_val = fluo_detail::emitter_weight(scene, ls.mei, ds, emitter_val, active_e);
                 auto [phase_val, phase_pdf] = phase->eval_pdf(phase_ctx, ls.mei, ds.d, active_e);
-                Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
+                Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, phase_pdf));
                 if constexpr (K == 0) {
                     // shifted wavelengths re-emit isotropically
                     phase_val =
@@ -1017,7 +976,7 @@ private:
                 fluo_detail::detach_moving_sample(bsdf, ctx, si, bs, bsdf_pdf, bsdf_weight, active_surface,
                                                   differentiating);
             }
-            Float mis = mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
+            Float mis = fluo_detail::mis_weight(ds.pdf, dr::select(ds.delta, 0.f, bsdf_pdf));
             if constexpr (K == 0) {
                 if (surfaces)
                     shift.apply(m_bsdfs, bsdf, si, directional, wo, bs, active_surface, bsdf_val, bsdf_weight);
@@ -1084,9 +1043,7 @@ private:
         primal.adjoint = false;
         primal.differentiating = false;
         return fluo_detail::future<K, Coeffs<K>, Color3f>(from, Mask(dr::any(w.delta_L != 0.f)), [&](LoopState<K> &cs) {
-            dr::tie(cs) = dr::while_loop(
-                dr::make_tuple(cs), [](const LoopState<K> &s) { return s.active; },
-                [this, scene, primal](LoopState<K> &s) { step<K>(scene, s, primal); });
+            this->loop(cs, [&](LoopState<K> &s) { step<K>(scene, s, primal); });
         });
     }
 
@@ -1148,9 +1105,8 @@ private:
         Float density = fluo_detail::dispatch_any(
             medium,
             [this](const Medium *m, const MediumInteraction3f &mei_, const Mask &on) {
-                if (const BMedium *f = m_media_set.find(m))
-                    return f->jit_density(mei_, on);
-                return Float(0.f);
+                const BMedium *f = m_media_set.find(m);
+                return f ? f->jit_density(mei_, on) : Float(0.f);
             },
             mei, fluo);
         d = dr::select(fluo, fluo_detail::with_grad(d, density), d);
@@ -1173,9 +1129,9 @@ private:
             ls.medium,
             [this, range_lo, range_hi](const Medium *m, const MediumInteraction3f &mei_, const Wavelength &u_,
                                        const Mask &on) {
-                if (const BMedium *f = m_media_set.find(m))
-                    return f->jit_excitation(mei_, u_, range_lo, range_hi, on);
-                return std::make_tuple(mei_.wavelengths, WMask(false), UnpolarizedSpectrum(1.f));
+                const BMedium *f = m_media_set.find(m);
+                return f ? f->jit_excitation(mei_, u_, range_lo, range_hi, on)
+                         : std::make_tuple(mei_.wavelengths, WMask(false), UnpolarizedSpectrum(1.f));
             },
             ls.mei, uy, active);
         WMask shifted = false;
@@ -1463,10 +1419,7 @@ private:
             // (transmittance stays 1 there): once B is zero (absorbed: in an optically
             // thick medium a few null collisions), the ray stops as the spectral one
             // does at a zero transmittance, instead of crossing every null collision
-            Mask alive = false;
-            for (size_t i = 0; i < 3 * K; ++i)
-                alive |= ss.B[i] != 0.f;
-            ss.active &= !ss.met || alive;
+            ss.active &= !ss.met || dr::any(ss.B != 0.f);
         }
         Mask transition = active_surface && ss.si.is_medium_transition();
         dr::masked(ss.medium, transition) = ss.si.target_medium(ss.ray.d);

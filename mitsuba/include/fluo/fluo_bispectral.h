@@ -74,24 +74,14 @@ auto dispatch_any(const Ptr &self, const Func &func, const Args &...args) {
 
 /// A differentiable scalar parameter's value after an update through mi.traverse, read on
 /// the host: it must still hold one value (an array of several would otherwise render
-/// with its first, or fail inside Dr.Jit at render time).
-template <typename Float> double host_param(const char *plugin, const char *name, const Float &v) {
-    if constexpr (dr::is_jit_v<Float>) {
-        if (dr::width(v) != 1)
-            Throw("%s: parameter \"%s\" must hold one value, got an array of %zu", plugin, name,
-                  (size_t) dr::width(v));
-        return (double) dr::slice(dr::detach(v), 0);
-    } else {
-        (void) plugin, (void) name;
-        return (double) v;
-    }
-}
-
-/// host_param for an update: `current` (the configuration's value, in double precision) is
-/// kept where the member still holds it in single precision, so a parameter the update did
-/// not touch (or a refused update, undone) leaves the material exactly as loaded.
+/// with its first, or fail inside Dr.Jit at render time). `current` (the configuration's
+/// value, in double precision) is kept where the member still holds it in single precision,
+/// so a parameter the update did not touch (or a refused update, undone) leaves the
+/// material exactly as loaded.
 template <typename Float> double updated_param(const char *plugin, const char *name, const Float &v, double current) {
-    double x = host_param(plugin, name, v);
+    if (dr::width(v) != 1) // (always 1 in the scalar variants)
+        Throw("%s: parameter \"%s\" must hold one value, got an array of %zu", plugin, name, (size_t) dr::width(v));
+    double x = (double) dr::slice(dr::detach(v), 0);
     return x == (double) (float) current ? current : x;
 }
 
@@ -191,12 +181,7 @@ void detach_moving_sample(const BSDFPtr_ &bsdf, const Context &ctx, const Intera
 }
 
 /// A single-lane JIT (or scalar) value read on the host.
-template <typename Float> double host_value(const Float &v) {
-    if constexpr (dr::is_jit_v<Float>)
-        return (double) dr::slice(dr::detach(v), 0);
-    else
-        return (double) v;
-}
+template <typename Float> double host_value(const Float &v) { return (double) dr::slice(dr::detach(v), 0); }
 
 /// Where gradients flow into a material's re-emission strength (c·Q, Q), its shift weight
 /// in the elastic/shift choice is at least this (relative to the strength 1): a strength
@@ -753,9 +738,8 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
             bsdf,
             [&set, &ctx](const BSDF *b, const SurfaceInteraction3f &si_, const Vector3f &wo_, const Float &s1,
                          const Point2f &s2, const Mask &on) -> Result {
-                if (set.elastic_joined(b))
-                    return Bispectral::no_eval_pdf_sample();
-                return b->eval_pdf_sample(ctx, si_, wo_, s1, s2, on);
+                return set.elastic_joined(b) ? Bispectral::no_eval_pdf_sample()
+                                             : b->eval_pdf_sample(ctx, si_, wo_, s1, s2, on);
             },
             si, wo, sample1, sample2, rest);
         return select_tuple(rest, r, out);
@@ -789,9 +773,8 @@ template <typename Float, typename Spectrum> struct SurfaceShift {
                 [lo, hi, &set](const BSDF *b, const SurfaceInteraction3f &si_, const Wavelength &u1_,
                                const Wavelength &u2_, const Mask &on) {
                     const Bispectral *f = set.find(b);
-                    if (f && !set.joined(b))
-                        return f->jit_choose(si_, u1_, u2_, lo, hi, on);
-                    return Bispectral::elastic_only(si_.wavelengths);
+                    return f && !set.joined(b) ? f->jit_choose(si_, u1_, u2_, lo, hi, on)
+                                               : Bispectral::elastic_only(si_.wavelengths);
                 },
                 si, u1, u2, rest), c);
         auto [li, sc, sh, rr, lc, el] = c;

@@ -15,6 +15,7 @@
 #include <mitsuba/render/interaction.h>
 #include <drjit/tensor.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <atomic>
@@ -100,6 +101,24 @@ inline std::atomic<uint64_t> &update_generation() {
     return generation;
 }
 
+/// Run `obj`'s traverse() with `value(name, ptr, type)` per value and `child(name, object)`
+/// per object, whose own traverse() follows where `child` returns true.
+template <typename Value, typename Child> void visit(Object *obj, Value &&value, Child &&child) {
+    struct Callback : TraversalCallback {
+        Value &value;
+        Child &child;
+        Callback(Value &v, Child &c) : value(v), child(c) {}
+        void put_value(std::string_view name, void *ptr, uint32_t, const std::type_info &type) override {
+            value(name, ptr, type);
+        }
+        void put_object(std::string_view name, Object *o, uint32_t) override {
+            if (child(name, o))
+                o->traverse(this);
+        }
+    } callback(value, child);
+    obj->traverse(&callback);
+}
+
 /// Every value mi.traverse shows of an object, its children's included (recursively), as
 /// last accepted: a plugin's update is a transaction over them. `arm()` (from the plugin's
 /// traverse(), before anyone can change a value) records them once; `update(self, commit)`
@@ -119,17 +138,19 @@ template <typename Float> class UpdateRecord {
     std::vector<Object *> m_children; ///< deepest last
     bool m_armed = false;
 
-    struct Recorder : TraversalCallback {
-        UpdateRecord *rec;
-        std::unordered_set<Object *> seen;
-        template <typename V> bool take(void *ptr, const std::type_info &type) {
-            if (type != typeid(V))
-                return false;
-            V *p = static_cast<V *>(ptr);
-            rec->m_values.push_back({ [p, v = V(*p)] { *p = v; } });
-            return true;
-        }
-        void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
+    template <typename V> bool take(void *ptr, const std::type_info &type) {
+        if (type != typeid(V))
+            return false;
+        V *p = static_cast<V *>(ptr);
+        m_values.push_back({ [p, v = V(*p)] { *p = v; } });
+        return true;
+    }
+
+    void record(Object *self) {
+        m_values.clear();
+        m_children.clear();
+        std::unordered_set<Object *> seen{ self };
+        auto value = [&](std::string_view, void *ptr, const std::type_info &type) {
             (void) (take<float>(ptr, type) || take<double>(ptr, type) || take<int>(ptr, type) ||
                     take<uint32_t>(ptr, type) || take<bool>(ptr, type) || take<Float>(ptr, type) ||
                     take<typename T::Color3f>(ptr, type) || take<typename S::Color3f>(ptr, type) ||
@@ -139,22 +160,13 @@ template <typename Float> class UpdateRecord {
                     take<typename T::ProjectiveTransform4f>(ptr, type) ||
                     take<DynamicBuffer<Float>>(ptr, type) || take<typename T::TensorXf>(ptr, type) ||
                     take<typename T::TensorXf16>(ptr, type) || take<typename T::TensorXf64>(ptr, type));
-        }
-        void put_object(std::string_view, Object *o, uint32_t) override {
+        };
+        visit(self, value, [&](std::string_view, Object *o) {
             if (!o || !seen.insert(o).second)
-                return;
-            rec->m_children.push_back(o);
-            o->traverse(this);
-        }
-    };
-
-    void record(Object *self) {
-        m_values.clear();
-        m_children.clear();
-        Recorder r;
-        r.rec = this;
-        r.seen.insert(self);
-        self->traverse(&r);
+                return false;
+            m_children.push_back(o); // (deepest last)
+            return true;
+        });
     }
 
 public:
@@ -192,6 +204,12 @@ public:
             record(self);
     }
 };
+
+/// Numbers (doubles: Rust's tables) on the device as a float array.
+template <typename Storage, typename Values> Storage load_floats(const Values &v) {
+    std::vector<float> f(v.begin(), v.end());
+    return dr::load<Storage>(f.data(), f.size());
+}
 
 /// A JIT array's n lanes on the host (detached). An array of one lane is broadcast: Dr.Jit
 /// folds constant expressions (a texture or spectrum that does not vary, coefficients that
@@ -358,43 +376,25 @@ private:
 template <typename Tensor> std::vector<float> host_floats(const Tensor &t) {
     using F32 = dr::float32_array_t<typename Tensor::Array>;
     F32 v = F32(t.array());
-    std::vector<float> host(dr::width(v));
-    if constexpr (dr::is_jit_v<F32>) {
-        dr::eval(v);
-        dr::store(host.data(), v);
-    } else {
-        for (size_t i = 0; i < host.size(); ++i)
-            host[i] = (float) v[i];
-    }
-    return host;
+    return host_lanes(v, dr::width(v));
 }
 
-template <typename Float, typename F> struct TensorReader : TraversalCallback {
-    using T = CoreAliases<Float>;
-    F *f;
-    std::unordered_set<Object *> seen;
-    template <typename Tensor> bool take(void *ptr, const std::type_info &type) {
-        if (type != typeid(Tensor))
-            return false;
-        const Tensor &t = *static_cast<const Tensor *>(ptr);
-        (*f)(host_floats(t), t.ndim() > 0 ? t.shape(t.ndim() - 1) : (size_t) 1);
-        return true;
-    }
-    void put_value(std::string_view, void *ptr, uint32_t, const std::type_info &type) override {
-        (void) (take<typename T::TensorXf>(ptr, type) || take<typename T::TensorXf16>(ptr, type) ||
-                take<typename T::TensorXf64>(ptr, type));
-    }
-    void put_object(std::string_view, Object *o, uint32_t) override {
-        if (o && seen.insert(o).second)
-            o->traverse(this);
-    }
-};
-
 template <typename Float, typename F> void for_each_stored_tensor(Object *obj, F &&f) {
-    TensorReader<Float, std::remove_reference_t<F>> reader;
-    reader.f = &f;
-    reader.seen.insert(obj);
-    obj->traverse(&reader);
+    using T = CoreAliases<Float>;
+    std::unordered_set<Object *> seen{ obj };
+    auto value = [&](std::string_view, void *ptr, const std::type_info &type) {
+        auto take = [&](auto *tag) { // (a null pointer of the tensor's type)
+            using Tensor = std::remove_pointer_t<decltype(tag)>;
+            if (type != typeid(Tensor))
+                return false;
+            const Tensor &t = *static_cast<const Tensor *>(ptr);
+            f(host_floats(t), t.ndim() > 0 ? t.shape(t.ndim() - 1) : (size_t) 1);
+            return true;
+        };
+        (void) (take((typename T::TensorXf *) nullptr) || take((typename T::TensorXf16 *) nullptr) ||
+                take((typename T::TensorXf64 *) nullptr));
+    };
+    visit(obj, value, [&](std::string_view, Object *o) { return o && seen.insert(o).second; });
 }
 
 /// The stored values of a texture or volume (for_each_stored_tensor), checked one by one:
@@ -501,9 +501,7 @@ template <size_t N>
 std::array<double, N> parse_list(const char *plugin, const char *name, const std::string &text) {
     std::array<double, N> out{};
     std::string s = text;
-    for (char &c : s)
-        if (c == ',')
-            c = ' ';
+    std::replace(s.begin(), s.end(), ',', ' ');
     const char *p = s.c_str();
     size_t n = 0;
     while (true) {
@@ -514,14 +512,12 @@ std::array<double, N> parse_list(const char *plugin, const char *name, const std
         char *end = nullptr;
         double v = std::strtod(p, &end);
         if (end == p || n == N)
-            Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers", plugin, name,
-                  text, N);
+            Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers", plugin, name, text, N);
         out[n++] = v;
         p = end;
     }
     if (n != N)
-        Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers (got %zu)", plugin, name,
-              text, N, n);
+        Throw("%s: parameter \"%s\" = \"%s\" must be a list of %zu numbers (got %zu)", plugin, name, text, N, n);
     return out;
 }
 

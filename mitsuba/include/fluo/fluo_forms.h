@@ -98,16 +98,7 @@ template <typename Value> struct JungDye {
 template <typename T, size_t N = 16> class Scratch {
 public:
     explicit Scratch(size_t n = 0) { resize(n); }
-    Scratch(const Scratch &o) { *this = o; }
     Scratch(Scratch &&o) noexcept { *this = std::move(o); }
-    Scratch &operator=(const Scratch &o) {
-        if (this != &o) {
-            resize(o.m_n);
-            for (size_t i = 0; i < m_n; ++i)
-                (*this)[i] = o[i];
-        }
-        return *this;
-    }
     /// (moved, not copied: a fluo_gmm vertex's mixture, six scratches returned by value,
     /// spent ~4 % of a scalar vertex in copies)
     Scratch &operator=(Scratch &&o) noexcept {
@@ -155,7 +146,6 @@ template <typename Value> Value linear_cell_inverse(const Value &f0, const Value
 /// is its bucket's or the next), else by binary search.
 template <typename Float> struct LaneGrid {
     using UInt32 = dr::uint32_array_t<Float>;
-    using Mask = dr::mask_t<Float>;
     static constexpr size_t MaxBuckets = 1 << 16;
     static constexpr size_t MaxSegments = 4;
     /// A uniform run: its first node, step and 1/step, its first cell's index and its last
@@ -169,6 +159,7 @@ template <typename Float> struct LaneGrid {
     template <typename Value> struct CellOf {
         dr::uint32_array_t<Value> k;
         Value f, x0, x1;
+        DRJIT_STRUCT(CellOf, k, f, x0, x1)
     };
     using Cell = CellOf<Float>;
 
@@ -187,8 +178,7 @@ template <typename Float> struct LaneGrid {
     void set(const std::vector<double> &x) {
         host = x;
         n = (uint32_t) x.size();
-        std::vector<float> f(x.begin(), x.end());
-        nodes = dr::load<DynamicBuffer<Float>>(f.data(), f.size());
+        nodes = load_floats<DynamicBuffer<Float>>(x);
         l0 = (float) x.front();
         l1 = (float) x.back();
         segments.clear();
@@ -213,27 +203,36 @@ template <typename Float> struct LaneGrid {
             opaque();
             return;
         }
-        double narrowest = x.back() - x.front();
-        for (size_t k = 0; k + 1 < x.size(); ++k)
-            narrowest = std::min(narrowest, x[k + 1] - x[k]);
-        double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
-        size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
+        std::vector<uint32_t> b;
+        auto [s, count] = bucket_index(x, true, b);
         bucketed = count >= 1 && count <= MaxBuckets;
         if (!bucketed) {
             opaque();
             return;
         }
-        std::vector<uint32_t> b(count);
-        for (size_t i = 0, k = 0; i < count; ++i) {
-            double at = x.front() + (double) i * s;
-            while (k + 2 < x.size() && x[k + 1] <= at)
-                ++k;
-            b[i] = (uint32_t) k;
-        }
         buckets = dr::load<DynamicBuffer<UInt32>>(b.data(), b.size());
         step = (float) s;
         n_buckets = (uint32_t) count;
         opaque();
+    }
+
+    /// The bucket index over nodes `x`: one bucket per narrowest cell, each the cell its start
+    /// is in. Returns the buckets' step and count; appends them to `out` where `fill` and
+    /// there are at most MaxBuckets.
+    template <typename Nodes>
+    static std::pair<double, size_t> bucket_index(const Nodes &x, bool fill, std::vector<uint32_t> &out) {
+        double narrowest = x.back() - x.front();
+        for (size_t k = 0; k + 1 < x.size(); ++k)
+            narrowest = std::min(narrowest, (double) (x[k + 1] - x[k]));
+        double s = narrowest * (1.0 - 1e-6); // float rounding must not span two cells
+        size_t count = s > 0.0 ? (size_t) std::ceil((x.back() - x.front()) / s) + 1 : 0;
+        for (size_t i = 0, k = 0; fill && count <= MaxBuckets && i < count; ++i) {
+            double at = x.front() + (double) i * s;
+            while (k + 2 < x.size() && x[k + 1] <= at)
+                ++k;
+            out.push_back((uint32_t) k);
+        }
+        return { s, count };
     }
 
     void opaque() {
@@ -328,24 +327,11 @@ template <typename Float> struct LaneGridSet {
         hi.push_back((float) v.back());
         step.push_back(uniform ? (float) h : 0.f);
         host.insert(host.end(), v.begin(), v.end());
-        // the bucket index (LaneGrid::set): one bucket per narrowest cell
-        double narrowest = v.back() - v.front();
-        for (size_t k = 0; k + 1 < v.size(); ++k)
-            narrowest = std::min(narrowest, (double) (v[k + 1] - v[k]));
-        double bs = narrowest * (1.0 - 1e-6);
-        size_t count = bs > 0.0 ? (size_t) std::ceil((v.back() - v.front()) / bs) + 1 : 0;
-        bucketed &= with_buckets && count >= 1 && count <= LaneGrid<Float>::MaxBuckets;
         b_off.push_back((uint32_t) host_buckets.size());
+        auto [bs, count] = LaneGrid<Float>::bucket_index(v, with_buckets, host_buckets);
+        bucketed &= with_buckets && count >= 1 && count <= LaneGrid<Float>::MaxBuckets;
         b_n.push_back((uint32_t) count);
         b_step.push_back((float) bs);
-        if (!with_buckets || count > LaneGrid<Float>::MaxBuckets)
-            return;
-        for (size_t i = 0, k = 0; i < count; ++i) {
-            double at = v.front() + (double) i * bs;
-            while (k + 2 < v.size() && v[k + 1] <= at)
-                ++k;
-            host_buckets.push_back((uint32_t) k);
-        }
     }
     void upload() {
         nodes = dr::load<FloatStorage>(host.data(), host.size());
@@ -367,6 +353,7 @@ template <typename Float> struct LaneGridSet {
     struct At {
         UInt32 off, n, b_off, b_n;
         Float lo, hi, step, b_step;
+        DRJIT_STRUCT(At, off, n, b_off, b_n, lo, hi, step, b_step)
     };
     At at(const UInt32 &which, const Mask &active) const {
         if (off.size() == 1)

@@ -29,6 +29,18 @@ public:
     template <size_t K> using Coeffs = typename Reduced::template Coeffs<K>;
     template <size_t K> using Rows = typename Reduced::template Rows<K>;
 
+    /// What a path carries in the reduced transport (K > 0, RGB with fluorescence): Mitsuba's
+    /// RGB throughput t until the first fluorescent event, then the 3×K matrix throughput R.
+    template <size_t K> struct MatrixThroughput {
+        Color3f t;
+        Rows<K> R;
+        Mask reduced; ///< where R is the throughput
+        DRJIT_STRUCT(MatrixThroughput, t, R, reduced)
+    };
+    /// `Throughput` (the derived loop's, K = 0) or MatrixThroughput<K>.
+    template <size_t K, typename Throughput>
+    using Carried = std::conditional_t<K == 0, Throughput, MatrixThroughput<K>>;
+
     FluoIntegrator(const Properties &props, const char *plugin, const char *replay, const char *basis)
         : Base(props), m_lambda_min(fluo_detail::lambda_min_of(plugin, props)),
           m_reduced(plugin, fluo_detail::get_string(props, "basis", basis),
@@ -103,6 +115,12 @@ protected:
     virtual bool clipped() const = 0;
     /// An integrator that renders the prepared scene instead (nothing fluoresces), if any.
     virtual Base *delegate() const { return nullptr; }
+
+    /// dr::while_loop over the loop state `ls`: `step(ls)` while ls.active.
+    template <typename State, typename Step> static void loop(State &ls, Step &&step) {
+        dr::tie(ls) = dr::while_loop(
+            dr::make_tuple(ls), [](const State &s) { return s.active; }, [&step](State &s) { step(s); });
+    }
 
     void prepare_render(Scene *scene) {
         prepare(scene);

@@ -65,9 +65,7 @@ ref<Texture> jung_reflectance(const char *plugin, const Properties &props, fluo:
     if (props.has_property("reflectance"))
         Throw("%s: specify either \"reflectance\" or \"coefficients\", not both", plugin);
     auto c = parse_list<3>(plugin, "coefficients", std::string(props.get<std::string_view>("coefficients")));
-    config.c0 = c[0];
-    config.c1 = c[1];
-    config.c2 = c[2];
+    std::tie(config.c0, config.c1, config.c2) = std::make_tuple(c[0], c[1], c[2]);
     return nullptr;
 }
 

@@ -51,9 +51,7 @@ template <typename Float, typename Spectrum> struct Lambertian {
 
     static Float pdf(const BSDFContext &ctx, const SurfaceInteraction3f &si, const Vector3f &wo, Mask active) {
         Mask on = active_for(ctx, si, wo, active);
-        if (dr::none_or<false>(on))
-            return 0.f;
-        return dr::select(on, warp::square_to_cosine_hemisphere_pdf(wo), 0.f);
+        return dr::none_or<false>(on) ? Float(0.f) : dr::select(on, warp::square_to_cosine_hemisphere_pdf(wo), 0.f);
     }
 
     template <typename Albedo>

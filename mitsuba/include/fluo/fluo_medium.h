@@ -494,9 +494,9 @@ protected:
         m_grid.set(std::vector<double>(t.lambda.begin(), t.lambda.end()));
         m_mu_a_host.assign(t.mu_a.begin(), t.mu_a.end());
         m_cum_host.assign(t.cum.begin(), t.cum.end());
-        m_mu_a = load(t.mu_a);
-        m_cum = load(t.cum);
-        m_emission = load(t.emission);
+        m_mu_a = fluo_detail::load_floats<FloatStorage>(t.mu_a);
+        m_cum = fluo_detail::load_floats<FloatStorage>(t.cum);
+        m_emission = fluo_detail::load_floats<FloatStorage>(t.emission);
         m_egrid.set(std::vector<double>(t.emission_lambda.begin(), t.emission_lambda.end()));
         m_mu_max = *std::max_element(m_mu_a_host.begin(), m_mu_a_host.end());
         m_rgb_mu_max = std::max({ fluo::medium_grid_absorption_max(**m_model), m_mu_a_rgb[0], m_mu_a_rgb[1],
@@ -554,11 +554,6 @@ protected:
     }
 
 private:
-    static FloatStorage load(const rust::Vec<double> &v) {
-        std::vector<float> f(v.begin(), v.end());
-        return dr::load<FloatStorage>(f.data(), f.size());
-    }
-
     /// A parameter's derivative tables (on this bake's nodes) and μa's sRGB's derivative.
     struct Tangent {
         FloatStorage mu_a, cum, emission;
@@ -601,8 +596,7 @@ private:
                 return v;
             });
             auto part = [&](size_t from, size_t count) {
-                std::vector<float> f(d.begin() + from, d.begin() + from + count);
-                return dr::load<FloatStorage>(f.data(), f.size());
+                return fluo_detail::load_floats<FloatStorage>(std::vector<double>(d.begin() + from, d.begin() + from + count));
             };
             bool emits = std::any_of(d.begin() + 2 * n, d.begin() + 2 * n + ne, [](double x) { return x != 0.0; });
             m_tangents[p] = Tangent{ part(0, n), part(n, n), part(2 * n, ne),
@@ -611,19 +605,13 @@ private:
         return *m_tangents[p];
     }
 
-    /// The tables a lane reads: the baked ones, or with the parameters' derivatives.
+    /// μa's table a lane reads: the baked one, or with the parameters' derivatives.
     const FloatStorage &mu_a_table() const { return m_ad.on ? m_ad.mu_a : m_mu_a; }
-    const FloatStorage &cum_table() const { return m_ad.on ? m_ad.cum : m_cum; }
-    const FloatStorage &emission_table() const { return m_ad.on ? m_ad.emission : m_emission; }
     /// C(x) at a host wavelength: the ends of the excitation interval jit_prepare saw as
     /// kernel inputs (an update that bakes other tables keeps the kernel), with the
     /// derivatives where the tables carry them (from the tables).
     Float cum_at(double x) const {
-        if (x == m_range_at.a)
-            return m_range_at.ca;
-        if (x == m_range_at.b)
-            return m_range_at.cb;
-        return cumulative_at(x, false);
+        return x == m_range_at.a ? m_range_at.ca : x == m_range_at.b ? m_range_at.cb : cumulative_at(x, false);
     }
     /// C(x) from the host table (`opaque`: as a kernel input), or from the attached tables.
     Float cumulative_at(double x, bool opaque) const {
@@ -707,7 +695,8 @@ private:
     Float cumulative(const Float &lambda, const Cell &c, const Mask &active) const {
         Float x = dr::clip(lambda, c.x0, c.x1);
         Float f0 = fluo_detail::fetch<Float>(mu_a_table(), c.k, active);
-        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active), fluo_detail::fetch<Float>(cum_table(), c.k, active));
+        return dr::fmadd(.5f * (x - c.x0), f0 + mu_a_in(c, active),
+                         fluo_detail::fetch<Float>(m_ad.on ? m_ad.cum : m_cum, c.k, active));
     }
     double host_cumulative(double lambda) const {
         auto [k, f] = m_grid.host_cell(lambda);
@@ -722,7 +711,7 @@ private:
             return Float(0.f);
         Mask inside = active && lambda_o >= m_egrid.v_l0 && lambda_o <= m_egrid.v_l1;
         Cell ce = m_egrid.cell(lambda_o, inside);
-        const FloatStorage &et = emission_table();
+        const FloatStorage &et = m_ad.on ? m_ad.emission : m_emission; // (with the derivatives)
         Float e = dr::lerp(fluo_detail::fetch<Float>(et, ce.k, inside), fluo_detail::fetch<Float>(et, ce.k + 1, inside), ce.f);
         // C(min(λo, b)) from λo's own cell where λo < b
         Float c_top = dr::select(lambda_o < (float) b, cumulative(lambda_o, c, inside), cum_at(b));

@@ -46,30 +46,6 @@ template <typename Float, typename Spectrum> struct TextureValues {
     }
 
 private:
-    /// The bitmap data (stored in single, half or double precision: an 8-bit image is
-    /// kept in half precision in RGB variants) and child textures a texture's
-    /// traverse() reports.
-    struct Reader : TraversalCallback {
-        const TensorXf *data = nullptr;
-        const TensorXf16 *data16 = nullptr;
-        const TensorXf64 *data64 = nullptr;
-        std::vector<const Texture *> children;
-        void put_value(std::string_view key, void *ptr, uint32_t, const std::type_info &type) override {
-            if (key != "data")
-                return;
-            if (type == typeid(TensorXf))
-                data = static_cast<const TensorXf *>(ptr);
-            else if (type == typeid(TensorXf16))
-                data16 = static_cast<const TensorXf16 *>(ptr);
-            else if (type == typeid(TensorXf64))
-                data64 = static_cast<const TensorXf64 *>(ptr);
-        }
-        void put_object(std::string_view, Object *o, uint32_t) override {
-            if (auto *t = dynamic_cast<const Texture *>(o))
-                children.push_back(t);
-        }
-    };
-
     void read(const char *plugin, const char *name, const Texture *tex, std::unordered_set<const Object *> &seen,
               bool top) {
         if (!tex || !seen.insert(tex).second)
@@ -79,8 +55,27 @@ private:
             values.push_back((float) dr::slice(tex->eval_1(si, true), 0));
             return;
         }
-        Reader r;
-        const_cast<Texture *>(tex)->traverse(&r);
+        // the bitmap data (stored in single, half or double precision: an 8-bit image is kept
+        // in half precision in RGB variants) and child textures the texture's traverse() reports
+        const TensorXf *data = nullptr;
+        const TensorXf16 *data16 = nullptr;
+        const TensorXf64 *data64 = nullptr;
+        std::vector<const Texture *> children;
+        auto value = [&](std::string_view key, void *ptr, const std::type_info &type) {
+            if (key != "data")
+                return;
+            if (type == typeid(TensorXf))
+                data = static_cast<const TensorXf *>(ptr);
+            else if (type == typeid(TensorXf16))
+                data16 = static_cast<const TensorXf16 *>(ptr);
+            else if (type == typeid(TensorXf64))
+                data64 = static_cast<const TensorXf64 *>(ptr);
+        };
+        visit(const_cast<Texture *>(tex), value, [&](std::string_view, Object *o) {
+            if (auto *t = dynamic_cast<const Texture *>(o))
+                children.push_back(t);
+            return false;
+        });
         auto texels = [&](const auto &t) {
             if (t.ndim() != 3 || t.shape(2) != 1)
                 Throw("%s: parameter \"%s\" is a texture with %zu channels; a textured numeric parameter "
@@ -91,20 +86,20 @@ private:
             std::vector<float> host = host_floats(t); // (one read-back, not one per texel)
             values.insert(values.end(), host.begin(), host.end());
         };
-        if (r.data || r.data16 || r.data64) {
-            if (r.data)
-                texels(*r.data);
-            else if (r.data16)
-                texels(*r.data16);
+        if (data || data16 || data64) {
+            if (data)
+                texels(*data);
+            else if (data16)
+                texels(*data16);
             else
-                texels(*r.data64);
+                texels(*data64);
             return;
         }
-        if (r.children.empty()) {
+        if (children.empty()) {
             complete = false;
             return;
         }
-        for (const Texture *c : r.children)
+        for (const Texture *c : children)
             read(plugin, name, c, seen, false);
     }
 };

@@ -200,19 +200,22 @@ template <typename Float, typename Spectrum> fluo::Range emitters_range(const Sc
 }
 
 /// Direct children of an object as (name, object), in traverse order.
-struct Children : TraversalCallback {
+struct Children {
     std::vector<std::pair<std::string, Object *>> list;
     /// Scalar floating-point parameters by name (e.g. bumpmap's "scale").
     std::unordered_map<std::string, double> numbers;
-    void put_value(std::string_view name, void *ptr, uint32_t, const std::type_info &type) override {
-        if (type == typeid(float))
-            numbers[std::string(name)] = *static_cast<const float *>(ptr);
-        else if (type == typeid(double))
-            numbers[std::string(name)] = *static_cast<const double *>(ptr);
-    }
-    void put_object(std::string_view name, Object *o, uint32_t) override {
-        if (o)
-            list.emplace_back(std::string(name), o);
+    explicit Children(Object *obj) {
+        auto value = [&](std::string_view name, void *ptr, const std::type_info &type) {
+            if (type == typeid(float))
+                numbers[std::string(name)] = *static_cast<const float *>(ptr);
+            else if (type == typeid(double))
+                numbers[std::string(name)] = *static_cast<const double *>(ptr);
+        };
+        visit(obj, value, [&](std::string_view name, Object *o) {
+            if (o)
+                list.emplace_back(std::string(name), o);
+            return false;
+        });
     }
 };
 
@@ -238,8 +241,7 @@ public:
             auto *bsdf = dynamic_cast<BSDF *>(o);
             if (!bsdf || dynamic_cast<Bispectral *>(o))
                 continue;
-            Children kids;
-            o->traverse(&kids);
+            Children kids(o);
             bool wraps = false;
             for (auto &[name, child] : kids.list) {
                 std::unordered_set<Object *> seen;
@@ -410,12 +412,9 @@ private:
             return false;
         if (auto *b = dynamic_cast<Bispectral *>(o); b && b->jit_fluorescent())
             return true;
-        Children c;
-        o->traverse(&c);
-        for (auto &[name, child] : c.list)
-            if (holds_fluorescence(child, seen))
-                return true;
-        return false;
+        Children c(o);
+        return std::any_of(c.list.begin(), c.list.end(),
+                           [&](const auto &kid) { return holds_fluorescence(kid.second, seen); });
     }
 
     /// Mitsuba's `null` BSDF (pass-through, sampled as a Null/Delta event), created

@@ -41,7 +41,7 @@ template <typename Float, typename Spectrum> struct QdSetup {
     MI_IMPORT_TYPES(Texture)
     static constexpr const char *Plugin = "fluo_qd";
     /// Wavelengths standing for the RGB channels (dominant wavelengths of the sRGB primaries).
-    static constexpr float RgbWavelengths[3] = { 611.f, 549.f, 464.f };
+    static constexpr double RgbWavelengths[3] = { 611.0, 549.0, 464.0 };
     /// Step of the grid on which spectral substrate and dot indices are sampled for Rust, nm.
     static constexpr double SpectrumStepNm = 1.0;
 
@@ -71,9 +71,8 @@ template <typename Float, typename Spectrum> struct QdSetup {
         }
 
         std::string distr = string::to_lower(std::string(props.get<std::string_view>("distribution", "beckmann")));
-        if (distr == "ggx")
-            c.ggx = true;
-        else if (distr != "beckmann")
+        c.ggx |= distr == "ggx";
+        if (distr != "ggx" && distr != "beckmann")
             Throw("%s: invalid parameter \"distribution\" = \"%s\": valid values are \"beckmann\", \"ggx\"",
                   Plugin, distr);
 
@@ -220,20 +219,17 @@ template <typename Float, typename Spectrum> struct QdSetup {
         Properties p("roughconductor");
         p.set("material", std::string(name));
         ref<BSDF<Float, Spectrum>> rc = PluginManager::instance()->create_object<BSDF<Float, Spectrum>>(p);
-        struct Grab : TraversalCallback {
-            ref<Texture> eta, k;
-            void put_value(std::string_view, void *, uint32_t, const std::type_info &) override {}
-            void put_object(std::string_view name, Object *o, uint32_t) override {
-                if (name == "eta")
-                    eta = dynamic_cast<Texture *>(o);
-                else if (name == "k")
-                    k = dynamic_cast<Texture *>(o);
-            }
-        } grab;
-        rc->traverse(&grab);
-        if (!grab.eta || !grab.k)
+        ref<Texture> eta, k;
+        visit(rc.get(), [](std::string_view, void *, const std::type_info &) {}, [&](std::string_view key, Object *o) {
+            if (key == "eta")
+                eta = dynamic_cast<Texture *>(o);
+            else if (key == "k")
+                k = dynamic_cast<Texture *>(o);
+            return false;
+        });
+        if (!eta || !k)
             Throw("%s: could not read the conductor data of material \"%s\"", Plugin, name);
-        return { grab.eta, grab.k };
+        return { eta, k };
     }
 
     static ref<Texture> constant_texture(double value) {
@@ -259,10 +255,7 @@ template <typename Float, typename Spectrum> struct QdTextures {
     /// model (i, j, l) at index(i, j, l)
     std::vector<rust::Box<fluo::QdModel>> models;
 
-    static double &field(fluo::QdConfig &c, size_t i) {
-        return i == Radius ? c.radius : i == Density ? c.density : i == Yield ? c.quantum_yield : c.alpha;
-    }
-    static double field(const fluo::QdConfig &c, size_t i) {
+    template <typename Config> static auto &field(Config &c, size_t i) { // (fluo::QdConfig, const or not)
         return i == Radius ? c.radius : i == Density ? c.density : i == Yield ? c.quantum_yield : c.alpha;
     }
 
@@ -331,16 +324,14 @@ template <typename Float, typename Spectrum> struct QdTextures {
             if (i == Density && !pl.complete)
                 grid = true;
         }
-        size_t max_radii = fluo::qd_texture_max_radii(), nodes = fluo::qd_texture_grid_nodes();
-        if (levels[Radius].size() > max_radii)
-            Throw("%s: the \"radius\" texture holds %zu distinct values; at most %zu are supported (each "
-                  "radius bakes its own coating tables: quantize the texture)", Plugin, levels[Radius].size(),
-                  max_radii);
-        size_t max_alphas = fluo::qd_texture_max_alphas();
-        if (levels[Alpha].size() > max_alphas)
-            Throw("%s: the \"alpha\" texture holds %zu distinct values; at most %zu are supported (each "
-                  "roughness bakes its own coating models: quantize the texture)", Plugin, levels[Alpha].size(),
-                  max_alphas);
+        for (Param i : { Radius, Alpha }) {
+            size_t max = i == Radius ? fluo::qd_texture_max_radii() : fluo::qd_texture_max_alphas();
+            if (levels[i].size() > max)
+                Throw("%s: the \"%s\" texture holds %zu distinct values; at most %zu are supported (each %s bakes its "
+                      "own coating %s: quantize the texture)", Plugin, Names[i], levels[i].size(), max,
+                      i == Radius ? "radius" : "roughness", i == Radius ? "tables" : "models");
+        }
+        size_t nodes = fluo::qd_texture_grid_nodes();
         if (levels[Density].size() > nodes || grid) {
             float lo = levels[Density].front(), hi = levels[Density].back();
             levels[Density].clear();

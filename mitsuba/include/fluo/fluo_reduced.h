@@ -69,8 +69,7 @@ public:
                     if (seen.insert(src.illuminant).second)
                         fluo::illuminant_on_grid(*src.illuminant, lights);
                 set(rust_call(m_plugin, [&] {
-                    return fluo::transport_adaptive(rust::Slice<const double>(lights.data(), lights.size()),
-                                                    m_method);
+                    return fluo::transport_adaptive(rust::Slice<const double>(lights.data(), lights.size()), m_method);
                 }));
             }
             for (auto &[emitter, src] : m_sources) {
@@ -92,14 +91,14 @@ public:
                         m_plugin, [&] { return b->jit_reduced_nodes_table(**m_transport, dm, nodes, n_nodes); });
                     if (e.n_models > 0) {
                         e.n_nodes = (uint32_t) n_nodes;
-                        e.models = load(dm);
+                        e.models = load_floats<DynamicBuffer<Float>>(dm);
                     } else {
                         e.n_nodes = (uint32_t) rust_call(
                             m_plugin, [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
                     }
                 }
                 if (e.n_nodes > 0) {
-                    e.nodes = load(nodes);
+                    e.nodes = load_floats<DynamicBuffer<Float>>(nodes);
                     if (e.n_models == 0)
                         e.nodes_host = std::move(nodes); // (gather_operators: a joined lobe's row)
                 }
@@ -113,12 +112,12 @@ public:
                     std::vector<double> all;
                     for (const auto &d : e.d)
                         all.insert(all.end(), d.begin(), d.end());
-                    e.node_d = load(all);
+                    e.node_d = load_floats<DynamicBuffer<Float>>(all);
                 }
                 std::vector<double> table;
                 e.n_table = (uint32_t) rust_call(m_plugin, [&] { return b->jit_reduced_table(**m_transport, table); });
                 if (e.n_table > 0) {
-                    e.table = load(table);
+                    e.table = load_floats<DynamicBuffer<Float>>(table);
                     std::vector<double> td;
                     e.n_table_d = (uint32_t) rust_call(
                         m_plugin, [&] { return b->jit_reduced_table_derivatives(**m_transport, td); });
@@ -126,7 +125,7 @@ public:
                         Throw("%s: %s returned %zu derivative table entries, %u tables of %u operators expected",
                               m_plugin, e.bsdf->class_name(), td.size(), e.n_table_d, e.n_table);
                     if (e.n_table_d > 0)
-                        e.table_d = load(td);
+                        e.table_d = load_floats<DynamicBuffer<Float>>(td);
                 }
                 for (size_t t = 0; t < Bispectral::MaxTerms; ++t) // (`m` as final: jit_reduced_nodes rewrites it)
                     for (size_t i = 0; i < e.m[t].size() && i < m_k * m_k; ++i)
@@ -156,10 +155,7 @@ public:
     /// Whether one of them has a direction-dependent lobe that varies over the surface
     /// (vertex() then needs its number u).
     bool varying() const {
-        for (const Entry &e : m_entries)
-            if (e.n_models > 0)
-                return true;
-        return false;
+        return std::any_of(m_entries.begin(), m_entries.end(), [](const Entry &e) { return e.n_models > 0; });
     }
 
     /// diag(t)·O: the matrix throughput of a path whose RGB throughput is t.
@@ -307,9 +303,8 @@ public:
                 bsdf,
                 [this](const BSDF *b, const SurfaceInteraction3f &si_, const Rows<K> &R_, const Mask &on) {
                     const Entry *e = find(b);
-                    if (!e || e->gathered)
-                        return std::make_pair(Mask(false), dr::zeros<Rows<K>>());
-                    return std::make_pair(Mask(true), lambertian_product<K>(*e, si_, R_, on));
+                    return !e || e->gathered ? std::make_pair(Mask(false), dr::zeros<Rows<K>>())
+                                             : std::make_pair(Mask(true), lambertian_product<K>(*e, si_, R_, on));
                 },
                 si, R, rest) : std::make_pair(Mask(false), dr::zeros<Rows<K>>());
             RA = dr::select(g, RG, RA);
@@ -421,11 +416,6 @@ private:
         uint32_t n_slots, n_nodes, width;
     };
 
-    static DynamicBuffer<Float> load(const std::vector<double> &v) {
-        std::vector<float> f(v.begin(), v.end());
-        return dr::load<DynamicBuffer<Float>>(f.data(), f.size());
-    }
-
     /// A fluo_illuminant emitter's basis coefficients.
     struct Source {
         std::vector<double> coeffs;
@@ -444,10 +434,8 @@ private:
     }
 
     const Entry *find(const BSDF *b) const {
-        for (const Entry &e : m_entries)
-            if (e.bsdf == b)
-                return &e;
-        return nullptr;
+        auto it = std::find_if(m_entries.begin(), m_entries.end(), [b](const Entry &e) { return e.bsdf == b; });
+        return it == m_entries.end() ? nullptr : &*it;
     }
 
     /// Scalar variants: Σ_t w_t·M_t as one dense K×K (row major) and R times it, branch free
