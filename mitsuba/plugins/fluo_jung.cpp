@@ -656,53 +656,49 @@ private:
         Texel t;
     };
 
-    /// jit_choose for the dye t with elastic weight `we` (`albedo`: the Choice's elastic albedo, or −1).
+    /// jit_choose for the dye t with elastic weight `we` (`albedo`: the Choice's elastic albedo, or −1);
+    /// spectral variants (its callers return elastic_only in RGB).
     Choice choose_dye(const Texel &t, const UnpolarizedSpectrum &we, const UnpolarizedSpectrum &albedo,
                       const Wavelength &lambda_o, const Wavelength &u1, const Wavelength &u2p, double range_lo,
                       double range_hi, const Mask &active) const {
-        if constexpr (!is_spectral_v<Spectrum>) {
-            (void) t, (void) we, (void) albedo, (void) u1, (void) u2p, (void) range_lo, (void) range_hi, (void) active;
-            return this->elastic_only(lambda_o);
-        } else {
-            using Band = fluo_detail::JungDye<Float>; // (one value per lane; Dye: per wavelength)
-            Dye dye(dr::detach(t.peak), dr::detach(t.shift));
-            Band band(dr::detach(t.peak), dr::detach(t.shift));
-            // The excitation range: the dye's absorption band inside the lights' range, as
-            // an interval of the b-spline coordinate v (decreasing in λ).
-            Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
-            Mask overlap = active && hi > lo;
-            Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
-                  v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
-            Float cdf_a = Band::bspline_cdf(v_a), mass = dr::select(overlap, Band::bspline_cdf(v_b) - cdf_a, 0.f);
-            // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
-            // any positive value where the shift integrand is positive keeps the estimate
-            // unbiased; a close one keeps the variance low.
-            Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
-            // With gradients on c or Q, c·Q has a floor in this weight: at c = 0 (or Q = 0) the
-            // shift would never be drawn and d/dc of the reradiation c·Q·a·e would be lost.
-            Float cq = dr::detach(t.conc * t.yield);
-            if (dr::grad_enabled(t.conc) || dr::grad_enabled(t.yield))
-                cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
-            UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
-            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
-            if constexpr (!dr::is_jit_v<Float>) // (scalar variants draw λi only where a shift is taken)
-                if (dr::none(choice.shifted))
-                    return { lambda_o, choice.weight(UnpolarizedSpectrum(0.f), u1), choice.shifted,
-                             UnpolarizedSpectrum(0.f), UInt32(0), albedo };
-            WMask &shifted = choice.shifted;
-            // v ∝ b(v − 3) on [v_a, v_b] by inverting its CDF in closed form (no table, no
-            // search: the dye's parameters stay kernel inputs), mapped to λi;
-            // pdf(λi) = b(v − 3)/mass·|dv/dλ|.
-            Wavelength v = Dye::bspline_cdf_inverse(cdf_a + u2p * mass);
-            Wavelength lambda_i = dye.lambda_of(v);
-            UnpolarizedSpectrum pdf_i = Dye::bspline(v - 3.f) / mass * dye.dv_dlambda(lambda_i);
-            UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
-            // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
-            Dye exact(t.peak, t.shift);
-            UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
-            rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
-            return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0), albedo };
-        }
+        using Band = fluo_detail::JungDye<Float>; // (one value per lane; Dye: per wavelength)
+        Dye dye(dr::detach(t.peak), dr::detach(t.shift));
+        Band band(dr::detach(t.peak), dr::detach(t.shift));
+        // The excitation range: the dye's absorption band inside the lights' range, as
+        // an interval of the b-spline coordinate v (decreasing in λ).
+        Float lo = dr::maximum(band.lo, (float) range_lo), hi = dr::minimum(band.edge, (float) range_hi);
+        Mask overlap = active && hi > lo;
+        Float v_a = dr::clip(band.v_of(dr::select(overlap, hi, band.edge)), 0.f, 6.f),
+              v_b = dr::clip(band.v_of(dr::select(overlap, lo, band.lo)), 0.f, 6.f);
+        Float cdf_a = Band::bspline_cdf(v_a), mass = dr::select(overlap, Band::bspline_cdf(v_b) - cdf_a, 0.f);
+        // w_f ≈ c·Q·e(λo)·∫a over the range (∫b dv times |dλ/dv| at the absorption peak):
+        // any positive value where the shift integrand is positive keeps the estimate
+        // unbiased; a close one keeps the variance low.
+        Float jacobian = dr::rcp(band.dv_dlambda(band.peak - dr::detach(t.shift)));
+        // With gradients on c or Q, c·Q has a floor in this weight: at c = 0 (or Q = 0) the
+        // shift would never be drawn and d/dc of the reradiation c·Q·a·e would be lost.
+        Float cq = dr::detach(t.conc * t.yield);
+        if (dr::grad_enabled(t.conc) || dr::grad_enabled(t.yield))
+            cq = dr::maximum(cq, fluo_detail::GradientShiftFloor);
+        UnpolarizedSpectrum wf = dr::select(mass > 0.f, cq * dye.emission(lambda_o) * (mass * jacobian), 0.f);
+        fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, wf, u1, active);
+        if constexpr (!dr::is_jit_v<Float>) // (scalar variants draw λi only where a shift is taken)
+            if (dr::none(choice.shifted))
+                return { lambda_o, choice.weight(UnpolarizedSpectrum(0.f), u1), choice.shifted,
+                         UnpolarizedSpectrum(0.f), UInt32(0), albedo };
+        WMask &shifted = choice.shifted;
+        // v ∝ b(v − 3) on [v_a, v_b] by inverting its CDF in closed form (no table, no
+        // search: the dye's parameters stay kernel inputs), mapped to λi;
+        // pdf(λi) = b(v − 3)/mass·|dv/dλ|.
+        Wavelength v = Dye::bspline_cdf_inverse(cdf_a + u2p * mass);
+        Wavelength lambda_i = dye.lambda_of(v);
+        UnpolarizedSpectrum pdf_i = Dye::bspline(v - 3.f) / mass * dye.dv_dlambda(lambda_i);
+        UnpolarizedSpectrum scale = choice.weight(pdf_i, u1);
+        // π·f_fl(λi, λo) = c·Q·a(λi)·e(λo), with the parameters' gradients.
+        Dye exact(t.peak, t.shift);
+        UnpolarizedSpectrum rerad = t.conc * t.yield * exact.absorption(lambda_i) * exact.emission(lambda_o);
+        rerad = dr::select(shifted && lambda_i < lambda_o, rerad, 0.f);
+        return { dr::select(shifted, lambda_i, lambda_o), scale, shifted, rerad, UInt32(0), albedo };
     }
 
     /// Validate in Rust and bake what the lanes read.

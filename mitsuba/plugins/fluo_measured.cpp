@@ -312,7 +312,7 @@ public:
                     rust::Vec<double> r = fluo::measured_tables(*models.back()).row_cdf;
                     rcdf.insert(rcdf.end(), r.begin(), r.end());
                 }
-                m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
+                load_tables(p, rcdf);
             } else {
                 bool mixture = keys.empty() || std::any_of(keys.begin(), keys.end(), [](const std::string &k) {
                                    return k == "weights" || k == "means_excitation" || k == "means_emission";
@@ -708,7 +708,7 @@ protected:
             m_gi.upload();
             m_go.upload();
             m_p = dr::load<FloatStorage>(p.data(), p.size());
-            m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
+            load_tables(p, rcdf);
             m_p_off = dr::load<UInt32Storage>(p_off.data(), p_off.size());
         } else {
             // [file][component], padded: weight 0 (never drawn, no value), σ = 1
@@ -879,23 +879,18 @@ protected:
         auto [j, o0, o1] = m_go.cell(go, lo, ok);
         Value t = dr::clip((lo - o0) / (o1 - o0), 0.f, 1.f);
         UIntV r0 = file.p_off + j * gi.n, r1 = r0 + gi.n, last(gi.n - 1);
-        // (the sampling and the mass from P detached; the value attached when P carries gradients)
-        // (AD variants: a detached view of the table, no copy; scalar ones read it as is, where
-        // dr::detach of the buffer copied the whole matrix per wavelength and vertex)
-        auto p = [&](const UIntV &r, const UIntV &k) {
-            if constexpr (dr::is_diff_v<Float>)
-                return fluo_detail::fetch_each<Value>(dr::detach(m_p), r + k, ok);
-            else
-                return fluo_detail::fetch_each<Value>(m_p, r + k, ok);
-        };
+        // (the sampling and the mass from P detached, m_cells; the value attached when P
+        // carries gradients)
         auto c = [&](const UIntV &r, const UIntV &k) { return fluo_detail::fetch_each<Value>(m_rcdf, r + k, ok); };
+        // a row's integral at node k and P at nodes k and k + 1, in one read
+        auto cell = [&](const UIntV &r, const UIntV &k) { return fluo_detail::fetch_packet<4, 3, Value>(m_cells, r + k, ok); };
         // ∫ from λi_0 to x of each row.
         auto cdf = [&](const Value &x) {
             auto [k, x0, x1] = m_gi.cell(gi, x, ok);
             Value s = dr::clip((x - x0) / (x1 - x0), 0.f, 1.f), half = .5f * (x - x0);
-            Value f0 = p(r0, k), g0 = p(r1, k);
-            return std::make_tuple(c(r0, k) + half * (f0 + dr::lerp(f0, p(r0, k + 1), s)),
-                                   c(r1, k) + half * (g0 + dr::lerp(g0, p(r1, k + 1), s)), k);
+            auto [c0, f0, f1] = cell(r0, k);
+            auto [c1, g0, g1] = cell(r1, k);
+            return std::make_tuple(c0 + half * (f0 + dr::lerp(f0, f1, s)), c1 + half * (g0 + dr::lerp(g0, g1, s)), k);
         };
         Value a_ = dr::select(ok, a, gi.lo), b_ = dr::select(ok, b, gi.lo);
         // (`from_start`: a is every lane's first λi node, where both rows' integrals are 0)
@@ -924,9 +919,10 @@ protected:
                               fluo_detail::fetch_each<Value>(m_gi.nodes, gi.off + k, nodes));
         Value x1 = dr::select(uniform, x0 + gi.step, fluo_detail::fetch_each<Value>(m_gi.nodes, gi.off + k + 1, nodes));
         Value h = x1 - x0;
-        Value f0 = p(r0, k), f1 = p(r0, k + 1), g0 = p(r1, k), g1 = p(r1, k + 1);
+        auto [c0, f0, f1] = cell(r0, k);
+        auto [c1, g0, g1] = cell(r1, k);
         Value e0 = dr::select(second, g0, f0), e1 = dr::select(second, g1, f1);
-        Value step = fluo_detail::linear_cell_inverse(e0, e1, h, target - c(r, k));
+        Value step = fluo_detail::linear_cell_inverse(e0, e1, h, target - dr::select(second, c1, c0));
         Value x = dr::clip(x0 + step, dr::maximum(a_, x0), dr::minimum(b_, x1));
         Value s = dr::clip((x - x0) / h, 0.f, 1.f);
         Value value = dr::lerp(dr::lerp(f0, f1, s), dr::lerp(g0, g1, s), t);
@@ -1078,6 +1074,19 @@ protected:
         return dr::grad_enabled(m_weights) || dr::grad_enabled(m_means_i) || dr::grad_enabled(m_means_o);
     }
 
+    /// The rows' integrals at their nodes (m_rcdf) and, per entry of P, the cell that
+    /// matrix_shift reads at once (m_cells): [C(r, k), P(r, k), P(r, k + 1), 0] (P past the
+    /// last entry 0: a cell's k + 1 is a node of its own row), detached.
+    template <typename P> void load_tables(const std::vector<P> &p, const std::vector<float> &rcdf) {
+        m_rcdf = dr::load<FloatStorage>(rcdf.data(), rcdf.size());
+        std::vector<float> cells(4 * p.size(), 0.f);
+        for (size_t i = 0; i < p.size(); ++i)
+            for (auto [c, v] : { std::pair{ 0, (double) rcdf[i] }, std::pair{ 1, (double) p[i] },
+                                 std::pair{ 2, i + 1 < p.size() ? (double) p[i + 1] : 0.0 } })
+                cells[4 * i + c] = (float) v;
+        m_cells = dr::load<FloatStorage>(cells.data(), cells.size());
+    }
+
     /// A differentiable array's values on the host (detached).
     static std::vector<double> host(const FloatStorage &v) {
         std::vector<float> f = fluo_detail::host_lanes(v, dr::width(v));
@@ -1221,7 +1230,7 @@ protected:
     FloatStorage m_diag; ///< ρ at them
     // fluo_matrix: the λi and λo grids, P and the rows' running integrals, P's offset per file
     Grids m_gi, m_go;
-    FloatStorage m_p, m_rcdf;
+    FloatStorage m_p, m_rcdf, m_cells;
     UInt32Storage m_p_off;
     /// per file: where P can be non-zero, [λi_min, λi_max, λo_min, λo_max], and fluo_gmm's
     /// scale (device arrays; the first file's on the host, constants of a one-file kernel)
@@ -1249,7 +1258,7 @@ protected:
     mutable std::pair<std::vector<double>, bool> m_table;
 
     MI_TRAVERSE_CB(Base, m_gd.nodes, m_gd.d_ends, m_gd.d_size, m_diag, m_gi.nodes, m_gi.d_ends, m_gi.d_size,
-                   m_go.nodes, m_go.d_ends, m_go.d_size, m_p, m_rcdf, m_p_off, m_d_rect, m_d_scale, m_d_comp[0],
+                   m_go.nodes, m_go.d_ends, m_go.d_size, m_p, m_rcdf, m_cells, m_p_off, m_d_rect, m_d_scale, m_d_comp[0],
                    m_d_comp[1], m_d_comp[2], m_d_comp[3], m_weights, m_means_i, m_means_o, m_rgb_albedo,
                    m_rgb_elastic)
 };

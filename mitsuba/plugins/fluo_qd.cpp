@@ -624,16 +624,14 @@ public:
                 j->emission = dr::load<FloatStorage>(emission.data(), emission.size());
                 j->t_off = dr::load<UInt32Storage>(t_off.data(), t_off.size());
                 j->t_len = dr::load<UInt32Storage>(t_len.data(), t_len.size());
-            } else { // the members' channel rows, [member][rows][3] (the elastic lobe's)
-                std::vector<float> r_spe, pass;
-                for (const Bispectral *b : members)
-                    for (auto [out, rows] : { std::pair{ &r_spe, &static_cast<const FluoQd *>(b)->m_rgb_r_spe },
-                                              std::pair{ &pass, &static_cast<const FluoQd *>(b)->m_rgb_pass } }) {
-                        std::vector<float> v = fluo_detail::host_lanes(*rows, dr::width(*rows));
-                        out->insert(out->end(), v.begin(), v.end());
-                    }
-                j->rgb_r_spe = dr::load<FloatStorage>(r_spe.data(), r_spe.size());
-                j->rgb_pass = dr::load<FloatStorage>(pass.data(), pass.size());
+            } else { // the members' channel rows, [member][rows][8] (the elastic lobe's)
+                std::vector<float> rows;
+                for (const Bispectral *b : members) {
+                    const FloatStorage &m = static_cast<const FluoQd *>(b)->m_rgb_rows;
+                    std::vector<float> v = fluo_detail::host_lanes(m, dr::width(m));
+                    rows.insert(rows.end(), v.begin(), v.end());
+                }
+                j->rgb_rows = dr::load<FloatStorage>(rows.data(), rows.size());
             }
             j->key = std::move(key);
             m_joined = std::move(j);
@@ -731,7 +729,7 @@ private:
         fluo_detail::LaneGridSet<Float> grids;
         FloatStorage emission, q, alpha;
         UInt32Storage t_off, t_len; ///< each member's block in the table store and its table length
-        FloatStorage rgb_r_spe, rgb_pass; ///< RGB: each member's channel rows, [member][rows][3]
+        FloatStorage rgb_rows; ///< RGB: each member's channel rows, [member][rows][8] (rgb_rows())
         std::vector<std::pair<const void *, uint64_t>> key; ///< the members and their builds
     };
 
@@ -826,81 +824,77 @@ private:
         return p;
     }
 
-    /// jit_choose at a hit (its models' tables: the material's own, or joined ones).
+    /// jit_choose at a hit (its models' tables: the material's own, or joined ones; spectral
+    /// variants: its callers return elastic_only in RGB).
     Choice choose_at(const Hit &h, const SurfaceInteraction3f &si, const Wavelength &u1_, const Wavelength &u2,
                      double range_lo, double range_hi, Mask active) const {
         const Wavelength &lambda_o = si.wavelengths;
-        if constexpr (!is_spectral_v<Spectrum>) {
-            (void) h, (void) u1_, (void) u2, (void) range_lo, (void) range_hi, (void) active;
-            return this->elastic_only(lambda_o);
-        } else {
-            Float cos_i = Frame3f::cos_theta(si.wi);
-            // The cells of λo serve the elastic weight and, where λo is below the range's top,
-            // the excitation interval's upper end. Fluorescent: coated.
-            Wavelength u1 = u1_;
-            Pick p = pick(h, u1[0]);
-            const ModelAt &mo = p.model;
-            Cells cells = cell(mo, lambda_o, active);
-            u1[0] = p.u;
-            fluo_detail::rotate_hero(u1); // uniform again given the pick
-            Emission em = emission_of(mo, active); // with radius's and density's gradients
-            // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
-            // weight positive where the elastic lobe is keeps the estimator unbiased; this one
-            // spares the substrate's eta/k lookups).
-            UnpolarizedSpectrum we(
-                dr::maximum(bilinear(store(), start(mo, RTot), dr::maximum(cos_i, 0.f), cells, mo, active), 0.f));
-            // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
-            // within the model's excitation range.
-            Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
-            Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
-            // The A_tot row nearest cos θi (as the Rust model's sampling).
-            UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n;
-            UInt32 last = mo.n - 1;
-            // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
-            // drawn and dQ of the reradiation Q·e would be lost).
-            Float q_choice = dr::detach(h.q);
-            if (dr::grad_enabled(h.q))
-                q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
-            // the row's running integral at a: one row and one a for every hero wavelength
-            Float c_a = running(mo, row, ca, active && cos_i > 0.f);
-            // Per hero wavelength (one packet) the excitation interval [a, b] (λi ≤ λo),
-            // e(λo | a) and the row's mass there.
-            Wavelength b = dr::minimum(hi_r, lambda_o);
-            WaveMask ok = WaveMask(active && cos_i > 0.f) && b > a_r && lambda_o >= em.lmin && lambda_o <= em.lmax;
-            Wavelength e_ad = dr::select(ok, emission(lambda_o, em), 0.f), e = dr::detach(e_ad);
-            ok &= e > 0.f;
-            Cells c_top{ UInt32W(c_hi.k), Wavelength(c_hi.f), Wavelength(c_hi.x0), Wavelength(c_hi.x1) };
-            Cells cb = dr::select(lambda_o < hi_r, cells, c_top);
-            Wavelength mass = dr::select(ok, dr::maximum(running(mo, row, cb, ok) - c_a, 0.f), 0.f);
-            ok &= mass > 0.f;
-            fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, q_choice * e * mass, u1, active);
-            if constexpr (!dr::is_jit_v<Float>)
-                if (dr::none(choice.shifted)) // (scalar variants draw λi only where a shift is taken)
-                    return { lambda_o, choice.weight(0.f, u1), choice.shifted, 0.f, mo.index, -1.f };
-            // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
-            // then the cell's quadratic root (cancellation-free form); the search runs over
-            // the longest grid, each lane's row clamped to its own.
-            Wavelength target = c_a + dr::clip(u2, 0.f, 1.f) * mass;
-            const FloatStorage &t = store();
-            UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
-            UInt32W k = dr::binary_search<UInt32W>(1, grid_max(mo) - 1, [&](const UInt32W &i) {
-                            return fluo_detail::fetch_each<Wavelength>(t, cdf + dr::minimum(i, last), ok) <= target;
-                        }) - 1;
-            k = dr::clip(k, ca.k, cb.k);
-            Wavelength x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
-            Wavelength f0 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k, ok),
-                       f1 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k + 1, ok);
-            Wavelength h_ = x1 - x0;
-            Wavelength step = fluo_detail::linear_cell_inverse(
-                f0, f1, h_, target - fluo_detail::fetch_each<Wavelength>(t, cdf + k, ok));
-            Wavelength x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
-            Wavelength pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
-            UnpolarizedSpectrum scale = choice.weight(pdf, u1);
-            const WMask &shifted = choice.shifted;
-            // Q·e(λo | λi), nm⁻¹
-            return { dr::select(shifted, x, lambda_o), scale, shifted, dr::select(shifted, h.q * e_ad, 0.f),
-                     mo.index, -1.f };
-        }
+        Float cos_i = Frame3f::cos_theta(si.wi);
+        // The cells of λo serve the elastic weight and, where λo is below the range's top,
+        // the excitation interval's upper end. Fluorescent: coated.
+        Wavelength u1 = u1_;
+        Pick p = pick(h, u1[0]);
+        const ModelAt &mo = p.model;
+        Cells cells = cell(mo, lambda_o, active);
+        u1[0] = p.u;
+        fluo_detail::rotate_hero(u1); // uniform again given the pick
+        Emission em = emission_of(mo, active); // with radius's and density's gradients
+        // The elastic event's weight: the smooth surface's R_tot from Rust's table (any
+        // weight positive where the elastic lobe is keeps the estimator unbiased; this one
+        // spares the substrate's eta/k lookups).
+        UnpolarizedSpectrum we(
+            dr::maximum(bilinear(store(), start(mo, RTot), dr::maximum(cos_i, 0.f), cells, mo, active), 0.f));
+        // The excitation interval's ends [a, b] (λi ≤ λo) and their cells: the lights' range
+        // within the model's excitation range.
+        Float a_r = dr::maximum((float) range_lo, em.ex_lo), hi_r = dr::minimum((float) range_hi, em.ex_hi);
+        Cell ca = cell(mo, a_r, active), c_hi = cell(mo, hi_r, active);
+        // The A_tot row nearest cos θi (as the Rust model's sampling).
+        UInt32 row = UInt32(dr::round(dr::clip(cos_i, 0.f, 1.f) * (float) (m_rows - 1))) * mo.n;
+        UInt32 last = mo.n - 1;
+        // With gradients on Q, a floor in the shift's weight (at Q = 0 it would never be
+        // drawn and dQ of the reradiation Q·e would be lost).
+        Float q_choice = dr::detach(h.q);
+        if (dr::grad_enabled(h.q))
+            q_choice = dr::maximum(q_choice, fluo_detail::GradientShiftFloor);
+        // the row's running integral at a: one row and one a for every hero wavelength
+        Float c_a = running(mo, row, ca, active && cos_i > 0.f);
+        // Per hero wavelength (one packet) the excitation interval [a, b] (λi ≤ λo),
+        // e(λo | a) and the row's mass there.
+        Wavelength b = dr::minimum(hi_r, lambda_o);
+        WaveMask ok = WaveMask(active && cos_i > 0.f) && b > a_r && lambda_o >= em.lmin && lambda_o <= em.lmax;
+        Wavelength e_ad = dr::select(ok, emission(lambda_o, em), 0.f), e = dr::detach(e_ad);
+        ok &= e > 0.f;
+        Cells c_top{ UInt32W(c_hi.k), Wavelength(c_hi.f), Wavelength(c_hi.x0), Wavelength(c_hi.x1) };
+        Cells cb = dr::select(lambda_o < hi_r, cells, c_top);
+        Wavelength mass = dr::select(ok, dr::maximum(running(mo, row, cb, ok) - c_a, 0.f), 0.f);
+        ok &= mass > 0.f;
+        fluo_detail::ShiftChoice<UnpolarizedSpectrum> choice(we, q_choice * e * mass, u1, active);
+        if constexpr (!dr::is_jit_v<Float>)
+            if (dr::none(choice.shifted)) // (scalar variants draw λi only where a shift is taken)
+                return { lambda_o, choice.weight(0.f, u1), choice.shifted, 0.f, mo.index, -1.f };
+        // λi ∝ the row on [a, b]: the last node whose running integral is ≤ the target,
+        // then the cell's quadratic root (cancellation-free form); the search runs over
+        // the longest grid, each lane's row clamped to its own.
+        Wavelength target = c_a + dr::clip(u2, 0.f, 1.f) * mass;
+        const FloatStorage &t = store();
+        UInt32 cdf = start(mo, Cdf) + row, a_tot = start(mo, ATot) + row;
+        UInt32W k = dr::binary_search<UInt32W>(1, grid_max(mo) - 1, [&](const UInt32W &i) {
+                        return fluo_detail::fetch_each<Wavelength>(t, cdf + dr::minimum(i, last), ok) <= target;
+                    }) - 1;
+        k = dr::clip(k, ca.k, cb.k);
+        Wavelength x0 = node(mo, k, ok), x1 = node(mo, k + 1, ok);
+        Wavelength f0 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k, ok),
+                   f1 = fluo_detail::fetch_each<Wavelength>(t, a_tot + k + 1, ok);
+        Wavelength h_ = x1 - x0;
+        Wavelength step = fluo_detail::linear_cell_inverse(
+            f0, f1, h_, target - fluo_detail::fetch_each<Wavelength>(t, cdf + k, ok));
+        Wavelength x = dr::clip(x0 + step, dr::maximum(a_r, x0), dr::minimum(b, x1));
+        Wavelength pdf = dr::select(ok, dr::lerp(f0, f1, dr::clip((x - x0) / h_, 0.f, 1.f)) / mass, 0.f);
+        UnpolarizedSpectrum scale = choice.weight(pdf, u1);
+        const WMask &shifted = choice.shifted;
+        // Q·e(λo | λi), nm⁻¹
+        return { dr::select(shifted, x, lambda_o), scale, shifted, dr::select(shifted, h.q * e_ad, 0.f),
+                 mo.index, -1.f };
     }
 
     /// jit_reradiation of model `mo` at roughness alpha.
@@ -1191,7 +1185,7 @@ private:
     /// value, and its derivative for AD. Sampling stays detached.
     struct Tangents {
         uint64_t build = 0;
-        std::array<FloatStorage, 2> a_tot, r_spe, pass, rgb_r_spe, rgb_pass;
+        std::array<FloatStorage, 2> a_tot, r_spe, pass, rgb_rows;
         std::array<float, 2> peak{}, scale{}, inv_norm{};
     };
     static constexpr double TangentStep[2] = { 1e-3, 1e-3 }; ///< h: radius (nm), density
@@ -1245,7 +1239,7 @@ private:
                 Throw("%s: no derivative tables in \"%s\" at %f", Plugin, p == 0 ? "radius" : "density",
                       p == 0 ? m_config.radius : m_config.density);
             double inv = 1.0 / (x_hi - x_lo);
-            auto diff = [&](const rust::Vec<double> &a, const rust::Vec<double> &b) {
+            auto diff = [&](const auto &a, const auto &b) {
                 std::vector<float> d(a.size());
                 for (size_t i = 0; i < a.size(); ++i)
                     d[i] = (float) ((a[i] - b[i]) * inv);
@@ -1256,8 +1250,7 @@ private:
                 t.r_spe[p] = diff(hi->r_spe, lo->r_spe);
                 t.pass[p] = diff(hi->pass, lo->pass);
             } else {
-                t.rgb_r_spe[p] = diff(hi->extra_r_spe, lo->extra_r_spe);
-                t.rgb_pass[p] = diff(hi->extra_pass, lo->extra_pass);
+                t.rgb_rows[p] = diff(rgb_cells(hi->extra_r_spe, hi->extra_pass), rgb_cells(lo->extra_r_spe, lo->extra_pass));
             }
             auto inv_norm = [](const fluo::QdJitTables &x) { return x.emission_norm > 0.0 ? 1.0 / x.emission_norm : 0.0; };
             t.peak[p] = (float) ((hi->emission_peak_nm - lo->emission_peak_nm) * inv);
@@ -1310,15 +1303,29 @@ private:
         return { at(r), at(p) };
     }
 
-    /// A model's [rows][3] RGB table at cos θ, per channel.
-    UnpolarizedSpectrum rgb_rows(const FloatStorage &t, const Float &cos_theta, const ModelAt &mo,
-                                 const Mask &active) const {
+    /// RGB: a model's R_spe and pass at cos θ, per channel, from its rows in `t`
+    /// ([model][rows][8]: the channels' R_spe, their pass, 2 of padding; rgb_cells), one
+    /// packet read per row.
+    std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> rgb_rows(const FloatStorage &t, const Float &cos_theta,
+                                                                 const ModelAt &mo, const Mask &active) const {
         auto [j, fc] = rows_at(cos_theta);
-        UInt32 base = mo.index * (m_rows * 3) + j * 3;
-        UnpolarizedSpectrum out;
-        for (size_t ch = 0; ch < 3; ++ch)
-            out[ch] = dr::lerp(fluo_detail::fetch<Float>(t, base + (uint32_t) ch, active),
-                               fluo_detail::fetch<Float>(t, base + (uint32_t) (ch + 3), active), fc);
+        UInt32 row = mo.index * m_rows + j;
+        auto a = fluo_detail::fetch_packet<8, 6, Float>(t, row, active),
+             b = fluo_detail::fetch_packet<8, 6, Float>(t, row + 1, active);
+        UnpolarizedSpectrum r_spe, pass;
+        for (size_t ch = 0; ch < 3; ++ch) {
+            r_spe[ch] = dr::lerp(a[ch], b[ch], fc);
+            pass[ch] = dr::lerp(a[3 + ch], b[3 + ch], fc);
+        }
+        return { r_spe, pass };
+    }
+    /// A model's channel rows of R_spe and pass ([rows][3] each, Rust's) as rgb_rows reads them.
+    template <typename Rows> static std::vector<double> rgb_cells(const Rows &r_spe, const Rows &pass) {
+        std::vector<double> out(r_spe.size() / 3 * 8, 0.0);
+        for (size_t i = 0; i < r_spe.size(); ++i) {
+            out[i / 3 * 8 + i % 3] = r_spe[i];
+            out[i / 3 * 8 + 3 + i % 3] = pass[i];
+        }
         return out;
     }
 
@@ -1385,13 +1392,13 @@ private:
                         }
             } else {
                 const JoinedTables *j = h.model[i].joined;
-                r_spe = rgb_rows(j ? j->rgb_r_spe : m_rgb_r_spe, cos_m, h.model[i], on);
-                pass = rgb_rows(j ? j->rgb_pass : m_rgb_pass, cos_m, h.model[i], on);
+                std::tie(r_spe, pass) = rgb_rows(j ? j->rgb_rows : m_rgb_rows, cos_m, h.model[i], on);
                 if (const Tangents *tg = tangents())
                     for (size_t p = 0; p < 2; ++p)
                         if (wants(p)) {
-                            r_spe += delta(p) * rgb_rows(tg->rgb_r_spe[p], cos_m, h.model[i], on);
-                            pass += delta(p) * rgb_rows(tg->rgb_pass[p], cos_m, h.model[i], on);
+                            auto [d_spe, d_pass] = rgb_rows(tg->rgb_rows[p], cos_m, h.model[i], on);
+                            r_spe += delta(p) * d_spe;
+                            pass += delta(p) * d_pass;
                         }
             }
             UnpolarizedSpectrum v = r_spe + pass * F / dr::maximum(1.f - F * r_spe, 1e-12f);
@@ -1470,7 +1477,7 @@ private:
         else
             models.push_back(m_unit ? &**m_unit : &*model);
         std::array<std::vector<float>, Tables> tables; // (spectral)
-        std::vector<float> rgb_r_spe, rgb_pass, emission;
+        std::vector<float> rgb, emission;
         std::vector<uint32_t> t_off;
         m_grids = fluo_detail::LaneGridSet<Float>();
         for (const fluo::QdModel *m : models) {
@@ -1484,9 +1491,10 @@ private:
             t_off.push_back((uint32_t) tables[ATot].size());
             for (auto [dst, src] : { std::pair{ &tables[ATot], &t.a_tot }, std::pair{ &tables[Cdf], &t.cdf },
                                      std::pair{ &tables[RSpe], &t.r_spe }, std::pair{ &tables[Pass], &t.pass },
-                                     std::pair{ &tables[RTot], &t.r_tot }, std::pair{ &rgb_r_spe, &t.extra_r_spe },
-                                     std::pair{ &rgb_pass, &t.extra_pass } })
+                                     std::pair{ &tables[RTot], &t.r_tot } })
                 dst->insert(dst->end(), src->begin(), src->end());
+            std::vector<double> cells = rgb_cells(t.extra_r_spe, t.extra_pass);
+            rgb.insert(rgb.end(), cells.begin(), cells.end());
             for (double v : { t.emission_peak_nm, t.emission_scale_nm,
                               t.emission_norm > 0.0 ? 1.0 / t.emission_norm : 0.0, t.lambda_min, t.lambda_max,
                               t.excitation_lo, t.excitation_hi })
@@ -1528,8 +1536,7 @@ private:
                 Throw("%s: internal error: the coating's tables start at an odd place", Plugin);
             m_len_v = dr::opaque<UInt32>(m_len);
         } else {
-            m_rgb_r_spe = fluo_detail::load_floats<FloatStorage>(rgb_r_spe);
-            m_rgb_pass = fluo_detail::load_floats<FloatStorage>(rgb_pass);
+            m_rgb_rows = fluo_detail::load_floats<FloatStorage>(rgb);
         }
         m_emission = fluo_detail::load_floats<FloatStorage>(emission);
         // uniform: the model's emission and roughness (Mitsuba's own clamp of a zero one) as
@@ -1572,7 +1579,7 @@ private:
     typename fluo_detail::TableStore<Float>::Block m_tables; ///< spectral: the Tables, each m_len long
     uint32_t m_len = 0;
     UInt32 m_len_v = 0; ///< m_len, opaque
-    FloatStorage m_rgb_r_spe, m_rgb_pass;
+    FloatStorage m_rgb_rows; ///< RGB: the channels' R_spe and pass per model and row (rgb_rows())
     FloatStorage m_emission; ///< [model][EmissionFields] (textured)
     UInt32Storage m_t_off;   ///< each model's table offset (textured)
     uint32_t m_rows = 2; ///< the tables' rows (cosine nodes)
@@ -1600,7 +1607,7 @@ private:
     ScalarFloat m_width = 0.f;
 
     MI_TRAVERSE_CB(Base, m_grid.nodes, m_grid.buckets, m_grids.nodes, m_grids.d_ends, m_grids.d_size, m_grids.buckets,
-                   m_rgb_r_spe, m_rgb_pass, m_emission, m_t_off, m_q, m_ior.grid.nodes, m_ior.grid.buckets, m_ior.eta,
+                   m_rgb_rows, m_emission, m_t_off, m_q, m_ior.grid.nodes, m_ior.grid.buckets, m_ior.eta,
                    m_ior.k)
 };
 

@@ -65,6 +65,30 @@ DRJIT_INLINE T fetch_each(const Buffer &buffer, const Index &index, const Mask &
     }
 }
 
+/// The first M of the N values of entry `index` of a buffer of packets (entry i is
+/// buffer[N·i, N·i + N)), per hero wavelength where T is a Wavelength (as fetch_each): one
+/// packet read per lane in the JIT variants (Dr.Jit's packet gather), M reads in place in
+/// the scalar ones.
+template <size_t N, size_t M, typename T, typename Buffer, typename Index, typename Mask>
+DRJIT_INLINE std::array<T, M> fetch_packet(const Buffer &buffer, const Index &index, const Mask &active) {
+    std::array<T, M> out;
+    if constexpr (dr::is_static_array_v<T>) {
+        for (size_t w = 0; w < dr::size_v<T>; ++w) {
+            auto v = fetch_packet<N, M, dr::value_t<T>>(buffer, index[w], active[w]);
+            for (size_t c = 0; c < M; ++c)
+                out[c][w] = v[c];
+        }
+    } else if constexpr (dr::is_jit_v<T>) {
+        auto v = dr::gather<dr::Array<T, N>>(buffer, index, active);
+        for (size_t c = 0; c < M; ++c)
+            out[c] = v[c];
+    } else {
+        for (size_t c = 0; c < M; ++c)
+            out[c] = fetch<T>(buffer, (uint32_t) N * index + (uint32_t) c, active);
+    }
+    return out;
+}
+
 /// Call into Rust; a Rust error (cxx's rust::Error) becomes a Mitsuba exception
 /// that names the plugin and carries the Rust message.
 template <typename F> auto rust_call(const char *plugin, F &&f) -> decltype(f()) {

@@ -97,10 +97,18 @@ public:
                             m_plugin, [&] { return b->jit_reduced_nodes(**m_transport, e.m, nodes); });
                     }
                 }
-                if (e.n_nodes > 0) {
+                if (e.n_nodes > 0 && e.n_models > 0) {
                     e.nodes = load_floats<DynamicBuffer<Float>>(nodes);
-                    if (e.n_models == 0)
-                        e.nodes_host = std::move(nodes); // (gather_operators: a joined lobe's row)
+                } else if (e.n_nodes > 0) { // cell j's two nodes side by side (one 8-wide read)
+                    constexpr size_t T = Bispectral::MaxTerms;
+                    static_assert(T <= 4, "a cell holds two nodes of at most 4 terms");
+                    std::vector<double> cells(8 * (e.n_nodes - 1), 0.0);
+                    for (size_t j = 0; j + 1 < e.n_nodes; ++j)
+                        for (size_t t = 0; t < T; ++t)
+                            std::tie(cells[8 * j + t], cells[8 * j + 4 + t]) =
+                                std::make_pair(nodes[j * T + t], nodes[(j + 1) * T + t]);
+                    e.nodes = load_floats<DynamicBuffer<Float>>(cells);
+                    e.nodes_host = std::move(nodes); // (gather_operators: a joined lobe's row)
                 }
                 // derivative matrices: K·K each, or per cosine node for a direction-dependent lobe
                 size_t per = (e.n_nodes > 0 && e.n_models == 0 ? e.n_nodes : 1) * m_k * m_k;
@@ -388,7 +396,9 @@ private:
         /// ([n_d][n_nodes][K][K], per unit w_0, linear between the nodes)
         DynamicBuffer<Float> node_d;
         /// A direction-dependent lobe (Bispectral::jit_reduced_nodes): the terms' weights at
-        /// the cosine nodes ([n_nodes][MaxTerms]; the terms' matrices are `m`).
+        /// the cosine nodes (the terms' matrices are `m`), per cell [n_nodes - 1][8]: its
+        /// first node's MaxTerms weights, padding to 4, its second node's (nodes_host:
+        /// [n_nodes][MaxTerms]). With models (n_models > 0): [model][n_nodes][MaxTerms].
         DynamicBuffer<Float> nodes;
         std::vector<double> nodes_host;
         uint32_t n_nodes = 0;
@@ -623,10 +633,10 @@ private:
             UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
             Float f = x - Float(j);
             Mask live = on && lobe != 0.f;
+            auto cell = dr::gather<dr::Array<Float, 8>>(e.nodes, j, live); // (both nodes at once)
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
-                w[t] = dr::lerp(fluo_detail::fetch<Float>(e.nodes, j * T + t, live),
-                                fluo_detail::fetch<Float>(e.nodes, (j + 1) * T + t, live), f) * scale;
+                w[t] = dr::lerp(cell[t], cell[4 + t], f) * scale;
             return w;
         };
         Weights w_a = weights(wa), w_b = weights(wb);
@@ -708,16 +718,14 @@ private:
                         m[k] = dr::lerp(fluo_detail::fetch<Float>(e.node_d, base + i, live),
                                         fluo_detail::fetch<Float>(e.node_d, base + KK + i, live), f) * scale;
                     }
+                    Color3f acc = apply<K>(R, m);
                     for (size_t r = 0; r < 3; ++r) {
-                        Float acc = R[r * K] * m[0];
-                        for (size_t k = 1; k < K; ++k)
-                            acc = dr::fmadd(R[r * K + k], m[k], acc);
                         if (side == 1)
-                            out_b[r * K + col] += acc;
+                            out_b[r * K + col] += acc[r];
                         else if constexpr (Block)
-                            out_a[r * K + col] += acc;
+                            out_a[r * K + col] += acc[r];
                         else
-                            out_a[r] = dr::fmadd(acc, c[col], out_a[r]);
+                            out_a[r] = dr::fmadd(acc[r], c[col], out_a[r]);
                     }
                 }
             }
@@ -775,17 +783,13 @@ private:
                     col_a[k] = dr::fmadd(w_a[t], b, col_a[k]);
                     col_b[k] = dr::fmadd(w_b[t], b, col_b[k]);
                 }
+            Color3f acc_a = apply<K>(R, col_a), acc_b = apply<K>(R, col_b);
             for (size_t r = 0; r < 3; ++r) {
-                Float acc_a = R[r * K] * col_a[0], acc_b = R[r * K] * col_b[0];
-                for (size_t k = 1; k < K; ++k) {
-                    acc_a = dr::fmadd(R[r * K + k], col_a[k], acc_a);
-                    acc_b = dr::fmadd(R[r * K + k], col_b[k], acc_b);
-                }
                 if constexpr (Block)
-                    out_a[r * K + j] = acc_a;
+                    out_a[r * K + j] = acc_a[r];
                 else
-                    out_a[r] = dr::fmadd(acc_a, c[j], out_a[r]);
-                out_b[r * K + j] = acc_b;
+                    out_a[r] = dr::fmadd(acc_a[r], c[j], out_a[r]);
+                out_b[r * K + j] = acc_b[r];
             }
         }
         return std::make_pair(out_a, out_b);
