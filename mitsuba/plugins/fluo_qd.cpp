@@ -1285,18 +1285,21 @@ private:
         UInt32 row = (start(mo, RSpe) + (mo.joined ? UInt32(0) : mo.off - m_tables.offset())) / 2 + j * mo.n;
         Wavelength r[2][2], p[2][2]; // [row j, j + 1][node k, k + 1]
         for (uint32_t a = 0; a < 2; ++a)
-            for (uint32_t b = 0; b < 2; ++b)
-                for (size_t l = 0; l < dr::size_v<Wavelength>; ++l) {
-                    UInt32 i = row + a * mo.n + c.k[l] + b;
-                    if constexpr (dr::is_jit_v<Float>) {
-                        dr::Array<Float, 2> v = dr::gather<dr::Array<Float, 2>>(store(), i, active[l]);
+            for (size_t l = 0; l < dr::size_v<Wavelength>; ++l) {
+                UInt32 i = row + a * mo.n + c.k[l];
+                if constexpr (dr::is_jit_v<Float>) {
+                    for (uint32_t b = 0; b < 2; ++b) {
+                        dr::Array<Float, 2> v = dr::gather<dr::Array<Float, 2>>(store(), i + b, active[l]);
                         r[a][b][l] = v[0];
                         p[a][b][l] = v[1];
-                    } else {
-                        r[a][b][l] = fluo_detail::fetch<Float>(store(), 2 * i, active[l]);
-                        p[a][b][l] = fluo_detail::fetch<Float>(store(), 2 * i + 1, active[l]);
                     }
+                } else { // (both nodes' pairs: 4 floats in a row, read in place after one check)
+                    const auto &t = store();
+                    bool in = active[l] && 2 * i + 3 < t.size();
+                    for (uint32_t e = 0; e < 4; ++e)
+                        (e % 2 ? p : r)[a][e / 2][l] = in ? t.data()[2 * i + e] : fluo_detail::fetch<Float>(t, 2 * i + e, active[l]);
                 }
+            }
         auto at = [&](const Wavelength (&v)[2][2]) {
             return UnpolarizedSpectrum(dr::lerp(dr::lerp(v[0][0], v[0][1], c.f), dr::lerp(v[1][0], v[1][1], c.f), fc));
         };
