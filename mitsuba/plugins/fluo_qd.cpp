@@ -1289,9 +1289,8 @@ private:
                 UInt32 i = row + a * mo.n + c.k[l];
                 if constexpr (dr::is_jit_v<Float>) {
                     for (uint32_t b = 0; b < 2; ++b) {
-                        dr::Array<Float, 2> v = dr::gather<dr::Array<Float, 2>>(store(), i + b, active[l]);
-                        r[a][b][l] = v[0];
-                        p[a][b][l] = v[1];
+                        auto v = fluo_detail::fetch_packet<2, 2, Float>(store(), i + b, active[l]);
+                        std::tie(r[a][b][l], p[a][b][l]) = std::tie(v[0], v[1]);
                     }
                 } else { // (both nodes' pairs: 4 floats in a row, read in place after one check)
                     const auto &t = store();

@@ -633,7 +633,7 @@ private:
             UInt32 j = dr::minimum(UInt32(dr::floor(x)), e.n_nodes - 2);
             Float f = x - Float(j);
             Mask live = on && lobe != 0.f;
-            auto cell = dr::gather<dr::Array<Float, 8>>(e.nodes, j, live); // (both nodes at once)
+            auto cell = fluo_detail::fetch_packet<8, 4 + T, Float>(e.nodes, j, live); // (both nodes at once)
             Weights w;
             for (uint32_t t = 0; t < T; ++t)
                 w[t] = dr::lerp(cell[t], cell[4 + t], f) * scale;
