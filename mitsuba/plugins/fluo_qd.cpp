@@ -190,13 +190,11 @@ takes the filtered α.
 and bakes, at load and after every ``mi.traverse`` update, A_tot(θ, λ) with its running
 integral along λ and the coating's R_spe and (T_spe(1 − A_tf))² on the model's λ grid at
 65 cosines; the plugin interpolates them bilinearly per lane (within 7e-4 of A_tot's
-peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``; 0.69 MB of
+peak and 1.3e-4 of R_spe, the Rust test ``jit_tables_interpolate_the_model``; 0.97 MB of
 float tables per coating, every coating's in one array of the process, so that many
 coatings read theirs per lane from it; the grid is uniform between λmin, λQD ± 10 δλ,
-λQD and λmax, so that a lane finds its cell by arithmetic; the scalar variants, and
-textured materials in every variant, also keep R_spe and pass side by side, one 64-bit
-word per node read for both: 0.28 MB more, not for a uniform material in the JIT
-variants, which many materials may join), evaluates
+λQD and λmax, so that a lane finds its cell by arithmetic; R_spe and pass of a node and
+of the next are kept side by side, 4 floats read at once: 0.28 MB of the 0.97), evaluates
 the substrate's Fresnel factor, the microfacet lobe and the logistic emission in closed
 form (the substrate's ``uniform`` or ``irregular`` eta and k spectra, as ``material``'s
 are, read per lane from their own nodes with one cell lookup for both: Mitsuba's values,
@@ -746,10 +744,11 @@ private:
         return { m, fluo_detail::fetch<UInt32>(j.t_off, m, active), fluo_detail::fetch<UInt32>(j.t_len, m, active), g.n, g, &j };
     }
     /// The tables of a block, each [rows][n] per model: A_tot, its running integral along λ,
-    /// R_spe, pass and the smooth surface's R_tot (Rust's QdJitTables).
-    enum Table : uint32_t { ATot, Cdf, RSpe, Pass, RTot, Tables };
-    /// Where table k of model mo starts in the table store.
-    static UInt32 start(const ModelAt &mo, Table k) { return mo.off + (uint32_t) k * mo.len; }
+    /// the smooth surface's R_tot, R_spe and pass (Rust's QdJitTables). In the store, R_spe
+    /// and pass come first, as film() reads them, then the others.
+    enum Table : uint32_t { ATot, Cdf, RTot, RSpe, Pass, Tables };
+    /// Where table k (ATot, Cdf or RTot) of model mo starts in the table store.
+    static UInt32 start(const ModelAt &mo, Table k) { return mo.off + (4 + (uint32_t) k) * mo.len; }
     const FloatStorage &store() const { return m_tables.data(); }
     uint32_t grid_max(const ModelAt &mo) const { return mo.joined ? mo.joined->grids.n_max : grid_max(); }
     ModelAt model_at(const UInt32 &m, const Mask &active) const {
@@ -1274,35 +1273,21 @@ private:
         return v;
     }
 
-    /// Model mo's R_spe and pass at (cos θ, the cell), bilinear as bilinear(): the tables
-    /// hold them side by side (RSpe's place, twice its length), one read for both (a
-    /// packet gather in the JIT variants; the reads were ~0.2 of the per-vertex ratio).
+    /// Model mo's R_spe and pass at (cos θ, the cell), bilinear as bilinear(). The block
+    /// begins with 4 floats per entry e of their rows, [R_spe(e), pass(e), R_spe(e + 1),
+    /// pass(e + 1)]: one read per row (a packet gather in the JIT variants; single reads were
+    /// ~0.2 of the per-vertex ratio); a block starts at a multiple of 4, a textured
+    /// material's model mo at 4 times its place in the other tables.
     std::pair<UnpolarizedSpectrum, UnpolarizedSpectrum> film(const Float &cos_theta, const Cells &c, const ModelAt &mo,
                                                              const WaveMask &active) const {
         auto [j, fc] = rows_at(cos_theta);
-        // (in pairs: a block starts at an even place; a textured material's model mo at
-        // twice its place in the other tables)
-        UInt32 row = (start(mo, RSpe) + (mo.joined ? UInt32(0) : mo.off - m_tables.offset())) / 2 + j * mo.n;
-        Wavelength r[2][2], p[2][2]; // [row j, j + 1][node k, k + 1]
-        for (uint32_t a = 0; a < 2; ++a)
-            for (size_t l = 0; l < dr::size_v<Wavelength>; ++l) {
-                UInt32 i = row + a * mo.n + c.k[l];
-                if constexpr (dr::is_jit_v<Float>) {
-                    for (uint32_t b = 0; b < 2; ++b) {
-                        auto v = fluo_detail::fetch_packet<2, 2, Float>(store(), i + b, active[l]);
-                        std::tie(r[a][b][l], p[a][b][l]) = std::tie(v[0], v[1]);
-                    }
-                } else { // (both nodes' pairs: 4 floats in a row, read in place after one check)
-                    const auto &t = store();
-                    bool in = active[l] && 2 * i + 3 < t.size();
-                    for (uint32_t e = 0; e < 4; ++e)
-                        (e % 2 ? p : r)[a][e / 2][l] = in ? t.data()[2 * i + e] : fluo_detail::fetch<Float>(t, 2 * i + e, active[l]);
-                }
-            }
-        auto at = [&](const Wavelength (&v)[2][2]) {
-            return UnpolarizedSpectrum(dr::lerp(dr::lerp(v[0][0], v[0][1], c.f), dr::lerp(v[1][0], v[1][1], c.f), fc));
+        UInt32 row = (mo.off + (mo.joined ? UInt32(0) : 3 * (mo.off - m_tables.offset()))) / 4 + j * mo.n;
+        auto v0 = fluo_detail::fetch_packet<4, 4, Wavelength>(store(), row + c.k, active),
+             v1 = fluo_detail::fetch_packet<4, 4, Wavelength>(store(), row + mo.n + c.k, active);
+        auto at = [&](size_t e) {
+            return UnpolarizedSpectrum(dr::lerp(dr::lerp(v0[e], v0[e + 2], c.f), dr::lerp(v1[e], v1[e + 2], c.f), fc));
         };
-        return { at(r), at(p) };
+        return { at(0), at(1) };
     }
 
     /// RGB: a model's R_spe and pass at cos θ, per channel, from its rows in `t`
@@ -1527,15 +1512,20 @@ private:
         // spectral ones in the table store, one after the other
         if constexpr (is_spectral_v<Spectrum>) {
             m_len = (uint32_t) tables[ATot].size();
-            // (R_spe and pass of each node side by side in their two places: film(); an even
-            // length, so that every block of the store starts at an even place)
-            std::vector<float> block(Tables * m_len + Tables * m_len % 2, 0.f);
-            for (uint32_t k = 0; k < Tables; ++k)
-                for (uint32_t e = 0; e < m_len; ++e)
-                    block[k < RSpe || k > Pass ? k * m_len + e : RSpe * m_len + 2 * e + (k - RSpe)] = tables[k][e];
+            // (film()'s 4 floats per entry, then A_tot, its integral, R_tot; a length that is a
+            // multiple of 4, so that every block of the store starts at a multiple of 4)
+            std::vector<float> block((7 * m_len + 3) / 4 * 4, 0.f);
+            for (uint32_t e = 0; e < m_len; ++e) {
+                for (uint32_t h = 0; h < 2 && e + h < m_len; ++h)
+                    for (uint32_t k : { RSpe, Pass })
+                        block[4 * e + 2 * h + k - RSpe] = tables[k][e + h];
+                for (uint32_t k : { ATot, Cdf, RTot })
+                    block[(4 + k) * m_len + e] = tables[k][e];
+            }
             m_tables.assign(block);
-            if (m_tables.at() % 2 != 0)
-                Throw("%s: internal error: the coating's tables start at an odd place", Plugin);
+            if (m_tables.at() % 4 != 0)
+                Throw("%s: internal error: the coating's tables start at %u, not a multiple of 4", Plugin,
+                      m_tables.at());
             m_len_v = dr::opaque<UInt32>(m_len);
         } else {
             m_rgb_rows = fluo_detail::load_floats<FloatStorage>(rgb);
@@ -1578,7 +1568,7 @@ private:
     bool m_coated = false;
     /// the tables ([rows][λ] row major per model, the models' blocks concatenated at m_t_off;
     /// RGB ones [model][rows][3]) and their grids (uniform: m_grid; textured: m_grids)
-    typename fluo_detail::TableStore<Float>::Block m_tables; ///< spectral: the Tables, each m_len long
+    typename fluo_detail::TableStore<Float>::Block m_tables; ///< spectral: the Tables, each m_len long (film())
     uint32_t m_len = 0;
     UInt32 m_len_v = 0; ///< m_len, opaque
     FloatStorage m_rgb_rows; ///< RGB: the channels' R_spe and pass per model and row (rgb_rows())

@@ -67,8 +67,8 @@ DRJIT_INLINE T fetch_each(const Buffer &buffer, const Index &index, const Mask &
 
 /// The first M of the N values of entry `index` of a buffer of packets (entry i is
 /// buffer[N·i, N·i + N)), per hero wavelength where T is a Wavelength (as fetch_each): one
-/// packet read per lane in the JIT variants (Dr.Jit's packet gather), M reads in place in
-/// the scalar ones.
+/// packet read per lane in the JIT variants (Dr.Jit's packet gather), M reads in place after
+/// one range check in the scalar ones.
 template <size_t N, size_t M, typename T, typename Buffer, typename Index, typename Mask>
 DRJIT_INLINE std::array<T, M> fetch_packet(const Buffer &buffer, const Index &index, const Mask &active) {
     std::array<T, M> out;
@@ -82,9 +82,11 @@ DRJIT_INLINE std::array<T, M> fetch_packet(const Buffer &buffer, const Index &in
         auto v = dr::gather<dr::Array<T, N>>(buffer, index, active);
         for (size_t c = 0; c < M; ++c)
             out[c] = v[c];
-    } else {
+    } else { // (one range check for the M)
+        size_t at = N * (size_t) index;
         for (size_t c = 0; c < M; ++c)
-            out[c] = fetch<T>(buffer, (uint32_t) N * index + (uint32_t) c, active);
+            out[c] = active && at + M <= buffer.size() ? buffer.data()[at + c]
+                                                       : fetch<T>(buffer, (uint32_t) (at + c), active);
     }
     return out;
 }
