@@ -1147,13 +1147,13 @@ protected:
         }
         // The component: the first k with u·W̃ < Σ_{≤k} marginal (the last one with a
         // positive marginal if rounding leaves none); u rescaled within it.
-        Value target = u * total, run = 0.f, cu = 0.f, cslope = 0.f, cmu_i = 0.f, cmu_o = 0.f, csd = 1.f, cw = 0.f,
+        Value target = u * total, run = 0.f, crun = 0.f, cslope = 0.f, cmu_i = 0.f, cmu_o = 0.f, csd = 1.f, cw = 0.f,
               cweight = 0.f, chalf = 0.f;
         dr::mask_t<Value> done = !ok || !(total > 0.f);
         for (size_t k = 0; k < n; ++k) {
             const Value &w = marginal[k];
             dr::mask_t<Value> take = !done && w > 0.f;
-            cu = dr::select(take, dr::clip((target - run) / w, 0.f, 1.f), cu);
+            crun = dr::select(take, run, crun);
             cmu_i = dr::select(take, Value(mix.mu_i[k]), cmu_i);
             cmu_o = dr::select(take, Value(mix.mu_o[k]), cmu_o);
             cslope = dr::select(take, Value(mix.slope[k]), cslope);
@@ -1164,6 +1164,7 @@ protected:
             done |= take && target < run + w;
             run += w;
         }
+        Value cu = dr::clip((target - crun) / dr::maximum(cw, dr::Smallest<float>), 0.f, 1.f);
         Value mean = dr::fmadd(cslope, lambda_o - cmu_o, cmu_i), mean_d = dr::detach(mean), inv_sd = dr::rcp(csd);
         Value d = lambda_o - dr::detach(cmu_o);
         total *= dr::detach(cweight) * dr::exp(dr::detach(chalf) * d * d) / dr::maximum(cw, dr::Smallest<float>);
@@ -1212,7 +1213,7 @@ protected:
         }
         // The component: the first k with u·total < Σ_{≤k} w (the last one with w > 0 if
         // rounding leaves none); u rescaled within it.
-        Value target = u * total, run = 0.f, ca = 0.f, cb = 0.f, cmean = 0.f, csd = 1.f, cu = 0.f;
+        Value target = u * total, run = 0.f, ca = 0.f, cb = 0.f, cmean = 0.f, csd = 1.f, crun = 0.f, cw = 0.f;
         dr::mask_t<Value> done = !ok || !(total > 0.f), cmirror = false;
         for (size_t k = 0; k < n; ++k) {
             dr::mask_t<Value> take = !done && w[k] > 0.f;
@@ -1221,10 +1222,12 @@ protected:
             cmean = dr::select(take, dr::detach(mean[k]), cmean);
             csd = dr::select(take, Value(mix.cond_sd[k]), csd);
             cmirror = dr::select(take, mirror[k], cmirror);
-            cu = dr::select(take, dr::clip((target - run) / w[k], 0.f, 1.f), cu);
+            crun = dr::select(take, run, crun);
+            cw = dr::select(take, w[k], cw);
             done |= take && target < run + w[k];
             run += w[k];
         }
+        Value cu = dr::clip((target - crun) / dr::maximum(cw, dr::Smallest<float>), 0.f, 1.f);
         Value z = phi_inv<true>(dr::fmadd(cu, cb - ca, ca)); // (P(x) / mass: x's exact density)
         // (clamped to the interval in the mirrored coordinate)
         Value x = dr::clip(cmean + csd * dr::select(cmirror, -z, z), a, b);
