@@ -965,29 +965,26 @@ protected:
     /// llvm_ad_spectral vertex: 1.43 -> 1.34 of diffuse's).
     template <bool Refine, typename Value> static Value phi_inv(const Value &p_) {
         Value p = dr::clip(p_, 1e-37f, 1.f - 6e-8f);
-        auto poly = [](const Value &x, std::initializer_list<float> c) {
-            Value r = 0.f;
-            for (float v : c)
-                r = dr::fmadd(r, x, v);
-            return r;
-        };
-        // Lower tail (p < 0.02425; the upper tail by symmetry), central region.
-        dr::mask_t<Value> upper = p > 1.f - 0.02425f;
-        Value pt = dr::select(upper, 1.f - p, p);
-        Value q = dr::sqrt(-2.f * dr::log(pt));
-        Value tail = poly(q, { -7.784894002430293e-03f, -3.223964580411365e-01f, -2.400758277161838e+00f,
-                               -2.549732539343734e+00f, 4.374664141464968e+00f, 2.938163982698783e+00f }) /
-                     poly(q, { 7.784695709041462e-03f, 3.224671290700398e-01f, 2.445134137142996e+00f,
-                               3.754408661907416e+00f, 1.f });
-        tail = dr::select(upper, -tail, tail);
-        Value c = p - .5f, r = c * c;
-        Value central = c *
-                        poly(r, { -3.969683028665376e+01f, 2.209460984245205e+02f, -2.759285104469687e+02f,
-                                  1.383577518672690e+02f, -3.066479806614716e+01f, 2.506628277459239e+00f }) /
-                        poly(r, { -5.447609879822406e+01f, 1.615858368580409e+02f, -1.556989798598866e+02f,
-                                  6.680131188771972e+01f, -1.328068155288572e+01f, 1.f });
-        dr::mask_t<Value> in_tail = p < 0.02425f || upper;
-        Value z = dr::select(in_tail, tail, central);
+        // Lower tail (p < 0.02425; the upper tail by symmetry): ±n(q)/d(q), q = √(−2 log p);
+        // central region: c·n(c²)/d(c²), c = p − ½. One rational per lane, its coefficients
+        // chosen per lane (the tail's denominator has a degree less: a leading 0).
+        dr::mask_t<Value> upper = p > 1.f - 0.02425f, in_tail = p < 0.02425f || upper;
+        Value c = p - .5f;
+        Value x = dr::select(in_tail, dr::sqrt(-2.f * dr::log(dr::select(upper, 1.f - p, p))), c * c);
+        static constexpr float Num[2][6] = { { -3.969683028665376e+01f, 2.209460984245205e+02f, -2.759285104469687e+02f,
+                                               1.383577518672690e+02f, -3.066479806614716e+01f, 2.506628277459239e+00f },
+                                             { -7.784894002430293e-03f, -3.223964580411365e-01f, -2.400758277161838e+00f,
+                                               -2.549732539343734e+00f, 4.374664141464968e+00f, 2.938163982698783e+00f } },
+                               Den[2][6] = { { -5.447609879822406e+01f, 1.615858368580409e+02f, -1.556989798598866e+02f,
+                                               6.680131188771972e+01f, -1.328068155288572e+01f, 1.f },
+                                             { 0.f, 7.784695709041462e-03f, 3.224671290700398e-01f,
+                                               2.445134137142996e+00f, 3.754408661907416e+00f, 1.f } };
+        Value n = 0.f, d = 0.f;
+        for (size_t i = 0; i < 6; ++i) {
+            n = dr::fmadd(n, x, dr::select(in_tail, Value(Num[1][i]), Value(Num[0][i])));
+            d = dr::fmadd(d, x, dr::select(in_tail, Value(Den[1][i]), Value(Den[0][i])));
+        }
+        Value z = dr::select(in_tail, dr::select(upper, Value(-1.f), Value(1.f)), c) * n / d;
         if constexpr (!Refine)
             return z;
         // Newton on Φ(z) = p (relative to the smaller tail).
