@@ -1260,16 +1260,22 @@ private:
         m_tangents = std::move(t);
     }
 
-    /// bilinear() of table k, plus its tangents' (θ − detach(θ))·∂/∂θ where radius or density
-    /// carry gradients (`table`: which of Tangents' arrays, [rows][n] each).
+    /// bilinear() of table k, plus its tangents (with_tangents).
     template <typename Value>
     Value bilinear_ad(Table k, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
                       const CellOf<Value> &c, const ModelAt &mo, const dr::mask_t<Value> &active) const {
-        Value v = bilinear(store(), start(mo, k), cos_theta, c, mo, active);
+        return with_tangents(bilinear(store(), start(mo, k), cos_theta, c, mo, active), table, cos_theta, c, mo,
+                             active);
+    }
+    /// v plus the tangents' (θ − detach(θ))·∂/∂θ at (cos θ, the cell) where radius or density
+    /// carry gradients (`table`: which of Tangents' arrays, [rows][n] each).
+    template <typename Out, typename Value>
+    Out with_tangents(Out v, std::array<FloatStorage, 2> Tangents::*table, const Float &cos_theta,
+                      const CellOf<Value> &c, const ModelAt &mo, const dr::mask_t<Value> &active) const {
         if (const Tangents *tg = mo.joined ? nullptr : tangents())
             for (size_t p = 0; p < 2; ++p)
                 if (wants(p))
-                    v = dr::fmadd(delta(p), bilinear((tg->*table)[p], UInt32(0), cos_theta, c, mo, active), v);
+                    v = dr::fmadd(Out(delta(p)), Out(bilinear((tg->*table)[p], UInt32(0), cos_theta, c, mo, active)), v);
         return v;
     }
 
@@ -1369,14 +1375,8 @@ private:
             if constexpr (is_spectral_v<Spectrum>) {
                 const Cells &c = h.cells[i / h.per_radius];
                 std::tie(r_spe, pass) = film(cos_m, c, h.model[i], WaveMask(on));
-                if (const Tangents *tg = h.model[i].joined ? nullptr : tangents())
-                    for (size_t p = 0; p < 2; ++p)
-                        if (wants(p)) {
-                            r_spe += delta(p) * UnpolarizedSpectrum(
-                                                    bilinear(tg->r_spe[p], UInt32(0), cos_m, c, h.model[i], WaveMask(on)));
-                            pass += delta(p) * UnpolarizedSpectrum(
-                                                   bilinear(tg->pass[p], UInt32(0), cos_m, c, h.model[i], WaveMask(on)));
-                        }
+                r_spe = with_tangents(r_spe, &Tangents::r_spe, cos_m, c, h.model[i], WaveMask(on));
+                pass = with_tangents(pass, &Tangents::pass, cos_m, c, h.model[i], WaveMask(on));
             } else {
                 const JoinedTables *j = h.model[i].joined;
                 std::tie(r_spe, pass) = rgb_rows(j ? j->rgb_rows : m_rgb_rows, cos_m, h.model[i], on);
